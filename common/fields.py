@@ -1,0 +1,110 @@
+"""Field validators for messages: each checks one value and returns it normalised (lists -> tuples,
+ints -> floats where a float is meant). They raise MessageError naming the field, nothing else.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Collection
+from typing import Any
+
+from dynqos.common.errors import KeyExprError, MessageError
+from dynqos.common.keys import check_uav_id
+
+Validator = Callable[[str, Any], Any]
+
+INT64_MAX = 2**63 - 1
+
+
+def uav_id(name: str, value: Any) -> str:
+    try:
+        return check_uav_id(value)
+    except KeyExprError as exc:
+        raise MessageError(name, str(exc)) from None
+
+
+def integer(lo: int = 0, hi: int = INT64_MAX) -> Validator:
+    def check(name: str, value: Any) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise MessageError(name, f"expected an integer, got {type(value).__name__}")
+        if not lo <= value <= hi:
+            raise MessageError(name, f"{value} is outside [{lo}, {hi}]")
+        return value
+
+    return check
+
+
+def real(lo: float = -math.inf, hi: float = math.inf) -> Validator:
+    def check(name: str, value: Any) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise MessageError(name, f"expected a number, got {type(value).__name__}")
+        number = float(value)
+        if not math.isfinite(number):
+            raise MessageError(name, f"expected a finite number, got {number}")
+        if not lo <= number <= hi:
+            raise MessageError(name, f"{number:g} is outside [{lo:g}, {hi:g}]")
+        return number
+
+    return check
+
+
+def boolean(name: str, value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise MessageError(name, f"expected true or false, got {type(value).__name__}")
+    return value
+
+
+def text(max_len: int) -> Validator:
+    def check(name: str, value: Any) -> str:
+        if not isinstance(value, str):
+            raise MessageError(name, f"expected a string, got {type(value).__name__}")
+        if len(value) > max_len:
+            raise MessageError(name, f"string of {len(value)} characters exceeds {max_len}")
+        return value
+
+    return check
+
+
+def choice(options: Collection[str]) -> Validator:
+    allowed = frozenset(options)
+
+    def check(name: str, value: Any) -> str:
+        if not isinstance(value, str) or value not in allowed:
+            shown = value[:40] if isinstance(value, str) else type(value).__name__
+            raise MessageError(name, f"{shown!r} is not one of {sorted(allowed)}")
+        return value
+
+    return check
+
+
+def blob(max_len: int) -> Validator:
+    def check(name: str, value: Any) -> bytes:
+        if not isinstance(value, (bytes, bytearray, memoryview)):
+            raise MessageError(name, f"expected bytes, got {type(value).__name__}")
+        if len(value) > max_len:
+            raise MessageError(name, f"{len(value)} bytes exceed the limit of {max_len}")
+        return bytes(value) if not isinstance(value, bytes) else value
+
+    return check
+
+
+def optional(inner: Validator) -> Validator:
+    def check(name: str, value: Any) -> Any:
+        return None if value is None else inner(name, value)
+
+    return check
+
+
+def sequence(item: Validator, min_len: int = 0, max_len: int = 1 << 16) -> Validator:
+    def check(name: str, value: Any) -> tuple[Any, ...]:
+        if not isinstance(value, (list, tuple)):
+            raise MessageError(name, f"expected a list, got {type(value).__name__}")
+        if not min_len <= len(value) <= max_len:
+            raise MessageError(name, f"length {len(value)} is outside [{min_len}, {max_len}]")
+        return tuple(item(f"{name}[{i}]", v) for i, v in enumerate(value))
+
+    return check
+
+
+def vector(length: int, lo: float = -math.inf, hi: float = math.inf) -> Validator:
+    return sequence(real(lo, hi), length, length)

@@ -1,0 +1,116 @@
+"""Key expressions: every zenoh key dynqos uses is built and parsed here (DESIGN section 2).
+
+A 5G QoS flow is a zenoh link with a priority range; the key names the flow the publisher was
+declared on, so a receiver subscribes to both flows with one wildcard:
+
+    dynqos/<uav>/up/<flow>/<stream>       flow in {default, priority}
+    dynqos/<uav>/up/*/<stream>            what the edge subscribes to
+    dynqos/<uav>/down/cmd                 MPC -> drone commands
+    dynqos/<uav>/down/ack/camera          detector -> drone camera acks
+    dynqos/<uav>/down/detections          detector -> drone detections
+    dynqos/<uav>/ref                      planner -> MPC reference
+"""
+
+from __future__ import annotations
+
+import enum
+import re
+from dataclasses import dataclass
+
+from dynqos.common.errors import KeyExprError
+
+ROOT = "dynqos"
+UAV_ID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,32}")
+
+
+class Flow(str, enum.Enum):
+    DEFAULT = "default"
+    PRIORITY = "priority"
+
+
+class Stream(str, enum.Enum):
+    STATE = "state"
+    CAMERA_RGB = "camera/rgb"
+    CAMERA_DEPTH = "camera/depth"
+    STATUS = "status"
+
+
+class Downlink(str, enum.Enum):
+    COMMAND = "down/cmd"
+    CAMERA_ACK = "down/ack/camera"
+    DETECTIONS = "down/detections"
+    REFERENCE = "ref"
+
+
+def check_uav_id(uav: object) -> str:
+    """Return `uav` if it is a valid drone id, else raise KeyExprError saying why."""
+    if not isinstance(uav, str):
+        raise KeyExprError(f"drone id must be a string, got {type(uav).__name__}")
+    if not UAV_ID_PATTERN.fullmatch(uav):
+        raise KeyExprError(f"drone id {uav[:40]!r} is invalid: use 1 to 32 characters from A-Z a-z 0-9 _ -")
+    return uav
+
+
+def uplink(uav: str, flow: Flow, stream: Stream) -> str:
+    return f"{ROOT}/{check_uav_id(uav)}/up/{Flow(flow).value}/{Stream(stream).value}"
+
+
+def uplink_any_flow(uav: str, stream: Stream) -> str:
+    """What a receiver subscribes to: one stream of one drone, on both flows."""
+    return f"{ROOT}/{check_uav_id(uav)}/up/*/{Stream(stream).value}"
+
+
+def uplink_all_drones(stream: Stream) -> str:
+    """One stream of every drone on both flows (the MPC discovers drones this way)."""
+    return f"{ROOT}/*/up/*/{Stream(stream).value}"
+
+
+def downlink(uav: str, kind: Downlink) -> str:
+    return f"{ROOT}/{check_uav_id(uav)}/{Downlink(kind).value}"
+
+
+def downlink_all_drones(kind: Downlink) -> str:
+    return f"{ROOT}/*/{Downlink(kind).value}"
+
+
+@dataclass(frozen=True, slots=True)
+class UplinkKey:
+    uav: str
+    flow: Flow
+    stream: Stream
+
+
+@dataclass(frozen=True, slots=True)
+class DownlinkKey:
+    uav: str
+    kind: Downlink
+
+
+_STREAMS = {s.value: s for s in Stream}
+_FLOWS = {f.value: f for f in Flow}
+_DOWNLINKS = {d.value: d for d in Downlink}
+
+
+def parse(key: str) -> UplinkKey | DownlinkKey:
+    """Parse a concrete (wildcard-free) dynqos key; raise KeyExprError naming what is wrong."""
+    if not isinstance(key, str):
+        raise KeyExprError(f"key must be a string, got {type(key).__name__}")
+    parts = key.split("/")
+    if len(parts) < 3 or parts[0] != ROOT:
+        raise KeyExprError(f"key {key[:80]!r} is not a dynqos key (expected '{ROOT}/<uav>/...')")
+    uav = check_uav_id(parts[1])
+    rest = parts[2:]
+    if rest[0] == "up":
+        if len(rest) < 3:
+            raise KeyExprError(f"key {key!r}: uplink key needs a flow and a stream")
+        flow = _FLOWS.get(rest[1])
+        if flow is None:
+            raise KeyExprError(f"key {key!r}: unknown flow {rest[1]!r} (expected default or priority)")
+        stream = _STREAMS.get("/".join(rest[2:]))
+        if stream is None:
+            raise KeyExprError(f"key {key!r}: unknown stream {'/'.join(rest[2:])!r}")
+        return UplinkKey(uav, flow, stream)
+    kind = _DOWNLINKS.get("/".join(rest))
+    if kind is None:
+        raise KeyExprError(f"key {key!r}: unknown key kind {'/'.join(rest)!r}")
+    return DownlinkKey(uav, kind)

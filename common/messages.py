@@ -1,0 +1,345 @@
+"""Messages between drone and edge (DESIGN section 3) and their msgpack codec.
+
+Every payload is a msgpack map carrying the message type `t`, the schema version `v` and the
+fields. `decode` validates every field and raises only DecodeError, whatever bytes arrive, so a
+service can count a bad message and go on. Timestamps are the sender's monotonic nanoseconds:
+no clock synchronisation is assumed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar, TypeVar
+
+import msgpack
+
+from dynqos.common import fields as f
+from dynqos.common.errors import DecodeError, MessageError
+
+SCHEMA_VERSION = 1
+MAX_MESSAGE_BYTES = 24 * 1024 * 1024
+MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
+MAX_HORIZON = 64
+MAX_REFERENCE_SAMPLES = 400
+MAX_DETECTIONS = 64
+
+POSITION_LIMIT_M = 1e5
+VELOCITY_LIMIT_MPS = 1e3
+ACCEL_LIMIT_MPS2 = 100.0
+LATENCY_LIMIT_MS = 1e7
+
+STATES = ("q1", "q2", "q3", "q4", "q5", "q6", "qA")
+FLOWS = ("default", "priority")
+CONTROL_SOURCES = ("edge", "fallback")
+CAMERA_KINDS = ("rgb", "depth")
+CAMERA_ENCODINGS = ("jpeg", "png", "png16", "zstd16", "raw8", "raw16")
+
+_position = f.vector(3, -POSITION_LIMIT_M, POSITION_LIMIT_M)
+_velocity = f.vector(3, -VELOCITY_LIMIT_MPS, VELOCITY_LIMIT_MPS)
+_angle = f.real(-100.0, 100.0)
+_probability = f.real(0.0, 1.0)
+_latency_ms = f.real(0.0, LATENCY_LIMIT_MS)
+
+M = TypeVar("M", bound="Message")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Message:
+    """Base of all messages: validates and normalises every field when constructed."""
+
+    TYPE: ClassVar[str] = ""
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {}
+
+    uav: str
+    seq: int
+
+    def __post_init__(self) -> None:
+        for name, check in self.SCHEMA.items():
+            object.__setattr__(self, name, check(name, getattr(self, name)))
+        self._check()
+
+    def _check(self) -> None:
+        """Cross-field rules; override where a message has them."""
+
+
+_COMMON: dict[str, f.Validator] = {"uav": f.uav_id, "seq": f.integer()}
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class State(Message):
+    """The drone's state from its flight controller, in local NED."""
+
+    TYPE: ClassVar[str] = "State"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **_COMMON,
+        "stamp_ns": f.integer(),
+        "pos_m": _position,
+        "vel_mps": _velocity,
+        "quat": f.vector(4, -1.0001, 1.0001),
+        "rtt_est_ms": _latency_ms,
+        "mode": f.text(32),
+    }
+
+    stamp_ns: int
+    pos_m: tuple[float, float, float]
+    vel_mps: tuple[float, float, float]
+    quat: tuple[float, float, float, float]
+    rtt_est_ms: float = 0.0
+    mode: str = ""
+
+    def _check(self) -> None:
+        norm = math.sqrt(sum(q * q for q in self.quat))
+        if not 0.9 <= norm <= 1.1:
+            raise MessageError("quat", f"not a unit quaternion (norm {norm:.3f})")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Command(Message):
+    """A short horizon of acceleration setpoints; setpoint k applies at state_stamp_ns + k * dt_s
+    on the drone's own clock, so a late command is still usable and no clock sync is needed."""
+
+    TYPE: ClassVar[str] = "Command"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **_COMMON,
+        "state_seq": f.integer(),
+        "state_stamp_ns": f.integer(),
+        "edge_hold_ns": f.integer(),
+        "dt_s": f.real(1e-4, 1.0),
+        "accel_mps2": f.sequence(f.vector(3, -ACCEL_LIMIT_MPS2, ACCEL_LIMIT_MPS2), 1, MAX_HORIZON),
+        "yaw_rad": f.sequence(_angle, 1, MAX_HORIZON),
+    }
+
+    state_seq: int
+    state_stamp_ns: int
+    edge_hold_ns: int
+    dt_s: float
+    accel_mps2: tuple[tuple[float, float, float], ...]
+    yaw_rad: tuple[float, ...]
+
+    def _check(self) -> None:
+        if len(self.yaw_rad) != len(self.accel_mps2):
+            raise MessageError(
+                "yaw_rad", f"length {len(self.yaw_rad)} differs from accel_mps2 ({len(self.accel_mps2)})"
+            )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CameraFrame(Message):
+    """One encoded image; depth is 16-bit with `depth_unit_m` metres per count."""
+
+    TYPE: ClassVar[str] = "CameraFrame"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **_COMMON,
+        "stamp_ns": f.integer(),
+        "kind": f.choice(CAMERA_KINDS),
+        "encoding": f.choice(CAMERA_ENCODINGS),
+        "width": f.integer(1, 8192),
+        "height": f.integer(1, 8192),
+        "intrinsics": f.vector(4, 0.0, 1e6),
+        "depth_unit_m": f.real(1e-6, 1.0),
+        "payload": f.blob(MAX_PAYLOAD_BYTES),
+    }
+
+    stamp_ns: int
+    kind: str
+    encoding: str
+    width: int
+    height: int
+    intrinsics: tuple[float, float, float, float]
+    payload: bytes
+    depth_unit_m: float = 0.001
+
+    def _check(self) -> None:
+        if self.intrinsics[0] <= 0.0 or self.intrinsics[1] <= 0.0:
+            raise MessageError("intrinsics", "focal lengths fx and fy must be > 0")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CameraAck(Message):
+    """Sent by the detector on arrival, before any processing, so the drone measures the network."""
+
+    TYPE: ClassVar[str] = "CameraAck"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **_COMMON,
+        "frame_seq": f.integer(),
+        "kind": f.choice(CAMERA_KINDS),
+        "stamp_ns": f.integer(),
+        "edge_hold_ns": f.integer(),
+    }
+
+    frame_seq: int
+    kind: str
+    stamp_ns: int
+    edge_hold_ns: int
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Detections(Message):
+    """Circles found in one RGB frame: pixel circles, and where depth allowed, 3-D centres and radii
+    in the camera frame (metres); `centers_m[i]` is None where depth had no reading."""
+
+    TYPE: ClassVar[str] = "Detections"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **_COMMON,
+        "frame_seq": f.integer(),
+        "stamp_ns": f.integer(),
+        "circles_px": f.sequence(f.vector(3, -1e5, 1e5), 0, MAX_DETECTIONS),
+        "centers_m": f.sequence(
+            f.optional(f.vector(4, -POSITION_LIMIT_M, POSITION_LIMIT_M)), 0, MAX_DETECTIONS
+        ),
+    }
+
+    frame_seq: int
+    stamp_ns: int
+    circles_px: tuple[tuple[float, float, float], ...] = ()
+    centers_m: tuple[tuple[float, float, float, float] | None, ...] = ()
+
+    def _check(self) -> None:
+        if len(self.centers_m) != len(self.circles_px):
+            raise MessageError("centers_m", "must have one entry (or null) per circle in circles_px")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Reference(Message):
+    """Trajectory samples from the planner: sample k is due at stamp_ns + k * dt_s (edge clock)."""
+
+    TYPE: ClassVar[str] = "Reference"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **_COMMON,
+        "stamp_ns": f.integer(),
+        "dt_s": f.real(1e-4, 10.0),
+        "pos_m": f.sequence(_position, 1, MAX_REFERENCE_SAMPLES),
+        "vel_mps": f.sequence(_velocity, 1, MAX_REFERENCE_SAMPLES),
+        "yaw_rad": f.sequence(_angle, 1, MAX_REFERENCE_SAMPLES),
+        "mission": f.text(64),
+    }
+
+    stamp_ns: int
+    dt_s: float
+    pos_m: tuple[tuple[float, float, float], ...]
+    vel_mps: tuple[tuple[float, float, float], ...]
+    yaw_rad: tuple[float, ...]
+    mission: str = ""
+
+    def _check(self) -> None:
+        n = len(self.pos_m)
+        for name in ("vel_mps", "yaw_rad"):
+            if len(getattr(self, name)) != n:
+                raise MessageError(name, f"must have {n} samples like pos_m")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SupervisorStatus(Message):
+    """What the supervisor decided this tick and why; t_*_ms and risk are None before any sample."""
+
+    TYPE: ClassVar[str] = "SupervisorStatus"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **_COMMON,
+        "stamp_ns": f.integer(),
+        "state": f.choice(STATES),
+        "flow": f.choice(FLOWS),
+        "camera_rate_factor": f.real(0.0, 1.0),
+        "control_source": f.choice(CONTROL_SOURCES),
+        "latency": f.choice(("LL", "HL")),
+        "risk": f.choice(("LR", "MR", "HR")),
+        "watchdog": f.boolean,
+        "t_cam_ms": f.optional(_latency_ms),
+        "t_cc_ms": f.optional(_latency_ms),
+        "spaciousness_m": f.optional(f.real(0.0, 1e6)),
+        "p_cam": _probability,
+        "p_cc": _probability,
+        "p_lat": _probability,
+        "p_cs": _probability,
+        "prev_state": f.choice(STATES),
+        "cause": f.text(200),
+        "changed_ns": f.integer(),
+    }
+
+    stamp_ns: int
+    state: str
+    flow: str
+    camera_rate_factor: float
+    control_source: str
+    latency: str
+    risk: str
+    watchdog: bool
+    t_cam_ms: float | None
+    t_cc_ms: float | None
+    spaciousness_m: float | None
+    p_cam: float
+    p_cc: float
+    p_lat: float
+    p_cs: float
+    prev_state: str
+    cause: str
+    changed_ns: int
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.TYPE: cls for cls in (State, Command, CameraFrame, CameraAck, Detections, Reference, SupervisorStatus)
+}
+
+
+def encode(message: Message) -> bytes:
+    body: dict[str, Any] = {"t": message.TYPE, "v": SCHEMA_VERSION}
+    for field in fields(message):
+        body[field.name] = getattr(message, field.name)
+    packed: bytes = msgpack.packb(body, use_bin_type=True)
+    return packed
+
+
+def _unpack(data: Any) -> Any:
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise DecodeError("<payload>", f"expected bytes, got {type(data).__name__}")
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise DecodeError("<payload>", f"{len(data)} bytes exceed the limit of {MAX_MESSAGE_BYTES}")
+    try:
+        return msgpack.unpackb(
+            data,
+            raw=False,
+            strict_map_key=True,
+            max_bin_len=MAX_PAYLOAD_BYTES,
+            max_str_len=4096,
+            max_array_len=4096,
+            max_map_len=64,
+            max_ext_len=0,
+        )
+    except Exception as exc:  # msgpack raises many types (ExtraData, FormatError, ValueError, ...)
+        raise DecodeError("<payload>", f"not valid msgpack ({type(exc).__name__}: {exc})"[:200]) from None
+
+
+def decode(data: Any) -> Message:
+    """Bytes -> a validated message. Raises DecodeError naming the field, and nothing else."""
+    body = _unpack(data)
+    if not isinstance(body, dict):
+        raise DecodeError("<payload>", f"expected a map, got {type(body).__name__}")
+    type_name = body.pop("t", None)
+    cls = MESSAGE_TYPES.get(type_name) if isinstance(type_name, str) else None
+    if cls is None:
+        raise DecodeError("t", f"unknown message type {str(type_name)[:40]!r}")
+    version = body.pop("v", None)
+    if version != SCHEMA_VERSION or isinstance(version, bool):
+        raise DecodeError(
+            "v", f"schema version {str(version)[:20]!r} is not supported (expected {SCHEMA_VERSION})"
+        )
+    expected = {field.name for field in fields(cls)}
+    for name in body:
+        if name not in expected:
+            raise DecodeError(name, f"unknown field in {cls.TYPE}")
+    try:
+        return cls(**body)
+    except MessageError as exc:
+        raise DecodeError(exc.field, exc.reason) from None
+    except TypeError as exc:  # a required field is missing
+        missing = sorted(expected - set(body))
+        raise DecodeError(missing[0] if missing else "<message>", f"missing in {cls.TYPE} ({exc})") from None
+    except Exception as exc:  # last line of defence: the contract is DecodeError only
+        raise DecodeError("<message>", f"{type(exc).__name__}: {exc}"[:200]) from None
+
+
+def decode_as(data: Any, cls: type[M]) -> M:
+    message = decode(data)
+    if not isinstance(message, cls):
+        raise DecodeError("t", f"expected {cls.TYPE}, got {message.TYPE}")
+    return message

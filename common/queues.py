@@ -1,0 +1,51 @@
+"""A bounded hand-off queue between zenoh callback threads and the code that consumes messages.
+
+Zenoh callbacks must never block, so `put` never waits: when the queue is full the oldest item is
+dropped (the newest state or command is the one worth having) and the drop is counted.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
+
+
+class BoundedQueue(Generic[T]):
+    def __init__(self, maxlen: int) -> None:
+        if maxlen < 1:
+            raise ValueError(f"maxlen must be >= 1, got {maxlen}")
+        self._items: deque[T] = deque(maxlen=maxlen)
+        self._ready = threading.Condition()
+        self.dropped = 0
+        self.put_count = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def put(self, item: T) -> None:
+        with self._ready:
+            if len(self._items) == self._items.maxlen:
+                self.dropped += 1
+            self._items.append(item)
+            self.put_count += 1
+            self._ready.notify()
+
+    def get(self, timeout_s: float | None = None) -> T | None:
+        """The oldest item, waiting up to timeout_s (None: forever); None on timeout."""
+        with self._ready:
+            if not self._ready.wait_for(lambda: len(self._items) > 0, timeout=timeout_s):
+                return None
+            return self._items.popleft()
+
+    def get_nowait(self) -> T | None:
+        with self._ready:
+            return self._items.popleft() if self._items else None
+
+    def drain(self) -> list[T]:
+        with self._ready:
+            items = list(self._items)
+            self._items.clear()
+            return items

@@ -1,0 +1,295 @@
+"""The one place that turns config into zenoh sessions, and the thin publish/subscribe seam.
+
+A 5G QoS flow is a zenoh link with a priority range to its own router port (DESIGN section 2):
+the drone's session is a *peer* that connects to `tcp/<edge>:7447?prio=4-7` (default flow) and
+`tcp/<edge>:7448?prio=1-3#dscp=0xb8` (priority flow), listens on nothing and scouts nothing, so
+every byte crosses exactly those two links. Client mode would open only the first endpoint.
+`transport/unicast/max_links` must be >= 2 on both ends or the second link silently never opens.
+Edge services are clients of the router. Shared memory is off by default: on one host it would
+let large payloads bypass the links (and the cell emulator).
+
+Pure code never imports zenoh: it sees `Bus`, `Publisher` and `BoundedQueue`. Subscriber
+callbacks only decode and hand off to a bounded queue; they never block.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import logging
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.config import ZenohConfig
+from dynqos.common.errors import DecodeError, TransportError
+from dynqos.common.messages import Message, decode, encode
+from dynqos.common.queues import BoundedQueue
+
+log = logging.getLogger(__name__)
+
+
+class Role(str, enum.Enum):
+    DRONE = "drone"  # peer, connects to both flow ports, listens on nothing
+    EDGE = "edge"  # client of the router
+    ROUTER = "router"  # listens on both flow ports
+
+
+class Priority(enum.IntEnum):
+    """Zenoh's priorities, numbered as zenoh numbers them (1 = REAL_TIME)."""
+
+    REAL_TIME = 1
+    INTERACTIVE_HIGH = 2
+    INTERACTIVE_LOW = 3
+    DATA_HIGH = 4
+    DATA = 5
+    DATA_LOW = 6
+    BACKGROUND = 7
+
+
+DEFAULT_FLOW_PRIORITIES = (4, 7)
+PRIORITY_FLOW_PRIORITIES = (1, 3)
+
+_ZENOH_PRIORITY = {
+    Priority.REAL_TIME: zenoh.Priority.REAL_TIME,
+    Priority.INTERACTIVE_HIGH: zenoh.Priority.INTERACTIVE_HIGH,
+    Priority.INTERACTIVE_LOW: zenoh.Priority.INTERACTIVE_LOW,
+    Priority.DATA_HIGH: zenoh.Priority.DATA_HIGH,
+    Priority.DATA: zenoh.Priority.DATA,
+    Priority.DATA_LOW: zenoh.Priority.DATA_LOW,
+    Priority.BACKGROUND: zenoh.Priority.BACKGROUND,
+}
+
+
+def _host(host: str) -> str:
+    return f"[{host}]" if ":" in host and not host.startswith("[") else host
+
+
+def default_flow_endpoint(cfg: ZenohConfig, host: str | None = None, port: int | None = None) -> str:
+    lo, hi = DEFAULT_FLOW_PRIORITIES
+    endpoint = f"tcp/{_host(host or cfg.edge_host)}:{port or cfg.default_port}?prio={lo}-{hi}"
+    if cfg.bulk_sndbuf_bytes:
+        endpoint += f"#so_sndbuf={cfg.bulk_sndbuf_bytes}"
+    return endpoint
+
+
+def priority_flow_endpoint(cfg: ZenohConfig, host: str | None = None, port: int | None = None) -> str:
+    lo, hi = PRIORITY_FLOW_PRIORITIES
+    endpoint = f"tcp/{_host(host or cfg.edge_host)}:{port or cfg.priority_port}?prio={lo}-{hi}"
+    return endpoint + f"#dscp={cfg.priority_dscp:#x}"
+
+
+def router_endpoints(cfg: ZenohConfig) -> list[str]:
+    host = _host(cfg.router_listen_host)
+    return [f"tcp/{host}:{cfg.default_port}", f"tcp/{host}:{cfg.priority_port}"]
+
+
+def endpoints(
+    cfg: ZenohConfig,
+    role: Role,
+    connect: Sequence[str] | None = None,
+    listen: Sequence[str] | None = None,
+) -> tuple[list[str], list[str]]:
+    """(connect, listen) endpoints for `role`; explicit lists replace those derived from cfg."""
+    if connect is None:
+        if role is Role.DRONE:
+            connect = [default_flow_endpoint(cfg), priority_flow_endpoint(cfg)]
+        elif role is Role.EDGE:
+            connect = [f"tcp/{_host(cfg.edge_host)}:{cfg.default_port}"]
+        else:
+            connect = []
+    if listen is None:
+        listen = router_endpoints(cfg) if role is Role.ROUTER else []
+    return list(connect), list(listen)
+
+
+def session_config(
+    cfg: ZenohConfig,
+    role: Role,
+    *,
+    connect: Sequence[str] | None = None,
+    listen: Sequence[str] | None = None,
+) -> zenoh.Config:
+    """A zenoh.Config for `role`; `connect`/`listen` replace the endpoints derived from cfg."""
+    connect, listen = endpoints(cfg, role, connect, listen)
+    mode = {Role.DRONE: "peer", Role.EDGE: "client", Role.ROUTER: "router"}[role]
+    settings: dict[str, Any] = {
+        "mode": mode,
+        "connect/endpoints": list(connect),
+        "listen/endpoints": list(listen),
+        "scouting/multicast/enabled": False,
+        "scouting/gossip/enabled": False,
+        "transport/unicast/max_links": cfg.max_links,
+        "transport/shared_memory/enabled": cfg.shared_memory,
+        "connect/timeout_ms": round(cfg.connect_timeout_s * 1000),
+        "connect/exit_on_failure": True,
+    }
+    zcfg = zenoh.Config()
+    for key, value in settings.items():
+        zcfg.insert_json5(key, json.dumps(value))
+    return zcfg
+
+
+@dataclass(frozen=True, slots=True)
+class LinkInfo:
+    src: str
+    dst: str
+    priorities: tuple[int, int] | None
+
+
+@dataclass(frozen=True, slots=True)
+class Received:
+    """One decoded message as handed from a zenoh callback to the consumer."""
+
+    key: str
+    message: Message
+    arrival_ns: int
+
+
+class SubscriptionStats:
+    """Counters of one subscription; written by the callback thread, read by anyone."""
+
+    def __init__(self) -> None:
+        self.received = 0
+        self.rejected = 0
+        self.last_error: str | None = None
+
+
+class Publisher:
+    """Publishes messages on one key with a priority fixed at declaration (zenoh's rule)."""
+
+    def __init__(self, inner: zenoh.Publisher, key: str) -> None:
+        self._inner = inner
+        self.key = key
+        self.sent = 0
+
+    def put(self, message: Message) -> None:
+        self.put_bytes(encode(message))
+
+    def put_bytes(self, data: bytes) -> None:
+        self._inner.put(data)
+        self.sent += 1
+
+    def wait_matched(self, timeout_s: float) -> bool:
+        """Wait until at least one subscriber matches this key (False on timeout).
+
+        Zenoh drops a put that no subscriber matches, so a sender that must not lose its first
+        messages waits here instead of sleeping a guessed time.
+        """
+        matched = threading.Event()
+
+        def on_status(status: Any) -> None:
+            if status.matching:
+                matched.set()
+
+        listener = self._inner.declare_matching_listener(on_status)
+        try:
+            return self._inner.matching_status or matched.wait(timeout_s)
+        finally:
+            listener.undeclare()  # type: ignore[no-untyped-call]
+
+    def close(self) -> None:
+        self._inner.undeclare()  # type: ignore[no-untyped-call]
+
+
+class Bus:
+    """A zenoh session seen through the few operations dynqos needs."""
+
+    def __init__(self, session: zenoh.Session, clock: Clock | None = None) -> None:
+        self._session = session
+        self._clock = clock or MonotonicClock()
+        self._subscribers: list[Any] = []
+        self._lock = threading.Lock()
+
+    @property
+    def session(self) -> zenoh.Session:
+        return self._session
+
+    def publisher(
+        self, key: str, priority: Priority, *, drop_when_congested: bool = False, express: bool = False
+    ) -> Publisher:
+        congestion = zenoh.CongestionControl.DROP if drop_when_congested else zenoh.CongestionControl.BLOCK
+        inner = self._session.declare_publisher(
+            key, priority=_ZENOH_PRIORITY[priority], congestion_control=congestion, express=express
+        )
+        return Publisher(inner, key)
+
+    def subscribe(
+        self,
+        key_expr: str,
+        queue: BoundedQueue[Received],
+        *,
+        decoder: Callable[[bytes], Message] = decode,
+    ) -> SubscriptionStats:
+        """Decode every sample on key_expr into `queue`; bad payloads are counted, never raised."""
+        stats = SubscriptionStats()
+        clock = self._clock
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            arrival_ns = clock.now_ns()
+            key = str(sample.key_expr)
+            try:
+                message = decoder(sample.payload.to_bytes())
+            except DecodeError as exc:
+                stats.rejected += 1
+                stats.last_error = str(exc)
+                if stats.rejected == 1 or stats.rejected % 1000 == 0:
+                    log.warning("rejected message on %s (%d so far): %s", key, stats.rejected, exc)
+                return
+            stats.received += 1
+            queue.put(Received(key, message, arrival_ns))
+
+        subscriber = self._session.declare_subscriber(key_expr, on_sample)
+        with self._lock:
+            self._subscribers.append(subscriber)
+        return stats
+
+    def links(self) -> list[LinkInfo]:
+        return [LinkInfo(link.src, link.dst, link.priorities) for link in self._session.info.links()]
+
+    def close(self) -> None:
+        with self._lock:
+            subscribers, self._subscribers = self._subscribers, []
+        for subscriber in subscribers:
+            subscriber.undeclare()
+        self._session.close()  # type: ignore[no-untyped-call]
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+
+def open_session(
+    cfg: ZenohConfig,
+    role: Role,
+    *,
+    connect: Sequence[str] | None = None,
+    listen: Sequence[str] | None = None,
+) -> zenoh.Session:
+    """Open a zenoh session, turning zenoh's errors into one TransportError that names the endpoints."""
+    zcfg = session_config(cfg, role, connect=connect, listen=listen)
+    try:
+        return zenoh.open(zcfg)
+    except zenoh.ZError as exc:
+        connect_to, listen_on = endpoints(cfg, role, connect, listen)
+        first_line = str(exc).split(" at /", 1)[0]
+        raise TransportError(
+            f"cannot open zenoh {role.value} session (connect {connect_to}, listen {listen_on}): {first_line}"
+        ) from None
+
+
+def open_bus(
+    cfg: ZenohConfig,
+    role: Role,
+    *,
+    connect: Sequence[str] | None = None,
+    listen: Sequence[str] | None = None,
+    clock: Clock | None = None,
+) -> Bus:
+    return Bus(open_session(cfg, role, connect=connect, listen=listen), clock)

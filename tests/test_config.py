@@ -1,0 +1,148 @@
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dynqos.cli import main
+from dynqos.common.config import Config, load_config, to_toml
+from dynqos.common.errors import ConfigError
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "dynqos.toml"
+    path.write_text(text)
+    return path
+
+
+def test_defaults_are_the_papers() -> None:
+    config = load_config()
+    sup = config.supervisor
+    assert sup.mu == (3.0, 5.0, 5.0)
+    assert sup.rho == (61.0, 27.0, 3.0)
+    assert sup.w == (0.35, 0.65)
+    assert sup.window == (10, 50)
+    assert (sup.risk_high_m, sup.risk_medium_m) == (3.0, 5.0)
+    assert sup.watchdog_s == pytest.approx(3 * config.control.t_mpc_s)
+    assert config.control.t_mpc_s == 0.05
+    assert (config.zenoh.default_port, config.zenoh.priority_port) == (7447, 7448)
+
+
+def test_a_file_sets_only_what_it_changes(tmp_path: Path) -> None:
+    config = load_config(
+        write(tmp_path, "[supervisor]\nth_lat = 0.7\nmu = [1, 2, 3]\n[drone]\nid = 'hex-2'\n")
+    )
+    assert config.supervisor.th_lat == 0.7
+    assert config.supervisor.mu == (1.0, 2.0, 3.0)
+    assert config.drone.id == "hex-2"
+    assert config.supervisor.rho == Config().supervisor.rho
+
+
+def test_overrides_apply_after_the_file(tmp_path: Path) -> None:
+    path = write(tmp_path, "[supervisor]\nth_lat = 0.7\n")
+    config = load_config(path, ["supervisor.th_lat=0.9", "drone.id=uav7", "supervisor.mode='stochastic'"])
+    assert config.supervisor.th_lat == 0.9
+    assert config.drone.id == "uav7"
+    assert config.supervisor.mode == "stochastic"
+
+
+def test_effective_config_round_trips_through_toml(tmp_path: Path) -> None:
+    config = load_config(None, ["zenoh.edge_host=edge.local", "supervisor.seed=3"])
+    assert load_config(write(tmp_path, to_toml(config))) == config
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "reason"),
+    [
+        ("[supervisor]\nbogus = 1\n", "supervisor.bogus", "unknown key"),
+        ("[nope]\nx = 1\n", "nope", "unknown key"),
+        ("[supervisor]\nth_lat = 'high'\n", "supervisor.th_lat", "expected a number"),
+        ("[supervisor]\nth_lat = 1.5\n", "supervisor.th_lat", "must be in (0, 1)"),
+        ("[supervisor]\nth_lat = nan\n", "supervisor.th_lat", "finite"),
+        ("[supervisor]\nw = [0.5, 0.6]\n", "supervisor.w", "sum to 1"),
+        ("[supervisor]\nmu = [1, 2]\n", "supervisor.mu", "array of 3"),
+        ("[supervisor]\nmu = 3\n", "supervisor.mu", "expected an array"),
+        ("[supervisor]\nwindow = [10, 2.5]\n", "supervisor.window[1]", "expected an integer"),
+        ("[supervisor]\nmode = 'random'\n", "supervisor.mode", "not one of"),
+        ("[supervisor]\nenabled = 1\n", "supervisor.enabled", "true or false"),
+        ("[drone]\nid = 'has space'\n", "drone.id", "1 to 32 characters"),
+        ("[drone]\nid = 5\n", "drone.id", "expected a string"),
+        ("drone = 5\n", "drone", "expected a table"),
+        ("[zenoh]\ndefault_port = 70000\n", "zenoh.default_port", "TCP port"),
+        ("[zenoh]\npriority_port = 7447\n", "zenoh.priority_port", "differ"),
+        ("[zenoh]\nmax_links = 1\n", "zenoh.max_links", "two flows"),
+        ("[control]\nhorizon = 2\n", "control.horizon", "5..200"),
+    ],
+)
+def test_bad_values_name_file_key_and_reason(tmp_path: Path, text: str, key: str, reason: str) -> None:
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert info.value.key == key
+    assert reason in info.value.reason
+    assert str(info.value).startswith(f"{path}: {key}: ")
+
+
+def test_unreadable_files(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "missing.toml")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(write(tmp_path, "[supervisor\n"))
+    (tmp_path / "dir.toml").mkdir()
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "dir.toml")
+
+
+def test_bad_overrides() -> None:
+    with pytest.raises(ConfigError, match="KEY=VALUE"):
+        load_config(None, ["supervisor.th_lat"])
+    with pytest.raises(ConfigError, match="empty key"):
+        load_config(None, ["supervisor..th_lat=1"])
+    with pytest.raises(ConfigError, match="not a table"):
+        load_config(None, ["drone.id=x", "drone.id.more=1"])
+
+
+def test_cli_config_show_prints_the_effective_config(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    path = write(tmp_path, "[supervisor]\nth_lat = 0.65\n")
+    assert main(["config", "show", str(path), "--set", "drone.id=uav9"]) == 0
+    out = capsys.readouterr().out
+    assert "th_lat = 0.65" in out
+    assert 'id = "uav9"' in out
+    assert main(["config", "show", "--config", str(path)]) == 0
+
+
+def test_cli_rejects_two_different_config_files(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    assert main(["config", "show", "a.toml", "--config", "b.toml"]) == 2
+    assert "two config files" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["config", "show", "missing.toml"], "missing.toml: config file not found"),
+        (["config", "show", "--set", "supervisor.th_lat=2"], "supervisor.th_lat: must be in (0, 1)"),
+        (["config", "show", "--set", "zenoh.nope=1"], "zenoh.nope: unknown key"),
+    ],
+)
+def test_console_script_errors_are_one_line_and_exit_2(args: list[str], message: str) -> None:
+    exe = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
+    result = subprocess.run([exe, *args], capture_output=True, text=True, timeout=60, check=False)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("dynqos: error: ")
+    assert message in lines[0]
+    assert "Traceback" not in result.stderr
+
+
+def test_console_script_help_and_version() -> None:
+    exe = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
+    result = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=60, check=True)
+    assert "config" in result.stdout
+    version = subprocess.run([exe, "version"], capture_output=True, text=True, timeout=60, check=True)
+    assert version.stdout.startswith("dynqos ")

@@ -1,0 +1,56 @@
+"""A built wheel (not only the editable install) must import the mapped package folders."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.timeout(300)
+def test_built_wheel_imports_every_component(tmp_path: Path) -> None:
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "-q",
+            "-w",
+            str(tmp_path),
+            str(ROOT),
+        ],
+        check=True,
+        timeout=240,
+        capture_output=True,
+    )
+    (wheel,) = tmp_path.glob("dynqos-*.whl")
+    site = tmp_path / "site"
+    with zipfile.ZipFile(wheel) as archive:
+        names = set(archive.namelist())
+        archive.extractall(site)
+    for module in ("dynqos/cli.py", "dynqos/common/messages.py", "dynqos/onboard/__init__.py",
+                   "dynqos/edge/__init__.py", "dynqos/sim/__init__.py", "dynqos/py.typed"):  # fmt: skip
+        assert module in names
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1]);"
+        "import dynqos.common.messages as m, dynqos.cli, dynqos.onboard, dynqos.edge, dynqos.sim;"
+        "assert m.__file__.startswith(sys.argv[1]), m.__file__; print('ok')"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code, str(site)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "ok"
