@@ -76,7 +76,6 @@ class ZenohConfig:
 class SupervisorConfig:
     """The PFSM's parameters (paper eq. 1-3, DESIGN section 4). Index 0/1/2 = camera/C&C/risk."""
 
-    enabled: bool = True
     mode: Literal["deterministic", "stochastic"] = "deterministic"
     seed: int = 0
     tick_hz: float = 20.0
@@ -92,6 +91,8 @@ class SupervisorConfig:
     dwell_s: float = 1.0
     persist_s: float = 0.5
     recover_s: float = 2.0
+    recover_backoff: float = 2.0
+    recover_max_s: float = 16.0
     rate_factor: float = 0.5
     min_rate_factor: float = 0.25
     rate_step_s: float = 1.0
@@ -111,6 +112,8 @@ class SupervisorConfig:
         _require(0.0 < self.risk_b <= 1.0, "risk_b", "must be in (0, 1]")
         for name in ("dwell_s", "persist_s", "recover_s", "rate_step_s"):
             _require(0.0 <= getattr(self, name) <= 600, name, "must be in 0..600 s")
+        _require(1.0 <= self.recover_backoff <= 10.0, "recover_backoff", "must be in 1..10 (1 disables)")
+        _require(self.recover_max_s >= self.recover_s, "recover_max_s", "must be >= recover_s")
         _require(
             0.0 < self.min_rate_factor <= self.rate_factor <= 1.0,
             "rate_factor",

@@ -231,7 +231,8 @@ class Reference(Message):
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SupervisorStatus(Message):
-    """What the supervisor decided this tick and why; t_*_ms and risk are None before any sample."""
+    """What the supervisor decided this tick and why. Before any sample a latency or risk signal is
+    "NA" and its estimate None; a probability is then 0.0 and means nothing."""
 
     TYPE: ClassVar[str] = "SupervisorStatus"
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
@@ -241,8 +242,8 @@ class SupervisorStatus(Message):
         "flow": f.choice(FLOWS),
         "camera_rate_factor": f.real(0.0, 1.0),
         "control_source": f.choice(CONTROL_SOURCES),
-        "latency": f.choice(("LL", "HL")),
-        "risk": f.choice(("LR", "MR", "HR")),
+        "latency": f.choice(("LL", "HL", "NA")),
+        "risk": f.choice(("LR", "MR", "HR", "NA")),
         "watchdog": f.boolean,
         "t_cam_ms": f.optional(_latency_ms),
         "t_cc_ms": f.optional(_latency_ms),

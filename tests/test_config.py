@@ -67,7 +67,7 @@ def test_effective_config_round_trips_through_toml(tmp_path: Path) -> None:
         ("[supervisor]\nmu = 3\n", "supervisor.mu", "expected an array"),
         ("[supervisor]\nwindow = [10, 2.5]\n", "supervisor.window[1]", "expected an integer"),
         ("[supervisor]\nmode = 'random'\n", "supervisor.mode", "not one of"),
-        ("[supervisor]\nenabled = 1\n", "supervisor.enabled", "true or false"),
+        ("[zenoh]\nshared_memory = 1\n", "zenoh.shared_memory", "true or false"),
         ("[drone]\nid = 'has space'\n", "drone.id", "1 to 32 characters"),
         ("[drone]\nid = 5\n", "drone.id", "expected a string"),
         ("drone = 5\n", "drone", "expected a table"),

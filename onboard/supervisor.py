@@ -1,0 +1,361 @@
+"""The paper's probabilistic finite state machine (PFSM), as pure logic with time passed in.
+
+It decides, every tick, which QoS flow the drone uses, how fast the camera streams and whether the
+edge or the onboard fallback flies the drone, from three signals:
+
+- latency: P_lat = w1 P_cam(t1) + w2 P_cc(t2), where t1 and t2 are sliding-window means of camera
+  latency and C&C RTT and P(t) = 1 / (1 + exp(mu (rho - t))) (paper eq. 1-3). HL when
+  P_lat > th_lat, LL otherwise, NA while there is no evidence at all;
+- risk: the filtered spaciousness s_k = a s_{k-1} + b S_k; HR at or below 3 m, MR up to 5 m, LR
+  above; NA before the first depth sample (treated as MR: priority rather than throttling);
+- the command watchdog, which sends any state to qA at once (the one transition allowed outside
+  Table I).
+
+Only the transitions of the paper's Table I are possible; dwell, persistence and recovery timers
+keep noise from making the machine flap. See docs/supervisor.md for every guard.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import random
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from dynqos.common.config import SupervisorConfig
+from dynqos.common.messages import SupervisorStatus
+from dynqos.common.stats import Ema, SlidingWindow
+
+NS_PER_S = 1_000_000_000
+TRANSITION_LOG_SIZE = 1000
+
+
+class State(str, enum.Enum):
+    Q1 = "q1"
+    Q2 = "q2"
+    Q3 = "q3"
+    Q4 = "q4"
+    Q5 = "q5"
+    Q6 = "q6"
+    QA = "qA"
+
+
+Q1, Q2, Q3, Q4, Q5, Q6, QA = State
+
+# Table I of the paper: the only successors of each state.
+TABLE_I: dict[State, frozenset[State]] = {
+    Q1: frozenset({Q1, Q2, Q3, Q4}),
+    Q2: frozenset({Q1, Q2, Q5}),
+    Q3: frozenset({Q1, Q3, Q5, Q6}),
+    Q4: frozenset({Q1, Q4, Q6, QA}),
+    Q5: frozenset({Q5, Q1, QA}),
+    Q6: frozenset({Q6, Q1, QA}),
+    QA: frozenset({QA, Q1}),
+}
+WATCHDOG_CAUSE = "watchdog"
+
+
+class Latency(str, enum.Enum):
+    LL = "LL"
+    HL = "HL"
+    NA = "NA"
+
+
+class Risk(str, enum.Enum):
+    LR = "LR"
+    MR = "MR"
+    HR = "HR"
+    NA = "NA"
+
+
+@dataclass(frozen=True, slots=True)
+class Actions:
+    flow: str  # "default" | "priority"
+    camera_rate_factor: float  # fraction of the nominal camera frame rate
+    control_source: str  # "edge" | "fallback"
+
+
+RATE_ADAPTATION_STATES = frozenset({Q4, Q5, Q6})
+PRIORITY_STATES = frozenset({Q2, Q3, Q5, Q6})
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Inputs:
+    """What the daemon measured since the last tick.
+
+    `*_outstanding_ms` is the age of the oldest request still unanswered (a camera frame with no
+    ack, a state with no command), a lower bound on the next sample: when acks stop, the window
+    mean alone would keep reporting the last good latency.
+    """
+
+    camera_latencies_ms: Sequence[float] = ()
+    cc_rtts_ms: Sequence[float] = ()
+    camera_outstanding_ms: float | None = None
+    cc_outstanding_ms: float | None = None
+    spaciousness_m: float | None = None
+    watchdog_expired: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    stamp_ns: int
+    source: State
+    target: State
+    cause: str
+    p_lat: float | None
+    p_cs: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class Signals:
+    latency: Latency
+    risk: Risk
+    watchdog: bool
+    t_cam_ms: float | None
+    t_cc_ms: float | None
+    spaciousness_m: float | None
+    p_cam: float | None
+    p_cc: float | None
+    p_lat: float | None
+    p_cs: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class Decision:
+    state: State
+    actions: Actions
+    signals: Signals
+    transition: Transition | None
+
+
+def sigmoid(t: float, mu: float, rho: float) -> float:
+    """P(t) = 1 / (1 + exp(mu (rho - t))), safe for any finite or infinite input."""
+    if math.isnan(t):
+        raise ValueError("P(t) of NaN")
+    z = mu * (rho - t)
+    if z >= 0:
+        e = math.exp(-z) if z < 745 else 0.0
+        return e / (1.0 + e)
+    return 1.0 / (1.0 + math.exp(z))
+
+
+def _effective(mean: float | None, outstanding_ms: float | None) -> float | None:
+    if outstanding_ms is None or not math.isfinite(outstanding_ms):
+        return mean
+    return outstanding_ms if mean is None else max(mean, outstanding_ms)
+
+
+class Supervisor:
+    """The PFSM. `step` once per tick with the inputs gathered since the previous tick."""
+
+    def __init__(self, config: SupervisorConfig, start_ns: int = 0) -> None:
+        self.config = config
+        self._cam = SlidingWindow(config.window[0])
+        self._cc = SlidingWindow(config.window[1])
+        self._risk = Ema(config.risk_a, config.risk_b)
+        self._rng = random.Random(config.seed)
+        self._stochastic = config.mode == "stochastic"
+        self.state = Q1
+        self._entered_ns = start_ns
+        self._hl_since_ns: int | None = None
+        self._ll_since_ns: int | None = None
+        self._rate = 1.0
+        self._rate_changed_ns = start_ns
+        self._min_rate_since_ns: int | None = None
+        self._recover_ns = self._ns(config.recover_s)
+        self._last_recovery_ns: int | None = None
+        self.log: deque[Transition] = deque(maxlen=TRANSITION_LOG_SIZE)
+
+    @staticmethod
+    def _ns(seconds: float) -> int:
+        return round(seconds * NS_PER_S)
+
+    def actions(self) -> Actions:
+        state = self.state
+        if state is QA:
+            return Actions("priority", self.config.min_rate_factor, "fallback")
+        flow = "priority" if state in PRIORITY_STATES else "default"
+        rate = self._rate if state in RATE_ADAPTATION_STATES else 1.0
+        return Actions(flow, rate, "edge")
+
+    def _signals(self, inputs: Inputs) -> Signals:
+        cfg = self.config
+        for sample in inputs.camera_latencies_ms:
+            if math.isfinite(sample) and sample >= 0:
+                self._cam.push(sample)
+        for sample in inputs.cc_rtts_ms:
+            if math.isfinite(sample) and sample >= 0:
+                self._cc.push(sample)
+        if inputs.spaciousness_m is not None and math.isfinite(inputs.spaciousness_m):
+            self._risk.update(max(0.0, inputs.spaciousness_m))
+
+        t_cam = _effective(self._cam.mean(), inputs.camera_outstanding_ms)
+        t_cc = _effective(self._cc.mean(), inputs.cc_outstanding_ms)
+        p_cam = None if t_cam is None else sigmoid(t_cam, cfg.mu[0], cfg.rho[0])
+        p_cc = None if t_cc is None else sigmoid(t_cc, cfg.mu[1], cfg.rho[1])
+        terms = [(w, p) for w, p in zip(cfg.w, (p_cam, p_cc), strict=True) if p is not None]
+        weight = sum(w for w, _ in terms)
+        # A missing term is left out and the rest re-weighted; no evidence at all is NA, not LL.
+        p_lat = sum(w * p for w, p in terms) / weight if terms and weight > 0 else None
+        latency = Latency.NA if p_lat is None else (Latency.HL if p_lat > cfg.th_lat else Latency.LL)
+
+        s_k = self._risk.value
+        if s_k is None:
+            risk, p_cs = Risk.NA, None
+        else:
+            risk = Risk.HR if s_k <= cfg.risk_high_m else Risk.MR if s_k <= cfg.risk_medium_m else Risk.LR
+            p_cs = 1.0 - sigmoid(s_k, cfg.mu[2], cfg.rho[2])  # rises as the space closes in
+        return Signals(latency, risk, inputs.watchdog_expired, t_cam, t_cc, s_k, p_cam, p_cc, p_lat, p_cs)
+
+    def _update_timers(self, signals: Signals, now_ns: int) -> None:
+        if signals.latency is Latency.HL:
+            self._ll_since_ns = None
+            if self._hl_since_ns is None:
+                self._hl_since_ns = now_ns
+        elif signals.latency is Latency.LL:
+            self._hl_since_ns = None
+            if self._ll_since_ns is None:
+                self._ll_since_ns = now_ns
+        else:
+            self._hl_since_ns = self._ll_since_ns = None
+
+    @staticmethod
+    def _held(since_ns: int | None, now_ns: int, need_ns: int) -> bool:
+        return since_ns is not None and now_ns - since_ns >= need_ns
+
+    def _fires(self, held: bool, instant: bool, probability: float | None) -> bool:
+        """Deterministic mode: the condition held long enough. Stochastic mode: the condition holds
+        now and a draw with the signal's probability succeeds (repeated draws replace persistence)."""
+        if not self._stochastic:
+            return held
+        return instant and self._rng.random() < (probability if probability is not None else 1.0)
+
+    def _adapt_rate(self, signals: Signals, now_ns: int) -> None:
+        cfg = self.config
+        if self.state not in RATE_ADAPTATION_STATES or signals.latency is not Latency.HL:
+            return
+        if self._rate > cfg.min_rate_factor and now_ns - self._rate_changed_ns >= self._ns(cfg.rate_step_s):
+            self._rate = max(cfg.min_rate_factor, self._rate / 2.0)
+            self._rate_changed_ns = now_ns
+            if self._rate == cfg.min_rate_factor:
+                self._min_rate_since_ns = now_ns
+
+    def _choose(self, signals: Signals, now_ns: int) -> tuple[State, str] | None:
+        cfg = self.config
+        state = self.state
+        if signals.watchdog:
+            return (QA, WATCHDOG_CAUSE) if state is not QA else None
+        if now_ns - self._entered_ns < self._ns(cfg.dwell_s):
+            return None
+        hl, ll = signals.latency is Latency.HL, signals.latency is Latency.LL
+        p_lat = signals.p_lat
+        p_ll = None if p_lat is None else 1.0 - p_lat
+        risk = Risk.MR if signals.risk is Risk.NA else signals.risk
+        persist_ns = self._ns(cfg.persist_s)
+        escalate = self._fires(self._held(self._hl_since_ns, now_ns, persist_ns), hl, p_lat)
+        recover = self._fires(self._held(self._ll_since_ns, now_ns, self._recover_ns), ll, p_ll)
+
+        if state is Q1:
+            if risk is Risk.HR and self._fires(True, True, signals.p_cs):
+                return Q2, "HR: proactive priority"
+            if escalate:
+                return (Q4, "LR and HL") if risk is Risk.LR else (Q3, f"{risk.value} and HL")
+        elif state is Q2:
+            if escalate:
+                return Q5, "HL persists on the priority flow (HR)"
+            if risk is not Risk.HR and recover:
+                return Q1, "LL holds and risk is no longer HR"
+        elif state is Q3:
+            if escalate:
+                return (
+                    (Q5, "HL persists on the priority flow (HR)")
+                    if risk is Risk.HR
+                    else (Q6, "HL persists on the priority flow")
+                )
+            if risk is not Risk.HR and recover:
+                return Q1, "LL holds"
+        elif state in RATE_ADAPTATION_STATES:
+            at_min = self._rate <= cfg.min_rate_factor and self._min_rate_since_ns is not None
+            since = None
+            if at_min and self._hl_since_ns is not None:
+                since = max(self._hl_since_ns, self._min_rate_since_ns or 0)
+            if at_min and self._fires(self._held(since, now_ns, persist_ns), hl, p_lat):
+                return QA, "HL persists at the minimum camera rate"
+            if state is Q4 and risk is not Risk.LR and self._fires(hl, hl, p_lat):
+                return Q6, f"{risk.value} and HL: priority flow"
+            if recover:
+                return Q1, "LL holds"
+        elif state is QA and recover:
+            return Q1, "link is back and LL holds"
+        return None
+
+    def _enter(self, target: State, cause: str, signals: Signals, now_ns: int) -> Transition:
+        cfg = self.config
+        source = self.state
+        transition = Transition(now_ns, source, target, cause, signals.p_lat, signals.p_cs)
+        self.log.append(transition)
+        if target is Q1 and cause != WATCHDOG_CAUSE:
+            self._last_recovery_ns = now_ns
+        bounced = (
+            source is Q1
+            and target in (Q3, Q4)
+            and self._last_recovery_ns is not None
+            and now_ns - self._last_recovery_ns < 2 * self._recover_ns
+        )
+        if bounced:  # HL came back soon after a recovery: wait longer before the next one (anti-flap)
+            self._recover_ns = min(round(self._recover_ns * cfg.recover_backoff), self._ns(cfg.recover_max_s))
+        self.state = target
+        self._entered_ns = now_ns
+        self._ll_since_ns = now_ns if signals.latency is Latency.LL else None
+        self._hl_since_ns = now_ns if signals.latency is Latency.HL else None
+        if target is QA:
+            # What the link did before the fallback says nothing about it now: recover on fresh evidence.
+            self._cam.clear()
+            self._cc.clear()
+            self._ll_since_ns = self._hl_since_ns = None
+        if target in RATE_ADAPTATION_STATES and source not in RATE_ADAPTATION_STATES:
+            self._rate = cfg.rate_factor
+            self._rate_changed_ns = now_ns
+            self._min_rate_since_ns = now_ns if self._rate <= cfg.min_rate_factor else None
+        return transition
+
+    def step(self, inputs: Inputs, now_ns: int) -> Decision:
+        signals = self._signals(inputs)
+        self._update_timers(signals, now_ns)
+        if self.state is Q1 and now_ns - self._entered_ns >= self._ns(self.config.recover_max_s):
+            self._recover_ns = self._ns(self.config.recover_s)  # calm for long: forget the backoff
+        self._adapt_rate(signals, now_ns)
+        choice = self._choose(signals, now_ns)
+        transition = self._enter(*choice, signals, now_ns) if choice else None
+        return Decision(self.state, self.actions(), signals, transition)
+
+
+def to_status(
+    decision: Decision, *, uav: str, seq: int, stamp_ns: int, last: Transition | None
+) -> SupervisorStatus:
+    """The SupervisorStatus message the daemon publishes for one decision."""
+    s = decision.signals
+    return SupervisorStatus(
+        uav=uav,
+        seq=seq,
+        stamp_ns=stamp_ns,
+        state=decision.state.value,
+        flow=decision.actions.flow,
+        camera_rate_factor=decision.actions.camera_rate_factor,
+        control_source=decision.actions.control_source,
+        latency=s.latency.value,
+        risk=s.risk.value,
+        watchdog=s.watchdog,
+        t_cam_ms=s.t_cam_ms,
+        t_cc_ms=s.t_cc_ms,
+        spaciousness_m=s.spaciousness_m,
+        p_cam=s.p_cam or 0.0,
+        p_cc=s.p_cc or 0.0,
+        p_lat=s.p_lat or 0.0,
+        p_cs=s.p_cs or 0.0,
+        prev_state=(last.source if last else decision.state).value,
+        cause=(last.cause if last else "")[:200],
+        changed_ns=last.stamp_ns if last else 0,
+    )

@@ -1,0 +1,21 @@
+"""Benchmarks run in smoke mode: they must work and report their fields; no timing is asserted."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from bench import supervisor_step
+
+
+def test_supervisor_step_bench_smoke(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "result.json"
+    assert supervisor_step.main(["--quick", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["steps"] == 2000
+    for key in ("median_us", "p99_us", "mean_us"):
+        assert result["step"][key] > 0
+        assert result["floor"][key] > 0
+    assert "| supervisor step |" in capsys.readouterr().out
