@@ -7,17 +7,15 @@ Target (issue 6): median step under 50 microseconds.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import platform
 import random
 import statistics
 import sys
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from bench.report import emit, provenance
 from dynqos.common.config import SupervisorConfig
 from dynqos.onboard.supervisor import Inputs, Supervisor, sigmoid
 
@@ -88,8 +86,7 @@ def run(steps: int) -> dict[str, Any]:
     floor = _summary(_time_floor(inputs))
     return {
         "benchmark": "supervisor_step",
-        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
-        "machine": f"{platform.machine()} python {platform.python_version()}",
+        **provenance(),
         "steps": steps,
         "step": step,
         "floor": floor,
@@ -127,12 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.steps < 10:
         parser.error("--steps must be at least 10")
     result = run(2000 if args.quick else args.steps)
-    text = json.dumps(result, indent=2)
-    if args.out:
-        args.out.write_text(text + "\n")
-    print(text)
-    print(markdown(result))
-    return 0
+    return emit(result, markdown(result), args.out)
 
 
 if __name__ == "__main__":

@@ -136,12 +136,169 @@ class ControlConfig:
         )
 
 
+def _host_port(text: str, key: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    _require(bool(sep and host), key, f"{text!r} is not host:port")
+    _require(port.isdigit() and 1 <= int(port) <= 65535, key, f"{text!r}: port must be 1..65535")
+    return host.strip("[]"), int(port)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BearerConfig:
+    """One bearer (QoS flow) of the emulated cell: a TCP listener forwarding to an edge router port."""
+
+    name: str
+    target: str
+    listen_port: int = 0  # 0: any free port, reported on the emulator's ready line
+    weight: float = 1.0
+    ue_buffer_bytes: int = 0  # 0: the cell's ue_buffer_bytes
+
+    def __post_init__(self) -> None:
+        _require(bool(self.name) and self.name.replace("-", "").replace("_", "").isalnum(), "name",
+                 "must be letters, digits, - or _")  # fmt: skip
+        _host_port(self.target, "target")
+        _require(0 <= self.listen_port <= 65535, "listen_port", "must be 0..65535")
+        _require(0 < self.weight <= 1000 and math.isfinite(self.weight), "weight", "must be in (0, 1000]")
+        _require(0 <= self.ue_buffer_bytes <= 1 << 30, "ue_buffer_bytes", "must be 0..1 GiB")
+
+    @property
+    def target_host_port(self) -> tuple[str, int]:
+        return _host_port(self.target, "target")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BackgroundConfig:
+    """A virtual background user: it takes capacity at its offered rate; no bytes move."""
+
+    name: str
+    weight: float = 1.0
+    offered_mbps: float = 0.0
+
+    def __post_init__(self) -> None:
+        _require(bool(self.name), "name", "must not be empty")
+        _require(0 < self.weight <= 1000, "weight", "must be in (0, 1000]")
+        _require(0 <= self.offered_mbps <= 1e5, "offered_mbps", "must be in 0..100000")
+
+
+CELL_EVENT_KINDS = ("background", "capacity", "trace", "coverage_loss", "weight")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CellEventConfig:
+    """A timeline event; which fields it needs depends on `kind` (see docs/cell.md)."""
+
+    at_s: float
+    kind: Literal["background", "capacity", "trace", "coverage_loss", "weight"]
+    user: str = ""  # background: which background user
+    bearer: str = ""  # weight: which bearer; coverage_loss with drop_connections: "" = all
+    offered_mbps: float = -1.0  # background
+    uplink_mbps: float = -1.0  # capacity
+    file: str = ""  # trace: a Mahimahi uplink trace; "" ends trace-driven capacity
+    mean_mbps: float = 0.0  # trace: rescale to this mean (0: as recorded)
+    duration_s: float = 0.0  # coverage_loss
+    drop_connections: bool = False  # coverage_loss: also reset the TCP connections
+    weight: float = 0.0  # weight
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.at_s <= 86400, "at_s", "must be in 0..86400 s")
+        if self.kind == "background":
+            _require(bool(self.user), "user", "a background event names its background user")
+            _require(
+                0 <= self.offered_mbps <= 1e5, "offered_mbps", "a background event needs offered_mbps >= 0"
+            )
+        elif self.kind == "capacity":
+            _require(0 <= self.uplink_mbps <= 1e5, "uplink_mbps", "a capacity event needs uplink_mbps >= 0")
+        elif self.kind == "coverage_loss":
+            _require(0 < self.duration_s <= 3600, "duration_s", "a coverage_loss event needs duration_s > 0")
+        elif self.kind == "weight":
+            _require(bool(self.bearer), "bearer", "a weight event names its bearer")
+            _require(0 < self.weight <= 1000, "weight", "a weight event needs a weight in (0, 1000]")
+        if self.kind == "trace":
+            _require(self.mean_mbps >= 0, "mean_mbps", "must be >= 0")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CellConfig:
+    """The emulated 5G cell (DESIGN section 5). `scale` divides every rate."""
+
+    uplink_mbps: float = 81.3
+    downlink_mbps: float = 1400.0
+    tti_ms: float = 1.0
+    base_delay_up_ms: float = 10.0
+    base_delay_down_ms: float = 10.0
+    jitter_ms: float = 0.5
+    scale: float = 1.0
+    ue_buffer_bytes: int = 1_000_000
+    listen_host: str = "127.0.0.1"
+    default_listen_port: int = 17447
+    priority_listen_port: int = 17448
+    priority_weight: float = 4.0
+    record_interval_s: float = 0.1
+    control_port: int = -1  # -1: no control API; 0: any free port
+    trace: str = ""
+    trace_mean_mbps: float = 0.0
+    seed: int = 0
+    bearers: tuple[BearerConfig, ...] = ()  # empty: the drone's two flows (see bearer_list)
+    background: tuple[BackgroundConfig, ...] = (BackgroundConfig(name="bg"),)
+    events: tuple[CellEventConfig, ...] = ()
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.uplink_mbps <= 1e5, "uplink_mbps", "must be in 0..100000")
+        _require(0 < self.downlink_mbps <= 1e6, "downlink_mbps", "must be in (0, 1000000]")
+        _require(0.1 <= self.tti_ms <= 100, "tti_ms", "must be in 0.1..100 ms")
+        for name in ("base_delay_up_ms", "base_delay_down_ms", "jitter_ms"):
+            _require(0 <= getattr(self, name) <= 10_000, name, "must be in 0..10000 ms")
+        _require(0 < self.scale <= 1e4, "scale", "must be in (0, 10000]")
+        _require(1500 <= self.ue_buffer_bytes <= 1 << 30, "ue_buffer_bytes", "must be 1500..1 GiB")
+        _require(bool(self.listen_host), "listen_host", "must not be empty")
+        for name in ("default_listen_port", "priority_listen_port"):
+            _require(0 <= getattr(self, name) <= 65535, name, "must be 0..65535")
+        _require(0 < self.priority_weight <= 1000, "priority_weight", "must be in (0, 1000]")
+        _require(0.01 <= self.record_interval_s <= 60, "record_interval_s", "must be in 0.01..60 s")
+        _require(-1 <= self.control_port <= 65535, "control_port", "must be -1 (off), 0 (any) or a port")
+        _require(self.trace_mean_mbps >= 0, "trace_mean_mbps", "must be >= 0")
+        names = [b.name for b in self.bearers]
+        _require(len(set(names)) == len(names), "bearers", "bearer names must be unique")
+        users = [b.name for b in self.background]
+        _require(len(set(users)) == len(users), "background", "background user names must be unique")
+        for i, event in enumerate(self.events):
+            if event.kind == "background" and event.user not in users:
+                raise ConfigError(
+                    f"events[{i}].user", f"unknown background user {event.user!r} (known: {users})"
+                )
+
+    def bearer_list(self, zenoh: ZenohConfig, uav: str) -> tuple[BearerConfig, ...]:
+        """The configured bearers, or the drone's default and priority flows to the edge router."""
+        if self.bearers:
+            return self.bearers
+        host = zenoh.edge_host
+        return (
+            BearerConfig(name=f"{uav}-default", target=f"{host}:{zenoh.default_port}",
+                         listen_port=self.default_listen_port, weight=1.0),
+            BearerConfig(name=f"{uav}-priority", target=f"{host}:{zenoh.priority_port}",
+                         listen_port=self.priority_listen_port, weight=self.priority_weight),
+        )  # fmt: skip
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Config:
     drone: DroneConfig = field(default_factory=DroneConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
+    cell: CellConfig = field(default_factory=CellConfig)
+
+    def __post_init__(self) -> None:
+        bearers = {b.name for b in self.cell.bearer_list(self.zenoh, self.drone.id)}
+        for i, event in enumerate(self.cell.events):
+            if event.kind == "weight" and event.bearer not in bearers:
+                raise ConfigError(
+                    f"cell.events[{i}].bearer", f"unknown bearer {event.bearer!r} (known: {sorted(bearers)})"
+                )
+            if event.kind == "coverage_loss" and event.bearer and event.bearer not in bearers:
+                raise ConfigError(
+                    f"cell.events[{i}].bearer", f"unknown bearer {event.bearer!r} (known: {sorted(bearers)})"
+                )
 
 
 def _type_name(tp: Any) -> str:
@@ -270,9 +427,18 @@ def to_toml(config: Config) -> str:
     lines: list[str] = []
     for section, values in to_dict(config).items():
         lines.append(f"[{section}]")
+        tables = {
+            k: v for k, v in values.items() if isinstance(v, (list, tuple)) and v and isinstance(v[0], dict)
+        }
         for key, value in values.items():
-            lines.append(f"{key} = {_toml_value(value)}")
+            if key not in tables:
+                lines.append(f"{key} = {_toml_value(value)}")
         lines.append("")
+        for key, items in tables.items():
+            for item in items:
+                lines.append(f"[[{section}.{key}]]")
+                lines.extend(f"{k} = {_toml_value(v)}" for k, v in item.items())
+                lines.append("")
     return "\n".join(lines)
 
 

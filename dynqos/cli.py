@@ -54,6 +54,20 @@ def _cmd_version(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def _cmd_sim_cell(args: argparse.Namespace, config: Config) -> int:
+    import asyncio
+    from pathlib import Path
+
+    from dynqos.sim.cell import print_ready, run_cell
+
+    if args.duration is not None and args.duration <= 0:
+        raise DynqosError(f"--duration must be > 0, got {args.duration}")
+    bearers = config.cell.bearer_list(config.zenoh, config.drone.id)
+    out_dir = Path(args.out) if args.out else None
+    asyncio.run(run_cell(config.cell, bearers, out_dir=out_dir, duration_s=args.duration, ready=print_ready))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     common = _common_options()
     parser = argparse.ArgumentParser(
@@ -78,6 +92,26 @@ def build_parser() -> argparse.ArgumentParser:
     )
     show.add_argument("file", nargs="?", metavar="FILE", help="config file (same as --config FILE)")
     show.set_defaults(handler=_cmd_config_show)
+
+    sim_cmd = commands.add_parser("sim", help="simulators: the emulated 5G cell", parents=[common])
+    sim_sub = sim_cmd.add_subparsers(dest="sim_command", metavar="SIMULATOR", required=True)
+    cell = sim_sub.add_parser(
+        "cell",
+        parents=[common],
+        help="run the 5G cell emulator between the drone and the edge router",
+        description=(
+            "A user-space 5G uplink: one TCP listener per bearer (QoS flow) forwarding to an edge router "
+            "port, a UE buffer per bearer, a resource-fair scheduler with relative priority weights every "
+            "TTI, virtual background users, base delay and jitter, and timeline events. Configured by the "
+            "[cell] table of the config file (see docs/cell.md). Prints one JSON line with the bearer "
+            "ports when ready; stops on SIGINT/SIGTERM or after --duration."
+        ),
+    )
+    cell.add_argument(
+        "--duration", type=float, metavar="S", help="stop after S seconds (default: run until stopped)"
+    )
+    cell.add_argument("--out", metavar="DIR", help="write per-interval records to DIR/cell.csv")
+    cell.set_defaults(handler=_cmd_sim_cell)
 
     version = commands.add_parser("version", help="print the version", parents=[common])
     version.set_defaults(handler=_cmd_version)
@@ -110,6 +144,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("dynqos: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a bug, not bad input: say so in one line, the traceback at debug level
+        log.debug("internal error", exc_info=True)
+        print(
+            f"dynqos: internal error: {type(exc).__name__}: {exc} (run with --log-level debug)",
+            file=sys.stderr,
+        )
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

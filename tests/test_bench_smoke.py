@@ -19,3 +19,14 @@ def test_supervisor_step_bench_smoke(tmp_path: Path, capsys: pytest.CaptureFixtu
         assert result["step"][key] > 0
         assert result["floor"][key] > 0
     assert "| supervisor step |" in capsys.readouterr().out
+
+
+def test_cell_forward_bench_smoke(tmp_path: Path) -> None:
+    from bench import cell_forward
+
+    out = tmp_path / "cell.json"
+    assert cell_forward.main(["--quick", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    for key in ("emulator", "bare_relay"):
+        assert result[key]["cpu_share_of_one_core"] >= 0
+        assert result[key]["delivered_mbps"] > 5

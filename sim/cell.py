@@ -1,0 +1,611 @@
+"""The cell emulator's I/O shell: TCP listeners per bearer, the TTI loop, records and a control API.
+
+Drone -> bearer listener -> UE buffer -> scheduler (each TTI) -> uplink delay line -> edge router port.
+Edge -> downlink serializer (capacity) -> downlink delay line -> drone. One asyncio loop, no threads.
+The logic (scheduler, delay line, UE buffer, traces) lives in pure modules beside this one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import csv
+import functools
+import json
+import logging
+import signal
+import socket
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from dynqos.common.config import BearerConfig, CellConfig, CellEventConfig, build
+from dynqos.common.errors import ConfigError
+from dynqos.sim.delayline import DelayLine
+from dynqos.sim.scheduler import CapacityBucket, VirtualUser, weighted_fair_share
+from dynqos.sim.traces import Trace, TraceError
+from dynqos.sim.uebuffer import UeBuffer
+
+log = logging.getLogger(__name__)
+
+READ_CHUNK = 64 * 1024
+SOCKET_BUFFER = 64 * 1024
+UPSTREAM_HIGH_WATER = 256 * 1024  # edge side slow: stop granting this bearer
+DOWNLINK_HIGH_WATER = 4 * 1024 * 1024
+
+
+def _now_ns() -> int:
+    return time.monotonic_ns()
+
+
+class _DroneSide(asyncio.BufferedProtocol):
+    """Reads the drone's bytes straight into its connection's UE buffer, never past the bound."""
+
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+        self._buf = bytearray(READ_CHUNK)
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.conn.drone = transport
+        transport.pause_reading()  # until the edge side is connected
+        self.conn.bearer.emulator.open_upstream(self.conn)
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return memoryview(self._buf)[: max(1, min(READ_CHUNK, self.conn.bearer.free_bytes()))]
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self.conn.bearer.receive(self.conn, bytes(self._buf[:nbytes]))
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.conn.close()
+
+
+class _EdgeSide(asyncio.Protocol):
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+
+    def data_received(self, data: bytes) -> None:
+        self.conn.bearer.downlink(self.conn, data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.conn.close()
+
+
+@dataclass(eq=False)
+class Connection:
+    bearer: Bearer
+    drone: asyncio.Transport | None = None
+    edge: asyncio.Transport | None = None
+    ue: UeBuffer = field(init=False)
+    closed: bool = False
+    reading_paused: bool = True
+
+    def __post_init__(self) -> None:
+        self.ue = UeBuffer(self.bearer.ue_capacity)
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        for transport in (self.drone, self.edge):
+            if transport is not None:
+                transport.close()
+        self.bearer.forget(self)
+
+
+class Bearer:
+    """One QoS flow: its connections, their UE buffers, its weight, its counters."""
+
+    def __init__(self, emulator: CellEmulator, cfg: BearerConfig, cell: CellConfig) -> None:
+        self.emulator = emulator
+        self.name = cfg.name
+        self.target = cfg.target_host_port
+        self.weight = cfg.weight
+        self.ue_capacity = cfg.ue_buffer_bytes or cell.ue_buffer_bytes
+        self.connections: list[Connection] = []
+        self.up_line: DelayLine[tuple[Connection, bytes]] = DelayLine(
+            round(cell.base_delay_up_ms * 1e6), round(cell.jitter_ms * 1e6), seed=cell.seed
+        )
+        self.down_line: DelayLine[tuple[Connection, bytes]] = DelayLine(
+            round(cell.base_delay_down_ms * 1e6), round(cell.jitter_ms * 1e6), seed=cell.seed + 1
+        )
+        self._down_tx_end_ns = 0
+        self.credit_bits = 0.0
+        self.listen_port = cfg.listen_port
+        self.port = 0
+        self.server: asyncio.Server | None = None
+        self.totals = {"offered_bytes": 0, "delivered_bytes": 0, "downlink_bytes": 0, "dropped_bytes": 0}
+        self.interval = dict.fromkeys(self.totals, 0)
+
+    def _count(self, key: str, nbytes: int) -> None:
+        self.totals[key] += nbytes
+        self.interval[key] += nbytes
+
+    @property
+    def buffered(self) -> int:
+        return sum(c.ue.size for c in self.connections)
+
+    def free_bytes(self) -> int:
+        return max(0, self.ue_capacity - self.buffered)
+
+    def receive(self, conn: Connection, data: bytes) -> None:
+        conn.ue.append(data, _now_ns())
+        self._count("offered_bytes", len(data))
+        if self.free_bytes() == 0:
+            self._pause_all()
+
+    def _pause_all(self) -> None:
+        for conn in self.connections:
+            if conn.drone is not None and not conn.reading_paused:
+                conn.drone.pause_reading()
+                conn.reading_paused = True
+
+    def resume_if_room(self) -> None:
+        if self.free_bytes() < min(16 * 1024, self.ue_capacity):
+            return
+        for conn in self.connections:
+            if conn.drone is not None and conn.edge is not None and conn.reading_paused and not conn.closed:
+                conn.drone.resume_reading()
+                conn.reading_paused = False
+
+    def demand_bits(self) -> float:
+        writable = [c for c in self.connections if c.edge is not None and not c.closed]
+        if any(c.edge.get_write_buffer_size() > UPSTREAM_HIGH_WATER for c in writable if c.edge):
+            return 0.0
+        return 8.0 * sum(c.ue.size for c in writable)
+
+    def grant(self, bits: float, now_ns: int) -> None:
+        """Move granted bytes from the UE buffers into the uplink delay line."""
+        self.credit_bits += bits
+        budget = int(self.credit_bits // 8)
+        for conn in self.connections:
+            if budget <= 0:
+                break
+            if conn.ue.size == 0 or conn.edge is None:
+                continue
+            data = conn.ue.take(budget)
+            budget -= len(data)
+            self.credit_bits -= 8 * len(data)
+            self.up_line.push((conn, data), len(data), now_ns)
+        if self.buffered == 0:
+            self.credit_bits = 0.0  # an idle bearer saves up no capacity
+
+    def flush(self, now_ns: int) -> None:
+        for conn, data in self.up_line.pop_due(now_ns):
+            if not conn.closed and conn.edge is not None:
+                conn.edge.write(data)
+                self._count("delivered_bytes", len(data))
+        for conn, data in self.down_line.pop_due(now_ns):
+            if not conn.closed and conn.drone is not None:
+                conn.drone.write(data)
+                self._count("downlink_bytes", len(data))
+
+    def downlink(self, conn: Connection, data: bytes) -> None:
+        now = _now_ns()
+        rate = self.emulator.downlink_bps
+        self._down_tx_end_ns = max(now, self._down_tx_end_ns) + round(len(data) * 8 / rate * 1e9)
+        self.down_line.push((conn, data), len(data), self._down_tx_end_ns)
+        if self.down_line.size > DOWNLINK_HIGH_WATER and conn.edge is not None:
+            conn.edge.pause_reading()
+            self.emulator.loop.call_later(0.01, self._resume_downlink, conn)
+
+    def _resume_downlink(self, conn: Connection) -> None:
+        if conn.closed or conn.edge is None:
+            return
+        if self.down_line.size > DOWNLINK_HIGH_WATER:
+            self.emulator.loop.call_later(0.01, self._resume_downlink, conn)
+        else:
+            conn.edge.resume_reading()
+
+    def queue_delay_ms(self, now_ns: int) -> float:
+        ages = [age for c in self.connections if (age := c.ue.head_age_ns(now_ns)) is not None]
+        return max(ages) / 1e6 if ages else 0.0
+
+    def forget(self, conn: Connection) -> None:
+        if conn in self.connections:
+            self._count("dropped_bytes", conn.ue.clear())
+            self.connections.remove(conn)
+
+    def drop_connections(self) -> None:
+        for conn in list(self.connections):
+            conn.close()
+
+
+class CellEmulator:
+    def __init__(
+        self, cell: CellConfig, bearers: tuple[BearerConfig, ...], out_dir: Path | None = None
+    ) -> None:
+        self.cell = cell
+        self.scale = cell.scale
+        self.loop = asyncio.get_running_loop()
+        self.bearers = [Bearer(self, b, cell) for b in bearers]
+        self.background = {
+            b.name: VirtualUser(b.name, b.weight, b.offered_mbps * 1e6 / cell.scale) for b in cell.background
+        }
+        self.uplink_bps = cell.uplink_mbps * 1e6 / cell.scale
+        self.downlink_bps = cell.downlink_mbps * 1e6 / cell.scale
+        self.tti_ns = round(cell.tti_ms * 1e6)
+        self.bucket = CapacityBucket(self.tti_ns)
+        self.trace: Trace | None = None
+        self.trace_start_ns = 0
+        self.coverage_lost_until_ns = 0
+        self.start_ns = _now_ns()
+        self._last_tick_ns = self.start_ns
+        self._next_record_ns = self.start_ns + round(cell.record_interval_s * 1e9)
+        self._tick_handle: asyncio.TimerHandle | None = None
+        self._next_tick_ns = self.start_ns
+        self._pending_events = sorted(cell.events, key=lambda e: e.at_s)
+        self.stopped = asyncio.Event()
+        self.ticks = 0
+        self.late_ticks = 0
+        self._csv_file: TextIO | None = None
+        self._csv: Any = None
+        self.last_interval: dict[str, dict[str, float]] = {}
+        if cell.trace:
+            self._set_trace(cell.trace, cell.trace_mean_mbps, "cell.trace")
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            self._csv_file = (out_dir / "cell.csv").open("w", newline="")
+            self._csv = csv.writer(self._csv_file)
+            self._csv.writerow(
+                ["t_s", "name", "kind", "capacity_mbps", "offered_bits", "delivered_bits", "buffer_bytes",
+                 "queue_delay_ms", "dropped_bytes"]
+            )  # fmt: skip
+
+    # ---- set-up ------------------------------------------------------------------------------------
+
+    def _set_trace(self, path: str, mean_mbps: float, key: str) -> None:
+        if not path:
+            self.trace = None
+            return
+        try:
+            trace = Trace.load(path, mean_mbps=mean_mbps)
+        except TraceError as exc:
+            raise ConfigError(key, str(exc)) from None
+        trace.scale /= self.scale
+        self.trace = trace
+        self.trace_start_ns = _now_ns()
+
+    async def start(self) -> None:
+        for bearer in self.bearers:
+            sock = socket.socket(socket.AF_INET6 if ":" in self.cell.listen_host else socket.AF_INET)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)
+            port = bearer.listen_port
+            try:
+                sock.bind((self.cell.listen_host, port))
+            except OSError as exc:
+                sock.close()
+                raise ConfigError(
+                    f"bearer {bearer.name}",
+                    f"cannot listen on {self.cell.listen_host}:{port} ({exc.strerror})",
+                ) from None
+            sock.listen(16)
+            bearer.server = await self.loop.create_server(functools.partial(self._accept, bearer), sock=sock)
+            bearer.port = sock.getsockname()[1]
+        self._next_tick_ns = _now_ns()
+        self._schedule_tick()
+
+    def _accept(self, bearer: Bearer) -> _DroneSide:
+        conn = Connection(bearer)
+        bearer.connections.append(conn)
+        return _DroneSide(conn)
+
+    def open_upstream(self, conn: Connection) -> None:
+        async def connect() -> None:
+            host, port = conn.bearer.target
+            try:
+                transport, _ = await self.loop.create_connection(lambda: _EdgeSide(conn), host, port)
+            except OSError as exc:
+                log.warning("bearer %s: cannot reach edge %s:%d (%s); dropping the drone's connection",
+                            conn.bearer.name, host, port, exc.strerror or exc)  # fmt: skip
+                conn.close()
+                return
+            if conn.closed:
+                transport.close()
+                return
+            sock = transport.get_extra_info("socket")
+            if sock is not None:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER)
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            assert isinstance(transport, asyncio.Transport)
+            conn.edge = transport
+            if conn.drone is not None:
+                dsock = conn.drone.get_extra_info("socket")
+                if dsock is not None:
+                    dsock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            conn.bearer.resume_if_room()
+            log.info("bearer %s: drone connected, forwarding to %s:%d", conn.bearer.name, host, port)
+
+        self.loop.create_task(connect())
+
+    # ---- the TTI loop -------------------------------------------------------------------------------
+
+    def _schedule_tick(self) -> None:
+        self._next_tick_ns += self.tti_ns
+        now = _now_ns()
+        if self._next_tick_ns < now - 5 * self.tti_ns:  # fell behind: skip ahead, the bucket caps the burst
+            self.late_ticks += 1
+            self._next_tick_ns = now + self.tti_ns
+        delay_s = max(0.0, (self._next_tick_ns - now) / 1e9)
+        self._tick_handle = self.loop.call_at(self.loop.time() + delay_s, self._tick)
+
+    def capacity_bits(self, now_ns: int) -> float:
+        if now_ns < self.coverage_lost_until_ns:
+            self.bucket.release(0.0, now_ns)
+            return 0.0
+        if self.trace is not None:
+            t0 = (self._last_tick_ns - self.trace_start_ns) / 1e9
+            t1 = (now_ns - self.trace_start_ns) / 1e9
+            self.bucket.release(0.0, now_ns)
+            return self.trace.bits_between(max(t0, t1 - 20 * self.tti_ns / 1e9), t1)
+        return self.bucket.release(self.uplink_bps, now_ns)
+
+    def _tick(self) -> None:
+        now = _now_ns()
+        self.ticks += 1
+        self._run_events(now)
+        elapsed_s = (now - self._last_tick_ns) / 1e9
+        capacity = self.capacity_bits(now)
+        self._last_tick_ns = now
+        demands: dict[str, float] = {}
+        weights: dict[str, float] = {}
+        for bearer in self.bearers:
+            demands[bearer.name] = bearer.demand_bits()
+            weights[bearer.name] = bearer.weight
+        for user in self.background.values():
+            user.arrive(elapsed_s)
+            demands["bg:" + user.name] = user.backlog_bits
+            weights["bg:" + user.name] = user.weight
+        grants = weighted_fair_share(capacity, demands, weights)
+        for bearer in self.bearers:
+            bearer.grant(grants[bearer.name], now)
+        for user in self.background.values():
+            user.serve(grants["bg:" + user.name])
+        for bearer in self.bearers:
+            bearer.flush(now)
+            bearer.resume_if_room()
+        if now >= self._next_record_ns:
+            self._record(now)
+            self._next_record_ns += round(self.cell.record_interval_s * 1e9)
+            if self._next_record_ns < now:
+                self._next_record_ns = now + round(self.cell.record_interval_s * 1e9)
+        if not self.stopped.is_set():
+            self._schedule_tick()
+
+    # ---- events -------------------------------------------------------------------------------------
+
+    def _run_events(self, now_ns: int) -> None:
+        elapsed_s = (now_ns - self.start_ns) / 1e9
+        while self._pending_events and self._pending_events[0].at_s <= elapsed_s:
+            self.apply(self._pending_events.pop(0))
+
+    def apply(self, event: CellEventConfig) -> None:
+        """Apply one event now (from the timeline or the control API)."""
+        now = _now_ns()
+        if event.kind == "background":
+            user = self.background.get(event.user)
+            if user is None:
+                raise ConfigError("user", f"unknown background user {event.user!r}")
+            user.offered_bps = event.offered_mbps * 1e6 / self.scale
+            if event.offered_mbps == 0:
+                user.backlog_bits = 0.0
+        elif event.kind == "capacity":
+            self.uplink_bps = event.uplink_mbps * 1e6 / self.scale
+            self.trace = None
+        elif event.kind == "trace":
+            self._set_trace(event.file, event.mean_mbps, "file")
+        elif event.kind == "coverage_loss":
+            self.coverage_lost_until_ns = now + round(event.duration_s * 1e9)
+            if event.drop_connections:
+                for bearer in self.bearers:
+                    if not event.bearer or bearer.name == event.bearer:
+                        bearer.drop_connections()
+        elif event.kind == "weight":
+            target = next((b for b in self.bearers if b.name == event.bearer), None)
+            if target is None:
+                raise ConfigError("bearer", f"unknown bearer {event.bearer!r}")
+            target.weight = event.weight
+        log.info("cell event at %.2f s: %s", (now - self.start_ns) / 1e9, _describe(event))
+
+    # ---- records and counters -----------------------------------------------------------------------
+
+    def current_capacity_mbps(self, now_ns: int) -> float:
+        if now_ns < self.coverage_lost_until_ns:
+            return 0.0
+        if self.trace is not None:
+            return self.trace.mean_mbps()
+        return self.uplink_bps / 1e6
+
+    def _record(self, now_ns: int) -> None:
+        """One record per bearer and background user for the interval that just ended."""
+        t_s = f"{(now_ns - self.start_ns) / 1e9:.3f}"
+        capacity = f"{self.current_capacity_mbps(now_ns):.3f}"
+        interval_s = self.cell.record_interval_s
+        rows: list[list[Any]] = []
+        for bearer in self.bearers:
+            offered_bits = bearer.interval["offered_bytes"] * 8
+            delivered_bits = bearer.interval["delivered_bytes"] * 8
+            delay_ms = bearer.queue_delay_ms(now_ns)
+            self.last_interval[bearer.name] = {
+                "offered_mbps": offered_bits / interval_s / 1e6,
+                "delivered_mbps": delivered_bits / interval_s / 1e6,
+                "buffer_bytes": bearer.buffered,
+                "queue_delay_ms": delay_ms,
+            }
+            rows.append([t_s, bearer.name, "bearer", capacity, offered_bits, delivered_bits, bearer.buffered,
+                         f"{delay_ms:.3f}", bearer.interval["dropped_bytes"]])  # fmt: skip
+            bearer.interval = dict.fromkeys(bearer.interval, 0)
+        for user in self.background.values():
+            previous = self.last_interval.get("bg:" + user.name, {})
+            bg_offered = user.offered_bits - previous.get("offered_bits_total", 0.0)
+            bg_delivered = user.delivered_bits - previous.get("delivered_bits_total", 0.0)
+            self.last_interval["bg:" + user.name] = {
+                "offered_bits_total": user.offered_bits,
+                "delivered_bits_total": user.delivered_bits,
+                "offered_mbps": bg_offered / interval_s / 1e6,
+                "delivered_mbps": bg_delivered / interval_s / 1e6,
+                "backlog_bits": user.backlog_bits,
+            }
+            rows.append([t_s, user.name, "background", capacity, round(bg_offered), round(bg_delivered),
+                         round(user.backlog_bits / 8), "", 0])  # fmt: skip
+        if self._csv is not None and self._csv_file is not None:
+            self._csv.writerows(rows)
+            self._csv_file.flush()
+
+    def counters(self) -> dict[str, Any]:
+        now = _now_ns()
+        return {
+            "t_s": (now - self.start_ns) / 1e9,
+            "scale": self.scale,
+            "capacity_mbps": self.current_capacity_mbps(now),
+            "ticks": self.ticks,
+            "late_ticks": self.late_ticks,
+            "bearers": {
+                b.name: {
+                    "port": b.port,
+                    "weight": b.weight,
+                    "connections": len(b.connections),
+                    "buffer_bytes": b.buffered,
+                    "queue_delay_ms": b.queue_delay_ms(now),
+                    **b.totals,
+                    "last_interval": self.last_interval.get(b.name, {}),
+                }
+                for b in self.bearers
+            },
+            "background": {
+                u.name: {
+                    "weight": u.weight,
+                    "offered_mbps_now": u.offered_bps * self.scale / 1e6,
+                    "offered_bits": u.offered_bits,
+                    "delivered_bits": u.delivered_bits,
+                    "backlog_bits": u.backlog_bits,
+                    "last_interval": self.last_interval.get("bg:" + u.name, {}),
+                }
+                for u in self.background.values()
+            },
+        }
+
+    async def stop(self) -> None:
+        self.stopped.set()
+        if self._tick_handle is not None:
+            self._tick_handle.cancel()
+        for bearer in self.bearers:
+            if bearer.server is not None:
+                bearer.server.close()
+            bearer.drop_connections()
+        self._record(_now_ns())
+        if self._csv_file is not None:
+            self._csv_file.close()
+
+
+def _describe(event: CellEventConfig) -> str:
+    fields = {
+        "background": f"{event.user} offers {event.offered_mbps:g} Mbit/s",
+        "capacity": f"uplink {event.uplink_mbps:g} Mbit/s",
+        "trace": f"trace {event.file or '(off)'}",
+        "coverage_loss": f"coverage lost for {event.duration_s:g} s"
+        + (" (connections dropped)" if event.drop_connections else ""),
+        "weight": f"bearer {event.bearer} weight {event.weight:g}",
+    }
+    return fields[event.kind]
+
+
+# ---- control API (HTTP/JSON on localhost) -------------------------------------------------------------
+
+
+async def _serve_control(
+    emulator: CellEmulator, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+) -> None:
+    status, body = 400, {"error": "bad request"}
+    try:
+        head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), timeout=5)
+        request_line, *header_lines = head.decode("latin-1").split("\r\n")
+        method, path, _ = request_line.split(" ", 2)
+        headers = {k.strip().lower(): v.strip() for k, _, v in (h.partition(":") for h in header_lines if h)}
+        length = int(headers.get("content-length", "0"))
+        if length > 64 * 1024:
+            raise ValueError("body too large")
+        payload = await asyncio.wait_for(reader.readexactly(length), timeout=5) if length else b""
+        if method == "GET" and path == "/counters":
+            status, body = 200, emulator.counters()
+        elif method == "POST" and path == "/events":
+            table = json.loads(payload or b"{}")
+            if not isinstance(table, dict):
+                raise ValueError("the body must be a JSON object")
+            table.setdefault("at_s", 0.0)
+            event = build(CellEventConfig, table)
+            emulator.apply(event)
+            status, body = 200, {"applied": _describe(event)}
+        else:
+            status, body = 404, {"error": f"no {method} {path}; use GET /counters or POST /events"}
+    except ConfigError as exc:
+        status, body = 400, {"error": str(exc)}
+    except (ValueError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError) as exc:
+        status, body = 400, {"error": f"{type(exc).__name__}: {exc}"}
+    data = json.dumps(body).encode()
+    reason = {200: "OK", 400: "Bad Request", 404: "Not Found"}[status]
+    writer.write(
+        f"HTTP/1.1 {status} {reason}\r\nContent-Type: application/json\r\nContent-Length: {len(data)}\r\n"
+        f"Connection: close\r\n\r\n".encode()
+        + data
+    )
+    with contextlib.suppress(ConnectionError):
+        await writer.drain()
+    writer.close()
+
+
+# ---- entry point ----------------------------------------------------------------------------------------
+
+
+async def run_cell(
+    cell: CellConfig,
+    bearers: tuple[BearerConfig, ...],
+    *,
+    out_dir: Path | None = None,
+    duration_s: float | None = None,
+    ready: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
+    """Run the emulator until stopped (SIGINT/SIGTERM) or `duration_s`; returns the final counters."""
+    emulator = CellEmulator(cell, bearers, out_dir)
+    await emulator.start()
+    control: asyncio.Server | None = None
+    control_port = None
+    try:
+        if cell.control_port >= 0:
+            control = await asyncio.start_server(
+                lambda r, w: _serve_control(emulator, r, w), "127.0.0.1", cell.control_port
+            )
+            control_port = control.sockets[0].getsockname()[1]
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                emulator.loop.add_signal_handler(sig, emulator.stopped.set)
+        info = {
+            "ready": True,
+            "bearers": {
+                b.name: {"port": b.port, "target": f"{b.target[0]}:{b.target[1]}"} for b in emulator.bearers
+            },
+            "control_port": control_port,
+        }
+        if ready is not None:
+            ready(info)
+        log.info("cell emulator ready: %s", json.dumps(info))
+        if duration_s is not None:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(emulator.stopped.wait(), timeout=duration_s)
+        else:
+            await emulator.stopped.wait()
+    finally:
+        if control is not None:
+            control.close()
+        await emulator.stop()
+    return emulator.counters()
+
+
+def print_ready(info: dict[str, Any]) -> None:
+    sys.stdout.write(json.dumps(info) + "\n")
+    sys.stdout.flush()
