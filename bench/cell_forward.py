@@ -4,7 +4,7 @@ Both run as their own process on 127.0.0.1 and forward the same paced load from 
 CPU time is read from /proc/<pid>/stat over the measured span. Target (issue 7): under 50% of one
 core at 100 Mbit/s.
 
-Run: python bench/cell_forward.py [--mbps 100] [--seconds 5] [--quick] [--out FILE]
+Run: python -m bench.cell_forward [--mbps 100] [--seconds 5] [--quick] [--out FILE]
 """
 
 from __future__ import annotations
@@ -19,11 +19,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from bench.report import emit, provenance  # noqa: E402
-from tests.cellrig import CellProcess, Sink, send_paced  # noqa: E402
+from bench.report import emit, provenance
+from tests.cellrig import CellProcess, Sink, send_paced
 
 BARE_RELAY = r"""
 import asyncio, sys

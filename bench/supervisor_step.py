@@ -1,6 +1,6 @@
 """Benchmark: the cost of one supervisor step, beside its floor (the bare arithmetic of eq. 1-3).
 
-Run: python bench/supervisor_step.py [--steps N] [--quick] [--out FILE]
+Run: python -m bench.supervisor_step [--steps N] [--quick] [--out FILE]
 Target (issue 6): median step under 50 microseconds.
 """
 

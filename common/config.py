@@ -281,12 +281,39 @@ class CellConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class VehicleSimConfig:
+    """`dynqos sim vehicle`: the simulated quadrotor's MAVLink links (PX4 SITL's ports) and world."""
+
+    host: str = "127.0.0.1"
+    offboard_bind_port: int = 14580
+    offboard_remote_port: int = 14540
+    gcs_bind_port: int = 18570
+    gcs_remote_port: int = 14550
+    speed: float = 1.0
+    wind_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gust_std_mps: float = 0.0
+    seed: int = 0
+    takeoff_alt_m: float = 2.5
+    offboard_loss_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("offboard_bind_port", "offboard_remote_port", "gcs_bind_port", "gcs_remote_port"):
+            _require(0 <= getattr(self, name) <= 65535, name, "must be 0..65535 (0: any free port)")
+        _require(0.01 <= self.speed <= 100, "speed", "must be in 0.01..100 (x real time)")
+        _require(all(abs(w) <= 30 for w in self.wind_mps), "wind_mps", "components must be within 30 m/s")
+        _require(0 <= self.gust_std_mps <= 10, "gust_std_mps", "must be in 0..10 m/s")
+        _require(0.5 <= self.takeoff_alt_m <= 100, "takeoff_alt_m", "must be in 0.5..100 m")
+        _require(0.1 <= self.offboard_loss_s <= 60, "offboard_loss_s", "must be in 0.1..60 s (COM_OF_LOSS_T)")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class Config:
     drone: DroneConfig = field(default_factory=DroneConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
     cell: CellConfig = field(default_factory=CellConfig)
+    vehicle: VehicleSimConfig = field(default_factory=VehicleSimConfig)
 
     def __post_init__(self) -> None:
         bearers = {b.name for b in self.cell.bearer_list(self.zenoh, self.drone.id)}

@@ -68,6 +68,56 @@ def _cmd_sim_cell(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def _cmd_sim_vehicle(args: argparse.Namespace, config: Config) -> int:
+    import json
+    import signal
+
+    from dynqos.sim.vehicle import Link, MavlinkVehicle
+    from dynqos.sim.vehicle_model import VehicleConfig, VehicleModel
+
+    v = config.vehicle
+    speed = v.speed if args.speed is None else args.speed
+    if not 0.01 <= speed <= 100:
+        raise DynqosError(f"--speed must be in 0.01..100, got {speed}")
+    if args.duration is not None and args.duration <= 0:
+        raise DynqosError(f"--duration must be > 0, got {args.duration}")
+    model = VehicleModel(
+        VehicleConfig(
+            wind=v.wind_mps,
+            gust_std_mps=v.gust_std_mps,
+            seed=v.seed,
+            takeoff_alt_m=v.takeoff_alt_m,
+            offboard_loss_s=v.offboard_loss_s,
+        )
+    )
+    links = [
+        Link("offboard", (v.host, v.offboard_bind_port), (v.host, v.offboard_remote_port)),
+        Link("gcs", (v.host, v.gcs_bind_port), (v.host, v.gcs_remote_port)),
+    ]
+    vehicle = MavlinkVehicle(model, links, speed=speed)
+    try:
+        vehicle.open()
+    except OSError as exc:
+        raise DynqosError(f"cannot bind the vehicle's MAVLink ports on {v.host}: {exc.strerror}") from None
+
+    def stop(*_: object) -> None:
+        vehicle.stopped = True
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    info = {
+        "ready": True,
+        "links": {link.name: {"bind": link.bind[1], "remote": link.remote[1]} for link in links},
+    }
+    print(json.dumps(info), flush=True)
+    try:
+        vehicle.run(duration_s=args.duration)
+    finally:
+        vehicle.close()
+        log.info("vehicle stopped: %s", vehicle.counters)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     common = _common_options()
     parser = argparse.ArgumentParser(
@@ -112,6 +162,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cell.add_argument("--out", metavar="DIR", help="write per-interval records to DIR/cell.csv")
     cell.set_defaults(handler=_cmd_sim_cell)
+
+    vehicle = sim_sub.add_parser(
+        "vehicle",
+        parents=[common],
+        help="run the simulated quadrotor that speaks MAVLink like PX4 SITL",
+        description=(
+            "A rigid-body quadrotor with a PX4-like flight controller (arming, takeoff, hold, land, offboard "
+            "with PX4's custom modes and offboard-loss failsafe) speaking MAVLink 2 over UDP: the offboard "
+            "link binds [vehicle] offboard_bind_port (14580) and sends to offboard_remote_port (14540); "
+            "the ground-station link binds 18570 and sends to 14550. Prints one JSON line when ready."
+        ),
+    )
+    vehicle.add_argument(
+        "--speed", type=float, metavar="X", help="simulated seconds per wall second (default 1)"
+    )
+    vehicle.add_argument("--duration", type=float, metavar="S", help="stop after S simulated seconds")
+    vehicle.set_defaults(handler=_cmd_sim_vehicle)
 
     version = commands.add_parser("version", help="print the version", parents=[common])
     version.set_defaults(handler=_cmd_version)

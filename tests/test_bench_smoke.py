@@ -30,3 +30,13 @@ def test_cell_forward_bench_smoke(tmp_path: Path) -> None:
     for key in ("emulator", "bare_relay"):
         assert result[key]["cpu_share_of_one_core"] >= 0
         assert result[key]["delivered_mbps"] > 5
+
+
+def test_vehicle_sim_bench_smoke(tmp_path: Path) -> None:
+    from bench import vehicle_sim
+
+    out = tmp_path / "sim.json"
+    assert vehicle_sim.main(["--quick", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["lockstep"]["sim_s_per_wall_s"] > 0
+    assert result["camera"]["render_and_encode"]["mbps_at_30fps"] > 0

@@ -1,0 +1,249 @@
+"""The simulator as a real process speaking MAVLink over UDP on 127.0.0.1 to a pymavlink client."""
+
+from __future__ import annotations
+
+import json
+import selectors
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
+
+DYNQOS = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+class VehicleProcess:
+    def __init__(self, tmp_path: Path, offboard_port: int, gcs_port: int) -> None:
+        config = tmp_path / "vehicle.toml"
+        config.write_text(
+            f"[vehicle]\noffboard_bind_port = 0\ngcs_bind_port = 0\n"
+            f"offboard_remote_port = {offboard_port}\ngcs_remote_port = {gcs_port}\n"
+        )
+        self.proc = subprocess.Popen(
+            [DYNQOS, "sim", "vehicle", "--config", str(config), "--duration", "300"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        assert self.proc.stdout is not None
+        with selectors.DefaultSelector() as selector:
+            selector.register(self.proc.stdout, selectors.EVENT_READ)
+            if not selector.select(timeout=30):
+                self.stop()
+                raise AssertionError("vehicle did not become ready")
+        self.info: dict[str, Any] = json.loads(self.proc.stdout.readline())
+
+    def stop(self) -> str:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+        try:
+            _, err = self.proc.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            _, err = self.proc.communicate(timeout=5)
+        return err
+
+
+@pytest.fixture
+def vehicle(tmp_path: Path) -> Iterator[tuple[VehicleProcess, Any]]:
+    port = free_udp_port()
+    client = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, source_component=190)
+    proc = VehicleProcess(tmp_path, port, free_udp_port())
+    try:
+        assert client.wait_heartbeat(timeout=10) is not None
+        yield proc, client
+    finally:
+        client.close()
+        proc.stop()
+
+
+def command(client: Any, cmd: int, *params: float) -> int:
+    p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
+    client.mav.command_long_send(1, 1, cmd, 0, *p)
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        ack = client.recv_match(type="COMMAND_ACK", blocking=True, timeout=1)
+        if ack is not None and ack.command == cmd:
+            result: int = ack.result
+            return result
+    raise AssertionError(f"no COMMAND_ACK for {cmd}")
+
+
+def wait_for(client: Any, predicate: Any, kind: str, timeout_s: float) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        msg = client.recv_match(type=kind, blocking=True, timeout=1)
+        if msg is not None and predicate(msg):
+            return msg
+    raise AssertionError(f"no {kind} matching within {timeout_s} s")
+
+
+def send_setpoint(client: Any, x: float, y: float, z: float) -> None:
+    mask = 0b0000_1101_1111_1000  # position only, yaw rate ignored, yaw used
+    client.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, mask, x, y, z,
+                                                  0, 0, 0, 0, 0, 0, 0.0, 0.0)  # fmt: skip
+
+
+def test_telemetry_rates_and_identity(vehicle: tuple[VehicleProcess, Any]) -> None:
+    _, client = vehicle
+    hb = client.recv_match(type="HEARTBEAT", blocking=True, timeout=5)
+    assert hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
+    assert hb.type == mavlink.MAV_TYPE_QUADROTOR
+    assert client.target_system == 1
+    start = time.monotonic()
+    count = 0
+    while time.monotonic() - start < 1.0:
+        if client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=1) is not None:
+            count += 1
+    assert count >= 40  # 50 Hz, with slack for a loaded machine
+    assert wait_for(client, lambda m: True, "ATTITUDE_QUATERNION", 2) is not None
+    assert wait_for(client, lambda m: True, "EXTENDED_SYS_STATE", 3).landed_state == 1  # on ground
+
+
+def test_arm_takeoff_offboard_and_fly(vehicle: tuple[VehicleProcess, Any]) -> None:
+    _, client = vehicle
+    assert command(client, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+    assert command(client, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == mavlink.MAV_RESULT_ACCEPTED
+    wait_for(client, lambda m: m.z < -1.8, "LOCAL_POSITION_NED", 15)
+    # Offboard is refused before setpoints stream...
+    result = command(client, mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0)
+    assert result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    # ...and accepted once they do.
+    for _ in range(10):
+        send_setpoint(client, 0.0, 0.0, -2.0)
+        client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=1)
+    assert command(client, mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0) == mavlink.MAV_RESULT_ACCEPTED
+    hb = wait_for(client, lambda m: m.custom_mode == 6 << 16, "HEARTBEAT", 3)
+    assert hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    deadline = time.monotonic() + 20
+    reached = False
+    while time.monotonic() < deadline and not reached:
+        send_setpoint(client, 1.0, 0.5, -2.0)
+        pos = client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=1)
+        reached = pos is not None and abs(pos.x - 1.0) < 0.05 and abs(pos.y - 0.5) < 0.05
+    assert reached
+    # Setpoints stop: after COM_OF_LOSS_T the vehicle holds (AUTO.LOITER).
+    wait_for(client, lambda m: m.custom_mode == (4 << 16) | (3 << 24), "HEARTBEAT", 5)
+
+
+def test_unknown_and_bad_commands_are_refused(vehicle: tuple[VehicleProcess, Any]) -> None:
+    _, client = vehicle
+    assert command(client, mavlink.MAV_CMD_DO_FLIGHTTERMINATION, 1) == mavlink.MAV_RESULT_UNSUPPORTED
+    assert command(client, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 7) == mavlink.MAV_RESULT_DENIED
+    assert command(client, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == mavlink.MAV_RESULT_DENIED
+    assert command(client, mavlink.MAV_CMD_DO_SET_MODE, 1, 99, 0) == mavlink.MAV_RESULT_UNSUPPORTED
+    assert command(client, mavlink.MAV_CMD_DO_SET_MODE, 0, 6, 0) == mavlink.MAV_RESULT_UNSUPPORTED
+
+
+def test_random_bytes_on_the_port_change_nothing(vehicle: tuple[VehicleProcess, Any]) -> None:
+    proc, client = vehicle
+    bind_port = proc.info["links"]["offboard"]["bind"]
+    rng = __import__("random").Random(7)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        for i in range(500):
+            size = rng.randint(0, 300)
+            payload = bytes(rng.getrandbits(8) for _ in range(size))
+            if i % 5 == 0:
+                payload = b"\xfd" + payload  # looks like a MAVLink 2 start
+            sock.sendto(payload, ("127.0.0.1", bind_port))
+    # Still alive, still disarmed, still answering on the real client's address.
+    hb = wait_for(client, lambda m: True, "HEARTBEAT", 5)
+    assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    assert command(client, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+    assert proc.proc.poll() is None
+
+
+def test_bad_vehicle_config_exits_2(tmp_path: Path) -> None:
+    config = tmp_path / "bad.toml"
+    config.write_text("[vehicle]\nspeed = 0\n")
+    args = [DYNQOS, "sim", "vehicle", "--config", str(config)]
+    result = subprocess.run(args, capture_output=True, text=True, timeout=60, check=False)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        f"dynqos: error: {config}: vehicle.speed: must be in 0.01..100 (x real time)"
+    ]
+
+
+MAVPROXY = shutil.which("mavproxy.py") or str(Path(sys.executable).parent / "mavproxy.py")
+
+
+@pytest.mark.slow
+def test_mavproxy_ground_station_sees_heartbeat_mode_and_position(tmp_path: Path) -> None:
+    if not Path(MAVPROXY).exists():
+        pytest.skip("mavproxy.py is not installed (.ci/run installs it with pip --no-deps mavproxy pyserial)")
+    gcs_port = free_udp_port()
+    api_port = free_udp_port()
+    client = mavutil.mavlink_connection(
+        f"udpin:127.0.0.1:{api_port}", source_system=254, source_component=190
+    )
+    vehicle = VehicleProcess(tmp_path, api_port, gcs_port)
+    tlog = tmp_path / "gcs.tlog"
+    gcs = subprocess.Popen(
+        [MAVPROXY, f"--master=udpin:127.0.0.1:{gcs_port}", "--daemon", "--non-interactive",
+         f"--state-basedir={tmp_path}", f"--logfile={tlog}"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path,
+    )  # fmt: skip
+    seen: list[str] = []
+
+    def gcs_says(text: str, timeout_s: float) -> None:
+        assert gcs.stdout is not None
+        deadline = time.monotonic() + timeout_s
+        with selectors.DefaultSelector() as selector:
+            selector.register(gcs.stdout, selectors.EVENT_READ)
+            while time.monotonic() < deadline:
+                if any(text in line for line in seen):
+                    return
+                if selector.select(timeout=max(0.0, deadline - time.monotonic())):
+                    line = gcs.stdout.readline()
+                    if not line:
+                        break
+                    seen.append(line)
+        raise AssertionError(f"MAVProxy never said {text!r}; it said: {''.join(seen)[-2000:]}")
+
+    try:
+        gcs_says("Detected vehicle 1:1", 30)
+        assert client.wait_heartbeat(timeout=10) is not None
+        assert command(client, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_ACCEPTED
+        gcs_says("ARMED", 10)
+        assert (
+            command(client, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0) == mavlink.MAV_RESULT_ACCEPTED
+        )
+        wait_for(client, lambda m: m.z < -1.8, "LOCAL_POSITION_NED", 15)
+        for _ in range(10):
+            send_setpoint(client, 0.0, 0.0, -2.0)
+            client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=1)
+        assert command(client, mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0) == mavlink.MAV_RESULT_ACCEPTED
+        for _ in range(25):
+            send_setpoint(client, 0.0, 0.0, -2.0)
+            client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=1)
+        gcs_says("OFFBOARD", 10)
+    finally:
+        gcs.terminate()  # our own child, by its pid
+        try:
+            gcs.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            gcs.kill()
+            gcs.communicate(timeout=5)
+        client.close()
+        vehicle.stop()
+    log = mavutil.mavlink_connection(str(tlog))
+    altitudes = []
+    while (msg := log.recv_match(type="LOCAL_POSITION_NED")) is not None:
+        altitudes.append(-msg.z)
+    assert altitudes, "the ground station logged no position"
+    assert max(altitudes) > 1.8

@@ -1,0 +1,159 @@
+"""The simulated quadrotor and its PX4-like controller, stepped in lock-step (no sockets, deterministic)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dynqos.sim.dynamics import QuadState, quat_to_rot, rot_to_quat, yaw_of
+from dynqos.sim.px4 import MAIN_AUTO, MAIN_OFFBOARD, SUB_AUTO_LOITER, Mode, Result, Setpoint
+from dynqos.sim.vehicle_model import VehicleConfig, VehicleModel
+
+SETPOINT_S = 0.02
+
+
+def airborne(alt: float = 2.0, config: VehicleConfig | None = None) -> VehicleModel:
+    model = VehicleModel(config)
+    assert model.fc.arm(True, model.state, True, model.now_ns) is Result.ACCEPTED
+    assert model.fc.takeoff(alt, model.state, model.now_ns) is Result.ACCEPTED
+    model.advance(8.0)
+    assert model.fc.mode is Mode.HOLD
+    return model
+
+
+def offboard(model: VehicleModel, setpoint: Setpoint) -> None:
+    for _ in range(10):
+        model.fc.on_setpoint(setpoint, model.now_ns)
+        model.advance(SETPOINT_S)
+    assert model.fc.set_mode(MAIN_OFFBOARD, 0, model.state, model.now_ns) is Result.ACCEPTED
+
+
+def fly(model: VehicleModel, setpoint: Setpoint, seconds: float) -> list[QuadState]:
+    states = []
+    for _ in range(round(seconds / SETPOINT_S)):
+        model.fc.on_setpoint(setpoint, model.now_ns)
+        states.append(model.advance(SETPOINT_S))
+    return states
+
+
+def test_takeoff_and_hover_holds_within_5_cm() -> None:
+    model = airborne(2.0)
+    errors = []
+    for _ in range(500):  # 10 s
+        state = model.advance(SETPOINT_S)
+        errors.append(float(np.linalg.norm(state.pos_m - np.array([0.0, 0.0, -2.0]))))
+    assert max(errors) < 0.05
+
+
+def test_a_1_m_position_step_settles_with_at_most_20_percent_overshoot() -> None:
+    model = airborne(2.0)
+    offboard(model, Setpoint(pos_m=(0.0, 0.0, -2.0), yaw_rad=0.0))
+    states = fly(model, Setpoint(pos_m=(1.0, 0.0, -2.0), yaw_rad=0.0), 8.0)
+    xs = [s.pos_m[0] for s in states]
+    assert max(xs) <= 1.2
+    assert abs(xs[-1] - 1.0) < 0.02
+    assert all(abs(s.pos_m[2] + 2.0) < 0.1 for s in states)
+
+
+def test_velocity_setpoints_are_tracked() -> None:
+    model = airborne(2.0)
+    offboard(model, Setpoint(vel_mps=(0.0, 0.0, 0.0), yaw_rad=0.0))
+    states = fly(model, Setpoint(vel_mps=(1.0, -0.5, 0.0), yaw_rad=0.0), 5.0)
+    assert states[-1].vel_mps == pytest.approx([1.0, -0.5, 0.0], abs=0.05)
+
+
+def test_acceleration_setpoints_are_tracked() -> None:
+    model = airborne(2.0)
+    offboard(model, Setpoint(accel_mps2=(0.0, 0.0, 0.0), yaw_rad=0.0))
+    v0 = model.state.vel_mps.copy()
+    states = fly(model, Setpoint(accel_mps2=(1.0, 0.0, 0.0), yaw_rad=0.0), 1.0)
+    # Linear drag (0.25 /s) is the only other force: v(t) = a/d (1 - exp(-d t)) from rest.
+    expected = 1.0 / 0.25 * (1 - math.exp(-0.25 * 1.0))
+    assert states[-1].vel_mps[0] - v0[0] == pytest.approx(expected, rel=0.1)
+    assert abs(states[-1].pos_m[2] + 2.0) < 0.15
+
+
+def test_yaw_setpoint_is_tracked() -> None:
+    model = airborne(2.0)
+    offboard(model, Setpoint(pos_m=(0.0, 0.0, -2.0), yaw_rad=0.0))
+    fly(model, Setpoint(pos_m=(0.0, 0.0, -2.0), yaw_rad=1.0), 4.0)
+    assert yaw_of(model.state.quat) == pytest.approx(1.0, abs=0.02)
+
+
+def test_offboard_is_refused_without_a_setpoint_stream() -> None:
+    model = airborne(2.0)
+    assert model.fc.set_mode(MAIN_OFFBOARD, 0, model.state, model.now_ns) is Result.TEMPORARILY_REJECTED
+    model.fc.on_setpoint(Setpoint(pos_m=(0.0, 0.0, -2.0)), model.now_ns)
+    assert model.fc.set_mode(MAIN_OFFBOARD, 0, model.state, model.now_ns) is Result.TEMPORARILY_REJECTED
+    assert model.fc.mode is Mode.HOLD
+
+
+def test_failsafe_holds_position_1_s_after_setpoints_stop() -> None:
+    model = airborne(2.0)
+    offboard(model, Setpoint(pos_m=(0.0, 0.0, -2.0), yaw_rad=0.0))
+    fly(model, Setpoint(vel_mps=(1.0, 0.0, 0.0), yaw_rad=0.0), 2.0)
+    stopped_at = model.now_ns
+    while model.fc.mode is Mode.OFFBOARD:
+        model.advance(0.005)
+    assert (model.now_ns - stopped_at) / 1e9 == pytest.approx(1.0, abs=0.02)
+    assert model.fc.mode is Mode.HOLD
+    held = model.fc.hold_pos
+    assert held is not None
+    model.advance(5.0)
+    assert np.linalg.norm(model.state.pos_m - held) < 0.6  # it brakes from 1 m/s and returns
+    assert np.linalg.norm(model.state.vel_mps) < 0.05
+    assert "offboard lost: holding position" in model.fc.events
+
+
+def test_land_disarms_on_the_ground_and_disarm_in_flight_is_denied() -> None:
+    model = airborne(2.0)
+    assert model.fc.arm(False, model.state, model.plant.on_ground, model.now_ns) is Result.DENIED
+    assert model.fc.land(model.state) is Result.ACCEPTED
+    model.advance(6.0)
+    assert model.plant.on_ground
+    assert not model.fc.armed
+    assert model.fc.takeoff(2.0, model.state, model.now_ns) is Result.DENIED
+
+
+def test_modes_and_custom_mode_encoding() -> None:
+    assert Mode.OFFBOARD.custom_mode == 6 << 16
+    assert Mode.HOLD.custom_mode == (4 << 16) | (3 << 24)
+    assert Mode.from_custom(MAIN_AUTO, SUB_AUTO_LOITER) is Mode.HOLD
+    assert Mode.from_custom(MAIN_OFFBOARD, 7) is Mode.OFFBOARD
+    assert Mode.from_custom(42, 0) is None
+    model = airborne(2.0)
+    assert model.fc.set_mode(42, 0, model.state, model.now_ns) is Result.UNSUPPORTED
+    assert model.fc.takeoff(500.0, model.state, model.now_ns) is Result.DENIED
+
+
+def test_setpoint_type_mask() -> None:
+    sp = Setpoint.from_mavlink(0b110111111000 & ~1024, (1, 2, 3), (4, 5, 6), (7, 8, 9), 0.5)
+    assert sp == Setpoint(pos_m=(1, 2, 3), vel_mps=None, accel_mps2=None, yaw_rad=0.5)
+    only_accel = Setpoint.from_mavlink(0b0000_1100_0011_1111, (0, 0, 0), (0, 0, 0), (1, 0, 0), 0.0)
+    assert only_accel is not None
+    assert only_accel.accel_mps2 == (1, 0, 0)
+    assert only_accel.pos_m is None
+    assert only_accel.yaw_rad is None
+    assert Setpoint.from_mavlink(0xFFFF, (0, 0, 0), (0, 0, 0), (0, 0, 0), 0.0) is None
+    assert Setpoint.from_mavlink(0, (math.nan, 0, 0), (0, 0, 0), (0, 0, 0), 0.0) is None
+
+
+def test_wind_gusts_are_reproducible_for_a_seed() -> None:
+    runs = []
+    for _ in range(2):
+        model = airborne(2.0, VehicleConfig(wind=(2.0, 0.0, 0.0), gust_std_mps=1.0, seed=5))
+        model.advance(3.0)
+        runs.append(model.state.pos_m.copy())
+    assert np.array_equal(runs[0], runs[1])
+    assert np.linalg.norm(runs[0] - np.array([0, 0, -2.0])) < 0.5  # the controller holds against wind
+
+
+def test_rotation_helpers_round_trip() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        q *= 1 if q[0] >= 0 else -1
+        assert rot_to_quat(quat_to_rot(q)) == pytest.approx(q, abs=1e-9)
