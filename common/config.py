@@ -307,6 +307,97 @@ class VehicleSimConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class MpcConfig:
+    """`dynqos edge mpc`; the step and horizon are [control] t_mpc_s and horizon."""
+
+    q_pos: float = 10.0
+    q_vel: float = 1.0
+    r_acc: float = 0.1
+    terminal_factor: float = 5.0
+    v_max_mps: tuple[float, float, float] = (3.0, 3.0, 1.5)
+    a_max_mps2: tuple[float, float, float] = (6.0, 6.0, 4.0)
+    drag_per_s: float = 0.25
+    eps: float = 1e-4
+    max_iter: int = 4000
+    compensate_delay: bool = True
+    command_steps: int = 10
+    max_compensation_s: float = 1.0
+    idle_timeout_s: float = 10.0
+    health_interval_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        for name in ("q_pos", "q_vel", "r_acc", "terminal_factor"):
+            _require(0 < getattr(self, name) <= 1e6, name, "must be in (0, 1e6]")
+        _require(all(0 < v <= 100 for v in self.v_max_mps), "v_max_mps", "each must be in (0, 100]")
+        _require(all(0 < a <= 100 for a in self.a_max_mps2), "a_max_mps2", "each must be in (0, 100]")
+        _require(0 <= self.drag_per_s <= 10, "drag_per_s", "must be in 0..10 per second")
+        _require(1e-8 <= self.eps <= 1e-1, "eps", "must be in 1e-8..1e-1")
+        _require(10 <= self.max_iter <= 100_000, "max_iter", "must be in 10..100000")
+        _require(1 <= self.command_steps <= 60, "command_steps", "must be in 1..60")
+        _require(0 <= self.max_compensation_s <= 2.5, "max_compensation_s", "must be in 0..2.5 s")
+        _require(0.5 <= self.idle_timeout_s <= 3600, "idle_timeout_s", "must be in 0.5..3600 s")
+        _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class PlannerConfig:
+    """`dynqos edge planner`: the mission every discovered drone flies (docs/edge.md)."""
+
+    mission: Literal["hover", "circle", "figure8", "waypoints"] = "circle"
+    center_m: tuple[float, float] = (0.0, 0.0)
+    altitude_m: float = 1.5
+    radius_m: float = 2.0
+    period_s: float = 10.0
+    yaw: Literal["tangent", "fixed", "center"] = "tangent"
+    fixed_yaw_rad: float = 0.0
+    lead_in_s: float = 5.0
+    waypoints_file: str = ""
+    speed_mps: float = 1.0
+    publish_hz: float = 10.0
+    samples: int = 60
+    health_interval_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        _require(0.2 <= self.altitude_m <= 100, "altitude_m", "must be in 0.2..100 m")
+        _require(0.1 <= self.radius_m <= 100, "radius_m", "must be in 0.1..100 m")
+        _require(1.0 <= self.period_s <= 3600, "period_s", "must be in 1..3600 s")
+        _require(0 <= self.lead_in_s <= 600, "lead_in_s", "must be in 0..600 s")
+        _require(0.05 <= self.speed_mps <= 20, "speed_mps", "must be in 0.05..20 m/s")
+        _require(0.5 <= self.publish_hz <= 100, "publish_hz", "must be in 0.5..100 Hz")
+        _require(2 <= self.samples <= 400, "samples", "must be in 2..400")
+        _require(self.mission != "waypoints" or bool(self.waypoints_file), "waypoints_file",
+                 "the waypoints mission needs a waypoints_file")  # fmt: skip
+        _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DetectorConfig:
+    """`dynqos edge detector`: OpenCV HoughCircles on the RGB frames (docs/edge.md)."""
+
+    channel: Literal["chroma", "gray"] = "chroma"
+    dp: float = 1.2
+    min_dist_px: float = 80.0
+    canny_high: float = 120.0
+    accumulator: float = 45.0
+    min_radius_px: int = 12
+    max_radius_px: int = 240
+    blur_px: int = 5
+    max_circles: int = 16
+    health_interval_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        _require(0.5 <= self.dp <= 4, "dp", "must be in 0.5..4")
+        _require(1 <= self.min_dist_px <= 4000, "min_dist_px", "must be in 1..4000")
+        _require(1 <= self.canny_high <= 1000, "canny_high", "must be in 1..1000")
+        _require(1 <= self.accumulator <= 1000, "accumulator", "must be in 1..1000")
+        _require(1 <= self.min_radius_px < self.max_radius_px <= 4000, "max_radius_px",
+                 "need 1 <= min_radius_px < max_radius_px <= 4000")  # fmt: skip
+        _require(self.blur_px in (0, 3, 5, 7, 9), "blur_px", "must be 0, 3, 5, 7 or 9")
+        _require(1 <= self.max_circles <= 64, "max_circles", "must be in 1..64")
+        _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class Config:
     drone: DroneConfig = field(default_factory=DroneConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
@@ -314,6 +405,9 @@ class Config:
     control: ControlConfig = field(default_factory=ControlConfig)
     cell: CellConfig = field(default_factory=CellConfig)
     vehicle: VehicleSimConfig = field(default_factory=VehicleSimConfig)
+    mpc: MpcConfig = field(default_factory=MpcConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
 
     def __post_init__(self) -> None:
         bearers = {b.name for b in self.cell.bearer_list(self.zenoh, self.drone.id)}

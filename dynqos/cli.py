@@ -8,9 +8,11 @@ never a traceback.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from collections.abc import Callable, Sequence
+from typing import Any
 
 from dynqos import __version__
 from dynqos.common.config import Config, load_config, to_toml
@@ -118,6 +120,42 @@ def _cmd_sim_vehicle(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def _ready_line(name: str) -> None:
+    print(json.dumps({"ready": True, "service": name}), flush=True)
+
+
+def _cmd_edge(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.common.transport import Role, open_bus
+
+    name = args.edge_command
+    if name == "router":
+        from dynqos.edge.router import run_router
+
+        run_router(config, ready=lambda: _ready_line("router"))
+        return 0
+    bus = open_bus(config.zenoh, Role.EDGE)
+    try:
+        service: Any
+        if name == "mpc":
+            from dynqos.edge.mpc_service import MpcService
+
+            service = MpcService(config, bus)
+        elif name == "planner":
+            from dynqos.edge.planner_service import PlannerService
+
+            service = PlannerService(config, bus)
+        else:
+            from dynqos.edge.detector_service import DetectorService
+
+            service = DetectorService(config, bus)
+        service.service.install_signal_handlers()
+        _ready_line(name)
+        service.run()
+    finally:
+        bus.close()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     common = _common_options()
     parser = argparse.ArgumentParser(
@@ -179,6 +217,32 @@ def build_parser() -> argparse.ArgumentParser:
     )
     vehicle.add_argument("--duration", type=float, metavar="S", help="stop after S simulated seconds")
     vehicle.set_defaults(handler=_cmd_sim_vehicle)
+
+    edge_cmd = commands.add_parser(
+        "edge", help="edge services: router, mpc, planner, detector", parents=[common]
+    )
+    edge_sub = edge_cmd.add_subparsers(dest="edge_command", metavar="SERVICE", required=True)
+    for name, text in (
+        ("router", "the zenoh router, listening on the default-flow (7447) and priority-flow (7448) ports"),
+        (
+            "mpc",
+            "the MPC position controller: one OSQP controller per drone, answering each State with a Command",
+        ),
+        ("planner", "the mission planner: publishes each drone's reference trajectory ([planner] config)"),
+        (
+            "detector",
+            "the circle detector: acks every camera frame, detects circles in RGB, locates them with depth",
+        ),
+    ):
+        sub = edge_sub.add_parser(
+            name,
+            parents=[common],
+            help=text,
+            description=text[0].upper() + text[1:] + ". "
+            "Connects to the router at [zenoh] edge_host:default_port as a client; prints one "
+            "JSON line when ready, a health line every few seconds, stops on SIGTERM.",
+        )
+        sub.set_defaults(handler=_cmd_edge)
 
     version = commands.add_parser("version", help="print the version", parents=[common])
     version.set_defaults(handler=_cmd_version)

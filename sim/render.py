@@ -195,9 +195,8 @@ class Renderer:
                 cx, cy = shape.center_m  # type: ignore[attr-defined]
                 normal[mask, 0] = (p[:, 0] - cx) / shape.radius_m  # type: ignore[attr-defined]
                 normal[mask, 1] = (p[:, 1] - cy) / shape.radius_m  # type: ignore[attr-defined]
-            else:
-                nvec = np.array(shape.normal) / np.linalg.norm(shape.normal)  # type: ignore[attr-defined]
-                normal[mask] = -nvec * np.sign(d[mask] @ nvec)[:, None]
+            else:  # hoops are painted markers: lit evenly, whatever their orientation
+                normal[mask] = -LIGHT.astype(np.float32)
         return best, normal, color, checker
 
     def project(

@@ -81,7 +81,7 @@ class Hoop:
 
     center_m: tuple[float, float, float]
     radius_m: float = 0.6
-    tube_m: float = 0.05
+    tube_m: float = 0.08
     normal: tuple[float, float, float] = (1.0, 0.0, 0.0)
     color: Color = (240, 140, 20)
 

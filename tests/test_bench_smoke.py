@@ -40,3 +40,13 @@ def test_vehicle_sim_bench_smoke(tmp_path: Path) -> None:
     result = json.loads(out.read_text())
     assert result["lockstep"]["sim_s_per_wall_s"] > 0
     assert result["camera"]["render_and_encode"]["mbps_at_30fps"] > 0
+
+
+def test_mpc_bench_smoke(tmp_path: Path) -> None:
+    from bench import mpc_step
+
+    out = tmp_path / "mpc.json"
+    assert mpc_step.main(["--quick", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert [s["horizon"] for s in result["steps"]] == [20, 40]
+    assert result["fleet"]["max_drones_at_20hz"] >= 0

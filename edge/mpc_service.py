@@ -1,0 +1,153 @@
+"""`dynqos edge mpc`: one process, one controller per drone, discovered from the drones' states.
+
+Zenoh callbacks only decode and queue; one worker thread drains the queue, keeps the newest state
+per drone, solves and publishes the Command (REAL_TIME, express). A failed solve sends nothing and
+is counted; the drone's watchdog takes over. Idle drones are dropped after `idle_timeout_s`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dynqos.common import keys
+from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.config import Config
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.messages import Command, Reference, State
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Bus, Priority, Publisher, Received
+from dynqos.edge.mpc import ControllerSettings, DroneController
+from dynqos.edge.mpc_problem import MpcSettings, SolveError
+from dynqos.edge.service import Service
+
+log = logging.getLogger(__name__)
+
+
+def controller_settings(config: Config) -> ControllerSettings:
+    m = config.mpc
+    return ControllerSettings(
+        mpc=MpcSettings(
+            dt_s=config.control.t_mpc_s, horizon=config.control.horizon, q_pos=m.q_pos, q_vel=m.q_vel,
+            r_acc=m.r_acc, terminal_factor=m.terminal_factor, v_max_mps=m.v_max_mps, a_max_mps2=m.a_max_mps2,
+            drag_per_s=m.drag_per_s, eps=m.eps, max_iter=m.max_iter,
+        ),
+        compensate_delay=m.compensate_delay, command_steps=m.command_steps,
+        max_compensation_s=m.max_compensation_s,
+    )  # fmt: skip
+
+
+@dataclass
+class MpcCounters:
+    states: int = 0
+    commands: int = 0
+    stale: int = 0
+    solve_failures: int = 0
+    references: int = 0
+    solve_ms: list[float] = field(default_factory=list)
+
+
+class MpcService:
+    def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
+        self.config = config
+        self.bus = bus
+        self.clock = clock or MonotonicClock()
+        self.settings = controller_settings(config)
+        self.controllers: dict[str, DroneController] = {}
+        self.publishers: dict[str, Publisher] = {}
+        self.queue: BoundedQueue[Received] = BoundedQueue(4096)
+        self.counters = MpcCounters()
+        self.state_stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue)
+        self.ref_stats = bus.subscribe(keys.downlink_all_drones(Downlink.REFERENCE), self.queue)
+        self.service = Service("mpc", config.mpc.health_interval_s)
+
+    def _controller(self, uav: str) -> DroneController:
+        ctrl = self.controllers.get(uav)
+        if ctrl is None:
+            ctrl = self.controllers[uav] = DroneController(uav, self.settings)
+            self.publishers[uav] = self.bus.publisher(
+                keys.downlink(uav, Downlink.COMMAND), Priority.REAL_TIME, express=True
+            )
+            log.info("mpc: new drone %s (%d served)", uav, len(self.controllers))
+        return ctrl
+
+    def process(self, timeout_s: float = 0.1) -> int:
+        """Handle what has arrived; returns how many commands were sent."""
+        first = self.queue.get(timeout_s)
+        if first is None:
+            return 0
+        items = [first, *self.queue.drain()]
+        newest: dict[str, Received] = {}
+        for item in items:
+            message = item.message
+            if isinstance(message, Reference):
+                self.counters.references += 1
+                self._controller(message.uav).reference.update(message, item.arrival_ns)
+            elif isinstance(message, State):
+                self.counters.states += 1
+                previous = newest.get(message.uav)
+                if previous is None or message.seq > previous.message.seq:
+                    if previous is not None:
+                        self.counters.stale += 1
+                    newest[message.uav] = item
+                else:
+                    self.counters.stale += 1
+        sent = 0
+        for uav, item in newest.items():
+            sent += self._answer(uav, item)
+        self._drop_idle()
+        return sent
+
+    def _answer(self, uav: str, item: Received) -> int:
+        ctrl = self._controller(uav)
+        state = item.message
+        assert isinstance(state, State)
+        try:
+            plan = ctrl.step(state, item.arrival_ns)
+        except SolveError as exc:
+            self.counters.solve_failures += 1
+            log.warning("mpc: %s seq %d: solve failed (%s); no command sent", uav, state.seq, exc)
+            return 0
+        if plan is None:
+            self.counters.stale += 1
+            return 0
+        self.counters.solve_ms.append(ctrl.problem.last_solve_s * 1000)
+        if len(self.counters.solve_ms) > 2000:
+            del self.counters.solve_ms[:1000]
+        command = Command(
+            uav=uav, seq=state.seq, state_seq=plan.state_seq, state_stamp_ns=plan.state_stamp_ns,
+            edge_hold_ns=max(0, self.clock.now_ns() - item.arrival_ns), dt_s=plan.dt_s,
+            accel_mps2=plan.accel_mps2, yaw_rad=plan.yaw_rad,
+        )  # fmt: skip
+        self.publishers[uav].put(command)
+        self.counters.commands += 1
+        return 1
+
+    def _drop_idle(self) -> None:
+        now = self.clock.now_ns()
+        timeout_ns = round(self.config.mpc.idle_timeout_s * 1e9)
+        for uav in [
+            u for u, c in self.controllers.items() if c.last_seen_ns and now - c.last_seen_ns > timeout_ns
+        ]:
+            del self.controllers[uav]
+            self.publishers.pop(uav).close()
+            log.info("mpc: drone %s idle for %.0f s, dropped", uav, self.config.mpc.idle_timeout_s)
+
+    def health(self) -> str:
+        c = self.counters
+        solve = np.array(c.solve_ms[-500:]) if c.solve_ms else np.zeros(1)
+        rejected = self.state_stats.rejected + self.ref_stats.rejected
+        return (
+            f"drones={len(self.controllers)} states={c.states} commands={c.commands} stale={c.stale} "
+            f"rejected={rejected} solve_failures={c.solve_failures} "
+            f"references={c.references} queue_drops={self.queue.dropped} "
+            f"solve_ms_p50={np.percentile(solve, 50):.3f} solve_ms_p99={np.percentile(solve, 99):.3f}"
+        )
+
+    def run(self) -> None:
+        while not self.service.stop.is_set():
+            self.process(0.1)
+            self.service.maybe_health(self.health)
+        log.info("mpc: stopped; %s", self.health())

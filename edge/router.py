@@ -1,0 +1,31 @@
+"""`dynqos edge router`: a zenoh router in a Python process, listening on the two flow ports.
+
+The default flow's port (7447) and the priority flow's port (7448) are two listeners of one router;
+`transport/unicast/max_links` is raised so a drone's two priority-range links can both open.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from dynqos.common.config import Config
+from dynqos.common.transport import Role, open_session, router_endpoints
+from dynqos.edge.service import Service
+
+log = logging.getLogger(__name__)
+
+
+def run_router(config: Config, ready: object = None) -> None:
+    service = Service("router", 5.0)
+    service.install_signal_handlers()
+    session = open_session(config.zenoh, Role.ROUTER)
+    try:
+        log.info("router: listening on %s", ", ".join(router_endpoints(config.zenoh)))
+        if callable(ready):
+            ready()
+        while not service.stop.is_set():
+            service.maybe_health(lambda: f"links={len(session.info.links())}")
+            service.stop.wait(0.5)
+    finally:
+        session.close()  # type: ignore[no-untyped-call]
+        log.info("router: stopped")

@@ -1,0 +1,180 @@
+"""Router, planner, MPC and detector as real processes on 127.0.0.1, driven by a test client."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from dynqos.common import keys
+from dynqos.common.config import ZenohConfig
+from dynqos.common.depthcodec import encode_zstd16
+from dynqos.common.keys import Downlink, Flow, Stream
+from dynqos.common.messages import CameraAck, CameraFrame, Command, Detections, State
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Bus, Priority, Received, Role, open_bus
+from dynqos.sim.dynamics import quat_to_rot
+from dynqos.sim.render import Renderer
+from dynqos.sim.world import default_world
+from tests.conftest import free_tcp_port
+from tests.procs import DynqosProcess
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
+
+
+@pytest.fixture
+def edge(tmp_path: Path) -> Iterator[tuple[Path, ZenohConfig, list[DynqosProcess]]]:
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    config = tmp_path / "edge.toml"
+    config.write_text(
+        f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"
+        "[mpc]\nhealth_interval_s = 1\n[planner]\nlead_in_s = 1\nhealth_interval_s = 1\n"
+    )
+    procs: list[DynqosProcess] = []
+    try:
+        procs.append(DynqosProcess(["edge", "router"], config))
+        yield config, zcfg, procs
+    finally:
+        for proc in reversed(procs):
+            proc.stop()
+
+
+def drone_bus(zcfg: ZenohConfig) -> Bus:
+    return open_bus(zcfg, Role.DRONE)
+
+
+def test_mpc_serves_two_drones_at_once(edge: tuple[Path, ZenohConfig, list[DynqosProcess]]) -> None:
+    config, zcfg, procs = edge
+    procs.append(DynqosProcess(["edge", "planner"], config))
+    procs.append(DynqosProcess(["edge", "mpc"], config))
+    bus = drone_bus(zcfg)
+    try:
+        queue: BoundedQueue[Received] = BoundedQueue(1000)
+        for uav in ("uav1", "uav2"):
+            bus.subscribe(keys.downlink(uav, Downlink.COMMAND), queue)
+        pubs = {
+            uav: bus.publisher(keys.uplink(uav, Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+            for uav in ("uav1", "uav2")
+        }
+        for pub in pubs.values():
+            assert pub.wait_matched(20), "the MPC and planner never subscribed"
+        commands: dict[str, list[Command]] = {"uav1": [], "uav2": []}
+        deadline = time.monotonic() + 30
+        seq = 0
+        while min(len(c) for c in commands.values()) < 40 and time.monotonic() < deadline:
+            seq += 1
+            for uav, pub in pubs.items():
+                x = 0.0 if uav == "uav1" else 3.0
+                pub.put(
+                    State(
+                        uav=uav,
+                        seq=seq,
+                        stamp_ns=time.monotonic_ns(),
+                        pos_m=(x, 0.0, -1.5),
+                        vel_mps=(0.0, 0.0, 0.0),
+                        quat=(1.0, 0.0, 0.0, 0.0),
+                        rtt_est_ms=5.0,
+                    )
+                )
+            end = time.monotonic() + 0.05  # 20 Hz states; collect what came back meanwhile
+            while (item := queue.get(max(0.0, end - time.monotonic()))) is not None:
+                assert isinstance(item.message, Command)
+                commands[item.message.uav].append(item.message)
+    finally:
+        bus.close()
+    for uav, got in commands.items():
+        assert len(got) >= 40, f"{uav}: only {len(got)} commands"
+        assert all(c.uav == uav for c in got)
+        assert [c.state_seq for c in got] == sorted(c.state_seq for c in got)
+        assert got[-1].edge_hold_ns < 50_000_000
+    # Both fly the planner's circle (lead-in 1 s to its start at (2, 0)): uav2 at x = 3 is pulled back.
+    assert commands["uav2"][-1].accel_mps2[0][0] < 0
+    assert commands["uav1"][-1].accel_mps2[0][0] > 0
+    mpc_log = procs[-1].stop()
+    assert "drones=2" in mpc_log
+
+
+def test_detector_acks_every_frame_and_finds_the_hoop(
+    edge: tuple[Path, ZenohConfig, list[DynqosProcess]],
+) -> None:
+    config, zcfg, procs = edge
+    procs.append(DynqosProcess(["edge", "detector"], config))
+    world = default_world()
+    renderer = Renderer(world, seed=3)
+    pos = np.array([2.0, -2.2, -1.5])
+    rot = quat_to_rot(np.array([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]))  # facing +y
+    rgb, depth = renderer.render(pos, rot)
+    jpeg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])[
+        1
+    ].tobytes()
+    zdepth = encode_zstd16(np.round(depth * 1000).astype(np.uint16))
+    bus = drone_bus(zcfg)
+    try:
+        acks: BoundedQueue[Received] = BoundedQueue(100)
+        dets: BoundedQueue[Received] = BoundedQueue(100)
+        bus.subscribe(keys.downlink("uav1", Downlink.CAMERA_ACK), acks)
+        bus.subscribe(keys.downlink("uav1", Downlink.DETECTIONS), dets)
+        rgb_pub = bus.publisher(keys.uplink("uav1", Flow.DEFAULT, Stream.CAMERA_RGB), Priority.DATA)
+        depth_pub = bus.publisher(keys.uplink("uav1", Flow.DEFAULT, Stream.CAMERA_DEPTH), Priority.DATA)
+        assert rgb_pub.wait_matched(20)
+        assert depth_pub.wait_matched(20)
+        intr = renderer.intrinsics.as_tuple()
+        for seq in range(1, 6):
+            stamp = time.monotonic_ns()
+            depth_pub.put(
+                CameraFrame(
+                    uav="uav1",
+                    seq=seq,
+                    stamp_ns=stamp,
+                    kind="depth",
+                    encoding="zstd16",
+                    width=640,
+                    height=480,
+                    intrinsics=intr,
+                    payload=zdepth,
+                )
+            )
+            rgb_pub.put(
+                CameraFrame(
+                    uav="uav1",
+                    seq=seq,
+                    stamp_ns=stamp,
+                    kind="rgb",
+                    encoding="jpeg",
+                    width=640,
+                    height=480,
+                    intrinsics=intr,
+                    payload=jpeg,
+                )
+            )
+            rgb_pub.put_bytes(b"\xc1 not a message")  # counted and dropped, never a crash
+        got_acks = [acks.get(10) for _ in range(10)]
+        detection = dets.get(20)
+    finally:
+        bus.close()
+    assert all(isinstance(a.message, CameraAck) for a in got_acks if a is not None)
+    assert sorted((a.message.frame_seq, a.message.kind) for a in got_acks if a) == sorted(  # type: ignore[attr-defined]
+        (s, k) for s in range(1, 6) for k in ("depth", "rgb")
+    )
+    assert detection is not None
+    assert isinstance(detection.message, Detections)
+    hoop_center = renderer.project(np.array(world.hoops[0].center_m), pos, rot)
+    assert hoop_center is not None
+    found = [
+        c
+        for c in detection.message.circles_px
+        if math.hypot(c[0] - hoop_center[0], c[1] - hoop_center[1]) < 8
+    ]
+    assert found, detection.message.circles_px
+    index = detection.message.circles_px.index(found[0])
+    located = detection.message.centers_m[index]
+    assert located is not None
+    assert located[2] == pytest.approx(2.2, abs=0.15)
+    assert procs[-1].alive()
+    log = procs[-1].stop()
+    assert "rejected=" in log
