@@ -6,18 +6,14 @@ Everything listens on 127.0.0.1; every loop is bounded in time; the emulator is 
 from __future__ import annotations
 
 import json
-import selectors
-import shutil
 import socket
-import subprocess
-import sys
 import threading
 import time
 import urllib.request
 from pathlib import Path
 from typing import Any
 
-DYNQOS = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
+from tests.procs import DynqosProcess
 
 
 class Sink:
@@ -101,34 +97,16 @@ def send_paced(port: int, rate_bps: float, duration_s: float, chunk: int = 16 * 
     return sent
 
 
-class CellProcess:
+class CellProcess(DynqosProcess):
     """`dynqos sim cell` in its own process, started from a TOML text, stopped by its pid."""
 
     def __init__(self, tmp_path: Path, toml: str, duration_s: float = 60.0, out: Path | None = None) -> None:
-        self.config = tmp_path / "cell.toml"
-        self.config.write_text(toml)
-        args = [DYNQOS, "sim", "cell", "--config", str(self.config), "--duration", str(duration_s)]
+        config = tmp_path / "cell.toml"
+        config.write_text(toml)
+        args = ["sim", "cell", "--duration", str(duration_s)]
         if out is not None:
             args += ["--out", str(out)]
-        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.info = self._ready(timeout_s=30)
-
-    def _ready(self, timeout_s: float) -> dict[str, Any]:
-        assert self.proc.stdout is not None
-        selector = selectors.DefaultSelector()
-        selector.register(self.proc.stdout, selectors.EVENT_READ)
-        try:
-            if not selector.select(timeout=timeout_s):
-                self.stop()
-                raise AssertionError("the cell emulator did not become ready")
-            line = self.proc.stdout.readline()
-        finally:
-            selector.close()
-        if not line:
-            _, err = self.stop()
-            raise AssertionError(f"the cell emulator exited: {err}")
-        info: dict[str, Any] = json.loads(line)
-        return info
+        super().__init__(args, config)
 
     def port(self, bearer: str) -> int:
         port: int = self.info["bearers"][bearer]["port"]
@@ -152,16 +130,6 @@ class CellProcess:
                 return response.status, json.loads(response.read())
         except urllib.error.HTTPError as exc:
             return exc.code, json.loads(exc.read())
-
-    def stop(self) -> tuple[str, str]:
-        if self.proc.poll() is None:
-            self.proc.terminate()  # our own child, by its pid
-        try:
-            out, err = self.proc.communicate(timeout=15)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out, err = self.proc.communicate(timeout=5)
-        return out, err
 
     def __enter__(self) -> CellProcess:
         return self

@@ -219,7 +219,7 @@ priority_listen_port = 0
 def test_bad_cell_config_is_one_line_and_exit_2(tmp_path: Path, toml: str, message: str) -> None:
     import subprocess
 
-    from tests.cellrig import DYNQOS
+    from tests.procs import DYNQOS
 
     path = tmp_path / "bad.toml"
     path.write_text(toml)
