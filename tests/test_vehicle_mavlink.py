@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import selectors
 import shutil
 import socket
@@ -90,7 +91,7 @@ def test_telemetry_rates_and_identity(vehicle: tuple[VehicleProcess, Any]) -> No
         msg = client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=5)
         assert msg is not None
         stamps.append(msg.time_boot_ms)
-    gaps = {b - a for a, b in zip(stamps, stamps[1:], strict=False)}
+    gaps = {b - a for a, b in itertools.pairwise(stamps)}
     assert gaps == {20}
     assert wait_for(client, lambda m: True, "ATTITUDE_QUATERNION", 2) is not None
     assert wait_for(client, lambda m: True, "EXTENDED_SYS_STATE", 3).landed_state == 1  # on ground
