@@ -398,6 +398,52 @@ class DetectorConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class OnboardConfig:
+    """`dynqos onboard`: the drone's daemon (docs/onboard.md)."""
+
+    mavlink_url: str = "udpin:127.0.0.1:14540"
+    takeoff: bool = False
+    takeoff_alt_m: float = 1.5
+    connect_default: str = ""  # host:port of the default flow ("" = zenoh edge_host:default_port)
+    connect_priority: str = ""  # host:port of the priority flow ("" = zenoh edge_host:priority_port)
+    qos: Literal["dynamic", "default", "priority"] = "dynamic"  # dynamic: the supervisor chooses
+    camera: Literal["sim", "files", "device", "none"] = "sim"
+    camera_fps: float = 15.0
+    camera_width: int = 640
+    camera_height: int = 480
+    jpeg_quality: int = 90
+    files_dir: str = ""
+    files_intrinsics: tuple[float, float, float, float] = (518.0, 519.0, 325.5, 253.5)
+    device_index: int = 0
+    world_file: str = ""
+    on_exit: Literal["hold", "land"] = "hold"
+    fc_timeout_s: float = 30.0
+    heartbeat_timeout_s: float = 3.0
+    status_hz: float = 5.0
+    health_interval_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        _require(
+            bool(self.mavlink_url.strip()), "mavlink_url", "must not be empty (e.g. udpin:127.0.0.1:14540)"
+        )
+        _require(0.5 <= self.takeoff_alt_m <= 100, "takeoff_alt_m", "must be in 0.5..100 m")
+        for name in ("connect_default", "connect_priority"):
+            if getattr(self, name):
+                _host_port(getattr(self, name), name)
+        _require(0 <= self.camera_fps <= 120, "camera_fps", "must be in 0..120")
+        _require(16 <= self.camera_width <= 4096 and 16 <= self.camera_height <= 4096, "camera_width",
+                 "image size must be 16..4096 pixels")  # fmt: skip
+        _require(1 <= self.jpeg_quality <= 100, "jpeg_quality", "must be in 1..100")
+        _require(
+            self.camera != "files" or bool(self.files_dir), "files_dir", "the files camera needs files_dir"
+        )
+        _require(1 <= self.fc_timeout_s <= 600, "fc_timeout_s", "must be in 1..600 s")
+        _require(0.5 <= self.heartbeat_timeout_s <= 60, "heartbeat_timeout_s", "must be in 0.5..60 s")
+        _require(0.1 <= self.status_hz <= 50, "status_hz", "must be in 0.1..50 Hz")
+        _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class Config:
     drone: DroneConfig = field(default_factory=DroneConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
@@ -408,6 +454,7 @@ class Config:
     mpc: MpcConfig = field(default_factory=MpcConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
+    onboard: OnboardConfig = field(default_factory=OnboardConfig)
 
     def __post_init__(self) -> None:
         bearers = {b.name for b in self.cell.bearer_list(self.zenoh, self.drone.id)}

@@ -156,6 +156,28 @@ def _cmd_edge(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def _cmd_onboard(args: argparse.Namespace, config: Config) -> int:
+    import signal
+
+    from dynqos.onboard.daemon import OnboardDaemon
+
+    daemon = OnboardDaemon(config, takeoff=True if args.takeoff else None)
+
+    def stop(signum: int, _frame: object) -> None:
+        log.info("onboard: %s received, stopping", signal.Signals(signum).name)
+        daemon.stop.set()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    try:
+        daemon.open()
+        _ready_line("onboard")
+        daemon.run()
+    finally:
+        daemon.close()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     common = _common_options()
     parser = argparse.ArgumentParser(
@@ -243,6 +265,21 @@ def build_parser() -> argparse.ArgumentParser:
             "JSON line when ready, a health line every few seconds, stops on SIGTERM.",
         )
         sub.set_defaults(handler=_cmd_edge)
+
+    onboard = commands.add_parser(
+        "onboard",
+        parents=[common],
+        help="the drone's daemon: MAVLink to the FC, uplink to the edge, supervisor, fallback PID",
+        description=(
+            "Connects to the flight controller ([onboard] mavlink_url, default udpin:127.0.0.1:14540 like "
+            "PX4 SITL's offboard link) and to the edge router on two flows, streams state and camera, flies "
+            "the edge's commands or the fallback PID, and runs the QoS supervisor. It never arms by itself: "
+            "--takeoff arms, takes off to [onboard] takeoff_alt_m and starts offloading. SIGTERM: hold (or "
+            "land) and exit."
+        ),
+    )
+    onboard.add_argument("--takeoff", action="store_true", help="arm, take off and start offloading")
+    onboard.set_defaults(handler=_cmd_onboard)
 
     version = commands.add_parser("version", help="print the version", parents=[common])
     version.set_defaults(handler=_cmd_version)

@@ -1,0 +1,194 @@
+"""The link to the flight controller (PX4 or the simulator) over MAVLink, through pymavlink.
+
+A reader thread keeps the latest position, velocity and attitude (stamped with our monotonic clock on
+arrival), the FC's heartbeat (armed, custom mode) and command acks. Other threads send setpoints and
+commands through `send_*`, serialised by a lock. Heartbeat loss is reported, never raised.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink
+
+from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.errors import TransportError
+
+log = logging.getLogger(__name__)
+
+PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD = 4, 6
+PX4_SUB_LOITER, PX4_SUB_LAND = 3, 6
+ACCEL_ONLY_MASK = 0b0000_1100_0011_1111  # ignore position, velocity and yaw rate; use accel and yaw
+POSITION_ONLY_MASK = 0b0000_1101_1111_1000  # ignore velocity, accel and yaw rate; use position and yaw
+
+
+@dataclass(frozen=True, slots=True)
+class FcState:
+    stamp_ns: int
+    pos_m: tuple[float, float, float]
+    vel_mps: tuple[float, float, float]
+    quat: tuple[float, float, float, float]
+
+
+class FcLink:
+    def __init__(self, url: str, *, clock: Clock | None = None, heartbeat_timeout_s: float = 3.0) -> None:
+        self.url = url
+        self.clock = clock or MonotonicClock()
+        self.heartbeat_timeout_ns = round(heartbeat_timeout_s * 1e9)
+        try:
+            self.conn: Any = mavutil.mavlink_connection(
+                url,
+                source_system=1,
+                source_component=mavlink.MAV_COMP_ID_ONBOARD_COMPUTER,
+                autoreconnect=True,
+            )
+        except Exception as exc:  # pymavlink raises OSError, ValueError and others for a bad URL
+            raise TransportError(f"cannot open MAVLink connection {url!r}: {exc}") from None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+        self.state: FcState | None = None
+        self.last_heartbeat_ns: int | None = None
+        self.armed = False
+        self.custom_mode = 0
+        self._acks: dict[int, int] = {}
+        self._ack_event = threading.Condition()
+        self.setpoints_sent = 0
+        self.lost_reported = False
+
+    # ---- reading ------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._read_loop, name="fc-link", daemon=True)
+        self._thread.start()
+
+    def _read_loop(self) -> None:
+        next_heartbeat = 0.0
+        while not self._stop.is_set():
+            if time.monotonic() >= next_heartbeat:
+                next_heartbeat = time.monotonic() + 1.0
+                self._send(
+                    lambda mav: mav.heartbeat_send(
+                        mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+                        mavlink.MAV_AUTOPILOT_INVALID,
+                        0,
+                        0,
+                        mavlink.MAV_STATE_ACTIVE,
+                    )
+                )
+            try:
+                msg = self.conn.recv_match(blocking=True, timeout=0.05)
+            except Exception as exc:  # a broken datagram must not end the link
+                log.debug("fc link: %s", exc)
+                continue
+            if msg is not None:
+                self._handle(msg)
+
+    def _handle(self, msg: Any) -> None:
+        kind = msg.get_type()
+        now = self.clock.now_ns()
+        if msg.get_srcSystem() != 1 and kind != "COMMAND_ACK":
+            return
+        if kind == "LOCAL_POSITION_NED":
+            values = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
+            if all(math.isfinite(v) for v in values):
+                self.state = FcState(now, (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz), self._quat)
+        elif kind == "ATTITUDE_QUATERNION":
+            quat = (msg.q1, msg.q2, msg.q3, msg.q4)
+            if all(math.isfinite(v) for v in quat):
+                self._quat = quat
+        elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
+            self.last_heartbeat_ns = now
+            self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            self.custom_mode = msg.custom_mode
+            if self.lost_reported:
+                log.info("fc link: heartbeat is back")
+                self.lost_reported = False
+        elif kind == "COMMAND_ACK":
+            with self._ack_event:
+                self._acks[msg.command] = msg.result
+                self._ack_event.notify_all()
+
+    def heartbeat_lost(self) -> bool:
+        lost = (
+            self.last_heartbeat_ns is None
+            or self.clock.now_ns() - self.last_heartbeat_ns > self.heartbeat_timeout_ns
+        )
+        if lost and self.last_heartbeat_ns is not None and not self.lost_reported:
+            log.error(
+                "fc link: no heartbeat from the flight controller for %.1f s", self.heartbeat_timeout_ns / 1e9
+            )
+            self.lost_reported = True
+        return lost
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and not self._stop.is_set():
+            if self.last_heartbeat_ns is not None and self.state is not None:
+                return True
+            self._stop.wait(0.05)  # polling our own reader's fields; bounded by timeout_s
+        return False
+
+    @property
+    def offboard(self) -> bool:
+        return (self.custom_mode >> 16) & 0xFF == PX4_MAIN_OFFBOARD
+
+    # ---- writing ------------------------------------------------------------------------------------
+
+    def _send(self, action: Any) -> None:
+        with self._lock:
+            try:
+                action(self.conn.mav)
+            except OSError as exc:
+                log.debug("fc link: send failed: %s", exc)
+
+    def command(self, command: int, *params: float, timeout_s: float = 3.0) -> int | None:
+        """Send COMMAND_LONG and wait for its COMMAND_ACK result (None on timeout)."""
+        p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
+        with self._ack_event:
+            self._acks.pop(command, None)
+        self._send(lambda mav: mav.command_long_send(1, 1, command, 0, *p))
+        with self._ack_event:
+            self._ack_event.wait_for(lambda: command in self._acks, timeout=timeout_s)
+            return self._acks.pop(command, None)
+
+    def arm(self) -> int | None:
+        return self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+
+    def takeoff(self, altitude_m: float) -> int | None:
+        return self.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, altitude_m)
+
+    def set_mode(self, main: int, sub: int = 0) -> int | None:
+        return self.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub)
+
+    def land(self) -> int | None:
+        return self.command(mavlink.MAV_CMD_NAV_LAND)
+
+    def send_accel(self, accel: tuple[float, float, float], yaw: float) -> None:
+        self._send(
+            lambda mav: mav.set_position_target_local_ned_send(
+                0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_ONLY_MASK, 0, 0, 0, 0, 0, 0, *accel, yaw, 0.0
+            )
+        )
+        self.setpoints_sent += 1
+
+    def send_position(self, pos: tuple[float, float, float], yaw: float) -> None:
+        self._send(
+            lambda mav: mav.set_position_target_local_ned_send(
+                0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_ONLY_MASK, *pos, 0, 0, 0, 0, 0, 0, yaw, 0.0
+            )
+        )
+        self.setpoints_sent += 1
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        self.conn.close()

@@ -1,0 +1,44 @@
+"""Camera latency from CameraAcks: ack arrival - frame stamp - edge hold, on the drone's clock. Pure."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+from dynqos.common.messages import CameraAck
+
+
+class CameraLatencyMonitor:
+    def __init__(self, max_outstanding: int = 256) -> None:
+        self._outstanding: OrderedDict[tuple[int, str], int] = OrderedDict()
+        self._max = max_outstanding
+        self._new: list[float] = []
+        self.acked = 0
+        self.unknown = 0
+
+    def frame_sent(self, seq: int, kind: str, stamp_ns: int) -> None:
+        self._outstanding[(seq, kind)] = stamp_ns
+        while len(self._outstanding) > self._max:
+            self._outstanding.popitem(last=False)
+
+    def on_ack(self, ack: CameraAck, arrival_ns: int) -> float | None:
+        stamp = self._outstanding.pop((ack.frame_seq, ack.kind), None)
+        if stamp is None or stamp != ack.stamp_ns:
+            self.unknown += 1
+            return None
+        # Frames sent before this one that were never acked are lost: stop waiting for them.
+        for key in [k for k, s in self._outstanding.items() if s < stamp]:
+            del self._outstanding[key]
+        latency_ms = (arrival_ns - stamp - ack.edge_hold_ns) / 1e6
+        self.acked += 1
+        if latency_ms >= 0:
+            self._new.append(latency_ms)
+        return latency_ms
+
+    def take_new(self) -> list[float]:
+        out, self._new = self._new, []
+        return out
+
+    def oldest_outstanding_ms(self, now_ns: int) -> float | None:
+        if not self._outstanding:
+            return None
+        return (now_ns - next(iter(self._outstanding.values()))) / 1e6

@@ -1,0 +1,203 @@
+"""The whole loop on 127.0.0.1: simulator, router, planner, MPC and the onboard daemon as real processes."""
+
+from __future__ import annotations
+
+import bisect
+import math
+import re
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dynqos.common import keys
+from dynqos.common.config import ZenohConfig
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.messages import Command, Reference, State, encode
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Priority, Received, Role, open_bus
+from tests.conftest import free_tcp_port
+from tests.procs import DynqosProcess
+from tests.test_vehicle_mavlink import free_udp_port
+
+pytestmark = [pytest.mark.integration]
+
+
+def loop_config(tmp_path: Path, zcfg: ZenohConfig, extra: str = "") -> Path:
+    api = free_udp_port()
+    config = tmp_path / "loop.toml"
+    config.write_text(
+        f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"
+        f"[vehicle]\noffboard_bind_port = 0\ngcs_bind_port = 0\noffboard_remote_port = {api}\n"
+        f"gcs_remote_port = {free_udp_port()}\n"
+        f'[onboard]\nmavlink_url = "udpin:127.0.0.1:{api}"\ncamera_fps = 5\nhealth_interval_s = 1\n'
+        "[planner]\nlead_in_s = 3\n" + extra
+    )
+    return config
+
+
+class Observer:
+    """Listens to the drone's states and the planner's references like a ground station would."""
+
+    def __init__(self, zcfg: ZenohConfig) -> None:
+        self.bus = open_bus(zcfg, Role.EDGE)
+        self.states: BoundedQueue[Received] = BoundedQueue(100_000)
+        self.refs: BoundedQueue[Received] = BoundedQueue(100_000)
+        self.cmds: BoundedQueue[Received] = BoundedQueue(100_000)
+        self.bus.subscribe(keys.uplink_any_flow("uav1", Stream.STATE), self.states)
+        self.bus.subscribe(keys.downlink("uav1", Downlink.REFERENCE), self.refs)
+        self.bus.subscribe(keys.downlink("uav1", Downlink.COMMAND), self.cmds)
+        self.state_log: list[State] = []
+        self.ref_log: list[Reference] = []
+
+    def collect(self) -> None:
+        self.state_log += [i.message for i in self.states.drain() if isinstance(i.message, State)]
+        self.ref_log += [i.message for i in self.refs.drain() if isinstance(i.message, Reference)]
+
+    def tracking_errors(self, since_ns: int) -> list[float]:
+        """Distance from each state to the reference sample due at its stamp (same host clock)."""
+        self.collect()
+        stamps = [r.stamp_ns for r in self.ref_log]
+        errors = []
+        for s in self.state_log:
+            if s.stamp_ns < since_ns:
+                continue
+            i = bisect.bisect_right(stamps, s.stamp_ns) - 1
+            if i < 0:
+                continue
+            ref = self.ref_log[i]
+            k = (s.stamp_ns - ref.stamp_ns) / 1e9 / ref.dt_s
+            lo = min(int(k), len(ref.pos_m) - 1)
+            hi = min(lo + 1, len(ref.pos_m) - 1)
+            f = k - int(k)
+            target = np.array(ref.pos_m[lo]) * (1 - f) + np.array(ref.pos_m[hi]) * f
+            errors.append(float(np.linalg.norm(np.array(s.pos_m) - target)))
+        return errors
+
+    def wait_until(self, predicate: object, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            item = self.states.get(0.5)
+            if item is not None and isinstance(item.message, State):
+                self.state_log.append(item.message)
+                if predicate(item.message):  # type: ignore[operator]
+                    return True
+        return False
+
+
+@pytest.fixture
+def loop(tmp_path: Path) -> Iterator[tuple[Path, ZenohConfig, dict[str, DynqosProcess]]]:
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    config = loop_config(tmp_path, zcfg)
+    procs: dict[str, DynqosProcess] = {}
+    try:
+        procs["router"] = DynqosProcess(["edge", "router"], config)
+        procs["vehicle"] = DynqosProcess(["sim", "vehicle", "--duration", "600"], config)
+        procs["planner"] = DynqosProcess(["edge", "planner"], config)
+        procs["mpc"] = DynqosProcess(["edge", "mpc"], config)
+        yield config, zcfg, procs
+    finally:
+        for name in ("onboard", "mpc", "planner", "vehicle", "router"):
+            if name in procs:
+                procs[name].stop()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_the_drone_flies_the_circle_survives_bad_commands_and_an_mpc_restart(
+    loop: tuple[Path, ZenohConfig, dict[str, DynqosProcess]],
+) -> None:
+    config, zcfg, procs = loop
+    observer = Observer(zcfg)
+    try:
+        procs["onboard"] = DynqosProcess(["onboard", "--takeoff"], config)
+        assert observer.wait_until(lambda s: s.mode == "offboard", 60), "the drone never started offloading"
+        started = time.monotonic_ns()
+        # Lead-in (3 s) and the first lap (10 s), then measure one more lap.
+        observer.wait_until(lambda s: False, 13.0)
+        lap_start = time.monotonic_ns()
+        observer.wait_until(lambda s: False, 10.0)
+        errors = observer.tracking_errors(lap_start)
+        rmse = math.sqrt(sum(e * e for e in errors) / len(errors))
+        print(f"circle RMSE over the second lap: {rmse * 100:.1f} cm from {len(errors)} states")
+        assert len(errors) > 150
+        assert rmse < 0.15
+        assert started < lap_start
+
+        # Adversarial commands: garbage, a replay of a real command, a forged one for an unknown state.
+        observer.collect()
+        real = [i.message for i in observer.cmds.drain() if isinstance(i.message, Command)]
+        assert real
+        attacker = observer.bus.publisher(keys.downlink("uav1", Downlink.COMMAND), Priority.REAL_TIME)
+        forged = Command(
+            uav="uav1",
+            seq=10**9,
+            state_seq=10**9,
+            state_stamp_ns=time.monotonic_ns(),
+            edge_hold_ns=0,
+            dt_s=0.05,
+            accel_mps2=[(9.0, 0.0, 0.0)] * 5,
+            yaw_rad=[0.0] * 5,
+        )
+        for _ in range(5):
+            attacker.put_bytes(b"\x00garbage")
+            attacker.put_bytes(encode(real[0]))  # a replay
+            attacker.put(forged)
+        observer.wait_until(lambda s: False, 2.0)
+
+        # The MPC dies: fallback at once, the drone holds; it comes back: offload resumes.
+        procs["mpc"].stop()
+        observer.wait_until(lambda s: False, 3.0)
+        last_command = max(i.arrival_ns for i in observer.cmds.drain())
+        # Where it was when the fallback took over: T_wd after the last command.
+        switch = next(s for s in observer.state_log if s.stamp_ns >= last_command + 150_000_000)
+        held = [s for s in observer.state_log if s.stamp_ns >= switch.stamp_ns]
+        drift = max(np.linalg.norm(np.array(s.pos_m) - np.array(switch.pos_m)) for s in held)
+        print(f"largest distance from where the fallback took over: {drift:.2f} m")
+        assert drift < 0.5
+        procs["mpc"] = DynqosProcess(["edge", "mpc"], config)
+        observer.wait_until(lambda s: False, 4.0)
+    finally:
+        observer.bus.close()
+    log = procs.pop("onboard").stop()
+    fallback = re.findall(r"fallback PID holding position \(watchdog: last valid command (\d+) ms ago\)", log)
+    assert fallback, log[-3000:]
+    assert int(fallback[-1]) <= 150 + 20 + 15  # T_wd + one 20 ms tick (+ scheduling slack)
+    assert log.count("control from the edge") >= 2  # offload resumed after the MPC came back
+    health = re.findall(r"unknown=(\d+) expired=\d+ future=\d+ wrong_drone=\d+", log)[-1]
+    assert int(health) >= 5  # the replays and the forged commands were rejected
+    assert re.findall(r"rejected=(\d+)", log)[-1] != "0"
+    gaps = [float(g) for g in re.findall(r"max_setpoint_gap_ms=([\d.]+)", log)]
+    assert max(gaps) < 100  # setpoints to the FC never paused longer than 100 ms
+
+
+@pytest.mark.timeout(120)
+def test_onboard_streams_the_real_frames_from_files_without_taking_off(
+    tmp_path: Path, shared_data: Path
+) -> None:
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    config = loop_config(tmp_path, zcfg, extra="")
+    text = config.read_text().replace(
+        "camera_fps = 5\n", f'camera_fps = 10\ncamera = "files"\nfiles_dir = "{shared_data / "rgbd"}"\n'
+    )
+    config.write_text(text)
+    router = DynqosProcess(["edge", "router"], config)
+    bus = open_bus(zcfg, Role.EDGE)
+    frames: BoundedQueue[Received] = BoundedQueue(100)
+    states: BoundedQueue[Received] = BoundedQueue(100)
+    bus.subscribe(keys.uplink_any_flow("uav1", Stream.CAMERA_DEPTH), frames)
+    bus.subscribe(keys.uplink_any_flow("uav1", Stream.STATE), states)
+    onboard = DynqosProcess(["onboard"], config)  # no --takeoff: it must never arm
+    try:
+        got = [frames.get(20) for _ in range(6)]
+    finally:
+        log = onboard.stop()
+        bus.close()
+        router.stop()
+    assert all(item is not None for item in got)
+    sizes = {(i.message.width, i.message.height, i.message.encoding) for i in got if i}  # type: ignore[attr-defined]
+    assert sizes == {(640, 480, "zstd16")}
+    assert states.get(0) is None  # no flight controller, no state
+    assert "not taking off" in log
