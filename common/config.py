@@ -90,6 +90,7 @@ class SupervisorConfig:
     risk_b: float = 0.2
     dwell_s: float = 1.0
     persist_s: float = 0.5
+    escalate_s: float = 3.0
     recover_s: float = 2.0
     recover_backoff: float = 2.0
     recover_max_s: float = 16.0
@@ -110,7 +111,7 @@ class SupervisorConfig:
         _require(0.0 < self.risk_high_m < self.risk_medium_m, "risk_medium_m", "must exceed risk_high_m > 0")
         _require(0.0 <= self.risk_a < 1.0, "risk_a", "must be in [0, 1)")
         _require(0.0 < self.risk_b <= 1.0, "risk_b", "must be in (0, 1]")
-        for name in ("dwell_s", "persist_s", "recover_s", "rate_step_s"):
+        for name in ("dwell_s", "persist_s", "escalate_s", "recover_s", "rate_step_s"):
             _require(0.0 <= getattr(self, name) <= 600, name, "must be in 0..600 s")
         _require(1.0 <= self.recover_backoff <= 10.0, "recover_backoff", "must be in 1..10 (1 disables)")
         _require(self.recover_max_s >= self.recover_s, "recover_max_s", "must be >= recover_s")

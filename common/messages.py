@@ -255,6 +255,8 @@ class SupervisorStatus(Message):
         "prev_state": f.choice(STATES),
         "cause": f.text(200),
         "changed_ns": f.integer(),
+        "rtt_ms": f.optional(_latency_ms),
+        "camera_latency_ms": f.optional(_latency_ms),
     }
 
     stamp_ns: int
@@ -275,6 +277,8 @@ class SupervisorStatus(Message):
     prev_state: str
     cause: str
     changed_ns: int
+    rtt_ms: float | None = None  # the latest C&C RTT sample, for plots
+    camera_latency_ms: float | None = None  # the latest camera latency sample
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

@@ -16,7 +16,7 @@ import os
 import socket
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -297,7 +297,13 @@ class OnboardDaemon:
             return
         self.status_seq += 1
         last = self.supervisor.log[-1] if self.supervisor.log else None
-        status = to_status(self.decision, uav=self.uav, seq=self.status_seq, stamp_ns=now, last=last)
+        status = to_status(
+            self.decision, uav=self.uav, seq=self.status_seq, stamp_ns=now, last=last,
+            rtt_ms=self.tracker.last_rtt_ms, camera_latency_ms=self.camera_monitor.last_ms,
+        )  # fmt: skip
+        if self.cfg.qos != "dynamic":  # report what the drone does, not what the supervisor would do
+            status = replace(status, flow=self.flow, camera_rate_factor=self.rate.factor,
+                             control_source=self.control_source)  # fmt: skip
         self.status_pubs.pick(self.flow).put(status)
 
     def _control(self, state: FcState, now: int) -> None:

@@ -14,6 +14,7 @@ class CameraLatencyMonitor:
         self._new: list[float] = []
         self.acked = 0
         self.unknown = 0
+        self.last_ms: float | None = None
 
     def frame_sent(self, seq: int, kind: str, stamp_ns: int) -> None:
         self._outstanding[(seq, kind)] = stamp_ns
@@ -32,6 +33,7 @@ class CameraLatencyMonitor:
         self.acked += 1
         if latency_ms >= 0:
             self._new.append(latency_ms)
+            self.last_ms = latency_ms
         return latency_ms
 
     def take_new(self) -> list[float]:

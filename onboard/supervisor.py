@@ -141,10 +141,22 @@ def sigmoid(t: float, mu: float, rho: float) -> float:
     return 1.0 / (1.0 + math.exp(z))
 
 
-def _effective(mean: float | None, outstanding_ms: float | None) -> float | None:
-    if outstanding_ms is None or not math.isfinite(outstanding_ms):
+def _effective(window: SlidingWindow, outstanding_ms: float | None) -> float | None:
+    """The window mean, with an unanswered request counted as one more sample of at least its age.
+
+    One late answer then moves the mean by a sample's worth, as it would once it arrives, while a
+    silent link (an age growing to seconds) soon dominates it; the mean alone would keep reporting the
+    last good latency forever.
+    """
+    mean = window.mean()
+    if outstanding_ms is None or not math.isfinite(outstanding_ms) or outstanding_ms < 0:
         return mean
-    return outstanding_ms if mean is None else max(mean, outstanding_ms)
+    if mean is None:
+        return outstanding_ms
+    if outstanding_ms <= mean:
+        return mean
+    n = len(window)
+    return (mean * n + outstanding_ms) / (n + 1)
 
 
 class Supervisor:
@@ -191,8 +203,8 @@ class Supervisor:
         if inputs.spaciousness_m is not None and math.isfinite(inputs.spaciousness_m):
             self._risk.update(max(0.0, inputs.spaciousness_m))
 
-        t_cam = _effective(self._cam.mean(), inputs.camera_outstanding_ms)
-        t_cc = _effective(self._cc.mean(), inputs.cc_outstanding_ms)
+        t_cam = _effective(self._cam, inputs.camera_outstanding_ms)
+        t_cc = _effective(self._cc, inputs.cc_outstanding_ms)
         p_cam = None if t_cam is None else sigmoid(t_cam, cfg.mu[0], cfg.rho[0])
         p_cc = None if t_cc is None else sigmoid(t_cc, cfg.mu[1], cfg.rho[1])
         terms = [(w, p) for w, p in zip(cfg.w, (p_cam, p_cc), strict=True) if p is not None]
@@ -254,13 +266,17 @@ class Supervisor:
         p_ll = None if p_lat is None else 1.0 - p_lat
         risk = Risk.MR if signals.risk is Risk.NA else signals.risk
         persist_ns = self._ns(cfg.persist_s)
-        escalate = self._fires(self._held(self._hl_since_ns, now_ns, persist_ns), hl, p_lat)
+        escalate_ns = self._ns(cfg.escalate_s)
+        # From q1 the first reaction is quick; escalating further waits until the latency window has
+        # flushed the samples from before the last switch (N2 x T_mpc = 2.5 s by default).
+        react = self._fires(self._held(self._hl_since_ns, now_ns, persist_ns), hl, p_lat)
+        escalate = self._fires(self._held(self._hl_since_ns, now_ns, escalate_ns), hl, p_lat)
         recover = self._fires(self._held(self._ll_since_ns, now_ns, self._recover_ns), ll, p_ll)
 
         if state is Q1:
             if risk is Risk.HR and self._fires(True, True, signals.p_cs):
                 return Q2, "HR: proactive priority"
-            if escalate:
+            if react:
                 return (Q4, "LR and HL") if risk is Risk.LR else (Q3, f"{risk.value} and HL")
         elif state is Q2:
             if escalate:
@@ -281,7 +297,7 @@ class Supervisor:
             since = None
             if at_min and self._hl_since_ns is not None:
                 since = max(self._hl_since_ns, self._min_rate_since_ns or 0)
-            if at_min and self._fires(self._held(since, now_ns, persist_ns), hl, p_lat):
+            if at_min and self._fires(self._held(since, now_ns, escalate_ns), hl, p_lat):
                 return QA, "HL persists at the minimum camera rate"
             if state is Q4 and risk is not Risk.LR and self._fires(hl, hl, p_lat):
                 return Q6, f"{risk.value} and HL: priority flow"
@@ -333,7 +349,14 @@ class Supervisor:
 
 
 def to_status(
-    decision: Decision, *, uav: str, seq: int, stamp_ns: int, last: Transition | None
+    decision: Decision,
+    *,
+    uav: str,
+    seq: int,
+    stamp_ns: int,
+    last: Transition | None,
+    rtt_ms: float | None = None,
+    camera_latency_ms: float | None = None,
 ) -> SupervisorStatus:
     """The SupervisorStatus message the daemon publishes for one decision."""
     s = decision.signals
@@ -358,4 +381,6 @@ def to_status(
         prev_state=(last.source if last else decision.state).value,
         cause=(last.cause if last else "")[:200],
         changed_ns=last.stamp_ns if last else 0,
+        rtt_ms=rtt_ms,
+        camera_latency_ms=camera_latency_ms,
     )

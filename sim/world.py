@@ -1,9 +1,9 @@
 """The world the simulated drone flies in: an arena (floor, ceiling, walls), boxes, vertical cylinders
 and circular hoops, in local NED metres (z down, the floor at z = 0). Loaded from TOML or JSON.
 
-The default arena is 10 x 10 x 4 m around the origin. A 2 m circle at 1.5 m altitude around the
-origin (the demo's mission) passes a cluster of pillars near +y (high risk: the space closes in to
-under 3 m), boxes near -x (medium risk) and open space towards +x (low risk). Hoops stand on the circle.
+The default arena is 7 x 7 x 3 m around the origin. Along a 2 m circle at 1.5 m altitude around the
+origin (the demo's mission), looking along the path, the spaciousness is 3.1-3.7 m (medium risk); facing
+the cluster of pillars near +y it drops to about 2 m (high risk). Hoops stand on the circle.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def _color_ok(color: Color, key: str) -> None:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Arena:
-    size_m: tuple[float, float, float] = (10.0, 10.0, 4.0)
+    size_m: tuple[float, float, float] = (7.0, 7.0, 3.0)
     wall_color: Color = (180, 170, 150)
     floor_color: Color = (90, 100, 110)
     ceiling_color: Color = (220, 220, 215)
@@ -105,13 +105,13 @@ def default_world() -> World:
     return World(
         arena=Arena(),
         cylinders=(  # high-risk zone: pillars around the circle near +y
-            Cylinder(center_m=(-0.8, 3.2), radius_m=0.3),
-            Cylinder(center_m=(0.8, 3.3), radius_m=0.3),
-            Cylinder(center_m=(0.0, 4.0), radius_m=0.35),
+            Cylinder(center_m=(-0.8, 3.2), radius_m=0.3, z_top_m=-3.0),
+            Cylinder(center_m=(0.8, 3.3), radius_m=0.3, z_top_m=-3.0),
+            Cylinder(center_m=(0.0, 3.1), radius_m=0.3, z_top_m=-3.0),
         ),
         boxes=(  # medium-risk zone: crates near -x
-            Box(min_m=(-4.6, -1.2, -1.2), max_m=(-3.6, 1.2, 0.0)),
-            Box(min_m=(-4.9, -3.0, -2.0), max_m=(-4.0, -2.0, 0.0), color=(120, 90, 60)),
+            Box(min_m=(-3.4, -1.2, -1.2), max_m=(-2.8, 1.2, 0.0)),
+            Box(min_m=(-3.4, -3.0, -2.0), max_m=(-2.9, -2.0, 0.0), color=(120, 90, 60)),
         ),
         hoops=(
             Hoop(center_m=(2.0, 0.0, -1.5), radius_m=0.6, normal=(0.0, 1.0, 0.0)),

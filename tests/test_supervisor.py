@@ -165,11 +165,11 @@ def test_paper_story_mr_load_priority_rate_adaptation_fallback_and_back() -> Non
     decision = flight.sup.step(LOADED(flight.t), flight.clock.now_ns())
     assert (decision.actions.flow, decision.actions.camera_rate_factor) == ("priority", 1.0)
     # HL persists even on the priority flow: rate adaptation.
-    flight.run_until(Q6, 2.0, LOADED)
+    flight.run_until(Q6, CONFIG.escalate_s + 1.0, LOADED)
     assert flight.sup.actions().camera_rate_factor == CONFIG.rate_factor
     assert flight.sup.actions().flow == "priority"
     # HL persists at the minimum rate: full onboard autonomy.
-    flight.run_until(QA, 4.0, LOADED)
+    flight.run_until(QA, CONFIG.escalate_s + 3.0, LOADED)
     assert flight.sup.actions().control_source == "fallback"
     # Load ends: back to q1 once the windows show LL long enough.
     back = flight.run_until(Q1, 10.0, UNLOADED)
@@ -186,7 +186,7 @@ def test_hr_proactively_selects_priority_with_low_latency() -> None:
     assert flight.decisions[-1][1].signals.latency is Latency.LL
     assert flight.sup.actions().flow == "priority"
     # HL persists in HR: rate adaptation in the HR context.
-    flight.run_until(Q5, 3.0, link(90.0, 160.0, space_m=2.0))
+    flight.run_until(Q5, CONFIG.escalate_s + 1.0, link(90.0, 160.0, space_m=2.0))
     # Space opens and latency is low again: back to q1.
     flight.run_until(Q1, 8.0, link(20.0, 40.0, space_m=8.0))
 
@@ -226,7 +226,7 @@ def test_q3_escalates_to_q5_in_hr_context() -> None:
     flight = Flight()
     flight.run(2.0, UNLOADED)
     flight.run_until(Q3, 2.0, LOADED)
-    flight.run_until(Q5, 3.0, link(90.0, 160.0, space_m=0.5))
+    flight.run_until(Q5, CONFIG.escalate_s + 1.0, link(90.0, 160.0, space_m=0.5))
 
 
 def test_q3_recovers_when_priority_flow_fixes_latency() -> None:
@@ -293,7 +293,9 @@ def test_status_message_carries_the_decision() -> None:
 
 
 def test_transition_log_is_bounded() -> None:
-    flight = Flight(replace(CONFIG, dwell_s=0.0, recover_s=0.0, recover_max_s=0.0, persist_s=0.0))
+    flight = Flight(
+        replace(CONFIG, dwell_s=0.0, recover_s=0.0, recover_max_s=0.0, persist_s=0.0, escalate_s=0.0)
+    )
     for i in range(1200):
         flight.run(TICK_S, link(20.0, 40.0, watchdog=i % 2 == 0))
     assert len(flight.sup.log) == 1000
@@ -336,6 +338,7 @@ configs = st.builds(
     seed=st.integers(0, 2**32),
     dwell_s=st.sampled_from([0.0, 0.2, 1.0]),
     persist_s=st.sampled_from([0.0, 0.3]),
+    escalate_s=st.sampled_from([0.0, 0.3, 3.0]),
     recover_s=st.sampled_from([0.0, 0.5, 2.0]),
     rate_step_s=st.sampled_from([0.0, 0.5]),
 )

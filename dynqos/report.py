@@ -1,0 +1,367 @@
+"""The demo's outputs: per-scenario summary.json, time series (CSV), PNG plots, and the run's report.md
+that sets the measured numbers beside the paper's Table II."""
+
+from __future__ import annotations
+
+import bisect
+import csv
+import itertools
+import json
+import math
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from dynqos.common.messages import STATES
+
+if TYPE_CHECKING:
+    from dynqos.demo import Recording, Scenario
+
+PAPER_TABLE_II = {
+    "No QoS - No BG": {"uav_tx": 47, "uav_rx": 47, "rtt": "27.3", "bg_tx": None, "bg_rx": None},
+    "No QoS - BG": {"uav_tx": 47, "uav_rx": 40, "rtt": "rises", "bg_tx": 80, "bg_rx": 40},
+    "Priority QoS - BG": {"uav_tx": 47, "uav_rx": 47, "rtt": "28.1", "bg_tx": 80, "bg_rx": 32.5},
+}
+SCENARIO_ROW = {
+    "baseline": "No QoS - No BG",
+    "bg-noqos": "No QoS - BG",
+    "bg-staticqos": "Priority QoS - BG",
+    "bg-dynqos": "Priority QoS - BG",
+}
+
+
+def stats(values: list[float]) -> dict[str, float | None]:
+    if not values:
+        return {"mean": None, "p50": None, "p95": None, "p99": None, "max": None, "n": 0}
+    a = np.array(values)
+    return {
+        "mean": float(a.mean()),
+        "p50": float(np.percentile(a, 50)),
+        "p95": float(np.percentile(a, 95)),
+        "p99": float(np.percentile(a, 99)),
+        "max": float(a.max()),
+        "n": len(values),
+    }
+
+
+def tracking_errors(rec: Recording) -> list[tuple[float, float]]:
+    """(t_s, distance to the reference sample due at the state's stamp) for every state."""
+    refs = sorted(rec.refs, key=lambda r: r.stamp_ns)
+    stamps = [r.stamp_ns for r in refs]
+    out = []
+    for _, s in rec.states:
+        i = bisect.bisect_right(stamps, s.stamp_ns) - 1
+        if i < 0:
+            continue
+        ref = refs[i]
+        k = (s.stamp_ns - ref.stamp_ns) / 1e9 / ref.dt_s
+        lo = min(int(k), len(ref.pos_m) - 1)
+        hi = min(lo + 1, len(ref.pos_m) - 1)
+        f = k - int(k)
+        target = np.array(ref.pos_m[lo]) * (1 - f) + np.array(ref.pos_m[hi]) * f
+        out.append(((s.stamp_ns - rec.t0_ns) / 1e9, float(np.linalg.norm(np.array(s.pos_m) - target))))
+    return out
+
+
+def _rmse(values: list[float]) -> float | None:
+    return math.sqrt(sum(v * v for v in values) / len(values)) if values else None
+
+
+def _cell_rates(rec: Recording, start_ns: int, end_ns: int, scale: float) -> dict[str, float | None]:
+    inside = [c for c in rec.cell if start_ns <= c["now_ns"] <= end_ns]
+    if len(inside) < 2:
+        return {
+            "uav_offered_mbps": None,
+            "uav_delivered_mbps": None,
+            "bg_offered_mbps": None,
+            "bg_delivered_mbps": None,
+        }
+    first, last = inside[0], inside[-1]
+    span = (last["now_ns"] - first["now_ns"]) / 1e9
+
+    def bearer_sum(c: dict[str, Any], key: str) -> float:
+        return float(sum(b[key] for b in c["bearers"].values()))
+
+    def bg_sum(c: dict[str, Any], key: str) -> float:
+        return float(sum(b[key] for b in c["background"].values()))
+
+    return {
+        "uav_offered_mbps": (bearer_sum(last, "offered_bytes") - bearer_sum(first, "offered_bytes"))
+        * 8
+        / span
+        / 1e6
+        * scale,
+        "uav_delivered_mbps": (bearer_sum(last, "delivered_bytes") - bearer_sum(first, "delivered_bytes"))
+        * 8
+        / span
+        / 1e6
+        * scale,
+        "bg_offered_mbps": (bg_sum(last, "offered_bits") - bg_sum(first, "offered_bits"))
+        / span
+        / 1e6
+        * scale,
+        "bg_delivered_mbps": (bg_sum(last, "delivered_bits") - bg_sum(first, "delivered_bits"))
+        / span
+        / 1e6
+        * scale,
+    }
+
+
+def summarise(
+    scenario: Scenario, rec: Recording, onboard_log: str, *, ok: bool, failure: str
+) -> dict[str, Any]:
+    t0 = rec.t0_ns
+    end_ns = max([s.stamp_ns for _, s in rec.states], default=t0)
+    settle_ns = t0 + round(scenario.settle_s * 1e9)
+    bg_ns = rec.bg_on_ns
+    baseline_end = bg_ns if bg_ns is not None else end_ns
+    loaded_start = bg_ns if bg_ns is not None else settle_ns
+
+    def window(items: list[tuple[int, float]], start: int | None, stop: int) -> list[float]:
+        return [] if start is None else [v for t, v in items if start <= t < stop]
+
+    rtts = [(s.stamp_ns, s.rtt_ms) for s in rec.status if s.rtt_ms is not None]
+    cams = [(s.stamp_ns, s.camera_latency_ms) for s in rec.status if s.camera_latency_ms is not None]
+    errors = [(t0 + round(t * 1e9), e) for t, e in tracking_errors(rec)]
+    loaded = bg_ns is not None
+    rates = _cell_rates(rec, loaded_start, end_ns + 1, scenario.scale)
+    times: dict[str, float] = dict.fromkeys(STATES, 0.0)
+    statuses = sorted(rec.status, key=lambda s: s.stamp_ns)
+    for a, b in itertools.pairwise(statuses):
+        if a.stamp_ns >= t0:
+            times[a.state] += (b.stamp_ns - a.stamp_ns) / 1e9
+    transitions = []
+    seen = set()
+    for s in statuses:
+        if s.changed_ns and s.changed_ns not in seen and s.changed_ns >= t0 and s.cause:
+            seen.add(s.changed_ns)
+            transitions.append(
+                {"t_s": (s.changed_ns - t0) / 1e9, "from": s.prev_state, "to": s.state, "cause": s.cause}
+            )
+    first_switch = None
+    if bg_ns is not None and scenario.qos == "dynamic":
+        after = [s for s in statuses if s.stamp_ns >= bg_ns and s.flow == "priority"]
+        if after:
+            changed = after[0].changed_ns if after[0].changed_ns >= bg_ns else after[0].stamp_ns
+            first_switch = (changed - bg_ns) / 1e9
+    gaps = [float(g) for g in re.findall(r"max_setpoint_gap_ms=([\d.]+)", onboard_log)]
+    switches = [int(g) for g in re.findall(r"switches_to_fallback=(\d+)", onboard_log)]
+    return {
+        "scenario": scenario.name,
+        "description": scenario.description,
+        "qos": scenario.qos,
+        "mission": scenario.mission,
+        "duration_s": scenario.duration_s,
+        "scale": scenario.scale,
+        "bg_start_s": (bg_ns - t0) / 1e9 if bg_ns is not None else None,
+        "bg_mbps": scenario.bg_mbps if loaded else 0.0,
+        "rates_span": "loaded" if loaded else "whole run after settling",
+        **rates,
+        "rtt_ms": {
+            "baseline": stats(window(rtts, settle_ns, baseline_end)),
+            "loaded": stats(window(rtts, bg_ns, end_ns + 1)) if loaded else None,
+        },
+        "camera_latency_ms": {
+            "baseline": stats(window(cams, settle_ns, baseline_end)),
+            "loaded": stats(window(cams, bg_ns, end_ns + 1)) if loaded else None,
+        },
+        "uplink_state_latency_ms": stats([lat for lat, s in rec.states if s.stamp_ns >= settle_ns]),
+        "tracking_rmse_m": {
+            "baseline": _rmse(window(errors, settle_ns, baseline_end)),
+            "loaded": _rmse(window(errors, bg_ns, end_ns + 1)) if loaded else None,
+        },
+        "states_time_s": times,
+        "transitions": transitions,
+        "first_qos_switch_after_bg_s": first_switch,
+        "fallback_entered": bool(switches and switches[-1] > 0),
+        "setpoint_gap_max_ms": max(gaps) if gaps else None,
+        "states_recorded": len(rec.states),
+        "ok": ok,
+        "failure": failure,
+    }
+
+
+def write_scenario(folder: Path, scenario: Scenario, rec: Recording, summary: dict[str, Any]) -> None:
+    (folder / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    t0 = rec.t0_ns
+    with (folder / "states.csv").open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["t_s", "x_m", "y_m", "z_m", "uplink_latency_ms", "mode"])
+        for lat, st in rec.states:
+            writer.writerow([f"{(st.stamp_ns - t0) / 1e9:.3f}", *st.pos_m, f"{lat:.3f}", st.mode])
+    columns = [
+        "state",
+        "flow",
+        "camera_rate_factor",
+        "control_source",
+        "latency",
+        "risk",
+        "watchdog",
+        "rtt_ms",
+        "camera_latency_ms",
+        "t_cc_ms",
+        "t_cam_ms",
+        "p_cc",
+        "p_cam",
+        "p_lat",
+        "p_cs",
+        "spaciousness_m",
+    ]
+    with (folder / "supervisor.csv").open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["t_s", *columns])
+        for sv in rec.status:
+            writer.writerow([f"{(sv.stamp_ns - t0) / 1e9:.3f}", *(getattr(sv, c) for c in columns)])
+    _plots(folder, scenario, rec, summary)
+
+
+def _plots(folder: Path, scenario: Scenario, rec: Recording, summary: dict[str, Any]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t0 = rec.t0_ns
+    bg = summary["bg_start_s"]
+
+    def shade(ax: Any) -> None:
+        if bg is not None:
+            ax.axvspan(bg, scenario.duration_s, color="tab:red", alpha=0.08, label="background load")
+
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8))
+    ax = axes[0][0]
+    xs = [s.pos_m[0] for _, s in rec.states if s.stamp_ns >= t0]
+    ys = [s.pos_m[1] for _, s in rec.states if s.stamp_ns >= t0]
+    ref_xy = [(r.pos_m[0][0], r.pos_m[0][1]) for r in rec.refs if r.stamp_ns >= t0]
+    if ref_xy:
+        ax.plot([p[1] for p in ref_xy], [p[0] for p in ref_xy], "k--", lw=1, label="reference")
+    ax.plot(ys, xs, lw=1, label="drone")
+    ax.set(title="top view (north up)", xlabel="east y (m)", ylabel="north x (m)", aspect="equal")
+    ax.legend(loc="upper right", fontsize=8)
+
+    ax = axes[0][1]
+    errors = tracking_errors(rec)
+    ax.plot([t for t, _ in errors], [e for _, e in errors], lw=1)
+    shade(ax)
+    ax.set(title="tracking error", xlabel="t (s)", ylabel="m")
+
+    ax = axes[1][0]
+    rtt = [
+        ((s.stamp_ns - t0) / 1e9, s.rtt_ms) for s in rec.status if s.rtt_ms is not None and s.stamp_ns >= t0
+    ]
+    cam = [
+        ((s.stamp_ns - t0) / 1e9, s.camera_latency_ms)
+        for s in rec.status
+        if s.camera_latency_ms is not None and s.stamp_ns >= t0
+    ]
+    ax.plot([t for t, _ in rtt], [v for _, v in rtt], lw=1, label="C&C RTT")
+    ax.plot([t for t, _ in cam], [v for _, v in cam], lw=1, label="camera latency")
+    ax.axhline(27, color="gray", ls=":", lw=1, label="rho2 = 27 ms")
+    shade(ax)
+    ax.set(title="latency", xlabel="t (s)", ylabel="ms", yscale="log")
+    ax.legend(fontsize=8)
+
+    ax = axes[1][1]
+    rows = [c for c in rec.cell if c["now_ns"] >= t0]
+    picks: list[tuple[str, Callable[[dict[str, Any]], float]]] = [
+        ("drone delivered", lambda c: sum(b["delivered_bytes"] * 8 for b in c["bearers"].values())),
+        ("background delivered", lambda c: sum(b["delivered_bits"] for b in c["background"].values())),
+    ]
+    for label, pick in picks:
+        series: list[tuple[float, float]] = []
+        for a, b in itertools.pairwise(rows):
+            span = (b["now_ns"] - a["now_ns"]) / 1e9
+            series.append(((b["now_ns"] - t0) / 1e9, (pick(b) - pick(a)) / span / 1e6 * scenario.scale))
+        ax.plot([t for t, _ in series], [v for _, v in series], lw=1, label=label)
+    shade(ax)
+    ax.set(
+        title=f"throughput (Mbit/s at full scale; run at 1/{scenario.scale:g})",
+        xlabel="t (s)",
+        ylabel="Mbit/s",
+    )
+    ax.legend(fontsize=8)
+    fig.suptitle(f"{scenario.name}: {scenario.description}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(folder / "overview.png", dpi=90)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(12, 2.5))
+    order = list(STATES)
+    points = [
+        ((s.stamp_ns - t0) / 1e9, order.index(s.state))
+        for s in sorted(rec.status, key=lambda s: s.stamp_ns)
+        if s.stamp_ns >= t0
+    ]
+    ax.step([t for t, _ in points], [v for _, v in points], where="post")
+    ax.set_yticks(range(len(order)), order)
+    shade(ax)
+    ax.set(title=f"{scenario.name}: supervisor state", xlabel="t (s)")
+    fig.tight_layout()
+    fig.savefig(folder / "supervisor.png", dpi=90)
+    plt.close(fig)
+
+
+def _n(value: float | None, digits: int = 1) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
+    lines = [
+        "# dynqos demo report",
+        "",
+        "The paper's scenarios, run on this machine through the emulated cell (see docs/cell.md). "
+        "Rates are at full scale; the run itself used 1/scale of every rate.",
+        "",
+        "## Beside the paper's Table II",
+        "",
+        "| scenario | paper row | UAV Tx / Rx (Mbit/s) | paper UAV Tx / Rx "
+        "| RTT mean baseline / loaded (ms) | paper RTT (ms) | BG Tx / Rx (Mbit/s) | paper BG Tx / Rx | ok |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for s in summaries:
+        row = SCENARIO_ROW.get(s["scenario"], "-")
+        paper = PAPER_TABLE_II.get(row, {})
+        rtt = s["rtt_ms"]
+        loaded = (rtt["loaded"] or {}).get("mean")
+        cells = [
+            s["scenario"],
+            row,
+            f"{_n(s['uav_offered_mbps'])} / {_n(s['uav_delivered_mbps'])}",
+            f"{paper.get('uav_tx', '-')} / {paper.get('uav_rx', '-')}",
+            f"{_n(rtt['baseline']['mean'])} / {_n(loaded)}",
+            str(paper.get("rtt", "-")),
+            f"{_n(s['bg_offered_mbps'])} / {_n(s['bg_delivered_mbps'])}",
+            f"{paper.get('bg_tx') or '-'} / {paper.get('bg_rx') or '-'}",
+            str(s["ok"]),
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "## Scenarios", ""]
+    for s in summaries:
+        rtt, cam, rmse = s["rtt_ms"], s["camera_latency_ms"], s["tracking_rmse_m"]
+        lines += [
+            f"### {s['scenario']}",
+            "",
+            s["description"],
+            "",
+            f"- RTT (ms): baseline mean {_n(rtt['baseline']['mean'])}, p95 {_n(rtt['baseline']['p95'])}; "
+            f"loaded mean {_n((rtt['loaded'] or {}).get('mean'))}, "
+            f"p95 {_n((rtt['loaded'] or {}).get('p95'))}, max {_n((rtt['loaded'] or {}).get('max'))}",
+            f"- camera latency (ms): baseline mean {_n(cam['baseline']['mean'])}; loaded mean "
+            f"{_n((cam['loaded'] or {}).get('mean'))}",
+            f"- tracking RMSE (m): baseline {_n(rmse['baseline'], 3)}, loaded {_n(rmse['loaded'], 3)}",
+            f"- first switch to the priority flow after the background started: "
+            f"{_n(s['first_qos_switch_after_bg_s'], 2)} s; fallback entered: {s['fallback_entered']}; "
+            f"largest setpoint gap: {_n(s['setpoint_gap_max_ms'])} ms",
+            "- time in states (s): "
+            + ", ".join(f"{k} {v:.1f}" for k, v in s["states_time_s"].items() if v > 0),
+            f"- ok: {s['ok']} {s['failure']}",
+            "",
+            f"![{s['scenario']}]({s['scenario']}/overview.png)",
+            "",
+            f"![{s['scenario']} supervisor]({s['scenario']}/supervisor.png)",
+            "",
+        ]
+    (out / "report.md").write_text("\n".join(lines) + "\n")

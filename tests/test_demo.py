@@ -1,0 +1,105 @@
+"""`dynqos demo` end to end (short and scaled down) and the summary.json contract."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from tests.procs import DYNQOS
+
+KEYS = {
+    "scenario",
+    "duration_s",
+    "scale",
+    "bg_start_s",
+    "uav_offered_mbps",
+    "uav_delivered_mbps",
+    "bg_offered_mbps",
+    "bg_delivered_mbps",
+    "rtt_ms",
+    "camera_latency_ms",
+    "tracking_rmse_m",
+    "states_time_s",
+    "transitions",
+    "first_qos_switch_after_bg_s",
+    "fallback_entered",
+    "setpoint_gap_max_ms",
+    "ok",
+}
+STATS = {"mean", "p50", "p95", "p99", "max"}
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+@pytest.mark.timeout(600)
+def test_short_demo_writes_the_contract(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    result = subprocess.run(
+        [
+            DYNQOS,
+            "demo",
+            "--scenario",
+            "baseline",
+            "--scenario",
+            "bg-staticqos",
+            "--duration",
+            "14",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=540,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    top = json.loads((out / "summary.json").read_text())
+    assert top["ok"] is True
+    assert [s["scenario"] for s in top["scenarios"]] == ["baseline", "bg-staticqos"]
+    for name in ("baseline", "bg-staticqos"):
+        summary = json.loads((out / name / "summary.json").read_text())
+        assert set(summary) >= KEYS, KEYS - set(summary)
+        assert summary["ok"] is True
+        assert set(summary["rtt_ms"]["baseline"]) >= STATS
+        assert set(summary["states_time_s"]) == {"q1", "q2", "q3", "q4", "q5", "q6", "qA"}
+        for artefact in (
+            "overview.png",
+            "supervisor.png",
+            "states.csv",
+            "supervisor.csv",
+            "cell.csv",
+            "logs",
+        ):
+            assert (out / name / artefact).exists(), artefact
+        assert summary["setpoint_gap_max_ms"] < 100
+    baseline = json.loads((out / "baseline" / "summary.json").read_text())
+    assert baseline["rtt_ms"]["baseline"]["mean"] < 27  # below rho2 with margin
+    assert baseline["tracking_rmse_m"]["baseline"] < 0.15
+    loaded = json.loads((out / "bg-staticqos" / "summary.json").read_text())
+    assert loaded["bg_start_s"] is not None
+    assert (
+        loaded["uav_delivered_mbps"] >= 0.95 * loaded["uav_offered_mbps"]
+    )  # the priority flow keeps its rate
+    report = (out / "report.md").read_text()
+    assert "Table II" in report
+    assert "baseline/overview.png" in report
+
+
+def test_bad_scenario_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    path = tmp_path / "s.toml"
+    path.write_text('[scenario]\nname = "x"\nduration_s = 1\n')
+    result = subprocess.run(
+        [DYNQOS, "run", str(path)], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        f"dynqos: error: {path}: scenario.duration_s: must be in 5..3600 s"
+    ]
+    unknown = subprocess.run(
+        [DYNQOS, "demo", "--scenario", "nope"], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert unknown.returncode == 2
+    assert "unknown scenario 'nope'" in unknown.stderr
