@@ -56,6 +56,7 @@ from dynqos.sim.world import default_world, load_world
 log = logging.getLogger(__name__)
 
 SETPOINT_HZ = 50
+STALE_STATE_NS = 500_000_000  # no position from the FC for this long: it is lost, stop using its state
 
 
 @dataclass
@@ -311,6 +312,23 @@ class OnboardDaemon:
         assert link is not None
         if not self.offloading:
             return
+        if now - state.stamp_ns > STALE_STATE_NS:
+            # The FC has gone silent: its state is stale, so neither the edge nor the PID can fly on it.
+            # Ask it to hold where it was last seen, and keep the stream alive so offboard survives.
+            if self.control_source != "fc-lost":
+                log.error("onboard: no state from the flight controller for %.1f s: holding position",
+                          (now - state.stamp_ns) / 1e9)  # fmt: skip
+                self.hold_target = np.array(state.pos_m)
+                self.hold_yaw = _yaw(state.quat)
+            self.control_source = "fc-lost"
+            assert self.hold_target is not None
+            hold = self.hold_target
+            link.send_position((float(hold[0]), float(hold[1]), float(hold[2])), self.hold_yaw)
+            self.counters["setpoints"] += 1
+            return
+        if self.control_source == "fc-lost":
+            log.info("onboard: the flight controller's state is back")
+            self.control_source = "holding"
         setpoint = self.tracker.setpoint(now)
         wants_edge = (
             self.cfg.qos != "dynamic"
@@ -376,7 +394,7 @@ class OnboardDaemon:
             self._drain_downlink(now)
             state = self._fc_state()
             self.link.heartbeat_lost()  # logs once when the FC goes silent; setpoints keep flowing regardless
-            if state is not None and now >= next_state:
+            if state is not None and now >= next_state and now - state.stamp_ns <= STALE_STATE_NS:
                 next_state += self.t_mpc_ns
                 if next_state < now:
                     next_state = now + self.t_mpc_ns

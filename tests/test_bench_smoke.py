@@ -50,3 +50,13 @@ def test_mpc_bench_smoke(tmp_path: Path) -> None:
     result = json.loads(out.read_text())
     assert [s["horizon"] for s in result["steps"]] == [20, 40]
     assert result["fleet"]["max_drones_at_20hz"] >= 0
+
+
+def test_onboard_camera_bench_smoke(tmp_path: Path) -> None:
+    from bench import onboard_camera
+
+    out = tmp_path / "camera.json"
+    assert onboard_camera.main(["--quick", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["frames_delivered"] == result["frames"] == 10
+    assert result["mbps_at_30fps"] > 0

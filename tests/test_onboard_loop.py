@@ -5,6 +5,7 @@ from __future__ import annotations
 import bisect
 import math
 import re
+import signal
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -159,13 +160,23 @@ def test_the_drone_flies_the_circle_survives_bad_commands_and_an_mpc_restart(
         assert drift < 0.5
         procs["mpc"] = DynqosProcess(["edge", "mpc"], config)
         observer.wait_until(lambda s: False, 4.0)
+
+        # The flight controller goes silent for 2 s (our own child, paused by its pid), then comes back.
+        procs["vehicle"].proc.send_signal(signal.SIGSTOP)
+        try:
+            observer.wait_until(lambda s: False, 2.0)
+        finally:
+            procs["vehicle"].proc.send_signal(signal.SIGCONT)
+        observer.wait_until(lambda s: False, 4.0)
     finally:
         observer.bus.close()
     log = procs.pop("onboard").stop()
     fallback = re.findall(r"fallback PID holding position \(watchdog: last valid command (\d+) ms ago\)", log)
     assert fallback, log[-3000:]
     assert int(fallback[-1]) <= 150 + 20 + 15  # T_wd + one 20 ms tick (+ scheduling slack)
-    assert log.count("control from the edge") >= 2  # offload resumed after the MPC came back
+    assert log.count("control from the edge") >= 3  # offload resumed after the MPC and after the FC came back
+    assert "no state from the flight controller" in log
+    assert "the flight controller's state is back" in log
     health = re.findall(r"unknown=(\d+) expired=\d+ future=\d+ wrong_drone=\d+", log)[-1]
     assert int(health) >= 5  # the replays and the forged commands were rejected
     assert re.findall(r"rejected=(\d+)", log)[-1] != "0"
