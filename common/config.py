@@ -418,6 +418,7 @@ class OnboardConfig:
     device_index: int = 0
     world_file: str = ""
     on_exit: Literal["hold", "land"] = "hold"
+    fallback: Literal["hold", "continue"] = "hold"  # continue: fly the last reference while it lasts
     fc_timeout_s: float = 30.0
     heartbeat_timeout_s: float = 3.0
     status_hz: float = 5.0

@@ -24,8 +24,9 @@ from dynqos.common import keys
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.config import Config
 from dynqos.common.keys import Downlink, Flow, Stream
-from dynqos.common.messages import CameraAck, CameraFrame, Command, Detections, State
+from dynqos.common.messages import CameraAck, CameraFrame, Command, Detections, Reference, State
 from dynqos.common.queues import BoundedQueue
+from dynqos.common.reference import ReferenceTrack
 from dynqos.common.transport import (
     Bus,
     Priority,
@@ -130,6 +131,7 @@ class OnboardDaemon:
             "detections": 0,
         }
         self.max_setpoint_gap_ms = 0.0
+        self.reference = ReferenceTrack()
         self.notifier = SystemdNotifier()
         self.link: FcLink | None = None
         self.bus: Bus | None = None
@@ -167,6 +169,10 @@ class OnboardDaemon:
         self.acks: BoundedQueue[Received] = BoundedQueue(512)
         self.ack_stats = bus.subscribe(keys.downlink(self.uav, Downlink.CAMERA_ACK), self.acks)
         self.ack_stats_det = bus.subscribe(keys.downlink(self.uav, Downlink.DETECTIONS), self.acks)
+        if (
+            self.cfg.fallback == "continue"
+        ):  # the onboard planner continues the mission from the last reference
+            bus.subscribe(keys.downlink(self.uav, Downlink.REFERENCE), self.acks)
         self.camera = self._camera()
         log.info("onboard %s: flows %s", self.uav, self._endpoints())
 
@@ -248,6 +254,8 @@ class OnboardDaemon:
                 self.camera_monitor.on_ack(item.message, item.arrival_ns)
             elif isinstance(item.message, Detections):
                 self.counters["detections"] += 1
+            elif isinstance(item.message, Reference):
+                self.reference.update(item.message, item.arrival_ns)
 
     def _publish_state(self, state: FcState, now: int) -> None:
         self.state_seq += 1
@@ -360,15 +368,25 @@ class OnboardDaemon:
                 self.hold_yaw = _yaw(state.quat)
                 self.pid.reset(self.last_accel)  # bumpless
             self.control_source = "fallback"
-            assert self.hold_target is not None
+            target, target_vel, yaw = self._fallback_target(now)
             accel = self.pid.step(
-                np.array(state.pos_m), np.array(state.vel_mps), self.hold_target, 1 / SETPOINT_HZ
+                np.array(state.pos_m), np.array(state.vel_mps), target, 1 / SETPOINT_HZ, target_vel
             )
-            yaw = self.hold_yaw
             self.counters["fallback_ticks"] += 1
         self.last_accel = accel
         link.send_accel((float(accel[0]), float(accel[1]), float(accel[2])), yaw)
         self.counters["setpoints"] += 1
+
+    def _fallback_target(self, now: int) -> tuple[np.ndarray, np.ndarray | None, float]:
+        """Hold where the fallback took over, or (fallback = continue) follow the last reference while it
+        lasts; past its end the reference holds its last sample."""
+        assert self.hold_target is not None
+        if self.cfg.fallback == "continue":
+            window = self.reference.window(now, 1, self.config.control.t_mpc_s)
+            if window is not None:
+                states, yaws = window
+                return states[0, :3], states[0, 3:], float(yaws[0])
+        return self.hold_target, None, self.hold_yaw
 
     def run(self) -> None:
         """The control loop, until stop is set; then hold (or land) and close."""

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from dynqos.common.messages import Reference, State
+from dynqos.common.reference import ReferenceTrack
 from dynqos.edge.missions import Mission, load_waypoints
-from dynqos.edge.mpc import ControllerSettings, DroneController, ReferenceTrack
+from dynqos.edge.mpc import ControllerSettings, DroneController
 from dynqos.edge.mpc_problem import MpcProblem, MpcSettings, SolveError, discretise
 from tests.closedloop import fly_circle
 
