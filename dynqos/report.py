@@ -9,13 +9,13 @@ import itertools
 import json
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dynqos.common.messages import STATES
+from dynqos.common.messages import STATES, Reference, State
 
 if TYPE_CHECKING:
     from dynqos.demo import Recording, Scenario
@@ -47,12 +47,13 @@ def stats(values: list[float]) -> dict[str, float | None]:
     }
 
 
-def tracking_errors(rec: Recording) -> list[tuple[float, float]]:
-    """(t_s, distance to the reference sample due at the state's stamp) for every state."""
-    refs = sorted(rec.refs, key=lambda r: r.stamp_ns)
+def reference_errors(states: Iterable[State], references: Iterable[Reference]) -> list[tuple[int, float]]:
+    """(stamp_ns, distance to the reference sample due at the state's stamp) for every state that a
+    reference covers. Drone and planner stamps must share a clock: the same host, as in the demo."""
+    refs = sorted(references, key=lambda r: r.stamp_ns)
     stamps = [r.stamp_ns for r in refs]
     out = []
-    for _, s in rec.states:
+    for s in states:
         i = bisect.bisect_right(stamps, s.stamp_ns) - 1
         if i < 0:
             continue
@@ -62,8 +63,14 @@ def tracking_errors(rec: Recording) -> list[tuple[float, float]]:
         hi = min(lo + 1, len(ref.pos_m) - 1)
         f = k - int(k)
         target = np.array(ref.pos_m[lo]) * (1 - f) + np.array(ref.pos_m[hi]) * f
-        out.append(((s.stamp_ns - rec.t0_ns) / 1e9, float(np.linalg.norm(np.array(s.pos_m) - target))))
+        out.append((s.stamp_ns, float(np.linalg.norm(np.array(s.pos_m) - target))))
     return out
+
+
+def tracking_errors(rec: Recording) -> list[tuple[float, float]]:
+    """(t_s since offloading started, tracking error) for every recorded state."""
+    errors = reference_errors((s for _, s in rec.states), rec.refs)
+    return [((stamp - rec.t0_ns) / 1e9, error) for stamp, error in errors]
 
 
 def _rmse(values: list[float]) -> float | None:

@@ -42,6 +42,7 @@ from dynqos.onboard.camera import (
     DeviceCamera,
     FilesCamera,
     RateController,
+    RawFrame,
     SimCamera,
     encode_depth,
     encode_rgb,
@@ -475,6 +476,23 @@ class OnboardDaemon:
 
     # ---- the camera -------------------------------------------------------------------------------------
 
+    def _send_frame(
+        self,
+        pubs: Publishers,
+        flow: str,
+        seq: int,
+        stamp: int,
+        raw: RawFrame,
+        kind: str,
+        encoding: str,
+        data: bytes,
+    ) -> None:
+        h, w = raw.rgb.shape[:2]
+        frame = CameraFrame(uav=self.uav, seq=seq, stamp_ns=stamp, kind=kind, encoding=encoding, width=w,
+                            height=h, intrinsics=raw.intrinsics, payload=data)  # fmt: skip
+        self.camera_monitor.frame_sent(seq, kind, stamp)
+        pubs.pick(flow).put(frame)
+
     def _camera_loop(self) -> None:
         if self.camera is None:
             return
@@ -492,34 +510,13 @@ class OnboardDaemon:
             frame_seq += 1
             stamp = self.clock.now_ns()
             h, w = raw.rgb.shape[:2]
-            flow = self.flow
-            rgb = CameraFrame(
-                uav=self.uav,
-                seq=frame_seq,
-                stamp_ns=stamp,
-                kind="rgb",
-                encoding="jpeg",
-                width=w,
-                height=h,
-                intrinsics=raw.intrinsics,
-                payload=encode_rgb(raw.rgb, self.cfg.jpeg_quality),
-            )
-            self.camera_monitor.frame_sent(frame_seq, "rgb", stamp)
-            self.rgb_pubs.pick(flow).put(rgb)
+            flow = self.flow  # one flow for both halves of the frame
+
+            rgb = encode_rgb(raw.rgb, self.cfg.jpeg_quality)
+            self._send_frame(self.rgb_pubs, flow, frame_seq, stamp, raw, "rgb", "jpeg", rgb)
             if raw.depth_m is not None:
-                depth = CameraFrame(
-                    uav=self.uav,
-                    seq=frame_seq,
-                    stamp_ns=stamp,
-                    kind="depth",
-                    encoding="zstd16",
-                    width=w,
-                    height=h,
-                    intrinsics=raw.intrinsics,
-                    payload=encode_depth(raw.depth_m),
-                )
-                self.camera_monitor.frame_sent(frame_seq, "depth", stamp)
-                self.depth_pubs.pick(flow).put(depth)
+                depth = encode_depth(raw.depth_m)
+                self._send_frame(self.depth_pubs, flow, frame_seq, stamp, raw, "depth", "zstd16", depth)
                 if risk is None:
                     risk = Spaciousness(w, h, raw.intrinsics, stride=4)
                 value = risk(raw.depth_m)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import bisect
 import math
 import re
 import signal
@@ -19,6 +18,7 @@ from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import Command, Reference, State, encode
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, open_bus
+from dynqos.report import reference_errors
 from tests.conftest import free_tcp_port
 from tests.procs import DynqosProcess
 from tests.test_vehicle_mavlink import free_udp_port
@@ -60,22 +60,7 @@ class Observer:
     def tracking_errors(self, since_ns: int) -> list[float]:
         """Distance from each state to the reference sample due at its stamp (same host clock)."""
         self.collect()
-        stamps = [r.stamp_ns for r in self.ref_log]
-        errors = []
-        for s in self.state_log:
-            if s.stamp_ns < since_ns:
-                continue
-            i = bisect.bisect_right(stamps, s.stamp_ns) - 1
-            if i < 0:
-                continue
-            ref = self.ref_log[i]
-            k = (s.stamp_ns - ref.stamp_ns) / 1e9 / ref.dt_s
-            lo = min(int(k), len(ref.pos_m) - 1)
-            hi = min(lo + 1, len(ref.pos_m) - 1)
-            f = k - int(k)
-            target = np.array(ref.pos_m[lo]) * (1 - f) + np.array(ref.pos_m[hi]) * f
-            errors.append(float(np.linalg.norm(np.array(s.pos_m) - target)))
-        return errors
+        return [error for stamp, error in reference_errors(self.state_log, self.ref_log) if stamp >= since_ns]
 
     def wait_until(self, predicate: object, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
