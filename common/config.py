@@ -296,6 +296,8 @@ class VehicleSimConfig:
     seed: int = 0
     takeoff_alt_m: float = 2.5
     offboard_loss_s: float = 1.0
+    lockstep: bool = False  # advance 20 ms per answer from the offboard peer instead of real time
+    world_file: str = ""  # TOML/JSON world for contact checks; "" = the default arena
 
     def __post_init__(self) -> None:
         for name in ("offboard_bind_port", "offboard_remote_port", "gcs_bind_port", "gcs_remote_port"):

@@ -76,8 +76,12 @@ def _cmd_sim_vehicle(args: argparse.Namespace, config: Config) -> int:
 
     from dynqos.sim.vehicle import Link, MavlinkVehicle
     from dynqos.sim.vehicle_model import VehicleConfig, VehicleModel
+    from dynqos.sim.world import default_world, load_world
 
     v = config.vehicle
+    world_file = args.world if args.world is not None else v.world_file
+    world = load_world(world_file) if world_file else default_world()
+    lockstep = v.lockstep if args.clock is None else args.clock == "lockstep"
     speed = v.speed if args.speed is None else args.speed
     if not 0.01 <= speed <= 100:
         raise DynqosError(f"--speed must be in 0.01..100, got {speed}")
@@ -96,7 +100,7 @@ def _cmd_sim_vehicle(args: argparse.Namespace, config: Config) -> int:
         Link("offboard", (v.host, v.offboard_bind_port), (v.host, v.offboard_remote_port)),
         Link("gcs", (v.host, v.gcs_bind_port), (v.host, v.gcs_remote_port)),
     ]
-    vehicle = MavlinkVehicle(model, links, speed=speed)
+    vehicle = MavlinkVehicle(model, links, speed=speed, lockstep=lockstep, world=world)
     try:
         vehicle.open()
     except OSError as exc:
@@ -110,6 +114,8 @@ def _cmd_sim_vehicle(args: argparse.Namespace, config: Config) -> int:
     info = {
         "ready": True,
         "links": {link.name: {"bind": link.bind[1], "remote": link.remote[1]} for link in links},
+        "clock": "lockstep" if lockstep else "realtime",
+        "world": world_file or "default",
     }
     print(json.dumps(info), flush=True)
     try:
@@ -258,8 +264,28 @@ def build_parser() -> argparse.ArgumentParser:
             "A rigid-body quadrotor with a PX4-like flight controller (arming, takeoff, hold, land, offboard "
             "with PX4's custom modes and offboard-loss failsafe) speaking MAVLink 2 over UDP: the offboard "
             "link binds [vehicle] offboard_bind_port (14580) and sends to offboard_remote_port (14540); "
-            "the ground-station link binds 18570 and sends to 14550. Prints one JSON line when ready."
+            "the ground-station link binds 18570 and sends to 14550. Prints one JSON line when ready. "
+            "Contacts with the world's obstacles are logged and counted."
         ),
+    )
+    clock = vehicle.add_mutually_exclusive_group()
+    clock.add_argument(
+        "--realtime",
+        dest="clock",
+        action="store_const",
+        const="realtime",
+        help="pace simulated time to the wall clock x --speed (the default; for the demo and real peers)",
+    )
+    clock.add_argument(
+        "--lockstep",
+        dest="clock",
+        action="store_const",
+        const="lockstep",
+        help="advance 20 ms of simulated time each time the peer answers the telemetry with a setpoint: "
+        "as fast as the peer, deterministic with [vehicle] seed (for tests)",
+    )
+    vehicle.add_argument(
+        "--world", metavar="FILE", help="world file (TOML or JSON) for contact checks (default: the arena)"
     )
     vehicle.add_argument(
         "--speed", type=float, metavar="X", help="simulated seconds per wall second (default 1)"

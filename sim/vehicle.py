@@ -5,6 +5,13 @@ the onboard daemon listens), the ground-station link binds 18570 and sends to 14
 MAVProxy). Once a peer has sent something, replies go to the address it sent from. Telemetry:
 HEARTBEAT and SYS_STATUS and EXTENDED_SYS_STATE at 1 Hz, ATTITUDE_QUATERNION and LOCAL_POSITION_NED
 at 50 Hz. Datagrams that do not parse are counted and ignored.
+
+Clocking, as PX4 SITL offers it: real time (scaled by `speed`), or lock-step, where simulated time
+advances one telemetry period (20 ms) only after the peer has answered the last telemetry with a
+setpoint (as PX4's lock-step waits for actuator outputs). Commands sent before that setpoint act in
+the same period. Lock-step runs as fast as the peer can answer and, with a seed, gives the same
+flight for the same sequence of messages: what a test wants. With a world, every contact with
+an obstacle is logged and counted, so a run that flew through a pillar does not pass unnoticed.
 """
 
 from __future__ import annotations
@@ -23,12 +30,14 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from dynqos.sim.px4 import Mode, Result, Setpoint
 from dynqos.sim.vehicle_model import PHYSICS_HZ, STEP_NS, VehicleModel
+from dynqos.sim.world import World, collision
 
 log = logging.getLogger(__name__)
 
 SYSTEM_ID = 1
 COMPONENT_ID = 1
 TELEMETRY_HZ = 50
+LOCKSTEP_HEARTBEAT_S = 1.0  # in lock-step, repeat the heartbeat in wall time while the peer is silent
 SUPPORTED_IGNORED_COMMANDS = {
     mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
     mavlink.MAV_CMD_REQUEST_MESSAGE,
@@ -58,17 +67,35 @@ class Link:
 class MavlinkVehicle:
     """Steps a VehicleModel in (scaled) real time and speaks MAVLink for it."""
 
-    def __init__(self, model: VehicleModel, links: list[Link], *, speed: float = 1.0) -> None:
+    def __init__(
+        self,
+        model: VehicleModel,
+        links: list[Link],
+        *,
+        speed: float = 1.0,
+        lockstep: bool = False,
+        world: World | None = None,
+    ) -> None:
         if not speed > 0:
             raise ValueError("speed must be > 0")
         self.model = model
         self.links = links
         self.speed = speed
+        self.lockstep = lockstep
+        self.world = world
+        self.touching: str | None = None
+        self._peer_answered = False
         self.mav = mavlink.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=COMPONENT_ID)
         self._selector = selectors.DefaultSelector()
         self._last_events = 0
         self.stopped = False
-        self.counters: dict[str, int] = {"setpoints": 0, "commands": 0, "garbage": 0, "ignored": 0}
+        self.counters: dict[str, int] = {
+            "setpoints": 0,
+            "commands": 0,
+            "garbage": 0,
+            "ignored": 0,
+            "collisions": 0,
+        }
 
     def open(self) -> None:
         for link in self.links:
@@ -187,6 +214,7 @@ class MavlinkVehicle:
                 return
             fc.on_setpoint(setpoint, now)
             self.counters["setpoints"] += 1
+            self._peer_answered = True  # lock-step: the controller has answered this period
         elif kind in ("COMMAND_LONG", "COMMAND_INT"):
             if msg.target_system not in (0, SYSTEM_ID):
                 return
@@ -227,11 +255,12 @@ class MavlinkVehicle:
     # ---- the loop ----------------------------------------------------------------------------------
 
     def run(self, duration_s: float | None = None, should_stop: Callable[[], bool] | None = None) -> None:
-        """Step physics at 200 Hz of simulated time, paced to `speed` x wall time."""
+        """Step physics at 200 Hz of simulated time, paced to `speed` x wall time or lock-stepped."""
+        if self.lockstep:
+            self._run_lockstep(duration_s, should_stop)
+            return
         wall_start = time.monotonic()
         sim_start = self.model.now_ns
-        steps_per_telemetry = PHYSICS_HZ // TELEMETRY_HZ
-        step = 0
         while not self.stopped and not (should_stop and should_stop()):
             sim_elapsed_s = (self.model.now_ns - sim_start) / 1e9
             if duration_s is not None and sim_elapsed_s >= duration_s:
@@ -240,13 +269,51 @@ class MavlinkVehicle:
             self.poll(due - time.monotonic())
             if time.monotonic() < due:
                 continue
-            self.model.step()
-            step += 1
-            if step % steps_per_telemetry == 0:
-                self.telemetry()
-            if step % PHYSICS_HZ == 1:
-                self.heartbeat()
-            self._log_events()
+            self._step()
+
+    def _run_lockstep(self, duration_s: float | None, should_stop: Callable[[], bool] | None) -> None:
+        sim_start = self.model.now_ns
+        steps_per_telemetry = PHYSICS_HZ // TELEMETRY_HZ
+        self.heartbeat()
+        self.telemetry()
+        last_heartbeat = time.monotonic()
+        while not self.stopped and not (should_stop and should_stop()):
+            if duration_s is not None and (self.model.now_ns - sim_start) / 1e9 >= duration_s:
+                break
+            self.poll(0.05)  # bounded, so that a stop request is seen while the peer is silent
+            if not self._peer_answered:
+                if time.monotonic() - last_heartbeat >= LOCKSTEP_HEARTBEAT_S:
+                    self.heartbeat()  # let a peer that connects late find us
+                    self.telemetry()
+                    last_heartbeat = time.monotonic()
+                continue
+            self._peer_answered = False
+            for _ in range(steps_per_telemetry):
+                self._step()
+            last_heartbeat = time.monotonic()
+
+    def _step(self) -> None:
+        """One physics step, with telemetry, heartbeat, contact check and event log at their rates."""
+        self.model.step()
+        step = self.model.now_ns // STEP_NS
+        if step % (PHYSICS_HZ // TELEMETRY_HZ) == 0:
+            self.telemetry()
+            self._check_contact()
+        if step % PHYSICS_HZ == 1:
+            self.heartbeat()
+        self._log_events()
+
+    def _check_contact(self) -> None:
+        if self.world is None or self.model.plant.on_ground:
+            return
+        pos = tuple(float(v) for v in self.model.state.pos_m)
+        touching = collision(self.world, (pos[0], pos[1], pos[2]))
+        if touching and touching != self.touching:
+            self.counters["collisions"] += 1
+            log.warning(
+                "vehicle: collision with %s at (%.2f, %.2f, %.2f) m", touching, pos[0], pos[1], pos[2]
+            )
+        self.touching = touching
 
     def _log_events(self) -> None:
         events = self.model.fc.events

@@ -137,3 +137,41 @@ def load_world(path: str | Path) -> World:
         return build(World, table)
     except ConfigError as exc:
         raise exc.with_source(source) from None
+
+
+def collision(world: World, pos_m: tuple[float, float, float], radius_m: float = 0.15) -> str | None:
+    """What a sphere of `radius_m` at `pos_m` touches, as a name ("cylinder 2"), or None.
+
+    The vehicle uses it to report crashes: a run that looked fine on the error plot but flew through a
+    pillar should not pass unnoticed. The floor is not an obstacle (the vehicle lands on it).
+    """
+    x, y, z = pos_m
+    size_x, size_y, height = world.arena.size_m
+    half_x, half_y = size_x / 2, size_y / 2
+    if abs(x) + radius_m > half_x or abs(y) + radius_m > half_y:
+        return "arena wall"
+    if -z + radius_m > height:
+        return "arena ceiling"
+    for i, box in enumerate(world.boxes):
+        nearest = [min(max(p, lo), hi) for p, lo, hi in zip(pos_m, box.min_m, box.max_m, strict=True)]
+        if math.dist(nearest, pos_m) < radius_m:
+            return f"box {i}"
+    for i, cyl in enumerate(world.cylinders):
+        if cyl.z_top_m - radius_m < z < cyl.z_bottom_m + radius_m and (
+            math.hypot(x - cyl.center_m[0], y - cyl.center_m[1]) < cyl.radius_m + radius_m
+        ):
+            return f"cylinder {i}"
+    for i, hoop in enumerate(world.hoops):
+        if _hoop_distance(hoop, pos_m) < hoop.tube_m + radius_m:
+            return f"hoop {i}"
+    return None
+
+
+def _hoop_distance(hoop: Hoop, pos_m: tuple[float, float, float]) -> float:
+    """Distance from a point to the hoop's centre circle (the torus's core)."""
+    norm = math.hypot(*hoop.normal)
+    n = [c / norm for c in hoop.normal]
+    d = [p - c for p, c in zip(pos_m, hoop.center_m, strict=True)]
+    along = sum(a * b for a, b in zip(d, n, strict=True))
+    in_plane = math.sqrt(max(0.0, sum(c * c for c in d) - along * along))
+    return math.hypot(in_plane - hoop.radius_m, along)

@@ -229,3 +229,77 @@ def test_mavproxy_ground_station_sees_heartbeat_mode_and_position(tmp_path: Path
         altitudes.append(-msg.z)
     assert altitudes, "the ground station logged no position"
     assert max(altitudes) > 1.8
+
+
+def _lockstep_flight(
+    tmp_path: Path, seconds: float, extra_args: tuple[str, ...] = ()
+) -> tuple[list[tuple[int, float, float, float]], float, str]:
+    """Fly a scripted mission against `--lockstep`: one setpoint per telemetry period, commands at
+    fixed periods. Returns the LOCAL_POSITION_NED trace, the wall time and the vehicle's stderr."""
+    port = free_udp_port()
+    client = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, source_component=190)
+    config = tmp_path / "vehicle.toml"
+    config.write_text(
+        f"[vehicle]\noffboard_bind_port = 0\ngcs_bind_port = 0\noffboard_remote_port = {port}\n"
+        f"gcs_remote_port = {free_udp_port()}\ngust_std_mps = 0.5\nseed = 7\n"
+    )
+    proc = DynqosProcess(["sim", "vehicle", "--lockstep", "--duration", str(seconds), *extra_args], config)
+    trace: list[tuple[int, float, float, float]] = []
+    try:
+        assert proc.info["clock"] == "lockstep"
+        wall_start = time.monotonic()
+        while len(trace) < seconds * 50:
+            pos = client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=5)
+            assert pos is not None, "lock-step vehicle stopped sending telemetry"
+            if trace and pos.time_boot_ms == trace[-1][0]:
+                continue  # the repeated telemetry of a silent period, not a new one
+            trace.append((pos.time_boot_ms, pos.x, pos.y, pos.z))
+            tick = len(trace)
+            script = {  # period -> command and its params
+                5: (mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, 0, 0),
+                6: (mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 2.0),
+                250: (mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0),
+            }
+            if tick in script:
+                cmd, p1, p2, p7 = script[tick]
+                client.mav.command_long_send(1, 1, cmd, 0, p1, p2, 0, 0, 0, 0, p7)
+            send_setpoint(client, 1.0, 0.5, -2.0)  # closes the period: the vehicle advances 20 ms
+        wall_s = time.monotonic() - wall_start
+    finally:
+        client.close()
+        err = proc.stop()
+    return trace, wall_s, err
+
+
+def test_lockstep_is_deterministic_and_faster_than_real_time(tmp_path: Path) -> None:
+    seconds = 8.0
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    first, wall_s, _ = _lockstep_flight(tmp_path / "a", seconds)
+    second, _, _ = _lockstep_flight(tmp_path / "b", seconds)
+    # Every period is 20 ms of simulated time, whatever the wall clock did.
+    assert [t for t, *_ in first] == list(range(0, int(seconds * 1000), 20))
+    assert first == second  # same seed, same messages: the same flight, gusts included
+    _, x, y, z = first[-1]
+    assert (x, y, z) == pytest.approx((1.0, 0.5, -2.0), abs=0.1)  # took off, flew offboard
+    assert wall_s < seconds  # faster than real time (the peer is the only pace)
+
+
+def test_contacts_with_the_world_are_logged_and_counted(tmp_path: Path) -> None:
+    world = tmp_path / "pillar.toml"
+    world.write_text("[[cylinders]]\ncenter_m = [1.0, 0.5]\nradius_m = 0.2\nz_top_m = -3.0\n")
+    _, _, err = _lockstep_flight(tmp_path, 8.0, ("--world", str(world)))
+    assert "collision with cylinder 0" in err
+    assert "'collisions': 1" in err  # the exit summary counts one contact, not one per period
+
+
+def test_bad_world_file_exits_2(tmp_path: Path) -> None:
+    world = tmp_path / "bad.toml"
+    world.write_text("[[cylinders]]\ncenter_m = [1.0, 0.5]\nradius_m = -1\n")
+    for path in (world, tmp_path / "missing.toml"):
+        proc = subprocess.run(
+            [DYNQOS, "sim", "vehicle", "--world", str(path)], capture_output=True, text=True, timeout=30
+        )
+        assert proc.returncode == 2
+        assert proc.stderr.count("\n") == 1
+        assert str(path) in proc.stderr

@@ -157,3 +157,22 @@ def test_rotation_helpers_round_trip() -> None:
         q /= np.linalg.norm(q)
         q *= 1 if q[0] >= 0 else -1
         assert rot_to_quat(quat_to_rot(q)) == pytest.approx(q, abs=1e-9)
+
+
+def test_world_collision_names_what_a_sphere_touches() -> None:
+    from dynqos.sim.world import Box, Cylinder, Hoop, World, collision
+
+    world = World(
+        boxes=(Box(min_m=(1.0, 1.0, -1.0), max_m=(2.0, 2.0, 0.0)),),
+        cylinders=(Cylinder(center_m=(-2.0, 0.0), radius_m=0.3, z_top_m=-2.0),),
+        hoops=(Hoop(center_m=(0.0, -2.0, -1.5), radius_m=0.5, normal=(1.0, 0.0, 0.0)),),
+    )
+    assert collision(world, (0.0, 0.0, -1.5)) is None
+    assert collision(world, (1.5, 0.9, -0.5)) == "box 0"  # 0.1 m from its face, radius 0.15
+    assert collision(world, (1.5, 0.8, -0.5)) is None
+    assert collision(world, (-1.6, 0.0, -1.0)) == "cylinder 0"
+    assert collision(world, (-2.0, 0.0, -2.5)) is None  # above its top
+    assert collision(world, (0.0, -2.5, -1.5)) == "hoop 0"  # on the ring
+    assert collision(world, (0.0, -2.0, -1.5)) is None  # through its middle
+    assert collision(world, (3.45, 0.0, -1.0)) == "arena wall"
+    assert collision(world, (0.0, 0.0, -2.9)) == "arena ceiling"
