@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
 
 from dynqos.common.errors import ConfigError, KeyExprError
-from dynqos.common.keys import check_uav_id
+from dynqos.common.keys import UAV_ID_PATTERN, check_uav_id
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -55,6 +55,13 @@ class ZenohConfig:
     priority_dscp: int = 0xB8
     bulk_sndbuf_bytes: int = 65536
     connect_timeout_s: float = 5.0
+    # Production: mutual TLS on both flows, and on the router an access-control policy by certificate
+    # common name (drone id; "edge" for the edge services). See docs/deploy.md and `dynqos certs`.
+    tls: bool = False
+    tls_ca: str = ""  # the CA that signed every certificate (PEM)
+    tls_cert: str = ""  # this process's certificate (PEM); CN = drone id, "edge" or "router"
+    tls_key: str = ""  # its private key (PEM)
+    acl_drones: tuple[str, ...] = ()  # router: drone ids allowed in; non-empty turns access control on
 
     def __post_init__(self) -> None:
         _require(bool(self.edge_host.strip()), "edge_host", "must not be empty")
@@ -70,6 +77,15 @@ class ZenohConfig:
             "must be 0 (kernel default) or 4096..67108864",
         )
         _require(0.1 <= self.connect_timeout_s <= 600, "connect_timeout_s", "must be in 0.1..600 s")
+        if self.tls:
+            for name in ("tls_ca", "tls_cert", "tls_key"):
+                _require(bool(getattr(self, name)), name, "must name a PEM file when tls = true")
+        for uav in self.acl_drones:
+            _require(UAV_ID_PATTERN.fullmatch(uav) is not None, "acl_drones", f"{uav!r} is not a drone id")
+        _require(
+            "edge" not in self.acl_drones, "acl_drones", "'edge' is the edge services' name, not a drone"
+        )
+        _require(not self.acl_drones or self.tls, "acl_drones", "access control needs tls = true")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -327,6 +343,9 @@ class MpcConfig:
     max_compensation_s: float = 1.0
     idle_timeout_s: float = 10.0
     health_interval_s: float = 5.0
+    # Scale-out: replica shard_index of shard_count serves the drones with crc32(id) % count == index.
+    shard_index: int = 0
+    shard_count: int = 1
 
     def __post_init__(self) -> None:
         for name in ("q_pos", "q_vel", "r_acc", "terminal_factor"):
@@ -338,6 +357,8 @@ class MpcConfig:
         _require(10 <= self.max_iter <= 100_000, "max_iter", "must be in 10..100000")
         _require(1 <= self.command_steps <= 60, "command_steps", "must be in 1..60")
         _require(0 <= self.max_compensation_s <= 2.5, "max_compensation_s", "must be in 0..2.5 s")
+        _require(1 <= self.shard_count <= 1024, "shard_count", "must be in 1..1024")
+        _require(0 <= self.shard_index < self.shard_count, "shard_index", "must be in 0..shard_count-1")
         _require(0.5 <= self.idle_timeout_s <= 3600, "idle_timeout_s", "must be in 0.5..3600 s")
         _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
 

@@ -20,13 +20,15 @@ import logging
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import zenoh
 
+from dynqos.common.acl import access_control_policy
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.config import ZenohConfig
-from dynqos.common.errors import DecodeError, TransportError
+from dynqos.common.errors import ConfigError, DecodeError, TransportError
 from dynqos.common.messages import Message, decode, encode
 from dynqos.common.queues import BoundedQueue
 
@@ -69,9 +71,13 @@ def _host(host: str) -> str:
     return f"[{host}]" if ":" in host and not host.startswith("[") else host
 
 
+def _scheme(cfg: ZenohConfig) -> str:
+    return "tls" if cfg.tls else "tcp"
+
+
 def default_flow_endpoint(cfg: ZenohConfig, host: str | None = None, port: int | None = None) -> str:
     lo, hi = DEFAULT_FLOW_PRIORITIES
-    endpoint = f"tcp/{_host(host or cfg.edge_host)}:{port or cfg.default_port}?prio={lo}-{hi}"
+    endpoint = f"{_scheme(cfg)}/{_host(host or cfg.edge_host)}:{port or cfg.default_port}?prio={lo}-{hi}"
     if cfg.bulk_sndbuf_bytes:
         endpoint += f"#so_sndbuf={cfg.bulk_sndbuf_bytes}"
     return endpoint
@@ -79,13 +85,13 @@ def default_flow_endpoint(cfg: ZenohConfig, host: str | None = None, port: int |
 
 def priority_flow_endpoint(cfg: ZenohConfig, host: str | None = None, port: int | None = None) -> str:
     lo, hi = PRIORITY_FLOW_PRIORITIES
-    endpoint = f"tcp/{_host(host or cfg.edge_host)}:{port or cfg.priority_port}?prio={lo}-{hi}"
+    endpoint = f"{_scheme(cfg)}/{_host(host or cfg.edge_host)}:{port or cfg.priority_port}?prio={lo}-{hi}"
     return endpoint + f"#dscp={cfg.priority_dscp:#x}"
 
 
 def router_endpoints(cfg: ZenohConfig) -> list[str]:
     host = _host(cfg.router_listen_host)
-    return [f"tcp/{host}:{cfg.default_port}", f"tcp/{host}:{cfg.priority_port}"]
+    return [f"{_scheme(cfg)}/{host}:{port}" for port in (cfg.default_port, cfg.priority_port)]
 
 
 def endpoints(
@@ -99,7 +105,7 @@ def endpoints(
         if role is Role.DRONE:
             connect = [default_flow_endpoint(cfg), priority_flow_endpoint(cfg)]
         elif role is Role.EDGE:
-            connect = [f"tcp/{_host(cfg.edge_host)}:{cfg.default_port}"]
+            connect = [f"{_scheme(cfg)}/{_host(cfg.edge_host)}:{cfg.default_port}"]
         else:
             connect = []
     if listen is None:
@@ -107,14 +113,18 @@ def endpoints(
     return list(connect), list(listen)
 
 
-def session_config(
+def session_settings(
     cfg: ZenohConfig,
     role: Role,
     *,
     connect: Sequence[str] | None = None,
     listen: Sequence[str] | None = None,
-) -> zenoh.Config:
-    """A zenoh.Config for `role`; `connect`/`listen` replace the endpoints derived from cfg."""
+    check_files: bool = True,
+) -> dict[str, Any]:
+    """The zenoh settings for `role`, as `path/to/key: value` (what `dynqos config zenoh` prints).
+
+    `check_files`: fail now, naming the key, if a TLS file is missing (rather than in zenoh's words).
+    """
     connect, listen = endpoints(cfg, role, connect, listen)
     mode = {Role.DRONE: "peer", Role.EDGE: "client", Role.ROUTER: "router"}[role]
     settings: dict[str, Any] = {
@@ -128,10 +138,51 @@ def session_config(
         "connect/timeout_ms": round(cfg.connect_timeout_s * 1000),
         "connect/exit_on_failure": True,
     }
+    if cfg.tls:
+        settings.update(_tls_settings(cfg, role, check_files))
+    if role is Role.ROUTER and cfg.acl_drones:
+        settings["access_control"] = access_control_policy(cfg.acl_drones)
+    return settings
+
+
+def nested(settings: dict[str, Any]) -> dict[str, Any]:
+    """`{"a/b": 1}` as `{"a": {"b": 1}}`: a config file zenohd reads."""
+    tree: dict[str, Any] = {}
+    for path, value in settings.items():
+        *parents, leaf = path.split("/")
+        node = tree
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return tree
+
+
+def session_config(
+    cfg: ZenohConfig,
+    role: Role,
+    *,
+    connect: Sequence[str] | None = None,
+    listen: Sequence[str] | None = None,
+) -> zenoh.Config:
+    """A zenoh.Config for `role`; `connect`/`listen` replace the endpoints derived from cfg."""
     zcfg = zenoh.Config()
-    for key, value in settings.items():
+    for key, value in session_settings(cfg, role, connect=connect, listen=listen).items():
         zcfg.insert_json5(key, json.dumps(value))
     return zcfg
+
+
+def _tls_settings(cfg: ZenohConfig, role: Role, check_files: bool) -> dict[str, Any]:
+    """Mutual TLS: the router demands a certificate from every session and everyone checks the CA."""
+    for name in ("tls_ca", "tls_cert", "tls_key"):
+        path = getattr(cfg, name)
+        if check_files and not Path(path).is_file():
+            raise ConfigError(name, f"{path!r} is not a readable file")
+    tls: dict[str, Any] = {"root_ca_certificate": cfg.tls_ca}
+    if role is Role.ROUTER:
+        tls |= {"listen_certificate": cfg.tls_cert, "listen_private_key": cfg.tls_key, "enable_mtls": True}
+    else:
+        tls |= {"connect_certificate": cfg.tls_cert, "connect_private_key": cfg.tls_key, "enable_mtls": True}
+    return {f"transport/link/tls/{key}": value for key, value in tls.items()}
 
 
 @dataclass(frozen=True, slots=True)

@@ -12,6 +12,7 @@ import json
 import logging
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 from dynqos import __version__
@@ -48,6 +49,23 @@ def _common_options() -> argparse.ArgumentParser:
 
 def _cmd_config_show(args: argparse.Namespace, config: Config) -> int:
     sys.stdout.write(to_toml(config))
+    return 0
+
+
+def _cmd_config_zenoh(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.common.transport import Role, nested, session_settings
+
+    settings = session_settings(config.zenoh, Role(args.role), check_files=False)
+    use = (
+        "zenohd -c FILE runs a router with the same endpoints, TLS and access control"
+        if args.role == "router"
+        else "zenoh.Config.from_file(FILE) opens the same session from any zenoh binding"
+    )
+    header = (
+        f"// zenoh config of a dynqos {args.role} session, from `dynqos config zenoh --role {args.role}`.\n"
+        f"// JSON is valid JSON5: {use}.\n"
+    )
+    sys.stdout.write(header + json.dumps(nested(settings), indent=2) + "\n")
     return 0
 
 
@@ -137,7 +155,7 @@ def _cmd_edge(args: argparse.Namespace, config: Config) -> int:
     if name == "router":
         from dynqos.edge.router import run_router
 
-        run_router(config, ready=lambda: _ready_line("router"))
+        run_router(config, ready=lambda: _ready_line("router"), health_file=_health_path(args))
         return 0
     bus = open_bus(config.zenoh, Role.EDGE)
     try:
@@ -155,10 +173,41 @@ def _cmd_edge(args: argparse.Namespace, config: Config) -> int:
 
             service = DetectorService(config, bus)
         service.service.install_signal_handlers()
+        service.service.health_file = _health_path(args)
+        service.service.write_health("ready")
         _ready_line(name)
         service.run()
     finally:
         bus.close()
+    return 0
+
+
+def _health_path(args: argparse.Namespace) -> Path | None:
+    return Path(args.health_file) if args.health_file else None
+
+
+def _cmd_health(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.edge.service import check_health
+
+    if not 0 < args.max_age <= 3600:
+        raise DynqosError(f"--max-age must be in (0, 3600] s, got {args.max_age}")
+    print(check_health(Path(args.health_path), args.max_age))
+    return 0
+
+
+def _cmd_certs(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.common.certs import make_dev_pki
+    from dynqos.common.errors import KeyExprError
+
+    if not args.drones:
+        raise DynqosError("give at least one --drone ID")
+    try:
+        issued = make_dev_pki(Path(args.out), args.drones, args.router_hosts, days=args.days)
+    except KeyExprError as exc:
+        raise DynqosError(f"--drone: {exc}") from None
+    for name, pair in issued.items():
+        print(f"{name}: {pair.cert} {pair.key}")
+    print(f"ca: {Path(args.out) / 'ca.pem'}")
     return 0
 
 
@@ -235,6 +284,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     show.add_argument("file", nargs="?", metavar="FILE", help="config file (same as --config FILE)")
     show.set_defaults(handler=_cmd_config_show)
+    zenoh_show = config_sub.add_parser(
+        "zenoh",
+        parents=[common],
+        help="print the zenoh config (JSON5) a router, edge or drone session opens with",
+        description="Print the zenoh settings dynqos derives from [zenoh] for one role: endpoints with their "
+        "priority ranges, TLS files and, for the router, the access-control policy from acl_drones. Use it "
+        "to run the official zenohd with the same setup (zenohd -c FILE) or to see what a session does.",
+    )
+    zenoh_show.add_argument("file", nargs="?", metavar="FILE", help="config file (same as --config FILE)")
+    zenoh_show.add_argument(
+        "--role", choices=["router", "edge", "drone"], default="router", help="whose session (default router)"
+    )
+    zenoh_show.set_defaults(handler=_cmd_config_zenoh)
 
     sim_cmd = commands.add_parser("sim", help="simulators: the emulated 5G cell", parents=[common])
     sim_sub = sim_cmd.add_subparsers(dest="sim_command", metavar="SIMULATOR", required=True)
@@ -317,6 +379,11 @@ def build_parser() -> argparse.ArgumentParser:
             "Connects to the router at [zenoh] edge_host:default_port as a client; prints one "
             "JSON line when ready, a health line every few seconds, stops on SIGTERM.",
         )
+        sub.add_argument(
+            "--health-file",
+            metavar="FILE",
+            help="also write each health line to FILE (for `dynqos health FILE`, e.g. a Kubernetes probe)",
+        )
         sub.set_defaults(handler=_cmd_edge)
 
     onboard = commands.add_parser(
@@ -365,6 +432,44 @@ def build_parser() -> argparse.ArgumentParser:
             "--seed", type=int, metavar="N", help="seed for the simulator, cell jitter and supervisor"
         )
         sub.set_defaults(handler=_cmd_demo)
+
+    health = commands.add_parser(
+        "health",
+        parents=[common],
+        help="check a service's health file (exit 0 if fresh): for Kubernetes exec probes",
+        description="Prints the last health line written by a service started with --health-file FILE "
+        "and exits 0 if it is at most --max-age seconds old; otherwise says why and exits 2.",
+    )
+    health.add_argument("health_path", metavar="FILE", help="the service's --health-file")
+    health.add_argument(
+        "--max-age", type=float, default=15.0, metavar="S", help="oldest acceptable line (default 15 s)"
+    )
+    health.set_defaults(handler=_cmd_health)
+
+    certs = commands.add_parser(
+        "certs",
+        parents=[common],
+        help="make a development CA and mTLS certificates for the router, the edge and each drone",
+        description="Writes into --out: ca.pem and ca-key.pem (kept and reused if present), router.pem "
+        "(server and client auth; names: localhost, 127.0.0.1 and each --router-host), edge.pem (CN edge, "
+        "shared by the edge services) and <id>.pem per --drone (CN = drone id, matched by the router's "
+        "access control), each with its <name>-key.pem (mode 0600). For production use your own PKI "
+        "with the same common names.",
+    )
+    certs.add_argument("--out", metavar="DIR", required=True, help="folder for the PEM files")
+    certs.add_argument(
+        "--drone", metavar="ID", action="append", default=[], dest="drones", help="a drone id (repeatable)"
+    )
+    certs.add_argument(
+        "--router-host",
+        metavar="NAME",
+        action="append",
+        default=[],
+        dest="router_hosts",
+        help="a DNS name or IP the drones dial the router by (repeatable), e.g. dynqos-router.dynqos.svc",
+    )
+    certs.add_argument("--days", type=int, default=365, metavar="N", help="validity (default 365 days)")
+    certs.set_defaults(handler=_cmd_certs)
 
     version = commands.add_parser("version", help="print the version", parents=[common])
     version.set_defaults(handler=_cmd_version)

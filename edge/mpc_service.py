@@ -8,6 +8,7 @@ is counted; the drone's watchdog takes over. Idle drones are dropped after `idle
 from __future__ import annotations
 
 import logging
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,7 +47,13 @@ class MpcCounters:
     stale: int = 0
     solve_failures: int = 0
     references: int = 0
+    other_shard: int = 0
     solve_ms: list[float] = field(default_factory=list)
+
+
+def shard_of(uav: str, shard_count: int) -> int:
+    """The MPC replica that serves `uav`: stable across processes and restarts (unlike hash())."""
+    return zlib.crc32(uav.encode()) % shard_count
 
 
 class MpcService:
@@ -62,6 +69,10 @@ class MpcService:
         self.state_stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue)
         self.ref_stats = bus.subscribe(keys.downlink_all_drones(Downlink.REFERENCE), self.queue)
         self.service = Service("mpc", config.mpc.health_interval_s)
+
+    def _mine(self, uav: str) -> bool:
+        cfg = self.config.mpc
+        return cfg.shard_count == 1 or shard_of(uav, cfg.shard_count) == cfg.shard_index
 
     def _controller(self, uav: str) -> DroneController:
         ctrl = self.controllers.get(uav)
@@ -83,9 +94,14 @@ class MpcService:
         for item in items:
             message = item.message
             if isinstance(message, Reference):
+                if not self._mine(message.uav):
+                    continue
                 self.counters.references += 1
                 self._controller(message.uav).reference.update(message, item.arrival_ns)
             elif isinstance(message, State):
+                if not self._mine(message.uav):
+                    self.counters.other_shard += 1
+                    continue
                 self.counters.states += 1
                 previous = newest.get(message.uav)
                 if previous is None or message.seq > previous.message.seq:
@@ -140,6 +156,7 @@ class MpcService:
         solve = np.array(c.solve_ms[-500:]) if c.solve_ms else np.zeros(1)
         rejected = self.state_stats.rejected + self.ref_stats.rejected
         return (
+            f"shard={self.config.mpc.shard_index}/{self.config.mpc.shard_count} "
             f"drones={len(self.controllers)} states={c.states} commands={c.commands} stale={c.stale} "
             f"rejected={rejected} solve_failures={c.solve_failures} "
             f"references={c.references} queue_drops={self.queue.dropped} "

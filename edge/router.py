@@ -7,6 +7,7 @@ The default flow's port (7447) and the priority flow's port (7448) are two liste
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 from dynqos.common.config import Config
 from dynqos.common.transport import Role, open_session, router_endpoints
@@ -15,12 +16,14 @@ from dynqos.edge.service import Service
 log = logging.getLogger(__name__)
 
 
-def run_router(config: Config, ready: object = None) -> None:
+def run_router(config: Config, ready: object = None, health_file: Path | None = None) -> None:
     service = Service("router", 5.0)
+    service.health_file = health_file
     service.install_signal_handlers()
     session = open_session(config.zenoh, Role.ROUTER)
     try:
         log.info("router: listening on %s", ", ".join(router_endpoints(config.zenoh)))
+        service.write_health("ready")
         if callable(ready):
             ready()
         while not service.stop.is_set():

@@ -1,14 +1,23 @@
 """What every edge service shares: a stop event wired to SIGTERM/SIGINT, a health line every few
-seconds, and the zenoh session as an edge client of the router."""
+seconds, and the zenoh session as an edge client of the router.
+
+The health line also goes to an optional health file, rewritten atomically each time, so that a
+Kubernetes exec probe (`dynqos health FILE --max-age S`) can tell a live service from a hung one:
+these services listen on no port a TCP probe could check."""
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import signal
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from types import FrameType
+
+from dynqos.common.errors import DynqosError
 
 log = logging.getLogger(__name__)
 
@@ -19,6 +28,19 @@ class Service:
         self.stop = threading.Event()
         self.health_interval_s = health_interval_s
         self._next_health = time.monotonic() + health_interval_s
+        self.health_file: Path | None = None
+
+    def write_health(self, line: str) -> None:
+        """Replace the health file (if any) with this line and the wall time, atomically."""
+        if self.health_file is None:
+            return
+        record = {"service": self.name, "time_unix": time.time(), "pid": os.getpid(), "health": line}
+        tmp = self.health_file.with_name(self.health_file.name + ".tmp")
+        try:
+            tmp.write_text(json.dumps(record) + "\n", encoding="utf-8")
+            tmp.replace(self.health_file)
+        except OSError as exc:
+            raise DynqosError(f"cannot write health file {self.health_file}: {exc.strerror}") from None
 
     def install_signal_handlers(self) -> None:
         def handler(signum: int, _frame: FrameType | None) -> None:
@@ -32,4 +54,21 @@ class Service:
         now = time.monotonic()
         if now >= self._next_health:
             self._next_health = now + self.health_interval_s
-            log.info("%s health: %s", self.name, line())
+            text = line()
+            log.info("%s health: %s", self.name, text)
+            self.write_health(text)
+
+
+def check_health(path: Path, max_age_s: float, now_unix: float | None = None) -> str:
+    """The health line in `path` if it was written within `max_age_s`; else DynqosError saying why."""
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+        age = (time.time() if now_unix is None else now_unix) - float(record["time_unix"])
+        line = f"{record['service']}: {record['health']}"
+    except OSError as exc:
+        raise DynqosError(f"no health file {path} ({exc.strerror}): not started yet or not writing") from None
+    except (ValueError, KeyError, TypeError):
+        raise DynqosError(f"{path} is not a dynqos health file") from None
+    if age > max_age_s:
+        raise DynqosError(f"{line}: last health {age:.1f} s ago (max {max_age_s:g} s): hung or stopped")
+    return line

@@ -36,14 +36,28 @@ class FcState:
     quat: tuple[float, float, float, float]
 
 
+def serial_device_and_baud(url: str, default_baud: int = 921600) -> tuple[str, int]:
+    """`/dev/ttyACM0,921600` (MAVProxy's serial syntax) as (device, baud); other URLs pass through.
+
+    pymavlink takes the baud rate as an argument, not in the URL; a companion computer's serial link
+    to PX4 usually runs at 921600 (SER_TEL2_BAUD), not pymavlink's 115200 default.
+    """
+    device, sep, baud = url.rpartition(",")
+    if sep and ":" not in device and baud.isdigit() and int(baud) > 0:
+        return device, int(baud)
+    return url, default_baud
+
+
 class FcLink:
     def __init__(self, url: str, *, clock: Clock | None = None, heartbeat_timeout_s: float = 3.0) -> None:
         self.url = url
         self.clock = clock or MonotonicClock()
         self.heartbeat_timeout_ns = round(heartbeat_timeout_s * 1e9)
+        device, baud = serial_device_and_baud(url)
         try:
             self.conn: Any = mavutil.mavlink_connection(
-                url,
+                device,
+                baud=baud,
                 source_system=1,
                 source_component=mavlink.MAV_COMP_ID_ONBOARD_COMPUTER,
                 autoreconnect=True,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import selectors
 import shutil
 import subprocess
@@ -14,13 +15,20 @@ DYNQOS = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
 
 
 class DynqosProcess:
-    def __init__(self, args: list[str], config: Path, ready_timeout_s: float = 30.0) -> None:
+    def __init__(
+        self,
+        args: list[str],
+        config: Path,
+        ready_timeout_s: float = 30.0,
+        env: dict[str, str] | None = None,
+    ) -> None:
         self.args = args
         self.proc = subprocess.Popen(
             [DYNQOS, *args, "--config", str(config)],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            env={**os.environ, **env} if env else None,
         )
         assert self.proc.stdout is not None
         with selectors.DefaultSelector() as selector:

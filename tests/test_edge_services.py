@@ -48,34 +48,31 @@ def drone_bus(zcfg: ZenohConfig) -> Bus:
     return open_bus(zcfg, Role.DRONE)
 
 
-def test_mpc_serves_two_drones_at_once(edge: tuple[Path, ZenohConfig, list[DynqosProcess]]) -> None:
-    config, zcfg, procs = edge
-    procs.append(DynqosProcess(["edge", "planner"], config))
-    procs.append(DynqosProcess(["edge", "mpc"], config))
+def _commands_for(zcfg: ZenohConfig, uavs: dict[str, float], wanted: int) -> dict[str, list[Command]]:
+    """Publish 20 Hz States for each drone (at x = uavs[id]) until each has `wanted` Commands back."""
     bus = drone_bus(zcfg)
+    commands: dict[str, list[Command]] = {uav: [] for uav in uavs}
     try:
         queue: BoundedQueue[Received] = BoundedQueue(1000)
-        for uav in ("uav1", "uav2"):
+        for uav in uavs:
             bus.subscribe(keys.downlink(uav, Downlink.COMMAND), queue)
         pubs = {
             uav: bus.publisher(keys.uplink(uav, Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
-            for uav in ("uav1", "uav2")
+            for uav in uavs
         }
         for pub in pubs.values():
             assert pub.wait_matched(20), "the MPC and planner never subscribed"
-        commands: dict[str, list[Command]] = {"uav1": [], "uav2": []}
         deadline = time.monotonic() + 30
         seq = 0
-        while min(len(c) for c in commands.values()) < 40 and time.monotonic() < deadline:
+        while min(len(c) for c in commands.values()) < wanted and time.monotonic() < deadline:
             seq += 1
             for uav, pub in pubs.items():
-                x = 0.0 if uav == "uav1" else 3.0
                 pub.put(
                     State(
                         uav=uav,
                         seq=seq,
                         stamp_ns=time.monotonic_ns(),
-                        pos_m=(x, 0.0, -1.5),
+                        pos_m=(uavs[uav], 0.0, -1.5),
                         vel_mps=(0.0, 0.0, 0.0),
                         quat=(1.0, 0.0, 0.0, 0.0),
                         rtt_est_ms=5.0,
@@ -88,15 +85,49 @@ def test_mpc_serves_two_drones_at_once(edge: tuple[Path, ZenohConfig, list[Dynqo
     finally:
         bus.close()
     for uav, got in commands.items():
-        assert len(got) >= 40, f"{uav}: only {len(got)} commands"
+        assert len(got) >= wanted, f"{uav}: only {len(got)} commands"
         assert all(c.uav == uav for c in got)
         assert [c.state_seq for c in got] == sorted(c.state_seq for c in got)
+    return commands
+
+
+def test_mpc_serves_two_drones_at_once(edge: tuple[Path, ZenohConfig, list[DynqosProcess]]) -> None:
+    config, zcfg, procs = edge
+    procs.append(DynqosProcess(["edge", "planner"], config))
+    procs.append(DynqosProcess(["edge", "mpc"], config))
+    commands = _commands_for(zcfg, {"uav1": 0.0, "uav2": 3.0}, 40)
+    for got in commands.values():
         assert got[-1].edge_hold_ns < 50_000_000
     # Both fly the planner's circle (lead-in 1 s to its start at (2, 0)): uav2 at x = 3 is pulled back.
     assert commands["uav2"][-1].accel_mps2[0][0] < 0
     assert commands["uav1"][-1].accel_mps2[0][0] > 0
     mpc_log = procs[-1].stop()
     assert "drones=2" in mpc_log
+
+
+def test_mpc_replicas_share_the_fleet_by_drone_id(
+    edge: tuple[Path, ZenohConfig, list[DynqosProcess]],
+) -> None:
+    from dynqos.edge.mpc_service import shard_of
+
+    config, zcfg, procs = edge
+    procs.append(DynqosProcess(["edge", "planner"], config))
+    replicas = [
+        DynqosProcess(["edge", "mpc", "--set", "mpc.shard_count=2", "--set", f"mpc.shard_index={i}"], config)
+        for i in (0, 1)
+    ]
+    procs.extend(replicas)
+    uavs = [f"uav{i}" for i in range(1, 9)]
+    by_shard = {shard: [u for u in uavs if shard_of(u, 2) == shard] for shard in (0, 1)}
+    assert by_shard[0], "crc32 put every test drone on one shard"
+    assert by_shard[1], "crc32 put every test drone on one shard"
+    fleet = {by_shard[0][0]: 0.0, by_shard[1][0]: 1.0}
+    commands = _commands_for(zcfg, fleet, 20)
+    for got in commands.values():  # one answer per state: the other replica stays silent
+        assert len({c.state_seq for c in got}) == len(got)
+    for shard, replica in enumerate(replicas):
+        log = replica.stop()
+        assert f"shard={shard}/2 drones=1" in log, log[-500:]
 
 
 def test_detector_acks_every_frame_and_finds_the_hoop(
@@ -178,3 +209,36 @@ def test_detector_acks_every_frame_and_finds_the_hoop(
     assert procs[-1].alive()
     log = procs[-1].stop()
     assert "rejected=" in log
+
+
+def test_health_file_and_probe(edge: tuple[Path, ZenohConfig, list[DynqosProcess]], tmp_path: Path) -> None:
+    """What the Kubernetes probes run: fresh health exits 0; stale, missing or foreign files exit 2."""
+    import json
+    import subprocess
+
+    from tests.procs import DYNQOS
+
+    config, _, procs = edge
+    health = tmp_path / "planner.health"
+    procs.append(DynqosProcess(["edge", "planner", "--health-file", str(health)], config))
+
+    def probe(path: Path, max_age: str = "20") -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [DYNQOS, "health", str(path), "--max-age", max_age], capture_output=True, text=True, timeout=30
+        )
+
+    ok = probe(health)
+    assert ok.returncode == 0, ok.stderr
+    assert ok.stdout.startswith("planner: ")
+    record = json.loads(health.read_text())
+    record["time_unix"] -= 100  # as if the service had hung 100 s ago
+    stale = tmp_path / "stale.health"
+    stale.write_text(json.dumps(record))
+    foreign = tmp_path / "foreign.health"
+    foreign.write_text("not json")
+    cases = ((stale, "hung or stopped"), (tmp_path / "missing", "no health file"), (foreign, "not a"))
+    for path, why in cases:
+        out = probe(path)
+        assert out.returncode == 2
+        assert why in out.stderr
+        assert out.stderr.count("\n") == 1

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import re
 import signal
+import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -197,3 +198,29 @@ def test_onboard_streams_the_real_frames_from_files_without_taking_off(
     assert sizes == {(640, 480, "zstd16")}
     assert states.get(0) is None  # no flight controller, no state
     assert "not taking off" in log
+
+
+@pytest.mark.timeout(60)
+def test_onboard_speaks_sd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> None:
+    """What systemd's Type=notify and WatchdogSec (deploy/systemd/dynqos-onboard.service) rely on."""
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    config = loop_config(tmp_path, zcfg, extra="")
+    config.write_text(config.read_text().replace("camera_fps = 5\n", 'camera = "none"\n'))
+    notify_path = tmp_path / "notify.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify:
+        notify.bind(str(notify_path))
+        notify.settimeout(15)
+        router = DynqosProcess(["edge", "router"], config)
+        onboard = DynqosProcess(
+            ["onboard"], config, env={"NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": "1000000"}
+        )
+        try:
+            got = [notify.recv(4096).decode() for _ in range(3)]
+            assert got[0] == "READY=1"
+            assert got[1:] == ["WATCHDOG=1", "WATCHDOG=1"]  # fed at half of WATCHDOG_USEC by the loop
+            onboard.proc.terminate()
+            while (text := notify.recv(4096).decode()) != "STOPPING=1":
+                assert text == "WATCHDOG=1" or text.startswith("STATUS=")
+        finally:
+            onboard.stop()
+            router.stop()

@@ -184,3 +184,12 @@ def test_fallback_holds_or_continues_the_mission_from_the_last_reference() -> No
     assert list(target) == pytest.approx([4.0, 0.0, -1.5])
     assert velocity is not None
     assert velocity[0] == 0.0
+
+
+def test_serial_urls_carry_their_baud_rate() -> None:
+    from dynqos.onboard.fclink import serial_device_and_baud
+
+    assert serial_device_and_baud("/dev/ttyACM0,57600") == ("/dev/ttyACM0", 57600)
+    assert serial_device_and_baud("/dev/ttyTHS1") == ("/dev/ttyTHS1", 921600)
+    assert serial_device_and_baud("udpin:127.0.0.1:14540") == ("udpin:127.0.0.1:14540", 921600)
+    assert serial_device_and_baud("tcp:host:5760,1") == ("tcp:host:5760,1", 921600)  # not a serial URL

@@ -1,0 +1,202 @@
+"""deploy/: the Kubernetes manifests, the systemd unit, the container image and their configs, checked
+offline (DESIGN section 9). Where a checker is missing on this machine the test says so and skips."""
+
+from __future__ import annotations
+
+import fnmatch
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dynqos.common.config import load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPLOY = ROOT / "deploy"
+K8S_VERSION = "1.30.0"  # the oldest Kubernetes we promise (StatefulSet pod-index label: 1.28+)
+
+yaml = pytest.importorskip("yaml")
+kubernetes_validate = pytest.importorskip("kubernetes_validate")
+
+
+def _kustomize(folder: Path) -> list[dict[str, Any]]:
+    kubectl = shutil.which("kubectl")
+    if kubectl is None:
+        pytest.skip("kubectl is not installed here, so the kustomize overlays cannot be rendered")
+    out = subprocess.run([kubectl, "kustomize", str(folder)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    return [doc for doc in yaml.safe_load_all(out.stdout) if doc]
+
+
+def _validate(docs: list[dict[str, Any]]) -> None:
+    for doc in docs:
+        try:
+            kubernetes_validate.validate(doc, K8S_VERSION, strict=True)
+        except kubernetes_validate.ValidationError as exc:
+            name = f"{doc.get('kind')}/{doc.get('metadata', {}).get('name')}"
+            raise AssertionError(f"{name}: {exc.message} at {list(exc.path)}") from None
+
+
+def _base_files() -> list[Path]:
+    return [p for p in sorted((DEPLOY / "k8s" / "base").glob("*.yaml")) if p.name != "kustomization.yaml"]
+
+
+def test_every_base_manifest_validates_against_the_kubernetes_schema() -> None:
+    docs = [doc for path in _base_files() for doc in yaml.safe_load_all(path.read_text()) if doc]
+    assert {d["kind"] for d in docs} == {"Namespace", "Deployment", "StatefulSet", "Service"}
+    _validate(docs)
+
+
+def test_a_broken_manifest_is_caught() -> None:
+    """The validator is not a no-op: a misspelt field fails in strict mode."""
+    doc = yaml.safe_load((DEPLOY / "k8s" / "base" / "planner.yaml").read_text())
+    doc["spec"]["template"]["spec"]["containers"][0]["imagePullPolicyy"] = "Always"
+    with pytest.raises(AssertionError, match="imagePullPolicyy"):
+        _validate([doc])
+
+
+@pytest.mark.parametrize("folder", ["base", "overlays/production"])
+def test_kustomize_renders_valid_manifests(folder: str) -> None:
+    docs = _kustomize(DEPLOY / "k8s" / folder)
+    _validate(docs)
+    workloads = [d for d in docs if d["kind"] in ("Deployment", "StatefulSet")]
+    assert {w["metadata"]["name"] for w in workloads} == {
+        "dynqos-router", "dynqos-mpc", "dynqos-planner", "dynqos-detector",
+    }  # fmt: skip
+    for workload in workloads:
+        assert workload["metadata"]["namespace"] == "dynqos"
+        pod = workload["spec"]["template"]["spec"]
+        assert pod["securityContext"]["runAsNonRoot"] is True
+        for container in pod["containers"]:
+            assert container["args"][0] in ("edge",)
+            assert "limits" in container["resources"]
+            assert "requests" in container["resources"]
+            assert container["livenessProbe"]
+            assert container["readinessProbe"]
+
+
+def _configs(docs: list[dict[str, Any]], tmp_path: Path) -> dict[str, Path]:
+    (configmap,) = [d for d in docs if d["kind"] == "ConfigMap"]
+    paths = {}
+    for name, text in configmap["data"].items():
+        paths[name] = tmp_path / name
+        paths[name].write_text(text)
+    return paths
+
+
+def test_production_overlay_turns_on_mtls_access_control_and_mpc_shards(tmp_path: Path) -> None:
+    docs = _kustomize(DEPLOY / "k8s" / "overlays" / "production")
+    configs = _configs(docs, tmp_path)
+    router = load_config(configs["router.toml"]).zenoh
+    edge = load_config(configs["edge.toml"]).zenoh
+    assert router.tls
+    assert edge.tls
+    assert router.acl_drones
+    assert Path(edge.tls_cert).name == "edge.pem"
+    assert Path(router.tls_cert).name == "router.pem"
+    workloads = {d["metadata"]["name"]: d for d in docs if d["kind"] in ("Deployment", "StatefulSet")}
+    for workload in workloads.values():
+        mounts = workload["spec"]["template"]["spec"]["containers"][0]["volumeMounts"]
+        assert {"name": "certs", "mountPath": "/etc/dynqos/certs", "readOnly": True} in mounts
+    mpc = workloads["dynqos-mpc"]
+    env = {e["name"]: e for e in mpc["spec"]["template"]["spec"]["containers"][0]["env"]}
+    assert int(env["MPC_SHARDS"]["value"]) == mpc["spec"]["replicas"] == 2
+    (service,) = [d for d in docs if d["kind"] == "Service" and d["metadata"]["name"] == "dynqos-router"]
+    assert {p["port"] for p in service["spec"]["ports"]} == {7447, 7448}
+
+
+def test_base_configs_load(tmp_path: Path) -> None:
+    for name in ("router.toml", "edge.toml"):
+        cfg = load_config(DEPLOY / "k8s" / "base" / name)
+        assert not cfg.zenoh.tls
+    onboard = load_config(DEPLOY / "systemd" / "onboard.toml")
+    assert onboard.zenoh.tls
+    assert Path(onboard.zenoh.tls_cert).stem == onboard.drone.id  # the CN the router's ACL matches
+    assert onboard.onboard.takeoff is False
+
+
+def test_systemd_unit_verifies(tmp_path: Path) -> None:
+    analyze = shutil.which("systemd-analyze")
+    if analyze is None:
+        pytest.skip("systemd-analyze is not installed here")
+    unit = (DEPLOY / "systemd" / "dynqos-onboard.service").read_text()
+    assert "Type=notify" in unit
+    assert re.search(r"^WatchdogSec=", unit, re.M)
+    assert re.search(r"^Restart=on-failure", unit, re.M)
+    # verify insists that ExecStart exists: point it at this environment's dynqos.
+    dynqos = Path(sys.executable).parent / "dynqos"
+    copy = tmp_path / "dynqos-onboard.service"
+    copy.write_text(unit.replace("/opt/dynqos/venv/bin/dynqos", str(dynqos)))
+    out = subprocess.run([analyze, "verify", str(copy)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    complaints = [line for line in out.stderr.splitlines() if copy.name in line]
+    assert complaints == []  # unknown keys are only warnings: fail on those too
+
+
+def _dockerignore_allows(path: str) -> bool:
+    allowed = False
+    for line in (ROOT / ".dockerignore").read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        negate = line.startswith("!")
+        pattern = line.lstrip("!").rstrip("/")
+        if (
+            fnmatch.fnmatch(path, pattern)
+            or path.startswith(pattern + "/")
+            or fnmatch.fnmatch(path, pattern.replace("**/", "*/"))
+        ):
+            allowed = negate
+    return allowed
+
+
+def test_dockerfile_lints_copies_what_the_context_holds_and_its_entrypoint_runs() -> None:
+    dockerfile = DEPLOY / "container" / "Dockerfile"
+    text = dockerfile.read_text()
+    hadolint = shutil.which("hadolint") or str(Path(sys.executable).parent / "hadolint")
+    if Path(hadolint).exists():
+        out = subprocess.run([hadolint, str(dockerfile)], capture_output=True, text=True, timeout=60)
+        assert out.returncode == 0, out.stdout + out.stderr
+    assert re.search(r"^USER 10001$", text, re.M)  # non-root
+    sources = [src for line in re.findall(r"^COPY (?!--from)(.+)$", text, re.M) for src in line.split()[:-1]]
+    assert sources
+    for src in sources:
+        assert (ROOT / src).exists(), src
+        assert _dockerignore_allows(src.rstrip("/")), f".dockerignore leaves {src} out of the context"
+    assert not _dockerignore_allows(".venv")
+    assert not _dockerignore_allows("edge/__pycache__/x.pyc")
+    entrypoint = re.search(r'^ENTRYPOINT \["(\w+)"\]$', text, re.M)
+    assert entrypoint is not None
+    assert entrypoint.group(1) == "dynqos"
+    out = subprocess.run(
+        [str(Path(sys.executable).parent / "dynqos"), "edge", "mpc", "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 0
+    assert "--health-file" in out.stdout
+
+
+def test_zenoh_configs_in_deploy_are_in_sync_and_parse(tmp_path: Path) -> None:
+    """deploy/zenoh/*.json5 are what `dynqos config zenoh` prints for the deploy configs (for zenohd)."""
+    import zenoh
+
+    script = (DEPLOY / "zenoh" / "generate.sh").read_text()
+    runs = re.findall(r'"\$DYNQOS" config zenoh (\S+) --role (\w+) >(\S+)', script)
+    assert len(runs) == 4
+    dynqos = str(Path(sys.executable).parent / "dynqos")
+    for source, role, target in runs:
+        out = subprocess.run(
+            [dynqos, "config", "zenoh", str(ROOT / source), "--role", role],
+            capture_output=True, text=True, timeout=60, check=True,
+        )  # fmt: skip
+        assert out.stdout == (ROOT / target).read_text(), f"{target} is stale: run deploy/zenoh/generate.sh"
+        zenoh.Config.from_file(str(ROOT / target))  # zenoh's own JSON5 parser and schema accept it
+    production = (DEPLOY / "zenoh" / "router-production.json5").read_text()
+    assert '"enable_mtls": true' in production
+    assert '"default_permission": "deny"' in production
