@@ -4,12 +4,12 @@ Both run as their own process on 127.0.0.1 and forward the same paced load from 
 CPU time is read from /proc/<pid>/stat over the measured span. Target (issue 7): under 50% of one
 core at 100 Mbit/s.
 
-Run: python -m bench.cell_forward [--mbps 100] [--seconds 5] [--quick] [--out FILE]
+Run: dynqos bench cell_forward (suite settings), or with its own options:
+  python -m dynqos.bench.cell_forward [--mbps 100] [--seconds 5] [--quick] [--out FILE]
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import subprocess
 import sys
@@ -19,8 +19,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.report import emit, provenance
-from tests.cellrig import CellProcess, Sink, send_paced
+from dynqos.bench.loadgen import Sink, send_paced
+from dynqos.bench.report import bench_parser, emit, judged, provenance
+from dynqos.demo import Processes
 
 BARE_RELAY = r"""
 import asyncio, sys
@@ -78,8 +79,15 @@ target = "127.0.0.1:{sink.port}"
 [[cell.background]]
 name = "bg"
 """
-            with CellProcess(Path(tmp), toml, duration_s=seconds + 30) as cell:
-                emulator = measure(cell.proc.pid, cell.port("drone"), sink, mbps, seconds)
+            config = Path(tmp) / "cell.toml"
+            config.write_text(toml)
+            procs = Processes(config, Path(tmp))
+            try:
+                info = procs.start("cell", ["sim", "cell", "--duration", str(seconds + 30)])
+                port = info["bearers"]["drone"]["port"]
+                emulator = measure(procs.procs["cell"].pid, port, sink, mbps, seconds)
+            finally:
+                procs.stop_all()
         with subprocess.Popen(
             [sys.executable, "-c", BARE_RELAY, str(sink.port)], stdout=subprocess.PIPE, text=True
         ) as relay:
@@ -103,6 +111,14 @@ name = "bg"
     }
 
 
+def verdict(result: dict[str, Any]) -> str:
+    share = result["emulator"]["cpu_share_of_one_core"]
+    offered, target = result["offered_mbps"], result["target_cpu_share"]
+    return judged(
+        share < target, f"cell emulator {share:.0%} of a core at {offered:.0f} Mbit/s (target < {target:.0%})"
+    )
+
+
 def markdown(result: dict[str, Any]) -> str:
     rows = [
         "| what | CPU (share of one core) | delivered (Mbit/s) |",
@@ -116,18 +132,15 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--mbps", type=float, default=100.0, help="offered load (default 100)")
     parser.add_argument("--seconds", type=float, default=5.0, help="measured span (default 5)")
     parser.add_argument("--quick", action="store_true", help="smoke mode: 10 Mbit/s for 1 s")
-    parser.add_argument("--out", type=Path, help="also write the JSON result to this file")
     args = parser.parse_args(argv)
     if args.mbps <= 0 or args.seconds <= 0:
         parser.error("--mbps and --seconds must be > 0")
     result = run(10.0, 1.0) if args.quick else run(args.mbps, args.seconds)
-    return emit(result, markdown(result), args.out)
+    return emit(result, markdown(result), args.out, verdict(result))
 
 
 if __name__ == "__main__":

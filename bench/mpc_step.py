@@ -9,23 +9,22 @@ and how many drones one MPC process serves at 20 Hz.
   5 ms and whose whole round fits in the 50 ms period. Targets: step within 1.5x of bare OSQP,
   more than 10x faster than cvxpy, >= 100 drones per process.
 
-Run: python -m bench.mpc_step [--steps 2000] [--quick] [--out FILE]
+Run: dynqos bench mpc_step (suite settings), or with its own options:
+  python -m dynqos.bench.mpc_step [--steps 2000] [--quick] [--out FILE]
 """
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import math
 import statistics
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from bench.report import emit, provenance
+from dynqos.bench.report import bench_parser, emit, judged, provenance
 from dynqos.common.messages import Reference, State
 from dynqos.edge.missions import Mission
 from dynqos.edge.mpc import ControllerSettings, DroneController
@@ -67,20 +66,26 @@ def _summary(seconds: list[float]) -> dict[str, float]:
 
 
 def step_vs_floor(horizon: int, steps: int) -> dict[str, Any]:
-    """Our step and, interleaved, a second OSQP instance of the same QP fed the same vectors in the same
-    order (so both are warm-started alike): the difference is what our code adds around the solver."""
+    """Our step and, interleaved, a second OSQP instance of the same QP fed the very vectors our step
+    solved, in the same order (so both are warm-started alike and take the same iterations): the
+    difference is what our code adds around the solver."""
     ctrl = _controller("uav1", horizon)
     bare = MpcProblem(MpcSettings(horizon=horizon))
+    solved: list[tuple[Any, Any]] = []
+    solve = ctrl.problem.solve
+
+    def recording_solve(x0: Any, reference: Any) -> Any:
+        solved.append((x0.copy(), reference.copy()))
+        return solve(x0, reference)
+
+    ctrl.problem.solve = recording_solve  # type: ignore[method-assign]
     ours, floor = [], []
     for k in range(steps):
         state = _state("uav1", k)
         start = time.perf_counter()
         ctrl.step(state, state.stamp_ns)
         ours.append(time.perf_counter() - start)
-        x0 = np.array([*state.pos_m, *state.vel_mps])
-        window = ctrl.reference.window(state.stamp_ns, horizon + 1, 0.05)
-        assert window is not None
-        q, lower, upper = bare.vectors(ctrl.problem.predict(x0, np.zeros((1, 3)))[-1], window[0])
+        q, lower, upper = bare.vectors(*solved.pop())
         start = time.perf_counter()
         bare.solver.update(q=q, l=lower, u=upper)
         bare.solver.solve(raise_error=False)
@@ -172,6 +177,24 @@ def run(steps: int, quick: bool) -> dict[str, Any]:
     }
 
 
+def verdict(result: dict[str, Any]) -> str:
+    ratios = {s["horizon"]: s["ratio_median"] for s in result["steps"]}
+    speedups = {
+        s["horizon"]: result["cvxpy"][str(s["horizon"])]["median_ms"] / s["step"]["median_ms"]
+        for s in result["steps"]
+        if result["cvxpy"].get(str(s["horizon"]))
+    }
+    drones = result["fleet"]["max_drones_at_20hz"]
+    met = all(r <= 1.5 for r in ratios.values()) and all(x > 10 for x in speedups.values()) and drones >= 100
+    ratio_text = ", ".join(f"N={n} {r:.2f}x" for n, r in ratios.items())
+    cvx_text = ", ".join(f"N={n} {x:.0f}x" for n, x in speedups.items()) or "cvxpy not installed"
+    return judged(
+        met,
+        f"step vs bare OSQP {ratio_text} (<= 1.5x); faster than cvxpy {cvx_text} (> 10x); "
+        f"{drones} drones per process at 20 Hz (>= 100)",
+    )
+
+
 def markdown(result: dict[str, Any]) -> str:
     rows = [
         "| N | our step median / p99 (ms) | bare OSQP median / p99 (ms) | ratio | cvxpy DPP median (ms) |",
@@ -200,17 +223,14 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--steps", type=int, default=2000, help="MPC steps per horizon (default 2000)")
     parser.add_argument("--quick", action="store_true", help="smoke mode: few steps, small fleet")
-    parser.add_argument("--out", type=Path, help="also write the JSON result to this file")
     args = parser.parse_args(argv)
     if args.steps < 20:
         parser.error("--steps must be at least 20")
     result = run(40 if args.quick else args.steps, args.quick)
-    return emit(result, markdown(result), args.out)
+    return emit(result, markdown(result), args.out, verdict(result))
 
 
 if __name__ == "__main__":

@@ -4,20 +4,19 @@
 CPU is process time per frame (all threads, zenoh's included) for each stage. Target (issue 5): encode +
 publish under 25% of one core at 30 fps; bitrate near the paper's ~47 Mbit/s.
 
-Run: python -m bench.onboard_camera [--frames 300] [--quick] [--out FILE]
+Run: dynqos bench onboard_camera (suite settings), or with its own options:
+  python -m dynqos.bench.onboard_camera [--frames 300] [--quick] [--out FILE]
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import socket
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
-from bench.report import emit, provenance
+from dynqos.bench.report import bench_parser, emit, judged, provenance
 from dynqos.common import keys
 from dynqos.common.config import ZenohConfig
 from dynqos.common.keys import Flow, Stream
@@ -118,6 +117,11 @@ def run(frames: int) -> dict[str, Any]:
     }
 
 
+def verdict(result: dict[str, Any]) -> str:
+    share = result["encode_publish_core_share_at_30fps"]
+    return judged(share <= 0.25, f"encode + publish at 30 fps take {share:.0%} of a core (target <= 25%)")
+
+
 def markdown(result: dict[str, Any]) -> str:
     c = result["cpu_ms_per_frame"]
     return "\n".join(
@@ -136,17 +140,14 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--frames", type=int, default=300, help="frames (default 300)")
     parser.add_argument("--quick", action="store_true", help="smoke mode: 10 frames")
-    parser.add_argument("--out", type=Path, help="also write the JSON result to this file")
     args = parser.parse_args(argv)
     if args.frames < 1:
         parser.error("--frames must be >= 1")
     result = run(10 if args.quick else args.frames)
-    return emit(result, markdown(result), args.out)
+    return emit(result, markdown(result), args.out, verdict(result))
 
 
 if __name__ == "__main__":

@@ -1,21 +1,20 @@
 """Benchmark: the cost of one supervisor step, beside its floor (the bare arithmetic of eq. 1-3).
 
-Run: python -m bench.supervisor_step [--steps N] [--quick] [--out FILE]
+Run: dynqos bench supervisor_step (suite settings), or with its own options:
+  python -m dynqos.bench.supervisor_step [--steps N] [--quick] [--out FILE]
 Target (issue 6): median step under 50 microseconds.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import random
 import statistics
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
-from bench.report import emit, provenance
+from dynqos.bench.report import bench_parser, emit, judged, provenance
 from dynqos.common.config import SupervisorConfig
 from dynqos.onboard.supervisor import Inputs, Supervisor, sigmoid
 
@@ -95,6 +94,12 @@ def run(steps: int) -> dict[str, Any]:
     }
 
 
+def verdict(result: dict[str, Any]) -> str:
+    median = result["step"]["median_us"]
+    target = result["target_median_us"]
+    return judged(median < target, f"supervisor step median {median:.1f} us (target < {target:.0f} us)")
+
+
 def markdown(result: dict[str, Any]) -> str:
     def row(name: str, figures: dict[str, float]) -> str:
         return f"| {name} | {figures['median_us']:.1f} | {figures['p99_us']:.1f} | {figures['mean_us']:.1f} |"
@@ -112,19 +117,16 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument(
         "--steps", type=int, default=100_000, help="supervisor steps to time (default 100000)"
     )
     parser.add_argument("--quick", action="store_true", help="smoke mode: 2000 steps")
-    parser.add_argument("--out", type=Path, help="also write the JSON result to this file")
     args = parser.parse_args(argv)
     if args.steps < 10:
         parser.error("--steps must be at least 10")
     result = run(2000 if args.quick else args.steps)
-    return emit(result, markdown(result), args.out)
+    return emit(result, markdown(result), args.out, verdict(result))
 
 
 if __name__ == "__main__":

@@ -6,22 +6,21 @@
   upsampled, sensor noise), alone and with JPEG (quality 90) + PNG 16-bit depth encoding; CPU from
   process time. Floor: encoding an already rendered frame. Target (issue 3): 30 fps within 25% of a core.
 
-Run: python -m bench.vehicle_sim [--seconds 30] [--frames 300] [--quick] [--out FILE]
+Run: dynqos bench vehicle_sim (suite settings), or with its own options:
+  python -m dynqos.bench.vehicle_sim [--seconds 30] [--frames 300] [--quick] [--out FILE]
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from bench.report import emit, provenance
+from dynqos.bench.report import bench_parser, emit, judged, provenance
 from dynqos.sim.dynamics import quat_to_rot
 from dynqos.sim.px4 import MAIN_OFFBOARD, Setpoint
 from dynqos.sim.render import Renderer
@@ -97,6 +96,17 @@ def run(seconds: float, frames: int) -> dict[str, Any]:
     }
 
 
+def verdict(result: dict[str, Any]) -> str:
+    speed = result["lockstep"]["sim_s_per_wall_s"]
+    render = result["camera"]["render"]
+    share = render["cpu_ms_per_frame"] * 30 / 1000
+    return judged(
+        speed > 1 and render["fps"] >= 30 and share <= 0.25,
+        f"lock-step {speed:.1f}x real time; camera render {render['fps']:.0f} fps, {share:.0%} of a core "
+        "at 30 fps (targets: faster than real time; 30 fps within 25% of one core)",
+    )
+
+
 def markdown(result: dict[str, Any]) -> str:
     lock, cam = result["lockstep"], result["camera"]
     rows = [
@@ -118,20 +128,17 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument(
         "--seconds", type=float, default=30.0, help="simulated seconds in lock-step (default 30)"
     )
     parser.add_argument("--frames", type=int, default=300, help="camera frames (default 300)")
     parser.add_argument("--quick", action="store_true", help="smoke mode: 2 s and 10 frames")
-    parser.add_argument("--out", type=Path, help="also write the JSON result to this file")
     args = parser.parse_args(argv)
     if args.seconds <= 0 or args.frames < 1:
         parser.error("--seconds must be > 0 and --frames >= 1")
     result = run(2.0, 10) if args.quick else run(args.seconds, args.frames)
-    return emit(result, markdown(result), args.out)
+    return emit(result, markdown(result), args.out, verdict(result))
 
 
 if __name__ == "__main__":

@@ -101,10 +101,28 @@ def sequence(item: Validator, min_len: int = 0, max_len: int = 1 << 16) -> Valid
             raise MessageError(name, f"expected a list, got {type(value).__name__}")
         if not min_len <= len(value) <= max_len:
             raise MessageError(name, f"length {len(value)} is outside [{min_len}, {max_len}]")
-        return tuple(item(f"{name}[{i}]", v) for i, v in enumerate(value))
+        try:
+            return tuple(item(name, v) for v in value)
+        except MessageError:  # rare: check again, naming the element (f-strings per item cost)
+            return tuple(item(f"{name}[{i}]", v) for i, v in enumerate(value))
 
     return check
 
 
 def vector(length: int, lo: float = -math.inf, hi: float = math.inf) -> Validator:
-    return sequence(real(lo, hi), length, length)
+    """A fixed-length list of finite reals in [lo, hi]. The common case, plain floats in range, takes
+    one comparison each (the MPC validates every Command it builds); anything else gets `real`'s
+    full check and its error message."""
+    slow = sequence(real(lo, hi), length, length)
+
+    def check(name: str, value: Any) -> tuple[float, ...]:
+        # v - v == 0.0 is False for inf and NaN; NaN also fails the range test.
+        if (
+            isinstance(value, (list, tuple))
+            and len(value) == length
+            and all(type(v) is float and lo <= v <= hi and v - v == 0.0 for v in value)
+        ):
+            return tuple(value)
+        return slow(name, value)  # type: ignore[no-any-return]
+
+    return check

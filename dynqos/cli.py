@@ -195,6 +195,13 @@ def _cmd_health(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def _cmd_bench(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.bench.suite import run_suite
+
+    run_suite(args.names, smoke=args.smoke, repeat=args.repeat, out=Path(args.out))
+    return 0
+
+
 def _cmd_certs(args: argparse.Namespace, config: Config) -> int:
     from dynqos.common.certs import make_dev_pki
     from dynqos.common.errors import KeyExprError
@@ -432,6 +439,28 @@ def build_parser() -> argparse.ArgumentParser:
             "--seed", type=int, metavar="N", help="seed for the simulator, cell jitter and supervisor"
         )
         sub.set_defaults(handler=_cmd_demo)
+
+    bench = commands.add_parser(
+        "bench",
+        parents=[common],
+        help="run the benchmarks (what the runtime costs, beside its floor) and write bench-results.json",
+        description="Runs each benchmark against its floor and target (all by default: supervisor_step, "
+        "mpc_step, control_loop, fleet_zenoh, onboard_camera, vehicle_sim, cell_forward, "
+        "supervisor_reaction), prints one verdict line each, and writes bench-results.json (every "
+        "figure) and bench-results.md (the tables) into --out. Benchmarks report; the exit code is 0 "
+        "whatever the verdicts. docs/benchmarks.md explains each one.",
+    )
+    bench.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (default: all)")
+    bench.add_argument("--smoke", action="store_true", help="each in a few seconds (what CI runs)")
+    bench.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        metavar="N",
+        help="run each N times and report the spread (default 1)",
+    )
+    bench.add_argument("--out", default=".", metavar="DIR", help="where to write the results (default .)")
+    bench.set_defaults(handler=_cmd_bench)
 
     health = commands.add_parser(
         "health",

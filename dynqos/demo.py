@@ -152,10 +152,13 @@ class Processes:
         self.info: dict[str, dict[str, Any]] = {}
         self.exe = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
 
-    def start(self, name: str, args: list[str], timeout_s: float = 30.0) -> dict[str, Any]:
+    def start(
+        self, name: str, args: list[str], timeout_s: float = 30.0, program: list[str] | None = None
+    ) -> dict[str, Any]:
+        """Start `dynqos ARGS --config FILE` (or `PROGRAM ARGS --config FILE`), wait for its ready line."""
         err = (self.logs / f"{name}.log").open("w")
         proc = subprocess.Popen(
-            [self.exe, *args, "--config", str(self.config)],
+            [*(program or [self.exe]), *args, "--config", str(self.config)],
             stdout=subprocess.PIPE,
             stderr=err,
             text=True,

@@ -116,8 +116,8 @@ class DroneController:
             state_seq=state.seq,
             state_stamp_ns=state.stamp_ns,
             dt_s=dt,
-            accel_mps2=tuple((float(a), float(b), float(c)) for a, b, c in accel),
-            yaw_rad=tuple(float(y) for y in yaw_seq),
+            accel_mps2=tuple(map(tuple, accel.tolist())),  # tolist: Python floats in one C call
+            yaw_rad=tuple(yaw_seq.tolist()),
             committed_steps=committed,
         )
 

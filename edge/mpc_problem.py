@@ -80,6 +80,7 @@ class MpcProblem:
         self._l = np.concatenate([np.zeros((n + 1) * NX), self._l_ineq])
         self._u = np.concatenate([np.zeros((n + 1) * NX), self._u_ineq])
         self._qvec = np.zeros(self.n_var)
+        self._a_max = np.array(s.a_max_mps2)
         self.solver = osqp.OSQP()
         self.solver.setup(
             p, self._qvec, self.a, self._l, self._u,
@@ -114,7 +115,7 @@ class MpcProblem:
             raise SolveError(f"OSQP status {result.info.status}")
         n = self.settings.horizon
         inputs: Array = result.x[(n + 1) * NX :].reshape(n, NU)
-        return np.clip(inputs, -np.array(self.settings.a_max_mps2), np.array(self.settings.a_max_mps2))
+        return np.clip(inputs, -self._a_max, self._a_max)
 
     def predict(self, x0: Array, inputs: Array) -> Array:
         """States after applying `inputs` (k, 3) from x0: shape (k + 1, 6)."""

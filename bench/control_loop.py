@@ -1,0 +1,197 @@
+"""Benchmark: what the runtime adds to the control loop, beside bare zenoh in the same run.
+
+Path measured: the drone's session (a peer with the two flow links, as the onboard daemon opens it)
+publishes a State on the priority flow; the router forwards it to `dynqos edge mpc`, which solves and
+answers with a Command; the drone wakes on it. Floor, on the very same session, links and router: a
+bare zenoh-python responder (`bench/zenoh_echo.py`, its own process) answering a payload of the
+State's size with one of the Command's size, same priority and express setting. The two alternate in
+blocks so that drift in the machine's load hits both. The MPC's own time per answer is what it
+reports in each Command (`edge_hold_ns`: arrival to publish). Target: our p50 within 1.5x of the
+floor's p50 plus the MPC's p50.
+
+Run: dynqos bench control_loop (suite settings), or with its own options:
+  python -m dynqos.bench.control_loop [--round-trips 2000] [--quick] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import queue
+import statistics
+import sys
+import time
+from typing import Any
+
+import zenoh
+
+from dynqos.bench.report import bench_parser, emit, judged, provenance
+from dynqos.bench.rig import router_rig
+from dynqos.bench.zenoh_echo import PING, PONG
+from dynqos.common import keys
+from dynqos.common.keys import Downlink, Flow, Stream
+from dynqos.common.messages import Command, State, encode
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Bus, Priority, Received, Role, open_bus
+
+UAV = "uav1"
+BLOCK = 50
+TIMEOUT_S = 5.0
+
+
+def _state(seq: int) -> State:
+    return State(
+        uav=UAV, seq=seq, stamp_ns=time.monotonic_ns(), pos_m=(0.1, -0.2, -1.5), vel_mps=(0.0, 0.0, 0.0),
+        quat=(1.0, 0.0, 0.0, 0.0), rtt_est_ms=0.0,
+    )  # fmt: skip
+
+
+def _summary(seconds: list[float]) -> dict[str, float]:
+    ordered = sorted(seconds)
+    return {
+        "p50_ms": statistics.median(ordered) * 1000,
+        "p99_ms": ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))] * 1000,
+        "mean_ms": statistics.fmean(ordered) * 1000,
+    }
+
+
+class Loop:
+    """Both round trips on one drone session."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+        self.state_pub = bus.publisher(keys.uplink(UAV, Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME,
+                                       express=True)  # fmt: skip
+        self.commands: BoundedQueue[Received] = BoundedQueue(64)
+        bus.subscribe(keys.downlink(UAV, Downlink.COMMAND), self.commands)
+        self.ping = bus.session.declare_publisher(PING, priority=zenoh.Priority.REAL_TIME, express=True)
+        self.pongs: queue.SimpleQueue[int] = queue.SimpleQueue()
+        self._pong_sub = bus.session.declare_subscriber(PONG, lambda _s: self.pongs.put(0))
+        self.seq = 0
+        self.ping_bytes = len(encode(_state(1)))
+        self.hold_ms: list[float] = []
+
+    def wait_ready(self) -> None:
+        if not self.state_pub.wait_matched(30):
+            raise RuntimeError("the MPC never subscribed to the drone's state")
+        deadline = time.monotonic() + 30
+        status: Any = (
+            self.ping.matching_status
+        )  # typed as bool in zenoh's stubs; a MatchingStatus at run time
+        while not status.matching:
+            if time.monotonic() > deadline:
+                raise RuntimeError("the echo never subscribed to bench/ping")
+            time.sleep(0.05)  # polling the matching status, bounded by the deadline
+            status = self.ping.matching_status
+
+    def ours(self) -> float:
+        self.seq += 1
+        start = time.perf_counter()
+        self.state_pub.put(_state(self.seq))
+        while True:
+            item = self.commands.get(TIMEOUT_S)
+            if item is None:
+                raise RuntimeError(f"no Command for state {self.seq} within {TIMEOUT_S} s")
+            command = item.message
+            if isinstance(command, Command) and command.state_seq == self.seq:
+                elapsed = time.perf_counter() - start
+                self.hold_ms.append(command.edge_hold_ns / 1e6)
+                return elapsed
+
+    def bare(self) -> float:
+        payload = bytes(self.ping_bytes)
+        start = time.perf_counter()
+        self.ping.put(payload)
+        self.pongs.get(timeout=TIMEOUT_S)
+        return time.perf_counter() - start
+
+
+def run(round_trips: int) -> dict[str, Any]:
+    with router_rig() as (zcfg, procs):
+        procs.start("mpc", ["edge", "mpc"])
+        command_bytes = len(encode(_sample_command()))
+        procs.start(
+            "echo",
+            ["--reply-bytes", str(command_bytes)],
+            program=[sys.executable, "-m", "dynqos.bench.zenoh_echo"],
+        )
+        bus = open_bus(zcfg, Role.DRONE)
+        try:
+            loop = Loop(bus)
+            loop.wait_ready()
+            for _ in range(BLOCK):  # warm-up: routes, caches, the MPC's first solves
+                loop.ours()
+                loop.bare()
+            loop.hold_ms.clear()
+            ours: list[float] = []
+            bare: list[float] = []
+            for block in range(max(1, round_trips // BLOCK)):
+                order = (loop.ours, loop.bare) if block % 2 else (loop.bare, loop.ours)
+                for measure in order:
+                    target = ours if measure == loop.ours else bare
+                    target.extend(measure() for _ in range(BLOCK))
+        finally:
+            bus.close()
+    ours_s, bare_s = _summary(ours), _summary(bare)
+    hold = sorted(loop.hold_ms)
+    mpc = {"p50_ms": statistics.median(hold), "p99_ms": hold[min(len(hold) - 1, int(0.99 * len(hold)))]}
+    return {
+        "benchmark": "control_loop",
+        **provenance(),
+        "round_trips": len(ours),
+        "state_bytes": loop.ping_bytes,
+        "command_bytes": command_bytes,
+        "ours": ours_s,
+        "bare_zenoh": bare_s,
+        "mpc_in_process": mpc,
+        "ratio_p50": ours_s["p50_ms"] / (bare_s["p50_ms"] + mpc["p50_ms"]),
+        "target_ratio": 1.5,
+    }
+
+
+def _sample_command() -> Command:
+    return Command(
+        uav=UAV, seq=1, state_seq=1, state_stamp_ns=1, edge_hold_ns=1, dt_s=0.05,
+        accel_mps2=((0.123456789, -0.987654321, 0.5),) * 10, yaw_rad=(0.1,) * 10,
+    )  # fmt: skip
+
+
+def verdict(result: dict[str, Any]) -> str:
+    ratio = result["ratio_p50"]
+    return judged(
+        ratio <= result["target_ratio"],
+        f"state -> MPC -> command p50 {result['ours']['p50_ms']:.2f} ms is {ratio:.2f}x bare zenoh "
+        f"({result['bare_zenoh']['p50_ms']:.2f} ms) + MPC ({result['mpc_in_process']['p50_ms']:.2f} ms) "
+        "(target <= 1.5x)",
+    )
+
+
+def markdown(result: dict[str, Any]) -> str:
+    o, b, m = result["ours"], result["bare_zenoh"], result["mpc_in_process"]
+    return "\n".join(
+        [
+            f"| round trip on loopback via a router ({result['state_bytes']} B up, "
+            f"{result['command_bytes']} B down) | p50 (ms) | p99 (ms) | mean (ms) |",
+            "|---|---|---|---|",
+            f"| dynqos: State -> edge MPC -> Command | {o['p50_ms']:.3f} | {o['p99_ms']:.3f} | "
+            f"{o['mean_ms']:.3f} |",
+            f"| floor: bare zenoh ping-pong, same sizes | {b['p50_ms']:.3f} | {b['p99_ms']:.3f} | "
+            f"{b['mean_ms']:.3f} |",
+            f"| MPC time inside the edge (arrival to publish) | {m['p50_ms']:.3f} | {m['p99_ms']:.3f} | - |",
+            "",
+            f"ratio (p50): {result['ratio_p50']:.2f}x of floor + MPC, {result['round_trips']} round trips",
+        ]
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = bench_parser(__doc__)
+    parser.add_argument("--round-trips", type=int, default=2000, help="per path (default 2000)")
+    parser.add_argument("--quick", action="store_true", help="smoke mode: 100 round trips per path")
+    args = parser.parse_args(argv)
+    if args.round_trips < BLOCK:
+        parser.error(f"--round-trips must be at least {BLOCK}")
+    result = run(100 if args.quick else args.round_trips)
+    return emit(result, markdown(result), args.out, verdict(result))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,39 @@
+"""A router on free loopback ports in a temporary folder, for the benchmarks that start edge services."""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from dynqos.common.config import ZenohConfig
+from dynqos.demo import Processes
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+@contextlib.contextmanager
+def router_rig(extra_toml: str = "") -> Iterator[tuple[ZenohConfig, Processes]]:
+    """Yields the zenoh config to reach a running `dynqos edge router` and the Processes to start more
+    services with (same config file, [zenoh] ports plus `extra_toml`); stops them all on exit."""
+    with tempfile.TemporaryDirectory(prefix="dynqos-bench-") as tmp:
+        folder = Path(tmp)
+        zcfg = ZenohConfig(default_port=free_port(), priority_port=free_port())
+        config = folder / "bench.toml"
+        config.write_text(
+            f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"
+            + extra_toml
+        )
+        procs = Processes(config, folder)
+        try:
+            procs.start("router", ["edge", "router"])
+            yield zcfg, procs
+        finally:
+            procs.stop_all()

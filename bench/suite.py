@@ -1,0 +1,122 @@
+"""`dynqos bench`: run the benchmarks, each against its floor and target, and collect the figures.
+
+Each benchmark module has `main(argv)` (with `--quick` for smoke mode and `--out FILE` for its JSON)
+and prints a one-line verdict. The suite runs the chosen ones (all by default), `--repeat` times each,
+keeps every result in `bench-results.json` and the tables in `bench-results.md`, and prints one line
+per benchmark: its verdict, and with repeats the median and spread of its headline figures.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import json
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from dynqos.bench.report import provenance
+from dynqos.common.errors import DynqosError
+
+Headline = Callable[[dict[str, Any]], dict[str, float | None]]
+
+
+def _cvxpy_speedup(result: dict[str, Any], horizon: int) -> float | None:
+    cv = result["cvxpy"].get(str(horizon))
+    step = next(s for s in result["steps"] if s["horizon"] == horizon)
+    return cv["median_ms"] / step["step"]["median_ms"] if cv else None
+
+
+def _get(value: dict[str, Any] | None, key: str) -> float | None:
+    return None if value is None else value[key]
+
+
+# name -> the figures that summarise it (the ones docs/benchmarks.md quotes with their spread)
+HEADLINES: dict[str, Headline] = {
+    "supervisor_step": lambda r: {"step_median_us": r["step"]["median_us"]},
+    "mpc_step": lambda r: {
+        "ratio_to_osqp_n20": r["steps"][0]["ratio_median"],
+        "ratio_to_osqp_n40": r["steps"][1]["ratio_median"],
+        "step_median_ms_n20": r["steps"][0]["step"]["median_ms"],
+        "cvxpy_speedup_n20": _cvxpy_speedup(r, 20),
+        "drones_in_process": r["fleet"]["max_drones_at_20hz"],
+    },
+    "control_loop": lambda r: {
+        "ours_p50_ms": r["ours"]["p50_ms"],
+        "bare_p50_ms": r["bare_zenoh"]["p50_ms"],
+        "mpc_p50_ms": r["mpc_in_process"]["p50_ms"],
+        "ratio_p50": r["ratio_p50"],
+    },
+    "fleet_zenoh": lambda r: {
+        "drones_one_process": r["one_process"]["max_drones_at_20hz"],
+        "drones_two_processes": r["two_processes"]["max_drones_at_20hz"],
+    },
+    "onboard_camera": lambda r: {"encode_publish_core_share": r["encode_publish_core_share_at_30fps"]},
+    "vehicle_sim": lambda r: {
+        "lockstep_speed": r["lockstep"]["sim_s_per_wall_s"],
+        "render_fps": r["camera"]["render"]["fps"],
+    },
+    "cell_forward": lambda r: {"emulator_core_share": r["emulator"]["cpu_share_of_one_core"]},
+    "supervisor_reaction": lambda r: {
+        "switch_median_s": _get(r["switch_s"], "median"),
+        "recovery_median_s": _get(r["recovery_s"], "median"),
+    },
+}
+NAMES = tuple(HEADLINES)
+
+
+def spread(values: list[float | None]) -> dict[str, float | None]:
+    present = [v for v in values if v is not None]
+    if not present:
+        return {"median": None, "min": None, "max": None}
+    return {"median": statistics.median(present), "min": min(present), "max": max(present)}
+
+
+def run_suite(names: list[str], *, smoke: bool, repeat: int, out: Path) -> dict[str, Any]:
+    unknown = [n for n in names if n not in HEADLINES]
+    if unknown:
+        raise DynqosError(f"unknown benchmark {', '.join(unknown)}; choose from {', '.join(NAMES)}")
+    if not 1 <= repeat <= 20:
+        raise DynqosError(f"--repeat must be in 1..20, got {repeat}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DynqosError(f"cannot create {out}: {exc.strerror}") from None
+    chosen = names or list(NAMES)
+    suite: dict[str, Any] = {"suite": "dynqos bench", **provenance(), "smoke": smoke, "repeat": repeat}
+    suite["benchmarks"] = {}
+    tables = [f"# dynqos bench ({suite['date']}, {suite['machine']}{', smoke' if smoke else ''})", ""]
+    started = time.monotonic()
+    for name in chosen:
+        module = importlib.import_module(f"dynqos.bench.{name}")
+        runs, seconds = [], []
+        for index in range(repeat):
+            json_path = out / f"{name}.{index}.json"
+            log_path = out / f"{name}.{index}.log"
+            t0 = time.monotonic()
+            with log_path.open("w") as log, contextlib.redirect_stdout(log):
+                module.main([*(["--quick"] if smoke else []), "--out", str(json_path)])
+            seconds.append(time.monotonic() - t0)
+            runs.append(json.loads(json_path.read_text()))
+            json_path.unlink()
+        figures = [HEADLINES[name](r) for r in runs]
+        headline = {key: spread([f[key] for f in figures]) for key in figures[0]}
+        suite["benchmarks"][name] = {"seconds": seconds, "headline": headline, "runs": runs}
+        verdict = runs[-1]["verdict"]
+        print(f"{name}: {verdict} [{sum(seconds):.0f} s]", flush=True)
+        if repeat > 1:
+            print("  " + "; ".join(f"{k} {_fmt(v)}" for k, v in headline.items()), flush=True)
+        tables += [f"## {name}", "", (out / f"{name}.{repeat - 1}.log").read_text().split("\n}\n", 1)[-1], ""]
+    suite["seconds"] = time.monotonic() - started
+    (out / "bench-results.json").write_text(json.dumps(suite, indent=2) + "\n")
+    (out / "bench-results.md").write_text("\n".join(tables) + "\n")
+    print(f"wrote {out / 'bench-results.json'} and bench-results.md in {suite['seconds']:.0f} s")
+    return suite
+
+
+def _fmt(value: dict[str, float | None]) -> str:
+    if value["median"] is None:
+        return "-"
+    return f"{value['median']:.3g} ({value['min']:.3g}..{value['max']:.3g})"

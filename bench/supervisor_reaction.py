@@ -1,0 +1,141 @@
+"""Benchmark: how fast the supervisor reacts to a loaded cell, over several seeds.
+
+Runs the demo's `bg-dynqos` scenario (every process real, the cell emulator in between) once per seed
+and measures, from the background onset: the time to the first switch to the priority flow, and the
+time until the drone's C&C RTT is back within 1.2x its baseline mean (the first 1 s window after the
+onset whose mean RTT is within the bound). Target: switch under 1 s, recovery under 2 s.
+One supervisor step is measured by `supervisor_step`.
+
+Run: dynqos bench supervisor_reaction (suite settings), or with its own options:
+  python -m dynqos.bench.supervisor_reaction [--seeds 3] [--duration 20] [--quick] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import statistics
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from dynqos.bench.report import bench_parser, emit, judged, provenance
+from dynqos.demo import builtin_scenario, run_scenario
+
+WINDOW_S = 1.0
+BOUND = 1.2
+
+
+def recovery_s(rtts: list[tuple[float, float]], bg_start_s: float, baseline_mean: float) -> float | None:
+    """Seconds after `bg_start_s` at which a WINDOW_S window's mean RTT is first within BOUND x baseline.
+
+    `rtts` are (t_s, rtt_ms) in time order. None if it never is before the run ends."""
+    after = [(t, r) for t, r in rtts if t >= bg_start_s]
+    for i, (t, _) in enumerate(after):
+        window = [r for u, r in after[i:] if u < t + WINDOW_S]
+        if after[-1][0] < t + WINDOW_S:
+            return None  # not a full window left
+        if statistics.fmean(window) <= BOUND * baseline_mean:
+            return t - bg_start_s
+    return None
+
+
+def one_run(seed: int, duration_s: float, out: Path) -> dict[str, Any]:
+    base = builtin_scenario("bg-dynqos")
+    bg_start_s = base.settle_s + (duration_s - base.settle_s) / 2  # a baseline after settling, then load
+    scenario = replace(base, seed=seed, duration_s=duration_s, bg_start_s=bg_start_s)
+    summary = run_scenario(scenario, out / f"seed{seed}", progress=False)
+    folder = out / f"seed{seed}" / scenario.name
+    with (folder / "supervisor.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    rtts = [(float(row["t_s"]), float(row["rtt_ms"])) for row in rows if row["rtt_ms"] not in ("", "None")]
+    baseline = summary["rtt_ms"]["baseline"]
+    mean = baseline["mean"] if baseline else None
+    return {
+        "seed": seed,
+        "ok": summary["ok"],
+        "baseline_rtt_mean_ms": mean,
+        "loaded_rtt_mean_ms": summary["rtt_ms"]["loaded"]["mean"] if summary["rtt_ms"]["loaded"] else None,
+        "switch_s": summary["first_qos_switch_after_bg_s"],
+        "recovery_s": recovery_s(rtts, summary["bg_start_s"], mean)
+        if mean and summary["bg_start_s"]
+        else None,
+    }
+
+
+def run(seeds: int, duration_s: float) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory(prefix="dynqos-bench-") as tmp:
+        runs = [one_run(seed, duration_s, Path(tmp)) for seed in range(1, seeds + 1)]
+    switches = [r["switch_s"] for r in runs if r["switch_s"] is not None]
+    recoveries = [r["recovery_s"] for r in runs if r["recovery_s"] is not None]
+    return {
+        "benchmark": "supervisor_reaction",
+        **provenance(),
+        "duration_s": duration_s,
+        "runs": runs,
+        "switch_s": _spread(switches),
+        "recovery_s": _spread(recoveries),
+        "switched_runs": len(switches),
+        "recovered_runs": len(recoveries),
+    }
+
+
+def _spread(values: list[float]) -> dict[str, float] | None:
+    if not values:
+        return None
+    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
+
+
+def verdict(result: dict[str, Any]) -> str:
+    runs = len(result["runs"])
+    switch, recovery = result["switch_s"], result["recovery_s"]
+    met = (
+        switch is not None and result["switched_runs"] == runs and switch["max"] < 1.0
+        and recovery is not None and result["recovered_runs"] == runs and recovery["max"] < 2.0
+    )  # fmt: skip
+    switch_text = f"switch max {switch['max']:.2f} s" if switch else "no switch"
+    recovery_text = f"recovery max {recovery['max']:.2f} s" if recovery else "no recovery"
+    return judged(
+        met,
+        f"{switch_text} ({result['switched_runs']}/{runs} runs), {recovery_text} "
+        f"({result['recovered_runs']}/{runs} runs) (targets: switch < 1 s, RTT within 1.2x baseline < 2 s)",
+    )
+
+
+def markdown(result: dict[str, Any]) -> str:
+    def fmt(value: float | None, unit: str = "") -> str:
+        return "-" if value is None else f"{value:.2f}{unit}"
+
+    rows = [
+        "| seed | baseline RTT mean (ms) | loaded RTT mean (ms) | switch after onset (s) "
+        "| RTT within 1.2x (s) |",
+        "|---|---|---|---|---|",
+    ]
+    rows += [
+        f"| {r['seed']} | {fmt(r['baseline_rtt_mean_ms'])} | {fmt(r['loaded_rtt_mean_ms'])} | "
+        f"{fmt(r['switch_s'])} | {fmt(r['recovery_s'])} |"
+        for r in result["runs"]
+    ]
+    return (
+        "\n".join(rows)
+        + "\n\n"
+        + json.dumps({"switch_s": result["switch_s"], "recovery_s": result["recovery_s"]})
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = bench_parser(__doc__)
+    parser.add_argument("--seeds", type=int, default=3, help="runs, seeds 1..N (default 3)")
+    parser.add_argument("--duration", type=float, default=20.0, help="recorded flight per run (default 20 s)")
+    parser.add_argument("--quick", action="store_true", help="smoke mode: one 10 s run")
+    args = parser.parse_args(argv)
+    if not 1 <= args.seeds <= 20 or not 10 <= args.duration <= 600:
+        parser.error("--seeds must be in 1..20 and --duration in 10..600 s")
+    result = run(1, 10.0) if args.quick else run(args.seeds, args.duration)
+    return emit(result, markdown(result), args.out, verdict(result))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
