@@ -197,7 +197,7 @@ class BackgroundConfig:
         _require(0 <= self.offered_mbps <= 1e5, "offered_mbps", "must be in 0..100000")
 
 
-CELL_EVENT_KINDS = ("background", "capacity", "trace", "coverage_loss", "weight")
+CELL_EVENT_KINDS = ("background", "capacity", "trace", "coverage_loss", "downlink_loss", "weight")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -205,14 +205,14 @@ class CellEventConfig:
     """A timeline event; which fields it needs depends on `kind` (see docs/cell.md)."""
 
     at_s: float
-    kind: Literal["background", "capacity", "trace", "coverage_loss", "weight"]
+    kind: Literal["background", "capacity", "trace", "coverage_loss", "downlink_loss", "weight"]
     user: str = ""  # background: which background user
     bearer: str = ""  # weight: which bearer; coverage_loss with drop_connections: "" = all
     offered_mbps: float = -1.0  # background
     uplink_mbps: float = -1.0  # capacity
     file: str = ""  # trace: a Mahimahi uplink trace; "" ends trace-driven capacity
     mean_mbps: float = 0.0  # trace: rescale to this mean (0: as recorded)
-    duration_s: float = 0.0  # coverage_loss
+    duration_s: float = 0.0  # coverage_loss, downlink_loss
     drop_connections: bool = False  # coverage_loss: also reset the TCP connections
     weight: float = 0.0  # weight
 
@@ -225,8 +225,8 @@ class CellEventConfig:
             )
         elif self.kind == "capacity":
             _require(0 <= self.uplink_mbps <= 1e5, "uplink_mbps", "a capacity event needs uplink_mbps >= 0")
-        elif self.kind == "coverage_loss":
-            _require(0 < self.duration_s <= 3600, "duration_s", "a coverage_loss event needs duration_s > 0")
+        elif self.kind in ("coverage_loss", "downlink_loss"):
+            _require(0 < self.duration_s <= 3600, "duration_s", f"a {self.kind} event needs duration_s > 0")
         elif self.kind == "weight":
             _require(bool(self.bearer), "bearer", "a weight event names its bearer")
             _require(0 < self.weight <= 1000, "weight", "a weight event needs a weight in (0, 1000]")

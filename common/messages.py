@@ -257,6 +257,7 @@ class SupervisorStatus(Message):
         "changed_ns": f.integer(),
         "rtt_ms": f.optional(_latency_ms),
         "camera_latency_ms": f.optional(_latency_ms),
+        "setpoint_gap_ms": f.optional(_latency_ms),
     }
 
     stamp_ns: int
@@ -279,6 +280,7 @@ class SupervisorStatus(Message):
     changed_ns: int
     rtt_ms: float | None = None  # the latest C&C RTT sample, for plots
     camera_latency_ms: float | None = None  # the latest camera latency sample
+    setpoint_gap_ms: float | None = None  # longest pause between setpoints to the FC since the last status
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

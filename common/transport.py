@@ -274,9 +274,13 @@ class Bus:
         key_expr: str,
         queue: BoundedQueue[Received],
         *,
+        expect: tuple[type[Message], ...] = (),
         decoder: Callable[[bytes], Message] = decode,
     ) -> SubscriptionStats:
-        """Decode every sample on key_expr into `queue`; bad payloads are counted, never raised."""
+        """Decode every sample on key_expr into `queue`; bad payloads are counted, never raised.
+
+        With `expect`, a well-formed message of another type is rejected too, and so is one whose
+        drone id differs from the one in its key (a drone speaking for another)."""
         stats = SubscriptionStats()
         clock = self._clock
 
@@ -285,6 +289,10 @@ class Bus:
             key = str(sample.key_expr)
             try:
                 message = decoder(sample.payload.to_bytes())
+                if expect and not isinstance(message, expect):
+                    raise DecodeError("t", f"a {message.TYPE} is not expected here")
+                if expect and key.split("/", 2)[1] != message.uav:
+                    raise DecodeError("uav", f"drone {message.uav!r} on another drone's key")
             except DecodeError as exc:
                 stats.rejected += 1
                 stats.last_error = str(exc)

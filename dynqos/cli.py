@@ -251,7 +251,7 @@ def _cmd_demo(args: argparse.Namespace, config: Config) -> int:
         raise DynqosError(f"--scale must be in 0.01..1000, got {args.scale}")
     out = Path(args.out) if args.out else default_out_dir()
     scenarios = [load_scenario(args.scenario_file)] if getattr(args, "scenario_file", None) else None
-    names = args.scenario or list(DEFAULT_SCENARIOS)
+    names = getattr(args, "scenario", None) or list(DEFAULT_SCENARIOS)
     result = run_demo(
         names, out, duration_s=args.duration, scale=args.scale, seed=args.seed, scenarios=scenarios
     )

@@ -34,6 +34,7 @@ from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import Reference, State, SupervisorStatus
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Received, Role, open_bus
+from dynqos.faults import Fault, FaultInjector, FaultWindow
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -62,6 +63,8 @@ class Scenario:
     wind_mps: float = 0.5  # a steady breeze from the north...
     gust_std_mps: float = 0.5  # ...with gusts, so that control delay shows in the tracking
     base_delay_ms: float = 5.0  # one way: with processing and camera head-of-line ~15 ms C&C RTT, below rho2
+    faults: tuple[Fault, ...] = ()  # injected during the flight (dynqos/faults.py, docs/reliability.md)
+    memory_sample_s: float = 5.0  # how often each process's resident memory is recorded
 
     def __post_init__(self) -> None:
         if not 5 <= self.duration_s <= 3600:
@@ -72,6 +75,11 @@ class Scenario:
             raise ConfigError("bg_mbps", "rates must be in 0..100000 Mbit/s")
         if not 0.01 <= self.scale <= 1000:
             raise ConfigError("scale", "must be in 0.01..1000")
+        for i, fault in enumerate(self.faults):
+            if fault.at_s + fault.duration_s > self.duration_s:
+                raise ConfigError(f"faults[{i}].at_s", "the fault must end before the run does")
+        if not 0.5 <= self.memory_sample_s <= 600:
+            raise ConfigError("memory_sample_s", "must be in 0.5..600 s")
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -150,13 +158,16 @@ class Processes:
         self.logs = logs
         self.procs: dict[str, subprocess.Popen[str]] = {}
         self.info: dict[str, dict[str, Any]] = {}
+        self.started: dict[str, tuple[list[str], list[str] | None]] = {}
+        self.down: set[str] = set()  # killed on purpose (a fault), not a failure
         self.exe = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
 
     def start(
         self, name: str, args: list[str], timeout_s: float = 30.0, program: list[str] | None = None
     ) -> dict[str, Any]:
         """Start `dynqos ARGS --config FILE` (or `PROGRAM ARGS --config FILE`), wait for its ready line."""
-        err = (self.logs / f"{name}.log").open("w")
+        err = (self.logs / f"{name}.log").open("a" if name in self.started else "w")  # a restart appends
+        self.started[name] = (args, program)
         proc = subprocess.Popen(
             [*(program or [self.exe]), *args, "--config", str(self.config)],
             stdout=subprocess.PIPE,
@@ -182,13 +193,37 @@ class Processes:
         return " | ".join(text[-lines:]) or "(no output)"
 
     def dead(self) -> list[str]:
-        return [name for name, proc in self.procs.items() if proc.poll() is not None]
+        """Processes that exited, except those a fault stopped on purpose."""
+        return [
+            name for name, proc in self.procs.items() if proc.poll() is not None and name not in self.down
+        ]
+
+    def kill(self, name: str) -> None:
+        """SIGKILL our own child by its pid (a crash, as far as everyone else can tell)."""
+        self.down.add(name)
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=10)
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+    def restart(self, name: str) -> None:
+        args, program = self.started[name]
+        self.start(name, args, program=program)
+        self.down.discard(name)
+
+    def signal(self, name: str, signum: int) -> None:
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.send_signal(signum)
 
     def stop_all(self) -> dict[str, int | None]:
         codes: dict[str, int | None] = {}
         for name in reversed(list(self.procs)):
             proc = self.procs[name]
             if proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)  # in case a fault paused it
                 proc.send_signal(signal.SIGTERM)
             try:
                 proc.wait(timeout=15)
@@ -213,6 +248,18 @@ class Recording:
     cell: list[dict[str, Any]] = field(default_factory=list)
     bg_on_ns: int | None = None
     offload_ns: int | None = None
+    faults: list[FaultWindow] = field(default_factory=list)
+    memory_kb: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # name -> (t_s, RSS kB)
+
+
+def _rss_kb(pid: int) -> int | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except (OSError, ValueError):
+        return None
+    return None
 
 
 def _get_json(port: int, path: str) -> dict[str, Any]:
@@ -307,9 +354,9 @@ camera_height = {height}
             states: BoundedQueue[Received] = BoundedQueue(200_000)
             refs: BoundedQueue[Received] = BoundedQueue(200_000)
             status: BoundedQueue[Received] = BoundedQueue(200_000)
-            bus.subscribe(keys.uplink_any_flow("uav1", Stream.STATE), states)
-            bus.subscribe(keys.downlink("uav1", Downlink.REFERENCE), refs)
-            bus.subscribe(keys.uplink_any_flow("uav1", Stream.STATUS), status)
+            bus.subscribe(keys.uplink_any_flow("uav1", Stream.STATE), states, expect=(State,))
+            bus.subscribe(keys.downlink("uav1", Downlink.REFERENCE), refs, expect=(Reference,))
+            bus.subscribe(keys.uplink_any_flow("uav1", Stream.STATUS), status, expect=(SupervisorStatus,))
             procs.start("onboard", ["onboard", "--takeoff"])
             deadline = time.monotonic() + 60
             while rec.offload_ns is None and time.monotonic() < deadline and not stop.is_set():
@@ -319,28 +366,34 @@ camera_height = {height}
             if rec.offload_ns is None:
                 raise DynqosError(f"the drone never started offloading: {procs.tail('onboard')}")
             rec.t0_ns = rec.offload_ns
-            next_poll = time.monotonic()
+            next_poll = next_memory = time.monotonic()
             end = time.monotonic() + scenario.duration_s
-            while time.monotonic() < end and not stop.is_set():
-                elapsed = scenario.duration_s - (end - time.monotonic())
-                if scenario.bg_start_s >= 0 and rec.bg_on_ns is None and elapsed >= scenario.bg_start_s:
-                    _post_json(
-                        cell_port,
-                        "/events",
-                        {"kind": "background", "user": "bg", "offered_mbps": scenario.bg_mbps},
-                    )
-                    rec.bg_on_ns = time.monotonic_ns()
-                if time.monotonic() >= next_poll:
-                    next_poll += 0.5
-                    counters = _get_json(cell_port, "/counters")
-                    counters["now_ns"] = time.monotonic_ns()
-                    rec.cell.append(counters)
-                dead = procs.dead()
-                if dead:
-                    raise DynqosError(f"{dead[0]} exited during the run: {procs.tail(dead[0])}")
-                if progress:
-                    _progress(scenario, elapsed, rec)
-                stop.wait(0.1)  # the recorder's sampling period
+            injector = FaultInjector(procs, lambda event: _post_json(cell_port, "/events", event), bus)
+            pending = sorted(scenario.faults, key=lambda fault: fault.at_s)
+            active: list[FaultWindow] = []
+            try:
+                while time.monotonic() < end and not stop.is_set():
+                    elapsed = scenario.duration_s - (end - time.monotonic())
+                    while pending and elapsed >= pending[0].at_s:
+                        active.append(injector.begin(pending.pop(0)))
+                    for window in [w for w in active if elapsed >= w.fault.at_s + w.fault.duration_s]:
+                        injector.end(window)
+                        active.remove(window)
+                    if time.monotonic() >= next_memory:
+                        next_memory += scenario.memory_sample_s
+                        for name, proc in procs.procs.items():
+                            if (rss := _rss_kb(proc.pid)) is not None and name not in procs.down:
+                                rec.memory_kb.setdefault(name, []).append((elapsed, rss))
+                    _record_tick(scenario, rec, procs, cell_port, elapsed, progress)
+                    if time.monotonic() >= next_poll:
+                        next_poll += 0.5
+                        counters = _get_json(cell_port, "/counters")
+                        counters["now_ns"] = time.monotonic_ns()
+                        rec.cell.append(counters)
+                    stop.wait(0.1)  # the recorder's sampling period
+            finally:
+                injector.close()
+                rec.faults = injector.windows
             for item in states.drain():
                 if isinstance(item.message, State):
                     rec.states.append(((item.arrival_ns - item.message.stamp_ns) / 1e6, item.message))
@@ -366,6 +419,22 @@ camera_height = {height}
     summary = summarise(scenario, rec, onboard_log, ok=ok, failure=failure)
     write_scenario(folder, scenario, rec, summary)
     return summary
+
+
+def _record_tick(
+    scenario: Scenario, rec: Recording, procs: Processes, cell_port: int, elapsed: float, progress: bool
+) -> None:
+    """The recorder's duties each tick: start the background load, fail on a dead process."""
+    if scenario.bg_start_s >= 0 and rec.bg_on_ns is None and elapsed >= scenario.bg_start_s:
+        _post_json(
+            cell_port, "/events", {"kind": "background", "user": "bg", "offered_mbps": scenario.bg_mbps}
+        )
+        rec.bg_on_ns = time.monotonic_ns()
+    dead = procs.dead()
+    if dead:
+        raise DynqosError(f"{dead[0]} exited during the run: {procs.tail(dead[0])}")
+    if progress:
+        _progress(scenario, elapsed, rec)
 
 
 def _progress(scenario: Scenario, elapsed: float, rec: Recording) -> None:

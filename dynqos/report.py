@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from dynqos.common.messages import STATES, Reference, State
+from dynqos.faults import log_times, outcome
 
 if TYPE_CHECKING:
     from dynqos.demo import Recording, Scenario
@@ -186,6 +187,19 @@ def summarise(
         "fallback_entered": bool(switches and switches[-1] > 0),
         "setpoint_gap_max_ms": max(gaps) if gaps else None,
         "states_recorded": len(rec.states),
+        "faults": [
+            outcome(w, log_times(onboard_log), statuses, nxt.start_wall if nxt else None)
+            for w, nxt in itertools.zip_longest(rec.faults, rec.faults[1:])
+        ],
+        "memory_mb": {
+            name: {
+                "first": samples[0][1] / 1024,
+                "after_1min": next((kb / 1024 for t, kb in samples if t >= 60), None),
+                "max": max(v for _, v in samples) / 1024,
+                "last": samples[-1][1] / 1024,
+            }
+            for name, samples in rec.memory_kb.items()
+        },
         "ok": ok,
         "failure": failure,
     }

@@ -31,8 +31,12 @@ class DetectorService:
         self.bus = bus
         self.clock = clock or MonotonicClock()
         self.acks: BoundedQueue[Received] = BoundedQueue(4096)
-        self.rgb_stats = bus.subscribe(keys.uplink_all_drones(Stream.CAMERA_RGB), self.acks)
-        self.depth_stats = bus.subscribe(keys.uplink_all_drones(Stream.CAMERA_DEPTH), self.acks)
+        self.rgb_stats = bus.subscribe(
+            keys.uplink_all_drones(Stream.CAMERA_RGB), self.acks, expect=(CameraFrame,)
+        )
+        self.depth_stats = bus.subscribe(
+            keys.uplink_all_drones(Stream.CAMERA_DEPTH), self.acks, expect=(CameraFrame,)
+        )
         self._latest: dict[tuple[str, str], Received] = {}
         self._latest_lock = threading.Condition()
         self._ack_pubs: dict[str, Publisher] = {}

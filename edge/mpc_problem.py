@@ -81,6 +81,13 @@ class MpcProblem:
         self._u = np.concatenate([np.zeros((n + 1) * NX), self._u_ineq])
         self._qvec = np.zeros(self.n_var)
         self._a_max = np.array(s.a_max_mps2)
+        # Velocity bounds as a funnel: a drone that is already faster than v_max (after a gust, or when
+        # control returns from the fallback) must be allowed to brake, or the QP is infeasible and no
+        # command goes out. Bound at step k: max(v_max, |v0| - 0.9 a_max k dt), per axis.
+        self._v_max = np.array(s.v_max_mps)
+        self._braking = 0.9 * self._a_max * s.dt_s * np.arange(n + 1)[:, None]
+        rows = (n + 1) * NX + np.arange(n + 1)[:, None] * NX + 3 + np.arange(3)[None, :]
+        self._v_rows = rows.ravel()
         self.solver = osqp.OSQP()
         self.solver.setup(
             p, self._qvec, self.a, self._l, self._u,
@@ -100,6 +107,9 @@ class MpcProblem:
         q[n * NX : (n + 1) * NX] = -(self._qn @ reference[n])
         self._l[:NX] = -x0
         self._u[:NX] = -x0
+        bound = np.maximum(np.abs(x0[3:]) - self._braking, self._v_max).ravel()
+        self._u[self._v_rows] = bound
+        self._l[self._v_rows] = -bound
         return q, self._l, self._u
 
     def solve(self, x0: Array, reference: Array) -> Array:

@@ -66,8 +66,10 @@ class MpcService:
         self.publishers: dict[str, Publisher] = {}
         self.queue: BoundedQueue[Received] = BoundedQueue(4096)
         self.counters = MpcCounters()
-        self.state_stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue)
-        self.ref_stats = bus.subscribe(keys.downlink_all_drones(Downlink.REFERENCE), self.queue)
+        self.state_stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,))
+        self.ref_stats = bus.subscribe(
+            keys.downlink_all_drones(Downlink.REFERENCE), self.queue, expect=(Reference,)
+        )
         self.service = Service("mpc", config.mpc.health_interval_s)
 
     def _mine(self, uav: str) -> bool:

@@ -39,7 +39,7 @@ class PlannerService:
         self.clock = clock or MonotonicClock()
         self.dt_s = config.control.t_mpc_s
         self.queue: BoundedQueue[Received] = BoundedQueue(1024)
-        self.stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue)
+        self.stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,))
         self.started_ns: dict[str, int] = {}
         self.publishers: dict[str, Publisher] = {}
         self.seq = 0

@@ -145,6 +145,7 @@ class OnboardDaemon:
             "detections": 0,
         }
         self.max_setpoint_gap_ms = 0.0
+        self.status_gap_ms = 0.0  # the longest setpoint gap since the last status
         self.reference = ReferenceTrack()
         self.notifier = SystemdNotifier()
         self.link: FcLink | None = None
@@ -179,14 +180,18 @@ class OnboardDaemon:
         self.depth_pubs = self._pair(Stream.CAMERA_DEPTH, Priority.DATA, Priority.INTERACTIVE_LOW, drop=True)
         self.status_pubs = self._pair(Stream.STATUS, Priority.DATA_LOW, Priority.INTERACTIVE_LOW, drop=True)
         self.commands: BoundedQueue[Received] = BoundedQueue(256)
-        self.command_stats = bus.subscribe(keys.downlink(self.uav, Downlink.COMMAND), self.commands)
+        down = {kind: keys.downlink(self.uav, kind) for kind in Downlink}
+        self.command_stats = bus.subscribe(down[Downlink.COMMAND], self.commands, expect=(Command,))
         self.acks: BoundedQueue[Received] = BoundedQueue(512)
-        self.ack_stats = bus.subscribe(keys.downlink(self.uav, Downlink.CAMERA_ACK), self.acks)
-        self.ack_stats_det = bus.subscribe(keys.downlink(self.uav, Downlink.DETECTIONS), self.acks)
+        self.ack_stats = bus.subscribe(down[Downlink.CAMERA_ACK], self.acks, expect=(CameraAck,))
+        self.ack_stats_det = bus.subscribe(down[Downlink.DETECTIONS], self.acks, expect=(Detections,))
+        self.downlink_stats = [self.command_stats, self.ack_stats, self.ack_stats_det]
         if (
             self.cfg.fallback == "continue"
         ):  # the onboard planner continues the mission from the last reference
-            bus.subscribe(keys.downlink(self.uav, Downlink.REFERENCE), self.acks)
+            self.downlink_stats.append(
+                bus.subscribe(down[Downlink.REFERENCE], self.acks, expect=(Reference,))
+            )
         self.camera = self._camera()
         log.info("onboard %s: flows %s", self.uav, self._endpoints())
 
@@ -324,6 +329,8 @@ class OnboardDaemon:
             self.decision, uav=self.uav, seq=self.status_seq, stamp_ns=now, last=last,
             rtt_ms=self.tracker.last_rtt_ms, camera_latency_ms=self.camera_monitor.last_ms,
         )  # fmt: skip
+        status = replace(status, setpoint_gap_ms=self.status_gap_ms if self.offloading else None)
+        self.status_gap_ms = 0.0
         if self.cfg.qos != "dynamic":  # report what the drone does, not what the supervisor would do
             status = replace(status, flow=self.flow, camera_rate_factor=self.rate.factor,
                              control_source=self.control_source)  # fmt: skip
@@ -439,9 +446,9 @@ class OnboardDaemon:
                 self._control(state, now)
                 if self.counters["setpoints"] > sent_before:
                     if last_setpoint_ns is not None and self.offloading:
-                        self.max_setpoint_gap_ms = max(
-                            self.max_setpoint_gap_ms, (now - last_setpoint_ns) / 1e6
-                        )
+                        gap_ms = (now - last_setpoint_ns) / 1e6
+                        self.status_gap_ms = max(self.status_gap_ms, gap_ms)
+                        self.max_setpoint_gap_ms = max(self.max_setpoint_gap_ms, gap_ms)
                     last_setpoint_ns = now
             if now >= next_status:
                 next_status = now + round(1e9 / self.cfg.status_hz)
@@ -485,6 +492,7 @@ class OnboardDaemon:
             f"rtt_ms={self.tracker.rtt_estimate_ms():.1f} commands_ok={t.accepted} "
             f"rejected={t.rejected + self.command_stats.rejected} (stale={t.stale} unknown={t.unknown_state} "
             f"expired={t.expired} future={t.future} wrong_drone={t.wrong_drone}) "
+            f"bad_downlink={sum(s.rejected for s in self.downlink_stats)} "
             + " ".join(f"{k}={v}" for k, v in self.counters.items())
             + f" max_setpoint_gap_ms={self.max_setpoint_gap_ms:.1f} fc_setpoints={fc_setpoints}"
         )

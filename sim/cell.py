@@ -179,6 +179,8 @@ class Bearer:
             if not conn.closed and conn.edge is not None:
                 conn.edge.write(data)
                 self._count("delivered_bytes", len(data))
+        if now_ns < self.emulator.downlink_lost_until_ns:
+            return  # no downlink radio: the edge's bytes wait in the cell (TCP backs the edge off)
         for conn, data in self.down_line.pop_due(now_ns):
             if not conn.closed and conn.drone is not None:
                 conn.drone.write(data)
@@ -233,6 +235,7 @@ class CellEmulator:
         self.trace: Trace | None = None
         self.trace_start_ns = 0
         self.coverage_lost_until_ns = 0
+        self.downlink_lost_until_ns = 0
         self.start_ns = _now_ns()
         self._last_tick_ns = self.start_ns
         self._next_record_ns = self.start_ns + round(cell.record_interval_s * 1e9)
@@ -401,10 +404,13 @@ class CellEmulator:
             self._set_trace(event.file, event.mean_mbps, "file")
         elif event.kind == "coverage_loss":
             self.coverage_lost_until_ns = now + round(event.duration_s * 1e9)
+            self.downlink_lost_until_ns = self.coverage_lost_until_ns
             if event.drop_connections:
                 for bearer in self.bearers:
                     if not event.bearer or bearer.name == event.bearer:
                         bearer.drop_connections()
+        elif event.kind == "downlink_loss":
+            self.downlink_lost_until_ns = now + round(event.duration_s * 1e9)
         elif event.kind == "weight":
             target = next((b for b in self.bearers if b.name == event.bearer), None)
             if target is None:
@@ -510,6 +516,7 @@ def _describe(event: CellEventConfig) -> str:
         "trace": f"trace {event.file or '(off)'}",
         "coverage_loss": f"coverage lost for {event.duration_s:g} s"
         + (" (connections dropped)" if event.drop_connections else ""),
+        "downlink_loss": f"downlink lost for {event.duration_s:g} s (uplink unaffected)",
         "weight": f"bearer {event.bearer} weight {event.weight:g}",
     }
     return fields[event.kind]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import threading
 import time
@@ -133,6 +134,51 @@ def test_coverage_loss_stops_delivery_and_resumes(tmp_path: Path) -> None:
         sink.close()
     assert during == 0.0
     assert after > 1.0  # the backlog drains after coverage returns
+
+
+def test_downlink_loss_holds_the_downlink_and_keeps_the_uplink(tmp_path: Path) -> None:
+    """One byte each 50 ms through the cell to an echo server: during a 1 s downlink loss the echo
+    server keeps receiving (uplink), while the drone gets its echoes only after the loss."""
+    import socket
+
+    server = socket.create_server(("127.0.0.1", 0))
+    received_at: list[float] = []
+
+    def echo() -> None:
+        conn, _ = server.accept()
+        with conn:
+            while data := conn.recv(4096):
+                received_at.append(time.monotonic())
+                conn.sendall(data)
+
+    thread = threading.Thread(target=echo, daemon=True)
+    thread.start()
+    echoed_at: list[float] = []
+    try:
+        toml = cell_toml(server.getsockname()[1], weight=1.0, scale=1.0, bg_mbps=0.0)
+        with CellProcess(tmp_path, toml) as cell:
+            drone = socket.create_connection(("127.0.0.1", cell.port("drone")), timeout=10)
+            with drone:
+                drone.settimeout(0.01)
+                start = time.monotonic()
+                lost_at = None
+                while (now := time.monotonic()) - start < 3.0:  # bounded: 3 s, 60 bytes
+                    if lost_at is None and now - start >= 0.5:
+                        assert cell.post_event({"kind": "downlink_loss", "duration_s": 1.0})[0] == 200
+                        lost_at = time.monotonic()
+                    drone.sendall(b"x")
+                    with contextlib.suppress(TimeoutError):
+                        echoed_at += [time.monotonic()] * len(drone.recv(4096))
+                    time.sleep(0.04)  # pacing the probe bytes, not synchronisation
+    finally:
+        server.close()
+        thread.join(timeout=5)
+    assert lost_at is not None
+    uplink_during = [t for t in received_at if lost_at + 0.1 < t < lost_at + 0.9]
+    downlink_during = [t for t in echoed_at if lost_at + 0.1 < t < lost_at + 0.9]
+    assert len(uplink_during) >= 10  # the uplink went on
+    assert downlink_during == []  # nothing came down
+    assert len(echoed_at) >= len(received_at) - 3  # and everything held came down afterwards
 
 
 def test_zenoh_flow_links_pass_through_their_two_bearers(tmp_path: Path) -> None:

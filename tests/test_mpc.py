@@ -58,6 +58,21 @@ def test_solution_respects_every_constraint() -> None:
         assert np.all(np.abs(states[1:, 3:]) <= np.array(settings.v_max_mps) + 2e-3)
 
 
+def test_a_drone_faster_than_v_max_gets_a_braking_plan_not_an_infeasible_qp() -> None:
+    """After a gust or the fallback, the measured velocity may exceed v_max: the MPC must still answer
+    (an infeasible QP sends nothing, and the watchdog would take over again and again)."""
+    settings = MpcSettings()
+    problem = MpcProblem(settings)
+    v_max = np.array(settings.v_max_mps)
+    x0 = np.array([0.0, 0.0, -1.5, 4.0, -3.5, 2.5])  # over the limit on every axis
+    reference = np.tile([0.0, 0.0, -1.5, 0, 0, 0], (21, 1))
+    inputs = problem.solve(x0, reference)
+    assert inputs[0] @ np.sign(x0[3:]) < 0  # braking on every axis together
+    speeds = np.abs(problem.predict(x0, inputs)[:, 3:])
+    assert np.all(np.diff(np.maximum(speeds - v_max, 0), axis=0) <= 1e-6)  # the excess only shrinks
+    assert np.all(speeds[-1] <= v_max + 1e-3)  # and is gone by the end of the horizon
+
+
 def test_first_input_matches_an_independent_solve_of_the_same_qp() -> None:
     cp = pytest.importorskip("cvxpy")
     settings = MpcSettings(horizon=20, eps=1e-7, max_iter=20_000)

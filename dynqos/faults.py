@@ -1,0 +1,222 @@
+"""Faults a scenario can inject into a loopback flight, and what each did to the drone.
+
+A scenario's `[[scenario.faults]]` list (docs/reliability.md) says when each fault starts and how long
+it lasts. The injector acts only on what the run itself started: processes by their pid (SIGKILL and a
+restart, SIGSTOP/SIGCONT), the cell emulator through its control API, and a flood of camera frames
+from the recorder's own session. The outcome of each fault is read from the drone's status stream
+and the onboard log: how long after its last valid command the fallback took over, the longest pause
+in setpoints to the flight controller, and how long after the fault cleared control was back at the
+edge.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any, Literal
+
+from dynqos.common.errors import ConfigError
+
+log = logging.getLogger(__name__)
+SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zenoh reconnects take seconds)
+
+FaultKind = Literal[
+    "mpc_kill", "router_kill", "coverage_loss", "downlink_loss", "fc_silence", "detector_flood", "background"
+]
+FLOOD_FPS = 100.0  # several times what the detector can process
+FLOOD_MAX_FRAMES = 20_000
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Fault:
+    """One fault: `kind` from `at_s` (seconds into the recorded flight) for `duration_s`."""
+
+    at_s: float
+    kind: FaultKind
+    duration_s: float = 1.0
+    offered_mbps: float = 80.0  # background: the load while it lasts
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.at_s <= 86400:
+            raise ConfigError("at_s", "must be in 0..86400 s")
+        if not 0.05 <= self.duration_s <= 3600:
+            raise ConfigError("duration_s", "must be in 0.05..3600 s")
+        if not 0 <= self.offered_mbps <= 1e5:
+            raise ConfigError("offered_mbps", "must be in 0..100000 Mbit/s")
+
+
+@dataclass
+class FaultWindow:
+    fault: Fault
+    start_wall: float
+    start_ns: int
+    end_wall: float | None = None
+    end_ns: int | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+class Flood:
+    """Camera frames for another drone id at FLOOD_FPS from the recorder's session: bounded in count
+    and time, stopped at the fault's end."""
+
+    def __init__(self, bus: Any, duration_s: float) -> None:
+        import cv2
+        import numpy as np
+
+        from dynqos.common import keys
+        from dynqos.common.keys import Flow, Stream
+        from dynqos.common.transport import Priority
+
+        image = np.zeros((480, 640, 3), np.uint8)  # a frame of realistic size (~30 kB), with circles to find
+        image[:] = np.linspace(40, 200, 640, dtype=np.uint8)[None, :, None]
+        for x in (160, 320, 480):
+            cv2.circle(image, (x, 240), 60, (20, 140, 240), 12)
+        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        assert ok
+        self.jpeg = jpeg.tobytes()
+        self.pub = bus.publisher(keys.uplink("flood", Flow.DEFAULT, Stream.CAMERA_RGB), Priority.DATA)
+        self.stop = threading.Event()
+        self.sent = 0
+        self.deadline = time.monotonic() + duration_s + 1.0
+        self.thread = threading.Thread(target=self._run, name="flood", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        from dynqos.common.messages import CameraFrame
+
+        period = 1 / FLOOD_FPS
+        next_due = time.monotonic()
+        while not self.stop.is_set() and self.sent < FLOOD_MAX_FRAMES and time.monotonic() < self.deadline:
+            self.sent += 1
+            frame = CameraFrame(
+                uav="flood", seq=self.sent, stamp_ns=time.monotonic_ns(), kind="rgb", encoding="jpeg",
+                width=640, height=480, intrinsics=(500.0, 500.0, 320.0, 240.0), payload=self.jpeg,
+            )  # fmt: skip
+            self.pub.put(frame)
+            next_due += period
+            self.stop.wait(max(0.0, next_due - time.monotonic()))  # the flood's rate
+
+    def close(self) -> int:
+        self.stop.set()
+        self.thread.join(timeout=5)
+        self.pub.close()
+        return self.sent
+
+
+class FaultInjector:
+    """Starts and ends faults on a running scenario's processes and cell."""
+
+    def __init__(self, procs: Any, cell_event: Any, bus: Any) -> None:
+        self.procs = procs
+        self.cell_event = cell_event  # callable(dict): POST /events to the cell emulator
+        self.bus = bus
+        self.windows: list[FaultWindow] = []
+        self._floods: dict[int, Flood] = {}
+
+    def begin(self, fault: Fault) -> FaultWindow:
+        window = FaultWindow(fault, time.time(), time.monotonic_ns())
+        kind = fault.kind
+        if kind == "mpc_kill":
+            self.procs.kill("mpc")
+        elif kind == "router_kill":
+            self.procs.kill("router")
+        elif kind in ("coverage_loss", "downlink_loss"):
+            self.cell_event({"kind": kind, "duration_s": fault.duration_s})
+        elif kind == "fc_silence":
+            self.procs.signal("vehicle", signal.SIGSTOP)
+        elif kind == "detector_flood":
+            self._floods[id(window)] = Flood(self.bus, fault.duration_s)
+        elif kind == "background":
+            self.cell_event({"kind": "background", "user": "bg", "offered_mbps": fault.offered_mbps})
+        log.info("fault: %s for %.1f s", kind, fault.duration_s)
+        self.windows.append(window)
+        return window
+
+    def end(self, window: FaultWindow) -> None:
+        kind = window.fault.kind
+        if kind == "mpc_kill":
+            self.procs.restart("mpc")
+        elif kind == "router_kill":
+            self.procs.restart("router")
+        elif kind == "fc_silence":
+            self.procs.signal("vehicle", signal.SIGCONT)
+        elif kind == "detector_flood":
+            flood = self._floods.pop(id(window))
+            window.notes.append(f"{flood.close()} flood frames sent")
+        elif kind == "background":
+            self.cell_event({"kind": "background", "user": "bg", "offered_mbps": 0.0})
+        window.end_wall, window.end_ns = time.time(), time.monotonic_ns()
+        log.info("fault cleared: %s", kind)
+
+    def close(self) -> None:
+        for window in self.windows:
+            if window.end_ns is None:
+                self.end(window)
+
+
+# ---- outcomes ----------------------------------------------------------------------------------------
+
+
+def log_times(text: str) -> list[tuple[float, str]]:
+    """(wall time, message) of each line of a dynqos log (`%(asctime)s LEVEL name: message`)."""
+    out = []
+    for line in text.splitlines():
+        try:
+            stamp = datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+        except ValueError:
+            continue
+        out.append((stamp, line[24:]))
+    return out
+
+
+def outcome(
+    window: FaultWindow,
+    onboard_log: list[tuple[float, str]],
+    status: list[Any],
+    next_start_wall: float | None,
+) -> dict[str, Any]:
+    """What the fault did: fallback, setpoint gaps, recovery, and the log lines that said so. Its
+    window runs from its start to SETTLE_S after it cleared, or to the next fault's start."""
+    fault = window.fault
+    end_wall = window.end_wall if window.end_wall is not None else window.start_wall + fault.duration_s
+    end_ns = window.end_ns if window.end_ns is not None else window.start_ns + round(fault.duration_s * 1e9)
+    until_wall = end_wall + SETTLE_S
+    if next_start_wall is not None:
+        until_wall = min(until_wall, next_start_wall)
+    until_ns = end_ns + round((until_wall - end_wall) * 1e9)
+    lines = [(t, m) for t, m in onboard_log if window.start_wall <= t <= until_wall]
+    fallback = next(
+        ((t, m) for t, m in lines if "fallback PID holding position" in m and t <= end_wall + 1), None
+    )
+    fallback_ms = None
+    if fallback is not None and "last valid command" in fallback[1]:
+        text = fallback[1].split("last valid command", 1)[1].split("ms ago", 1)[0].strip()
+        fallback_ms = float(text) if text.replace(".", "", 1).isdigit() else None
+    back = None
+    if fallback is not None:
+        back = next((t for t, m in lines if "control from the edge" in m and t >= fallback[0]), None)
+    gaps = [
+        s.setpoint_gap_ms
+        for s in status
+        if s.setpoint_gap_ms is not None and window.start_ns <= s.stamp_ns <= until_ns
+    ]
+    notable = [m.split(": ", 1)[-1] for _, m in lines if " WARNING " in f" {m}" or " ERROR " in f" {m}"]
+    notable += [m.split(": ", 1)[-1] for _, m in lines if "control from the edge" in m][:1]
+    return {
+        "kind": fault.kind,
+        "at_s": fault.at_s,
+        "duration_s": fault.duration_s,
+        "fallback": fallback is not None,
+        "fallback_after_last_command_ms": fallback_ms,
+        "fallback_after_fault_s": None if fallback is None else round(fallback[0] - window.start_wall, 3),
+        "max_setpoint_gap_ms": max(gaps) if gaps else None,
+        # None: never left the edge (no fallback), or not back within `settle` (see "recovered")
+        "back_at_edge_after_clear_s": None if back is None else round(max(0.0, back - end_wall), 3),
+        "recovered": fallback is None or back is not None,
+        "log": notable[:4],
+        "notes": window.notes,
+    }
