@@ -193,3 +193,18 @@ def test_serial_urls_carry_their_baud_rate() -> None:
     assert serial_device_and_baud("/dev/ttyTHS1") == ("/dev/ttyTHS1", 921600)
     assert serial_device_and_baud("udpin:127.0.0.1:14540") == ("udpin:127.0.0.1:14540", 921600)
     assert serial_device_and_baud("tcp:host:5760,1") == ("tcp:host:5760,1", 921600)  # not a serial URL
+
+
+def test_nan_and_infinite_setpoints_are_refused_by_the_decoder() -> None:
+    import math
+
+    import msgpack
+
+    from dynqos.common.errors import DecodeError
+    from dynqos.common.messages import decode, encode
+
+    body = msgpack.unpackb(encode(command(1, 1000 * MS)), raw=False)
+    for bad in (math.nan, math.inf, -math.inf):
+        body["accel_mps2"] = [[bad, 0.0, 0.0]]
+        with pytest.raises(DecodeError, match=r"accel_mps2\[0\]"):
+            decode(msgpack.packb(body, use_bin_type=True))
