@@ -30,7 +30,7 @@ from dynqos.common import keys
 from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import Command, State, encode
 from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Bus, Priority, Received, Role, open_bus
+from dynqos.common.transport import Bus, Priority, Publisher, Received, Role, open_bus
 
 UAV = "uav1"
 BLOCK = 50
@@ -72,15 +72,8 @@ class Loop:
     def wait_ready(self) -> None:
         if not self.state_pub.wait_matched(30):
             raise RuntimeError("the MPC never subscribed to the drone's state")
-        deadline = time.monotonic() + 30
-        status: Any = (
-            self.ping.matching_status
-        )  # typed as bool in zenoh's stubs; a MatchingStatus at run time
-        while not status.matching:
-            if time.monotonic() > deadline:
-                raise RuntimeError("the echo never subscribed to bench/ping")
-            time.sleep(0.05)  # polling the matching status, bounded by the deadline
-            status = self.ping.matching_status
+        if not Publisher(self.ping, PING).wait_matched(30):  # zenoh's matching listener, no polling
+            raise RuntimeError("the echo never subscribed to bench/ping")
 
     def ours(self) -> float:
         self.seq += 1

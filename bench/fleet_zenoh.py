@@ -29,6 +29,17 @@ from dynqos.common.transport import Priority, Received, Role, open_bus
 PERIOD_S = 0.05
 
 
+def _collect(
+    commands: BoundedQueue[Received], sent: dict[tuple[str, int], float], latencies: list[float], until: float
+) -> None:
+    """Time each Command that arrives before `until` against the State it answers."""
+    while (item := commands.get(max(0.0, until - time.perf_counter()))) is not None:
+        if isinstance(item.message, Command):
+            t_sent = sent.pop((item.message.uav, item.message.state_seq), None)
+            if t_sent is not None:
+                latencies.append(time.perf_counter() - t_sent)
+
+
 def _load(zcfg: ZenohConfig, drones: int, seconds: float) -> dict[str, Any]:
     bus = open_bus(zcfg, Role.DRONE)
     try:
@@ -60,18 +71,8 @@ def _load(zcfg: ZenohConfig, drones: int, seconds: float) -> dict[str, Any]:
                     vel_mps=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0), rtt_est_ms=0.0,
                 )  # fmt: skip
                 pub.put(state)
-            due = start + (tick + 1) * PERIOD_S
-            while (item := commands.get(max(0.0, due - time.perf_counter()))) is not None:
-                if isinstance(item.message, Command):
-                    t_sent = sent.pop((item.message.uav, item.message.state_seq), None)
-                    if t_sent is not None:
-                        latencies.append(time.perf_counter() - t_sent)
-        drain_until = time.perf_counter() + 0.2  # the last tick's answers
-        while (item := commands.get(max(0.0, drain_until - time.perf_counter()))) is not None:
-            if isinstance(item.message, Command):
-                t_sent = sent.pop((item.message.uav, item.message.state_seq), None)
-                if t_sent is not None:
-                    latencies.append(time.perf_counter() - t_sent)
+            _collect(commands, sent, latencies, until=start + (tick + 1) * PERIOD_S)
+        _collect(commands, sent, latencies, until=time.perf_counter() + 0.2)  # the last tick's answers
     finally:
         bus.close()
     states = drones * ticks

@@ -3,20 +3,12 @@
 from __future__ import annotations
 
 import contextlib
-import socket
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 from dynqos.common.config import ZenohConfig
-from dynqos.demo import Processes
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
+from dynqos.demo import Processes, free_port
 
 
 @contextlib.contextmanager

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.bench.report import bench_parser, emit, judged, provenance
+from dynqos.bench.suite import spread
 from dynqos.demo import builtin_scenario, run_scenario
 
 WINDOW_S = 1.0
@@ -82,10 +83,8 @@ def run(seeds: int, duration_s: float) -> dict[str, Any]:
     }
 
 
-def _spread(values: list[float]) -> dict[str, float] | None:
-    if not values:
-        return None
-    return {"median": statistics.median(values), "min": min(values), "max": max(values)}
+def _spread(values: list[float]) -> dict[str, float | None] | None:
+    return spread(list(values)) if values else None  # None: no run switched (or recovered)
 
 
 def verdict(result: dict[str, Any]) -> str:

@@ -113,7 +113,7 @@ def builtin_scenario(name: str) -> Scenario:
         return load_scenario(real)
 
 
-def _free_port(kind: int = socket.SOCK_STREAM) -> int:
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
     with socket.socket(socket.AF_INET, kind) as sock:
         sock.bind(("127.0.0.1", 0))
         port: int = sock.getsockname()[1]
@@ -291,8 +291,8 @@ def run_scenario(
     folder.mkdir(parents=True, exist_ok=True)
     logs = folder / "logs"
     logs.mkdir(exist_ok=True)
-    zcfg = ZenohConfig(default_port=_free_port(), priority_port=_free_port())
-    api = _free_port(socket.SOCK_DGRAM)
+    zcfg = ZenohConfig(default_port=free_port(), priority_port=free_port())
+    api = free_port(socket.SOCK_DGRAM)
     fps = scenario.camera_fps
     width, height = camera_size_for(scenario.uav_mbps * 1e6 / scenario.scale, fps)
     config = folder / "dynqos.toml"
@@ -319,7 +319,7 @@ gust_std_mps = {scenario.gust_std_mps}
 offboard_bind_port = 0
 gcs_bind_port = 0
 offboard_remote_port = {api}
-gcs_remote_port = {_free_port(socket.SOCK_DGRAM)}
+gcs_remote_port = {free_port(socket.SOCK_DGRAM)}
 seed = {scenario.seed}
 [planner]
 mission = "{scenario.mission}"
