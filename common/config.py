@@ -99,15 +99,19 @@ class SupervisorConfig:
     rho: tuple[float, float, float] = (61.0, 27.0, 3.0)
     w: tuple[float, float] = (0.35, 0.65)
     window: tuple[int, int] = (10, 50)
+    # t2 is the larger of the N2-sample mean and the mean of the last `cc_fast_window` RTTs (0: the
+    # paper's t2 alone): quick to see a queue building, as slow as the paper to call it gone.
+    cc_fast_window: int = 4
     th_lat: float = 0.5
     risk_high_m: float = 3.0
     risk_medium_m: float = 5.0
     risk_a: float = 0.8
     risk_b: float = 0.2
     dwell_s: float = 1.0
-    persist_s: float = 0.5
+    persist_s: float = 0.1
     escalate_s: float = 3.0
     recover_s: float = 2.0
+    probe_s: float = 1.0  # the camera tries the default flow this long before q1 (0: return at once)
     recover_backoff: float = 2.0
     recover_max_s: float = 16.0
     rate_factor: float = 0.5
@@ -123,11 +127,14 @@ class SupervisorConfig:
             math.isclose(sum(self.w), 1.0, abs_tol=1e-6), "w", f"weights must sum to 1, got {sum(self.w):g}"
         )
         _require(all(1 <= n <= 10_000 for n in self.window), "window", "window sizes must be in 1..10000")
+        _require(
+            0 <= self.cc_fast_window <= self.window[1], "cc_fast_window", "must be in 0..window[1] (0: off)"
+        )
         _require(0.0 < self.th_lat < 1.0, "th_lat", "must be in (0, 1)")
         _require(0.0 < self.risk_high_m < self.risk_medium_m, "risk_medium_m", "must exceed risk_high_m > 0")
         _require(0.0 <= self.risk_a < 1.0, "risk_a", "must be in [0, 1)")
         _require(0.0 < self.risk_b <= 1.0, "risk_b", "must be in (0, 1]")
-        for name in ("dwell_s", "persist_s", "escalate_s", "recover_s", "rate_step_s"):
+        for name in ("dwell_s", "persist_s", "escalate_s", "recover_s", "probe_s", "rate_step_s"):
             _require(0.0 <= getattr(self, name) <= 600, name, "must be in 0..600 s")
         _require(1.0 <= self.recover_backoff <= 10.0, "recover_backoff", "must be in 1..10 (1 disables)")
         _require(self.recover_max_s >= self.recover_s, "recover_max_s", "must be >= recover_s")
@@ -309,6 +316,7 @@ class VehicleSimConfig:
     speed: float = 1.0
     wind_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gust_std_mps: float = 0.0
+    gust_tau_s: float = 2.0  # the gusts' correlation time
     seed: int = 0
     takeoff_alt_m: float = 2.5
     offboard_loss_s: float = 1.0
@@ -321,6 +329,7 @@ class VehicleSimConfig:
         _require(0.01 <= self.speed <= 100, "speed", "must be in 0.01..100 (x real time)")
         _require(all(abs(w) <= 30 for w in self.wind_mps), "wind_mps", "components must be within 30 m/s")
         _require(0 <= self.gust_std_mps <= 10, "gust_std_mps", "must be in 0..10 m/s")
+        _require(0.05 <= self.gust_tau_s <= 600, "gust_tau_s", "must be in 0.05..600 s")
         _require(0.5 <= self.takeoff_alt_m <= 100, "takeoff_alt_m", "must be in 0.5..100 m")
         _require(0.1 <= self.offboard_loss_s <= 60, "offboard_loss_s", "must be in 0.1..60 s (COM_OF_LOSS_T)")
 
@@ -436,6 +445,10 @@ class OnboardConfig:
     camera_width: int = 640
     camera_height: int = 480
     jpeg_quality: int = 90
+    # Pace camera bytes at this rate (0: each image goes out in one burst); set it a little below the
+    # bearer's rate so images never queue in front of the state (docs/onboard.md, "Camera pacing").
+    camera_pace_mbps: float = 0.0
+    camera_part_bytes: int = 4096  # the size of one paced part
     files_dir: str = ""
     files_intrinsics: tuple[float, float, float, float] = (518.0, 519.0, 325.5, 253.5)
     device_index: int = 0
@@ -459,6 +472,12 @@ class OnboardConfig:
         _require(16 <= self.camera_width <= 4096 and 16 <= self.camera_height <= 4096, "camera_width",
                  "image size must be 16..4096 pixels")  # fmt: skip
         _require(1 <= self.jpeg_quality <= 100, "jpeg_quality", "must be in 1..100")
+        _require(
+            0 <= self.camera_pace_mbps <= 1e5 and math.isfinite(self.camera_pace_mbps),
+            "camera_pace_mbps",
+            "must be in 0..100000 (0: no pacing)",
+        )
+        _require(512 <= self.camera_part_bytes <= 1 << 20, "camera_part_bytes", "must be in 512..1048576")
         _require(
             self.camera != "files" or bool(self.files_dir), "files_dir", "the files camera needs files_dir"
         )

@@ -23,6 +23,8 @@ MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 MAX_HORIZON = 64
 MAX_REFERENCE_SAMPLES = 400
 MAX_DETECTIONS = 64
+MAX_FRAME_PARTS = 4096
+MAX_STATUS_SAMPLES = 256
 
 POSITION_LIMIT_M = 1e5
 VELOCITY_LIMIT_MPS = 1e3
@@ -126,7 +128,7 @@ class Command(Message):
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class CameraFrame(Message):
-    """One encoded image; depth is 16-bit with `depth_unit_m` metres per count."""
+    """One encoded image, or one part of it; depth is 16-bit with `depth_unit_m` metres per count."""
 
     TYPE: ClassVar[str] = "CameraFrame"
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
@@ -139,6 +141,8 @@ class CameraFrame(Message):
         "intrinsics": f.vector(4, 0.0, 1e6),
         "depth_unit_m": f.real(1e-6, 1.0),
         "payload": f.blob(MAX_PAYLOAD_BYTES),
+        "part": f.integer(0, MAX_FRAME_PARTS - 1),
+        "parts": f.integer(1, MAX_FRAME_PARTS),
     }
 
     stamp_ns: int
@@ -149,10 +153,14 @@ class CameraFrame(Message):
     intrinsics: tuple[float, float, float, float]
     payload: bytes
     depth_unit_m: float = 0.001
+    part: int = 0  # a paced frame travels in `parts` messages; the payloads in part order make the image
+    parts: int = 1
 
     def _check(self) -> None:
         if self.intrinsics[0] <= 0.0 or self.intrinsics[1] <= 0.0:
             raise MessageError("intrinsics", "focal lengths fx and fy must be > 0")
+        if self.part >= self.parts:
+            raise MessageError("part", f"part {self.part} of a frame in {self.parts} parts")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -258,6 +266,9 @@ class SupervisorStatus(Message):
         "rtt_ms": f.optional(_latency_ms),
         "camera_latency_ms": f.optional(_latency_ms),
         "setpoint_gap_ms": f.optional(_latency_ms),
+        "camera_flow": f.choice(("", *FLOWS)),
+        "rtt_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
+        "camera_latency_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
     }
 
     stamp_ns: int
@@ -281,6 +292,9 @@ class SupervisorStatus(Message):
     rtt_ms: float | None = None  # the latest C&C RTT sample, for plots
     camera_latency_ms: float | None = None  # the latest camera latency sample
     setpoint_gap_ms: float | None = None  # longest pause between setpoints to the FC since the last status
+    camera_flow: str = ""  # the camera's flow when it differs from `flow` (a probe of the default flow)
+    rtt_samples_ms: tuple[float, ...] = ()  # every C&C RTT measured since the last status, for statistics
+    camera_latency_samples_ms: tuple[float, ...] = ()  # every camera latency since the last status
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

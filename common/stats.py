@@ -72,6 +72,13 @@ class SlidingWindow:
     def values(self) -> list[float]:
         return list(self._samples)
 
+    def last(self, n: int) -> list[float]:
+        """The newest `n` samples (fewer while the window holds fewer), oldest first."""
+        if n <= 0:
+            return []
+        samples = self._samples
+        return [samples[i] for i in range(max(0, len(samples) - n), len(samples))]
+
 
 def percentile(samples: Iterable[float], q: float) -> float:
     ordered = sorted(samples)

@@ -109,6 +109,7 @@ def _cmd_sim_vehicle(args: argparse.Namespace, config: Config) -> int:
         VehicleConfig(
             wind=v.wind_mps,
             gust_std_mps=v.gust_std_mps,
+            gust_tau_s=v.gust_tau_s,
             seed=v.seed,
             takeoff_alt_m=v.takeoff_alt_m,
             offboard_loss_s=v.offboard_loss_s,

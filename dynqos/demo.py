@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from dynqos.common import keys
-from dynqos.common.config import ZenohConfig, build
+from dynqos.common.config import OnboardConfig, ZenohConfig, build
 from dynqos.common.errors import ConfigError, DynqosError
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import Reference, State, SupervisorStatus
@@ -60,8 +60,12 @@ class Scenario:
     seed: int = 0
     settle_s: float = 4.0  # excluded from the baseline statistics after offloading starts
     camera_fps: float = 15.0
+    # The camera's bytes are paced at this rate (before scale; 0: each image in one burst): above what
+    # the drone offers, below what the priority bearer drains under load (81.3 x 4/5 = 65 Mbit/s).
+    camera_pace_mbps: float = 62.0
     wind_mps: float = 0.5  # a steady breeze from the north...
     gust_std_mps: float = 0.5  # ...with gusts, so that control delay shows in the tracking
+    gust_tau_s: float = 0.5  # short gusts: many per window, so windows compare alike (docs/demo.md)
     base_delay_ms: float = 5.0  # one way: with processing and camera head-of-line ~15 ms C&C RTT, below rho2
     faults: tuple[Fault, ...] = ()  # injected during the flight (dynqos/faults.py, docs/reliability.md)
     memory_sample_s: float = 5.0  # how often each process's resident memory is recorded
@@ -75,6 +79,8 @@ class Scenario:
             raise ConfigError("bg_mbps", "rates must be in 0..100000 Mbit/s")
         if not 0.01 <= self.scale <= 1000:
             raise ConfigError("scale", "must be in 0.01..1000")
+        if not 0 <= self.camera_pace_mbps <= 1e5:
+            raise ConfigError("camera_pace_mbps", "must be in 0..100000 Mbit/s (0: no pacing)")
         for i, fault in enumerate(self.faults):
             if fault.at_s + fault.duration_s > self.duration_s:
                 raise ConfigError(f"faults[{i}].at_s", "the fault must end before the run does")
@@ -120,31 +126,57 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
         return port
 
 
-def camera_size_for(target_bps: float, fps: float) -> tuple[int, int]:
-    """An image size whose RGB-D frames (JPEG + zstd16) at `fps` offer about target_bps.
+def camera_size_for(target_bps: float, fps: float, part_bytes: int = 0) -> tuple[int, int]:
+    """An image size whose RGB-D frames (JPEG + zstd16, in parts of `part_bytes` when paced) at `fps`
+    offer about target_bps, message headers included.
 
     Scaling the experiment down must shrink the frames, not the frame rate: a frame's serialisation time
     through the scaled cell then stays what it is at full scale, and so do the latencies it causes.
+    Small images compress worse per pixel, so the size found by area is measured and corrected twice.
     """
-    bits = _frame_bits(640, 480)
-    linear = math.sqrt(target_bps / fps / bits)
-    width = max(64, min(1280, round(640 * linear / 16) * 16))
+    width = 640
+    for _ in range(3):
+        linear = math.sqrt(target_bps / fps / _frame_bits(width, width * 3 // 4, part_bytes))
+        width = max(64, min(1280, round(width * linear / 4) * 4))
     return width, width * 3 // 4
 
 
-def _frame_bits(width: int, height: int) -> float:
-    import numpy as np
+FRAME_HEADER_BYTES = 190  # one CameraFrame message without its payload (msgpack field names and values)
 
-    from dynqos.onboard.camera import encode_depth, encode_rgb
-    from dynqos.sim.dynamics import quat_to_rot
-    from dynqos.sim.render import Intrinsics, Renderer
+
+def _frame_bits(width: int, height: int, part_bytes: int = 0) -> float:
+    """Mean size of one RGB-D frame on the wire, seen from the demo's circle (radius 2 m, yaw along it,
+    tilted 0.06 rad as a drone flying it in a breeze: the floor in view adds about 5%)."""
+    from dynqos.onboard.camera import SimCamera, encode_depth, encode_rgb
     from dynqos.sim.world import default_world
 
-    renderer = Renderer(default_world(), Intrinsics(width=width, height=height))
-    rgb, depth = renderer.render(
-        np.array([2.0, 0.0, -1.5]), quat_to_rot(np.array([math.cos(0.8), 0, 0, math.sin(0.8)]))
+    camera = SimCamera(default_world(), width, height)  # the onboard camera's optics
+    tilt = 0.06
+    total = 0.0
+    views = 6
+    for k in range(views):
+        theta = 2 * math.pi * k / views
+        yaw = theta + math.pi / 2
+        position = (2.0 * math.cos(theta), 2.0 * math.sin(theta), -1.5)
+        raw = camera.grab((position, _quaternion(yaw, tilt, tilt)))
+        assert raw is not None
+        assert raw.depth_m is not None
+        for data in (encode_rgb(raw.rgb, 90), encode_depth(raw.depth_m)):
+            messages = math.ceil(len(data) / part_bytes) if part_bytes else 1
+            total += 8.0 * (len(data) + messages * FRAME_HEADER_BYTES)
+    return total / views
+
+
+def _quaternion(yaw: float, pitch: float, roll: float) -> tuple[float, float, float, float]:
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    return (
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
     )
-    return 8.0 * (len(encode_rgb(rgb, 90)) + len(encode_depth(depth.astype(np.float32))))
 
 
 # ---- processes ----------------------------------------------------------------------------------------
@@ -294,7 +326,8 @@ def run_scenario(
     zcfg = ZenohConfig(default_port=free_port(), priority_port=free_port())
     api = free_port(socket.SOCK_DGRAM)
     fps = scenario.camera_fps
-    width, height = camera_size_for(scenario.uav_mbps * 1e6 / scenario.scale, fps)
+    part_bytes = OnboardConfig().camera_part_bytes if scenario.camera_pace_mbps > 0 else 0
+    width, height = camera_size_for(scenario.uav_mbps * 1e6 / scenario.scale, fps, part_bytes)
     config = folder / "dynqos.toml"
     config.write_text(f"""# generated by dynqos demo for scenario {scenario.name}
 [drone]
@@ -316,6 +349,7 @@ seed = {scenario.seed}
 [vehicle]
 wind_mps = [{scenario.wind_mps}, 0.0, 0.0]
 gust_std_mps = {scenario.gust_std_mps}
+gust_tau_s = {scenario.gust_tau_s}
 offboard_bind_port = 0
 gcs_bind_port = 0
 offboard_remote_port = {api}
@@ -328,6 +362,7 @@ lead_in_s = 2
 mavlink_url = "udpin:127.0.0.1:{api}"
 qos = "{scenario.qos}"
 camera_fps = {fps:.2f}
+camera_pace_mbps = {scenario.camera_pace_mbps / scenario.scale:.6g}
 camera_width = {width}
 camera_height = {height}
 """)
@@ -483,7 +518,10 @@ def run_demo(
             except ConfigError as exc:
                 raise exc.under(scenario.name) from None
         runs.append(scenario)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError("--out", f"cannot make the run folder {out}: {exc.strerror or exc}") from None
     stop = threading.Event()
     previous = signal.getsignal(signal.SIGINT)
 

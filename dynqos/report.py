@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dynqos.common.messages import STATES, Reference, State
+from dynqos.common.messages import STATES, Reference, State, SupervisorStatus
 from dynqos.faults import log_times, outcome
 
 if TYPE_CHECKING:
@@ -118,6 +118,17 @@ def _cell_rates(rec: Recording, start_ns: int, end_ns: int, scale: float) -> dic
     }
 
 
+def _samples(statuses: list[SupervisorStatus], every: str, last: str) -> list[tuple[int, float]]:
+    """Every latency sample the drone measured, stamped with the status that carried it.
+
+    A status carries all samples since the one before (20 Hz of RTTs in 5 Hz of statuses). Statuses
+    without that list (a recording made by hand, or by an older drone) give the latest sample of each.
+    """
+    if any(getattr(s, every) for s in statuses):
+        return [(s.stamp_ns, v) for s in statuses for v in getattr(s, every)]
+    return [(s.stamp_ns, v) for s in statuses if (v := getattr(s, last)) is not None]
+
+
 def summarise(
     scenario: Scenario, rec: Recording, onboard_log: str, *, ok: bool, failure: str
 ) -> dict[str, Any]:
@@ -131,8 +142,8 @@ def summarise(
     def window(items: list[tuple[int, float]], start: int | None, stop: int) -> list[float]:
         return [] if start is None else [v for t, v in items if start <= t < stop]
 
-    rtts = [(s.stamp_ns, s.rtt_ms) for s in rec.status if s.rtt_ms is not None]
-    cams = [(s.stamp_ns, s.camera_latency_ms) for s in rec.status if s.camera_latency_ms is not None]
+    rtts = _samples(rec.status, "rtt_samples_ms", "rtt_ms")
+    cams = _samples(rec.status, "camera_latency_samples_ms", "camera_latency_ms")
     errors = [(t0 + round(t * 1e9), e) for t, e in tracking_errors(rec)]
     loaded = bg_ns is not None
     rates = _cell_rates(rec, loaded_start, end_ns + 1, scenario.scale)
@@ -210,12 +221,16 @@ def write_scenario(folder: Path, scenario: Scenario, rec: Recording, summary: di
     t0 = rec.t0_ns
     with (folder / "states.csv").open("w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["t_s", "x_m", "y_m", "z_m", "uplink_latency_ms", "mode"])
+        writer.writerow(["t_s", "x_m", "y_m", "z_m", "uplink_latency_ms", "mode", "tracking_error_m"])
+        errors = dict(reference_errors((s for _, s in rec.states), rec.refs))
         for lat, st in rec.states:
-            writer.writerow([f"{(st.stamp_ns - t0) / 1e9:.3f}", *st.pos_m, f"{lat:.3f}", st.mode])
+            error = errors.get(st.stamp_ns)
+            writer.writerow([f"{(st.stamp_ns - t0) / 1e9:.3f}", *st.pos_m, f"{lat:.3f}", st.mode,
+                             "" if error is None else f"{error:.4f}"])  # fmt: skip
     columns = [
         "state",
         "flow",
+        "camera_flow",
         "camera_rate_factor",
         "control_source",
         "latency",
@@ -236,6 +251,13 @@ def write_scenario(folder: Path, scenario: Scenario, rec: Recording, summary: di
         writer.writerow(["t_s", *columns])
         for sv in rec.status:
             writer.writerow([f"{(sv.stamp_ns - t0) / 1e9:.3f}", *(getattr(sv, c) for c in columns)])
+    with (folder / "latency.csv").open("w", newline="") as f:  # every sample, at its status's time
+        writer = csv.writer(f)
+        writer.writerow(["t_s", "kind", "ms"])
+        for sv in rec.status:
+            t_s = f"{(sv.stamp_ns - t0) / 1e9:.3f}"
+            writer.writerows([t_s, "rtt", v] for v in sv.rtt_samples_ms)
+            writer.writerows([t_s, "camera", v] for v in sv.camera_latency_samples_ms)
     _plots(folder, scenario, rec, summary)
 
 

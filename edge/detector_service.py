@@ -1,8 +1,8 @@
 """`dynqos edge detector`: acknowledges every camera frame at once, then detects circles in the newest.
 
-The ack goes out before any processing, so the drone measures the network, not the detector. Frames
-the detector cannot keep up with are dropped, the newest kept (one slot per drone and kind). Zenoh
-callbacks only queue; one thread acks, one thread detects.
+The ack goes out before any processing (for a paced image, once its last part is in), so the drone
+measures the network, not the detector. Frames the detector cannot keep up with are dropped, the
+newest kept (one slot per drone and kind). Zenoh callbacks only queue; one thread acks, one detects.
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from dataclasses import replace
 
 from dynqos.common import keys
 from dynqos.common.clock import Clock, MonotonicClock
@@ -19,6 +20,7 @@ from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import CameraAck, CameraFrame, Detections
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received
+from dynqos.edge.assembler import FrameAssembler
 from dynqos.edge.detector import decode_depth, decode_rgb, find_circles, locate
 from dynqos.edge.service import Service
 
@@ -37,6 +39,7 @@ class DetectorService:
         self.depth_stats = bus.subscribe(
             keys.uplink_all_drones(Stream.CAMERA_DEPTH), self.acks, expect=(CameraFrame,)
         )
+        self.assembler = FrameAssembler()
         self._latest: dict[tuple[str, str], Received] = {}
         self._latest_lock = threading.Condition()
         self._ack_pubs: dict[str, Publisher] = {}
@@ -60,9 +63,14 @@ class DetectorService:
             return 0
         done = 0
         for item in [first, *self.acks.drain()]:
-            frame = item.message
-            if not isinstance(frame, CameraFrame):
+            part = item.message
+            if not isinstance(part, CameraFrame):
                 continue
+            frame = self.assembler.add(part)  # a paced image is acked once its last part is in
+            if frame is None:
+                continue
+            if frame is not part:
+                item = replace(item, message=frame)
             self.counters["frames"] += 1
             ack = CameraAck(
                 uav=frame.uav, seq=frame.seq, frame_seq=frame.seq, kind=frame.kind, stamp_ns=frame.stamp_ns,
@@ -117,7 +125,8 @@ class DetectorService:
         ms = sorted(self.detect_ms) or [0.0]
         rejected = self.rgb_stats.rejected + self.depth_stats.rejected
         counts = " ".join(f"{k}={v}" for k, v in self.counters.items())
-        return f"{counts} rejected={rejected} detect_ms_p50={ms[len(ms) // 2]:.1f}"
+        parts = f"incomplete={self.assembler.incomplete} inconsistent={self.assembler.inconsistent}"
+        return f"{counts} {parts} rejected={rejected} detect_ms_p50={ms[len(ms) // 2]:.1f}"
 
     def run(self) -> None:
         worker = threading.Thread(target=self._detect_loop, name="detector", daemon=True)

@@ -16,6 +16,8 @@ import os
 import socket
 import threading
 import time
+from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -24,7 +26,16 @@ from dynqos.common import keys
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.config import Config
 from dynqos.common.keys import Downlink, Flow, Stream
-from dynqos.common.messages import CameraAck, CameraFrame, Command, Detections, Reference, State
+from dynqos.common.messages import (
+    LATENCY_LIMIT_MS,
+    MAX_STATUS_SAMPLES,
+    CameraAck,
+    CameraFrame,
+    Command,
+    Detections,
+    Reference,
+    State,
+)
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.reference import ReferenceTrack
 from dynqos.common.transport import (
@@ -50,6 +61,7 @@ from dynqos.onboard.camera import (
 from dynqos.onboard.commands import CommandTracker
 from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD, PX4_SUB_LOITER, FcLink, FcState
 from dynqos.onboard.monitors import CameraLatencyMonitor
+from dynqos.onboard.pacing import Pacer, split
 from dynqos.onboard.pid import CascadedPid
 from dynqos.onboard.risk import Spaciousness
 from dynqos.onboard.supervisor import Decision, Inputs, Supervisor, to_status
@@ -58,7 +70,26 @@ from dynqos.sim.world import default_world, load_world
 log = logging.getLogger(__name__)
 
 SETPOINT_HZ = 50
+PART_OVERHEAD_BYTES = 200  # a paced part's message header (msgpack fields, zenoh framing)
 STALE_STATE_NS = 500_000_000  # no position from the FC for this long: it is lost, stop using its state
+
+
+class StatusSamples:
+    """The latency samples measured since the last SupervisorStatus (bounded: the newest are kept)."""
+
+    def __init__(self) -> None:
+        self._cams: deque[float] = deque(maxlen=MAX_STATUS_SAMPLES)
+        self._rtts: deque[float] = deque(maxlen=MAX_STATUS_SAMPLES)
+
+    def extend(self, cams: Iterable[float], rtts: Iterable[float]) -> None:
+        self._cams.extend(c for c in cams if 0 <= c <= LATENCY_LIMIT_MS)
+        self._rtts.extend(r for r in rtts if 0 <= r <= LATENCY_LIMIT_MS)
+
+    def take(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        out = (tuple(self._cams), tuple(self._rtts))
+        self._cams.clear()
+        self._rtts.clear()
+        return out
 
 
 @dataclass
@@ -124,8 +155,12 @@ class OnboardDaemon:
         self.camera_monitor = CameraLatencyMonitor()
         self.pid = CascadedPid()
         self.rate = RateController(self.cfg.camera_fps)
+        pace = self.cfg.camera_pace_mbps
+        self.pacer = Pacer(pace * 1e6) if pace > 0 else None
         self.decision: Decision | None = None
         self.flow = "default"
+        self.camera_flow = "default"
+        self.status_samples = StatusSamples()
         self.control_source = "fallback"
         self.offloading = False  # True once airborne in offboard mode
         self.hold_target: np.ndarray | None = None
@@ -141,6 +176,7 @@ class OnboardDaemon:
             "fallback_ticks": 0,
             "edge_ticks": 0,
             "frames": 0,
+            "camera_bytes": 0,  # encoded image bytes handed to zenoh (headers not counted)
             "switches_to_fallback": 0,
             "detections": 0,
         }
@@ -295,9 +331,11 @@ class OnboardDaemon:
     def _supervise(self, now: int) -> None:
         with self._space_lock:
             space, self.spaciousness = self.spaciousness, None
+        cams, rtts = self.camera_monitor.take_new(), self.tracker.take_new_rtts()
+        self.status_samples.extend(cams, rtts)
         inputs = Inputs(
-            camera_latencies_ms=self.camera_monitor.take_new(),
-            cc_rtts_ms=self.tracker.take_new_rtts(),
+            camera_latencies_ms=cams,
+            cc_rtts_ms=rtts,
             camera_outstanding_ms=self.camera_monitor.oldest_outstanding_ms(now),
             cc_outstanding_ms=self.tracker.oldest_unanswered_ms(now),
             spaciousness_m=space,
@@ -313,12 +351,15 @@ class OnboardDaemon:
                 t.cause,
                 "NA" if t.p_lat is None else f"{t.p_lat:.2f}",
             )
+        if decision.note:
+            log.info("supervisor: %s: %s", decision.state.value, decision.note)
         self.decision = decision
         if self.cfg.qos == "dynamic":
             self.flow = decision.actions.flow
+            self.camera_flow = decision.actions.camera
             self.rate.factor = decision.actions.camera_rate_factor
         else:  # static QoS: the supervisor only reports; the watchdog still sends control to the fallback
-            self.flow = self.cfg.qos
+            self.flow = self.camera_flow = self.cfg.qos
 
     def _publish_status(self, now: int) -> None:
         if self.decision is None:
@@ -329,10 +370,12 @@ class OnboardDaemon:
             self.decision, uav=self.uav, seq=self.status_seq, stamp_ns=now, last=last,
             rtt_ms=self.tracker.last_rtt_ms, camera_latency_ms=self.camera_monitor.last_ms,
         )  # fmt: skip
-        status = replace(status, setpoint_gap_ms=self.status_gap_ms if self.offloading else None)
+        cams, rtts = self.status_samples.take()
+        status = replace(status, setpoint_gap_ms=self.status_gap_ms if self.offloading else None,
+                         rtt_samples_ms=rtts, camera_latency_samples_ms=cams)  # fmt: skip
         self.status_gap_ms = 0.0
         if self.cfg.qos != "dynamic":  # report what the drone does, not what the supervisor would do
-            status = replace(status, flow=self.flow, camera_rate_factor=self.rate.factor,
+            status = replace(status, flow=self.flow, camera_flow="", camera_rate_factor=self.rate.factor,
                              control_source=self.control_source)  # fmt: skip
         self.status_pubs.pick(self.flow).put(status)
 
@@ -511,10 +554,18 @@ class OnboardDaemon:
         data: bytes,
     ) -> None:
         h, w = raw.rgb.shape[:2]
-        frame = CameraFrame(uav=self.uav, seq=seq, stamp_ns=stamp, kind=kind, encoding=encoding, width=w,
-                            height=h, intrinsics=raw.intrinsics, payload=data)  # fmt: skip
         self.camera_monitor.frame_sent(seq, kind, stamp)
-        pubs.pick(flow).put(frame)
+        self.counters["camera_bytes"] += len(data)
+        parts = [data] if self.pacer is None else split(data, self.cfg.camera_part_bytes)
+        for index, part in enumerate(parts):
+            if self.pacer is not None:
+                wait_ns = self.pacer.reserve(len(part) + PART_OVERHEAD_BYTES, self.clock.now_ns())
+                if wait_ns > 0 and self.stop.wait(wait_ns / 1e9):
+                    return
+            frame = CameraFrame(uav=self.uav, seq=seq, stamp_ns=stamp, kind=kind, encoding=encoding, width=w,
+                                height=h, intrinsics=raw.intrinsics, payload=part, part=index,
+                                parts=len(parts))  # fmt: skip
+            pubs.pick(flow).put(frame)
 
     def _camera_loop(self) -> None:
         if self.camera is None:
@@ -533,7 +584,7 @@ class OnboardDaemon:
             frame_seq += 1
             stamp = self.clock.now_ns()
             h, w = raw.rgb.shape[:2]
-            flow = self.flow  # one flow for both halves of the frame
+            flow = self.camera_flow  # one flow for every part of both halves of the frame
 
             rgb = encode_rgb(raw.rgb, self.cfg.jpeg_quality)
             self._send_frame(self.rgb_pubs, flow, frame_seq, stamp, raw, "rgb", "jpeg", rgb)

@@ -72,9 +72,14 @@ class Risk(str, enum.Enum):
 
 @dataclass(frozen=True, slots=True)
 class Actions:
-    flow: str  # "default" | "priority"
+    flow: str  # "default" | "priority": the state's (and the status's) flow
     camera_rate_factor: float  # fraction of the nominal camera frame rate
     control_source: str  # "edge" | "fallback"
+    camera_flow: str = ""  # the camera's flow; "" = the same as `flow` (it differs while probing)
+
+    @property
+    def camera(self) -> str:
+        return self.camera_flow or self.flow
 
 
 RATE_ADAPTATION_STATES = frozenset({Q4, Q5, Q6})
@@ -128,6 +133,7 @@ class Decision:
     actions: Actions
     signals: Signals
     transition: Transition | None
+    note: str = ""  # what happened this tick that is not a transition (a probe started or failed)
 
 
 def sigmoid(t: float, mu: float, rho: float) -> float:
@@ -159,6 +165,22 @@ def _effective(window: SlidingWindow, outstanding_ms: float | None) -> float | N
     return (mean * n + outstanding_ms) / (n + 1)
 
 
+def _fast_mean(window: SlidingWindow, n: int, outstanding_ms: float | None) -> float:
+    """Mean of the newest n samples, the newest replaced by the outstanding age when that is larger.
+
+    This is t2's fast attack: a queue building up raises it within a few samples (and the age of the
+    state still unanswered raises it one RTT sooner), where the 50-sample mean takes a second. Less than
+    n samples: 0, no evidence yet.
+    """
+    recent = window.last(n)
+    if len(recent) < n:
+        return 0.0
+    if outstanding_ms is not None and math.isfinite(outstanding_ms) and outstanding_ms > recent[-1]:
+        recent[0:1] = []
+        recent.append(outstanding_ms)
+    return math.fsum(recent) / n
+
+
 class Supervisor:
     """The PFSM. `step` once per tick with the inputs gathered since the previous tick."""
 
@@ -178,6 +200,8 @@ class Supervisor:
         self._min_rate_since_ns: int | None = None
         self._recover_ns = self._ns(config.recover_s)
         self._last_recovery_ns: int | None = None
+        self._probe_since_ns: int | None = None
+        self._note = ""
         self.log: deque[Transition] = deque(maxlen=TRANSITION_LOG_SIZE)
 
     @staticmethod
@@ -188,6 +212,8 @@ class Supervisor:
         state = self.state
         if state is QA:
             return Actions("priority", self.config.min_rate_factor, "fallback")
+        if self._probe_since_ns is not None:  # the camera tries the default flow at q1's rate
+            return Actions("priority", 1.0, "edge", camera_flow="default")
         flow = "priority" if state in PRIORITY_STATES else "default"
         rate = self._rate if state in RATE_ADAPTATION_STATES else 1.0
         return Actions(flow, rate, "edge")
@@ -205,6 +231,8 @@ class Supervisor:
 
         t_cam = _effective(self._cam, inputs.camera_outstanding_ms)
         t_cc = _effective(self._cc, inputs.cc_outstanding_ms)
+        if t_cc is not None and cfg.cc_fast_window:
+            t_cc = max(t_cc, _fast_mean(self._cc, cfg.cc_fast_window, inputs.cc_outstanding_ms))
         p_cam = None if t_cam is None else sigmoid(t_cam, cfg.mu[0], cfg.rho[0])
         p_cc = None if t_cc is None else sigmoid(t_cc, cfg.mu[1], cfg.rho[1])
         terms = [(w, p) for w, p in zip(cfg.w, (p_cam, p_cc), strict=True) if p is not None]
@@ -282,7 +310,7 @@ class Supervisor:
             if escalate:
                 return Q5, "HL persists on the priority flow (HR)"
             if risk is not Risk.HR and recover:
-                return Q1, "LL holds and risk is no longer HR"
+                return self._probe(signals, now_ns, "LL holds and risk is no longer HR")
         elif state is Q3:
             if escalate:
                 return (
@@ -291,7 +319,7 @@ class Supervisor:
                     else (Q6, "HL persists on the priority flow")
                 )
             if risk is not Risk.HR and recover:
-                return Q1, "LL holds"
+                return self._probe(signals, now_ns, "LL holds")
         elif state in RATE_ADAPTATION_STATES:
             at_min = self._rate <= cfg.min_rate_factor and self._min_rate_since_ns is not None
             since = None
@@ -302,10 +330,40 @@ class Supervisor:
             if state is Q4 and risk is not Risk.LR and self._fires(hl, hl, p_lat):
                 return Q6, f"{risk.value} and HL: priority flow"
             if recover:
-                return Q1, "LL holds"
+                return (Q1, "LL holds") if state is Q4 else self._probe(signals, now_ns, "LL holds")
         elif state is QA and recover:
             return Q1, "link is back and LL holds"
         return None
+
+    def _probe(self, signals: Signals, now_ns: int, cause: str) -> tuple[State, str] | None:
+        """Return to q1 only once the default flow has carried the camera, at q1's rate, for probe_s.
+
+        Going back while the cell is still loaded would put the state behind a growing queue until HL
+        is seen again. The camera is the bulk of what q1 sends, so it tests the default flow first while
+        the state stays on the priority flow: if its latency passes rho1 the probe ends and the next try
+        waits twice as long (the same back-off as a bounce), and the state never saw the queue.
+        """
+        cfg = self.config
+        if cfg.probe_s <= 0:
+            return Q1, cause
+        if self._probe_since_ns is None:
+            self._probe_since_ns = now_ns
+            self._note = f"probing the default flow with the camera ({cause})"
+            return None
+        if signals.t_cam_ms is not None and signals.t_cam_ms > cfg.rho[0]:
+            self._end_probe(now_ns, f"camera latency {signals.t_cam_ms:.0f} ms > rho1")
+            return None
+        if now_ns - self._probe_since_ns >= self._ns(cfg.probe_s):
+            return Q1, f"{cause}; the default flow carried the camera for {cfg.probe_s:g} s"
+        return None
+
+    def _end_probe(self, now_ns: int, why: str) -> None:
+        cfg = self.config
+        self._probe_since_ns = None
+        if self._ll_since_ns is not None:
+            self._ll_since_ns = now_ns  # the recovery time starts again...
+        self._recover_ns = min(round(self._recover_ns * cfg.recover_backoff), self._ns(cfg.recover_max_s))
+        self._note = f"probe failed: {why}; next try in {self._recover_ns / NS_PER_S:g} s"  # ...and longer
 
     def _enter(self, target: State, cause: str, signals: Signals, now_ns: int) -> Transition:
         cfg = self.config
@@ -324,6 +382,7 @@ class Supervisor:
             self._recover_ns = min(round(self._recover_ns * cfg.recover_backoff), self._ns(cfg.recover_max_s))
         self.state = target
         self._entered_ns = now_ns
+        self._probe_since_ns = None
         self._ll_since_ns = now_ns if signals.latency is Latency.LL else None
         self._hl_since_ns = now_ns if signals.latency is Latency.HL else None
         if target is QA:
@@ -343,9 +402,17 @@ class Supervisor:
         if self.state is Q1 and now_ns - self._entered_ns >= self._ns(self.config.recover_max_s):
             self._recover_ns = self._ns(self.config.recover_s)  # calm for long: forget the backoff
         self._adapt_rate(signals, now_ns)
+        self._note = ""
+        probing = self._probe_since_ns is not None
         choice = self._choose(signals, now_ns)
         transition = self._enter(*choice, signals, now_ns) if choice else None
-        return Decision(self.state, self.actions(), signals, transition)
+        if probing and self._probe_since_ns is not None and not self._recovering(signals):
+            self._end_probe(now_ns, f"latency {signals.latency.value}")
+        return Decision(self.state, self.actions(), signals, transition, self._note)
+
+    def _recovering(self, signals: Signals) -> bool:
+        """Whether the recovery condition that started the probe still holds."""
+        return signals.latency is Latency.LL and (signals.risk is not Risk.HR or self.state not in (Q2, Q3))
 
 
 def to_status(
@@ -383,4 +450,5 @@ def to_status(
         changed_ns=last.stamp_ns if last else 0,
         rtt_ms=rtt_ms,
         camera_latency_ms=camera_latency_ms,
+        camera_flow=decision.actions.camera_flow,
     )

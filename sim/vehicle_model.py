@@ -20,6 +20,7 @@ class VehicleConfig:
     params: QuadParams = field(default_factory=QuadParams)
     wind: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gust_std_mps: float = 0.0
+    gust_tau_s: float = 2.0
     seed: int = 0
     offboard_loss_s: float = 1.0
     takeoff_alt_m: float = 2.5
@@ -28,7 +29,8 @@ class VehicleConfig:
 class VehicleModel:
     def __init__(self, config: VehicleConfig | None = None) -> None:
         self.config = config or VehicleConfig()
-        wind = Wind(mean_mps=self.config.wind, gust_std_mps=self.config.gust_std_mps, seed=self.config.seed)
+        cfg = self.config
+        wind = Wind(cfg.wind, gust_std_mps=cfg.gust_std_mps, gust_tau_s=cfg.gust_tau_s, seed=cfg.seed)
         self.plant = Quadrotor(self.config.params, wind)
         self.fc = FlightController(
             self.config.params,

@@ -88,12 +88,14 @@ def _cases(closed: int, closed2: int, taken: int, tmp: Path) -> list[tuple[list[
         (["health", str(tmp)], "no health file"),  # a folder where the file should be
         (["certs", "--out", "/proc/dynqos-pki", "--drone", "uav1"], "cannot create /proc/dynqos-pki"),
         (["demo", "--duration", "-3"], "duration"),
+        (["demo", "--scenario", "baseline", "--out", str(tmp / "a-file")], "cannot make the run folder"),
     ]
 
 
 def test_unreachable_endpoints_and_bad_arguments_are_one_line_and_exit_2(
     busy_ports: tuple[int, int, int], tmp_path: Path
 ) -> None:
+    (tmp_path / "a-file").write_text("not a folder")
     for args, message in _cases(*busy_ports, tmp_path):
         result = subprocess.run([DYNQOS, *args], capture_output=True, text=True, timeout=60)
         lines = [line for line in result.stderr.splitlines() if not line[:4].isdigit()]  # log lines aside

@@ -75,6 +75,11 @@ def test_effective_config_round_trips_through_toml(tmp_path: Path) -> None:
         ("[zenoh]\npriority_port = 7447\n", "zenoh.priority_port", "differ"),
         ("[zenoh]\nmax_links = 1\n", "zenoh.max_links", "two flows"),
         ("[control]\nhorizon = 2\n", "control.horizon", "5..200"),
+        ("[supervisor]\ncc_fast_window = 60\n", "supervisor.cc_fast_window", "0..window[1]"),
+        ("[supervisor]\nprobe_s = -1\n", "supervisor.probe_s", "0..600 s"),
+        ("[onboard]\ncamera_pace_mbps = -5\n", "onboard.camera_pace_mbps", "0: no pacing"),
+        ("[onboard]\ncamera_part_bytes = 100\n", "onboard.camera_part_bytes", "512..1048576"),
+        ("[vehicle]\ngust_tau_s = 0\n", "vehicle.gust_tau_s", "0.05..600 s"),
     ],
 )
 def test_bad_values_name_file_key_and_reason(tmp_path: Path, text: str, key: str, reason: str) -> None:

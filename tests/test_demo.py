@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 from pathlib import Path
@@ -70,6 +71,7 @@ def test_short_demo_writes_the_contract(tmp_path: Path) -> None:
             "supervisor.png",
             "states.csv",
             "supervisor.csv",
+            "latency.csv",
             "cell.csv",
             "logs",
         ):
@@ -77,6 +79,10 @@ def test_short_demo_writes_the_contract(tmp_path: Path) -> None:
         assert summary["setpoint_gap_max_ms"] < 100
     baseline = json.loads((out / "baseline" / "summary.json").read_text())
     assert baseline["rtt_ms"]["baseline"]["mean"] < 27  # below rho2 with margin
+    with (out / "baseline" / "latency.csv").open() as f:
+        rtts = [float(row["ms"]) for row in csv.DictReader(f) if row["kind"] == "rtt"]
+    assert len(rtts) >= 10 * baseline["duration_s"]  # every RTT (20 Hz), not only the last per status
+    assert baseline["rtt_ms"]["baseline"]["n"] >= 10 * (baseline["duration_s"] - 5)  # after settling
     assert baseline["tracking_rmse_m"]["baseline"] < 0.15
     loaded = json.loads((out / "bg-staticqos" / "summary.json").read_text())
     assert loaded["bg_start_s"] is not None

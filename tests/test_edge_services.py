@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -18,6 +19,7 @@ from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import CameraAck, CameraFrame, Command, Detections, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Received, Role, open_bus
+from dynqos.onboard.pacing import split
 from dynqos.sim.dynamics import quat_to_rot
 from dynqos.sim.render import Renderer
 from dynqos.sim.world import default_world
@@ -209,6 +211,48 @@ def test_detector_acks_every_frame_and_finds_the_hoop(
     assert procs[-1].alive()
     log = procs[-1].stop()
     assert "rejected=" in log
+
+
+def test_detector_acks_a_paced_frame_once_its_last_part_is_in(
+    edge: tuple[Path, ZenohConfig, list[DynqosProcess]],
+) -> None:
+    config, zcfg, procs = edge
+    procs.append(DynqosProcess(["edge", "detector"], config))
+    renderer = Renderer(default_world(), seed=3)
+    _, depth = renderer.render(np.array([0.0, 0.0, -1.5]), quat_to_rot(np.array([1.0, 0.0, 0.0, 0.0])))
+    payload = encode_zstd16(np.round(depth * 1000).astype(np.uint16))
+    chunks = split(payload, 4096)
+    assert len(chunks) >= 3
+    whole = CameraFrame(uav="uav1", seq=0, stamp_ns=0, kind="depth", encoding="zstd16", width=640,
+                        height=480, intrinsics=renderer.intrinsics.as_tuple(), payload=b"")  # fmt: skip
+    bus = drone_bus(zcfg)
+    try:
+        acks: BoundedQueue[Received] = BoundedQueue(100)
+        bus.subscribe(keys.downlink("uav1", Downlink.CAMERA_ACK), acks)
+        pub = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.CAMERA_DEPTH), Priority.INTERACTIVE_LOW)
+        assert pub.wait_matched(20)
+
+        def send(seq: int, parts: list[int]) -> None:
+            for i in parts:
+                pub.put(replace(whole, seq=seq, stamp_ns=seq, payload=chunks[i], part=i, parts=len(chunks)))
+
+        everything = list(range(len(chunks)))
+        send(1, everything)
+        first = acks.get(20)
+        send(2, everything[:-1])  # one part lost: never acked, given up once frame 3 completes
+        send(3, everything[:-1])
+        assert acks.get(1.0) is None  # frame 3 waits for its last part
+        send(3, everything[-1:])
+        third = acks.get(20)
+    finally:
+        bus.close()
+    assert first is not None
+    assert third is not None
+    assert [(a.message.frame_seq, a.message.kind) for a in (first, third)] == [(1, "depth"), (3, "depth")]  # type: ignore[attr-defined]
+    assert acks.get(0) is None
+    log = procs[-1].stop()
+    assert "frames=2 " in log
+    assert "incomplete=1 " in log
 
 
 def test_health_file_and_probe(edge: tuple[Path, ZenohConfig, list[DynqosProcess]], tmp_path: Path) -> None:

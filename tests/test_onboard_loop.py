@@ -16,9 +16,11 @@ import pytest
 from dynqos.common import keys
 from dynqos.common.config import ZenohConfig
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import Command, Reference, State, encode
+from dynqos.common.messages import CameraFrame, Command, Reference, State, encode
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, open_bus
+from dynqos.edge.assembler import FrameAssembler
+from dynqos.edge.detector import decode_depth
 from dynqos.report import reference_errors
 from tests.conftest import free_tcp_port
 from tests.procs import DynqosProcess
@@ -200,6 +202,47 @@ def test_onboard_streams_the_real_frames_from_files_without_taking_off(
     assert sizes == {(640, 480, "zstd16")}
     assert states.get(0) is None  # no flight controller, no state
     assert "not taking off" in log
+
+
+@pytest.mark.timeout(120)
+def test_onboard_paces_each_image_in_parts_that_the_detector_joins(tmp_path: Path, shared_data: Path) -> None:
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    config = loop_config(tmp_path, zcfg)
+    pace_mbps, part_bytes = 20.0, 16384
+    config.write_text(
+        config.read_text().replace(
+            "camera_fps = 5\n",
+            f'camera_fps = 2\ncamera = "files"\nfiles_dir = "{shared_data / "rgbd"}"\n'
+            f"camera_pace_mbps = {pace_mbps}\ncamera_part_bytes = {part_bytes}\n",
+        )
+    )
+    router = DynqosProcess(["edge", "router"], config)
+    bus = open_bus(zcfg, Role.EDGE)
+    parts: BoundedQueue[Received] = BoundedQueue(10_000)
+    bus.subscribe(keys.uplink_any_flow("uav1", Stream.CAMERA_DEPTH), parts)
+    onboard = DynqosProcess(["onboard"], config)
+    assembler = FrameAssembler()
+    arrivals: dict[int, list[int]] = {}
+    whole: list[CameraFrame] = []
+    try:
+        while len(whole) < 2:
+            item = parts.get(20)
+            assert item is not None, "no camera parts arrived"
+            assert isinstance(item.message, CameraFrame)
+            arrivals.setdefault(item.message.seq, []).append(item.arrival_ns)
+            done = assembler.add(item.message)
+            if done is not None:
+                whole.append(done)
+    finally:
+        onboard.stop()
+        bus.close()
+        router.stop()
+    for frame in whole:
+        assert decode_depth(frame).shape == (480, 640)  # the parts make the real image again
+        assert len(arrivals[frame.seq]) == math.ceil(len(frame.payload) / part_bytes)
+        span_s = (arrivals[frame.seq][-1] - arrivals[frame.seq][0]) / 1e9
+        paced_s = (len(frame.payload) - part_bytes) * 8 / (pace_mbps * 1e6)
+        assert span_s >= 0.8 * paced_s  # spread over time at the pace, not handed over in one burst
 
 
 @pytest.mark.timeout(60)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import random
 from collections.abc import Callable
@@ -24,6 +25,7 @@ from dynqos.onboard.supervisor import (
     QA,
     TABLE_I,
     WATCHDOG_CAUSE,
+    Actions,
     Decision,
     Inputs,
     Latency,
@@ -97,7 +99,7 @@ def test_sigmoid_is_the_papers_and_safe_for_any_input() -> None:
 
 
 def test_latency_condition_is_the_weighted_sum_over_window_means() -> None:
-    sup = Supervisor(CONFIG)
+    sup = Supervisor(replace(CONFIG, cc_fast_window=0))  # the paper's t2 alone
     cams = [50.0 + i for i in range(15)]  # only the last 10 count
     rtts = [20.0 + (i % 5) for i in range(60)]  # only the last 50 count
     decision = sup.step(Inputs(camera_latencies_ms=cams, cc_rtts_ms=rtts), 0)
@@ -195,7 +197,7 @@ def test_q2_returns_to_q1_when_space_opens() -> None:
     flight = Flight()
     flight.run_until(Q2, 2.0, link(20.0, 40.0, space_m=2.0))
     flight.run_until(Q1, 10.0, link(20.0, 40.0, space_m=9.0))
-    assert flight.sup.log[-1].cause == "LL holds and risk is no longer HR"
+    assert flight.sup.log[-1].cause.startswith("LL holds and risk is no longer HR;")
 
 
 def test_lr_and_hl_throttles_the_camera_on_the_default_flow_then_falls_back() -> None:
@@ -406,3 +408,118 @@ def test_stochastic_mode_fires_with_the_signals_probability() -> None:
     # P_lat is ~0.6 here, so the machine enters q3 after a few ticks, not always on the first.
     assert min(entries) < max(entries)
     assert len({round(e, 2) for e in entries}) > 3
+
+
+def ramp(onset_s: float, slope_ms_per_s: float, cam_ms: float = 40.0) -> Profile:
+    """A queue building from onset_s: the RTT grows by slope per second (as under an overload)."""
+    return lambda t: Inputs(
+        cc_rtts_ms=[15.0 + max(0.0, t - onset_s) * slope_ms_per_s],
+        camera_latencies_ms=[cam_ms],
+        spaciousness_m=4.0,
+    )
+
+
+def test_fast_attack_sees_a_queue_building_within_a_few_samples() -> None:
+    reactions = []
+    for fast_window in (4, 0):
+        flight = Flight(replace(CONFIG, cc_fast_window=fast_window))
+        flight.run(3.0, ramp(99.0, 0.0))  # a quiet 15 ms link
+        onset = flight.t
+        reactions.append(flight.run_until(Q3, 2.0, ramp(onset, 300.0)))
+    fast, paper = reactions
+    assert fast <= 0.3  # 4 samples above rho2 on average, then persist_s
+    assert paper >= fast + 0.25  # the 50-sample mean alone lets the queue grow twice as long
+
+
+def test_fast_attack_counts_the_state_still_unanswered() -> None:
+    sup = Supervisor(CONFIG)
+    quiet = sup.step(Inputs(cc_rtts_ms=[15.0] * 50, camera_latencies_ms=[40.0]), 0)
+    assert quiet.signals.t_cc_ms == pytest.approx(15.0)
+    waiting = sup.step(Inputs(cc_outstanding_ms=95.0), 1)
+    assert waiting.signals.t_cc_ms == pytest.approx((15.0 * 3 + 95.0) / 4)
+    few = Supervisor(CONFIG).step(Inputs(cc_rtts_ms=[15.0, 16.0], cc_outstanding_ms=10.0), 0)
+    assert few.signals.t_cc_ms == pytest.approx(15.5)  # fewer than 4 samples: the plain mean
+
+
+class LoadedDefaultFlow:
+    """The cell stays loaded: the priority flow is fine, the default flow queues whatever is put on it."""
+
+    def __init__(self, flight: Flight, loaded: bool = True) -> None:
+        self.flight = flight
+        self.loaded = loaded
+
+    def __call__(self, _t: float) -> Inputs:
+        camera_on_default = self.flight.sup.actions().camera == "default"
+        cam = 150.0 if camera_on_default and self.loaded else 40.0
+        return Inputs(cc_rtts_ms=[15.0], camera_latencies_ms=[cam], spaciousness_m=4.0)
+
+
+def notes(flight: Flight) -> list[tuple[float, str]]:
+    return [(t, d.note) for t, d in flight.decisions if d.note]
+
+
+def test_recovery_sends_the_camera_ahead_and_stays_when_the_default_flow_is_still_loaded() -> None:
+    flight = Flight()
+    flight.run(2.0, UNLOADED)
+    flight.run_until(Q3, 2.0, LOADED)
+    cell = LoadedDefaultFlow(flight)
+    flight.run(20.0, cell)
+    assert flight.sup.state is Q3  # never went back to q1 while the default flow was loaded
+    started = [t for t, n in notes(flight) if n.startswith("probing")]
+    failed = [t for t, n in notes(flight) if n.startswith("probe failed: camera latency")]
+    assert len(started) == len(failed) >= 2
+    gaps = [b - a for a, b in itertools.pairwise(started)]
+    assert gaps == sorted(gaps)  # each try waits longer than the one before
+    assert gaps[-1] > gaps[0] + 1.0
+    probing = [d.actions for _, d in flight.decisions if d.actions.camera_flow]
+    assert probing
+    assert {(a.flow, a.camera, a.camera_rate_factor) for a in probing} == {("priority", "default", 1.0)}
+    # The load ends: the next probe passes and the machine returns to q1 after probe_s.
+    cell.loaded = False
+    flight.run_until(Q1, CONFIG.recover_max_s + 3.0, cell)
+    assert flight.sup.log[-1].cause == "LL holds; the default flow carried the camera for 1 s"
+    assert flight.sup.actions() == Actions("default", 1.0, "edge")
+    status = to_status(flight.decisions[-1][1], uav="uav1", seq=1, stamp_ns=0, last=None)
+    assert status.camera_flow == ""
+
+
+def test_a_probe_ends_when_the_latency_turns_high() -> None:
+    flight = Flight()
+    flight.run(2.0, UNLOADED)
+    flight.run_until(Q3, 2.0, LOADED)
+    while not flight.decisions[-1][1].note.startswith("probing"):
+        flight.run(TICK_S, UNLOADED)
+    assert flight.sup.actions().camera == "default"
+    status = to_status(flight.decisions[-1][1], uav="uav1", seq=1, stamp_ns=0, last=None)
+    assert (status.flow, status.camera_flow) == ("priority", "default")
+    flight.run(TICK_S, LOADED)
+    assert flight.decisions[-1][1].note.startswith("probe failed: latency HL")
+    assert flight.sup.actions().camera == "priority"
+    assert flight.sup.state is Q3
+
+
+def test_rate_adapted_states_probe_at_full_rate_and_q4_returns_at_once() -> None:
+    flight = Flight()
+    flight.run(2.0, UNLOADED)
+    flight.run_until(Q3, 2.0, LOADED)
+    flight.run_until(Q6, CONFIG.escalate_s + 1.0, LOADED)
+    assert flight.sup.actions().camera_rate_factor == CONFIG.rate_factor
+    while not flight.decisions[-1][1].note.startswith("probing"):
+        flight.run(TICK_S, UNLOADED)
+    assert flight.sup.actions() == Actions("priority", 1.0, "edge", camera_flow="default")
+    flight.run_until(Q1, 2.0, UNLOADED)
+    # q4 is already on the default flow: nothing to probe.
+    flight = Flight()
+    flight.run(2.0, link(20.0, 40.0, space_m=9.0))
+    flight.run_until(Q4, 2.0, link(90.0, 160.0, space_m=9.0))
+    flight.run_until(Q1, 10.0, link(20.0, 40.0, space_m=9.0))
+    assert not [n for _, n in notes(flight) if n.startswith("probing")]
+
+
+def test_probe_s_zero_returns_at_once_as_in_the_paper() -> None:
+    flight = Flight(replace(CONFIG, probe_s=0.0))
+    flight.run(2.0, UNLOADED)
+    flight.run_until(Q3, 2.0, LOADED)
+    flight.run_until(Q1, CONFIG.recover_s + 1.5, UNLOADED)
+    assert flight.sup.log[-1].cause == "LL holds"
+    assert not notes(flight)
