@@ -163,7 +163,10 @@ def summarise(
     first_switch = None
     if bg_ns is not None and scenario.qos == "dynamic":
         after = [s for s in statuses if s.stamp_ns >= bg_ns and s.flow == "priority"]
-        if after:
+        before = [s for s in statuses if s.stamp_ns < bg_ns]
+        if before and before[-1].flow == "priority":
+            first_switch = 0.0  # already on the priority flow (for risk) when the load started
+        elif after:
             changed = after[0].changed_ns if after[0].changed_ns >= bg_ns else after[0].stamp_ns
             first_switch = (changed - bg_ns) / 1e9
     gaps = [float(g) for g in re.findall(r"max_setpoint_gap_ms=([\d.]+)", onboard_log)]
@@ -176,6 +179,8 @@ def summarise(
         "duration_s": scenario.duration_s,
         "scale": scenario.scale,
         "bg_start_s": (bg_ns - t0) / 1e9 if bg_ns is not None else None,
+        "settle_s": scenario.settle_s,
+        "seed": scenario.seed,
         "bg_mbps": scenario.bg_mbps if loaded else 0.0,
         "rates_span": "loaded" if loaded else "whole run after settling",
         **rates,
@@ -351,6 +356,39 @@ def _n(value: float | None, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def span_rmse(states_csv: Path, start_s: float, stop_s: float) -> float | None:
+    """Tracking RMSE over [start_s, stop_s) from a scenario's states.csv (None when it has none)."""
+    try:
+        with states_csv.open(newline="") as f:
+            errors = [
+                float(row["tracking_error_m"])
+                for row in csv.DictReader(f)
+                if row.get("tracking_error_m") and start_s <= float(row["t_s"]) < stop_s
+            ]
+    except (OSError, ValueError, KeyError):
+        return None
+    return _rmse(errors)
+
+
+def _same_wind_line(out: Path, s: dict[str, Any], baseline: dict[str, Any] | None) -> list[str]:
+    """The baseline scenario flies the same mission in the same wind (same seed) with no load: over the
+    same spans it shows how much of a loaded/baseline RMSE ratio is the gusts' and how much the load's."""
+    start = s.get("bg_start_s")
+    if start is None or baseline is None or baseline["mission"] != s["mission"]:
+        return []
+    if (baseline["seed"], baseline["scale"]) != (s["seed"], s["scale"]):
+        return []
+    reference = out / "baseline" / "states.csv"
+    before = span_rmse(reference, s.get("settle_s", 0.0), start)
+    after = span_rmse(reference, start, math.inf)
+    if before is None or after is None:
+        return []
+    return [
+        f"- the baseline scenario (the same wind, no load) over the same spans: {_n(before, 3)} / "
+        f"{_n(after, 3)} m ({after / before:.2f}x): the part of the ratio that is the gusts'"
+    ]
+
+
 def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
     lines = [
         "# dynqos demo report",
@@ -382,6 +420,7 @@ def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
         ]
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "## Scenarios", ""]
+    baseline = next((s for s in summaries if s["scenario"] == "baseline" and s["bg_start_s"] is None), None)
     for s in summaries:
         rtt, cam, rmse = s["rtt_ms"], s["camera_latency_ms"], s["tracking_rmse_m"]
         lines += [
@@ -395,6 +434,7 @@ def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
             f"- camera latency (ms): baseline mean {_n(cam['baseline']['mean'])}; loaded mean "
             f"{_n((cam['loaded'] or {}).get('mean'))}",
             f"- tracking RMSE (m): baseline {_n(rmse['baseline'], 3)}, loaded {_n(rmse['loaded'], 3)}",
+            *_same_wind_line(out, s, baseline),
             f"- first switch to the priority flow after the background started: "
             f"{_n(s['first_qos_switch_after_bg_s'], 2)} s; fallback entered: {s['fallback_entered']}; "
             f"largest setpoint gap: {_n(s['setpoint_gap_max_ms'])} ms",

@@ -92,6 +92,7 @@ def test_short_demo_writes_the_contract(tmp_path: Path) -> None:
     report = (out / "report.md").read_text()
     assert "Table II" in report
     assert "baseline/overview.png" in report
+    assert "the baseline scenario (the same wind, no load) over the same spans" in report
 
 
 def test_bad_scenario_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
