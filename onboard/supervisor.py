@@ -201,6 +201,8 @@ class Supervisor:
         self._recover_ns = self._ns(config.recover_s)
         self._last_recovery_ns: int | None = None
         self._probe_since_ns: int | None = None
+        self._probe_wait_ns = self._recover_ns  # after a failed probe, the next waits this long...
+        self._probe_not_before_ns = start_ns  # ...from here
         self._note = ""
         self.log: deque[Transition] = deque(maxlen=TRANSITION_LOG_SIZE)
 
@@ -341,29 +343,34 @@ class Supervisor:
         Going back while the cell is still loaded would put the state behind a growing queue until HL
         is seen again. The camera is the bulk of what q1 sends, so it tests the default flow first while
         the state stays on the priority flow: if its latency passes rho1 the probe ends and the next try
-        waits twice as long (the same back-off as a bounce), and the state never saw the queue.
+        waits twice as long, and the state never saw the queue. A drone whose camera has never been
+        acknowledged (no camera, no detector) has no evidence to probe with: it returns after probe_s.
         """
         cfg = self.config
         if cfg.probe_s <= 0:
             return Q1, cause
         if self._probe_since_ns is None:
+            if now_ns < self._probe_not_before_ns:
+                return None
             self._probe_since_ns = now_ns
             self._note = f"probing the default flow with the camera ({cause})"
             return None
-        if signals.t_cam_ms is not None and signals.t_cam_ms > cfg.rho[0]:
+        camera_seen = len(self._cam) > 0
+        if camera_seen and signals.t_cam_ms is not None and signals.t_cam_ms > cfg.rho[0]:
             self._end_probe(now_ns, f"camera latency {signals.t_cam_ms:.0f} ms > rho1")
             return None
         if now_ns - self._probe_since_ns >= self._ns(cfg.probe_s):
+            self._probe_wait_ns = self._recover_ns
             return Q1, f"{cause}; the default flow carried the camera for {cfg.probe_s:g} s"
         return None
 
     def _end_probe(self, now_ns: int, why: str) -> None:
         cfg = self.config
         self._probe_since_ns = None
-        if self._ll_since_ns is not None:
-            self._ll_since_ns = now_ns  # the recovery time starts again...
-        self._recover_ns = min(round(self._recover_ns * cfg.recover_backoff), self._ns(cfg.recover_max_s))
-        self._note = f"probe failed: {why}; next try in {self._recover_ns / NS_PER_S:g} s"  # ...and longer
+        longer = round(self._probe_wait_ns * cfg.recover_backoff)
+        self._probe_wait_ns = min(longer, self._ns(cfg.recover_max_s))
+        self._probe_not_before_ns = now_ns + self._probe_wait_ns
+        self._note = f"probe failed: {why}; next try in {self._probe_wait_ns / NS_PER_S:g} s"
 
     def _enter(self, target: State, cause: str, signals: Signals, now_ns: int) -> Transition:
         cfg = self.config

@@ -523,3 +523,28 @@ def test_probe_s_zero_returns_at_once_as_in_the_paper() -> None:
     flight.run_until(Q1, CONFIG.recover_s + 1.5, UNLOADED)
     assert flight.sup.log[-1].cause == "LL holds"
     assert not notes(flight)
+
+
+def no_camera_acks(rtt_ms: float) -> Profile:
+    """Frames go out and nothing acknowledges them (no detector): only an ever older outstanding frame."""
+    return lambda t: Inputs(cc_rtts_ms=[rtt_ms], camera_outstanding_ms=1000.0 * t, spaciousness_m=4.0)
+
+
+def test_without_camera_acks_the_probe_has_no_evidence_and_returns_after_probe_s() -> None:
+    flight = Flight()
+    flight.run(2.0, no_camera_acks(20.0))
+    flight.run_until(Q3, 2.0, no_camera_acks(90.0))
+    took = flight.run_until(Q1, 10.0, no_camera_acks(20.0))
+    assert CONFIG.recover_s + CONFIG.probe_s <= took <= CONFIG.recover_s + CONFIG.probe_s + 1.0
+    assert not [n for _, n in notes(flight) if n.startswith("probe failed")]
+
+
+def test_failed_probes_do_not_slow_the_return_from_the_fallback() -> None:
+    flight = Flight()
+    flight.run(2.0, UNLOADED)
+    flight.run_until(Q3, 2.0, LOADED)
+    flight.run(12.0, LoadedDefaultFlow(flight))  # probes fail and back off
+    assert len([n for _, n in notes(flight) if n.startswith("probe failed")]) >= 2
+    flight.run(0.5, link(20.0, 40.0, watchdog=True))
+    assert flight.sup.state is QA
+    assert flight.run_until(Q1, 5.0, UNLOADED) <= CONFIG.recover_s + 0.5

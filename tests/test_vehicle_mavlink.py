@@ -17,16 +17,14 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
+from dynqos.demo import free_port
 from tests.procs import DYNQOS, DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
+    return free_port(socket.SOCK_DGRAM)
 
 
 class VehicleProcess(DynqosProcess):
