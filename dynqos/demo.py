@@ -141,13 +141,11 @@ def camera_size_for(target_bps: float, fps: float, part_bytes: int = 0) -> tuple
     return width, width * 3 // 4
 
 
-FRAME_HEADER_BYTES = 190  # one CameraFrame message without its payload (msgpack field names and values)
-
-
 def _frame_bits(width: int, height: int, part_bytes: int = 0) -> float:
     """Mean size of one RGB-D frame on the wire, seen from the demo's circle (radius 2 m, yaw along it,
     tilted 0.06 rad as a drone flying it in a breeze: the floor in view adds about 5%)."""
     from dynqos.onboard.camera import SimCamera, encode_depth, encode_rgb
+    from dynqos.onboard.pacing import FRAME_HEADER_BYTES
     from dynqos.sim.world import default_world
 
     camera = SimCamera(default_world(), width, height)  # the onboard camera's optics

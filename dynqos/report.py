@@ -356,18 +356,17 @@ def _n(value: float | None, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def span_rmse(states_csv: Path, start_s: float, stop_s: float) -> float | None:
-    """Tracking RMSE over [start_s, stop_s) from a scenario's states.csv (None when it has none)."""
+def tracking_errors_csv(states_csv: Path) -> list[tuple[float, float]] | None:
+    """(t_s, tracking error) from a scenario's states.csv (None when it cannot be read)."""
     try:
         with states_csv.open(newline="") as f:
-            errors = [
-                float(row["tracking_error_m"])
+            return [
+                (float(row["t_s"]), float(row["tracking_error_m"]))
                 for row in csv.DictReader(f)
-                if row.get("tracking_error_m") and start_s <= float(row["t_s"]) < stop_s
+                if row.get("tracking_error_m")
             ]
     except (OSError, ValueError, KeyError):
         return None
-    return _rmse(errors)
 
 
 def _same_wind_line(out: Path, s: dict[str, Any], baseline: dict[str, Any] | None) -> list[str]:
@@ -378,9 +377,11 @@ def _same_wind_line(out: Path, s: dict[str, Any], baseline: dict[str, Any] | Non
         return []
     if (baseline["seed"], baseline["scale"]) != (s["seed"], s["scale"]):
         return []
-    reference = out / "baseline" / "states.csv"
-    before = span_rmse(reference, s.get("settle_s", 0.0), start)
-    after = span_rmse(reference, start, math.inf)
+    errors = tracking_errors_csv(out / "baseline" / "states.csv")
+    if errors is None:
+        return []
+    before = _rmse([e for t, e in errors if s.get("settle_s", 0.0) <= t < start])
+    after = _rmse([e for t, e in errors if t >= start])
     if before is None or after is None:
         return []
     return [

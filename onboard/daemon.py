@@ -61,7 +61,7 @@ from dynqos.onboard.camera import (
 from dynqos.onboard.commands import CommandTracker
 from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD, PX4_SUB_LOITER, FcLink, FcState
 from dynqos.onboard.monitors import CameraLatencyMonitor
-from dynqos.onboard.pacing import Pacer, split
+from dynqos.onboard.pacing import FRAME_HEADER_BYTES, Pacer, split
 from dynqos.onboard.pid import CascadedPid
 from dynqos.onboard.risk import Spaciousness
 from dynqos.onboard.supervisor import Decision, Inputs, Supervisor, to_status
@@ -70,7 +70,6 @@ from dynqos.sim.world import default_world, load_world
 log = logging.getLogger(__name__)
 
 SETPOINT_HZ = 50
-PART_OVERHEAD_BYTES = 200  # a paced part's message header (msgpack fields, zenoh framing)
 STALE_STATE_NS = 500_000_000  # no position from the FC for this long: it is lost, stop using its state
 
 
@@ -559,7 +558,7 @@ class OnboardDaemon:
         parts = [data] if self.pacer is None else split(data, self.cfg.camera_part_bytes)
         for index, part in enumerate(parts):
             if self.pacer is not None:
-                wait_ns = self.pacer.reserve(len(part) + PART_OVERHEAD_BYTES, self.clock.now_ns())
+                wait_ns = self.pacer.reserve(len(part) + FRAME_HEADER_BYTES, self.clock.now_ns())
                 if wait_ns > 0 and self.stop.wait(wait_ns / 1e9):
                     return
             frame = CameraFrame(uav=self.uav, seq=seq, stamp_ns=stamp, kind=kind, encoding=encoding, width=w,

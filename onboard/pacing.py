@@ -11,6 +11,7 @@ anyway. WebRTC's pacer does the same for video packets.
 from __future__ import annotations
 
 NS_PER_S = 1_000_000_000
+FRAME_HEADER_BYTES = 200  # one CameraFrame message on the link besides its payload (msgpack ~190, zenoh)
 
 
 def split(payload: bytes, part_bytes: int) -> list[bytes]:
