@@ -30,7 +30,7 @@ from dynqos.common import keys
 from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import Command, State, encode
 from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Bus, Priority, Publisher, Received, Role, open_bus
+from dynqos.common.transport import Priority, Received, Role, ZenohBus, ZenohPublisher, open_bus
 
 UAV = "uav1"
 BLOCK = 50
@@ -56,7 +56,7 @@ def _summary(seconds: list[float]) -> dict[str, float]:
 class Loop:
     """Both round trips on one drone session."""
 
-    def __init__(self, bus: Bus) -> None:
+    def __init__(self, bus: ZenohBus) -> None:
         self.bus = bus
         self.state_pub = bus.publisher(keys.uplink(UAV, Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME,
                                        express=True)  # fmt: skip
@@ -72,7 +72,7 @@ class Loop:
     def wait_ready(self) -> None:
         if not self.state_pub.wait_matched(30):
             raise RuntimeError("the MPC never subscribed to the drone's state")
-        if not Publisher(self.ping, PING).wait_matched(30):  # zenoh's matching listener, no polling
+        if not ZenohPublisher(self.ping, PING).wait_matched(30):  # zenoh's matching listener, no polling
             raise RuntimeError("the echo never subscribed to bench/ping")
 
     def ours(self) -> float:

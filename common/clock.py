@@ -1,7 +1,7 @@
 """Time as an injected dependency, so pure logic is tested with a clock the test controls.
 
 Everything in dynqos measures time in integer nanoseconds of a monotonic clock. No clock
-synchronisation between drone and edge is assumed anywhere (DESIGN section 3).
+synchronisation between drone and edge is assumed anywhere (docs/architecture.md, "Time").
 """
 
 from __future__ import annotations
@@ -10,7 +10,6 @@ import time
 from typing import Protocol
 
 NS_PER_S = 1_000_000_000
-NS_PER_MS = 1_000_000
 
 
 class Clock(Protocol):

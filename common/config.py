@@ -1,9 +1,10 @@
 """Configuration: TOML files loaded into frozen, typed dataclasses.
 
-Defaults are the paper's values (mu, rho, w, N, risk thresholds, T_mpc) and DESIGN's. A file sets
-only what it changes. Unknown keys, wrong types and out-of-range values are rejected with
-ConfigError naming the file, the key path and the reason. Config is loaded once in `main()` and
-passed down; there are no globals.
+Defaults are the paper's values where it gives them (mu, rho, w, N, risk thresholds, T_mpc) and
+dynqos's own choices elsewhere (docs/supervisor.md says which and why). A file sets only what it
+changes. Unknown keys, wrong types and out-of-range values are rejected with ConfigError naming the
+file, the key path and the reason. Config is loaded once in `main()` and passed down; there are no
+globals.
 """
 
 from __future__ import annotations
@@ -90,7 +91,7 @@ class ZenohConfig:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SupervisorConfig:
-    """The PFSM's parameters (paper eq. 1-3, DESIGN section 4). Index 0/1/2 = camera/C&C/risk."""
+    """The PFSM's parameters (paper eq. 1-3; docs/supervisor.md). Index 0/1/2 = camera/C&C/risk."""
 
     mode: Literal["deterministic", "stochastic"] = "deterministic"
     seed: int = 0
@@ -204,9 +205,6 @@ class BackgroundConfig:
         _require(0 <= self.offered_mbps <= 1e5, "offered_mbps", "must be in 0..100000")
 
 
-CELL_EVENT_KINDS = ("background", "capacity", "trace", "coverage_loss", "downlink_loss", "weight")
-
-
 @dataclass(frozen=True, slots=True, kw_only=True)
 class CellEventConfig:
     """A timeline event; which fields it needs depends on `kind` (see docs/cell.md)."""
@@ -243,7 +241,7 @@ class CellEventConfig:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class CellConfig:
-    """The emulated 5G cell (DESIGN section 5). `scale` divides every rate."""
+    """The emulated 5G cell (docs/cell.md). `scale` divides every rate."""
 
     uplink_mbps: float = 81.3
     downlink_mbps: float = 1400.0
@@ -435,6 +433,10 @@ class OnboardConfig:
     """`dynqos onboard`: the drone's daemon (docs/onboard.md)."""
 
     mavlink_url: str = "udpin:127.0.0.1:14540"
+    # The flight controller's MAVLink system and component ids (PX4: 1/1; instance N of a multi-vehicle
+    # SITL is N+1), so that several vehicles can share a ground-station link.
+    fc_system_id: int = 1
+    fc_component_id: int = 1
     takeoff: bool = False
     takeoff_alt_m: float = 1.5
     connect_default: str = ""  # host:port of the default flow ("" = zenoh edge_host:default_port)
@@ -465,6 +467,10 @@ class OnboardConfig:
             bool(self.mavlink_url.strip()), "mavlink_url", "must not be empty (e.g. udpin:127.0.0.1:14540)"
         )
         _require(0.5 <= self.takeoff_alt_m <= 100, "takeoff_alt_m", "must be in 0.5..100 m")
+        _require(1 <= self.fc_system_id <= 255, "fc_system_id", "must be a MAVLink system id, 1..255")
+        _require(
+            1 <= self.fc_component_id <= 255, "fc_component_id", "must be a MAVLink component id, 1..255"
+        )
         for name in ("connect_default", "connect_priority"):
             if getattr(self, name):
                 _host_port(getattr(self, name), name)
@@ -517,7 +523,7 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
-def _convert(tp: Any, value: Any, key: str) -> Any:
+def _convert(tp: Any, value: Any, key: str) -> Any:  # noqa: C901 (one case per TOML type a field may have)
     origin = get_origin(tp)
     if is_dataclass(tp) and isinstance(tp, type):
         if not isinstance(value, dict):

@@ -4,14 +4,16 @@ ints -> floats where a float is meant). They raise MessageError naming the field
 
 from __future__ import annotations
 
+import enum
 import math
 from collections.abc import Callable, Collection
-from typing import Any
+from typing import Any, TypeVar
 
 from dynqos.common.errors import KeyExprError, MessageError
 from dynqos.common.keys import check_uav_id
 
 Validator = Callable[[str, Any], Any]
+E = TypeVar("E", bound=enum.Enum)
 
 INT64_MAX = 2**63 - 1
 
@@ -73,6 +75,20 @@ def choice(options: Collection[str]) -> Validator:
             shown = value[:40] if isinstance(value, str) else type(value).__name__
             raise MessageError(name, f"{shown!r} is not one of {sorted(allowed)}")
         return value
+
+    return check
+
+
+def member(kind: type[E]) -> Validator:
+    """A value of the str enum `kind` (given as the enum or its plain value), returned as the member."""
+    allowed = sorted(m.value for m in kind)
+
+    def check(name: str, value: Any) -> E:
+        try:
+            return kind(value)
+        except ValueError:
+            shown = value[:40] if isinstance(value, str) else type(value).__name__
+            raise MessageError(name, f"{shown!r} is not one of {allowed}") from None
 
     return check
 

@@ -1,4 +1,4 @@
-"""Key expressions: every zenoh key dynqos uses is built and parsed here (DESIGN section 2).
+"""Key expressions: every zenoh key dynqos uses is built and parsed here (docs/architecture.md).
 
 A 5G QoS flow is a zenoh link with a priority range; the key names the flow the publisher was
 declared on, so a receiver subscribes to both flows with one wildcard:
@@ -18,14 +18,10 @@ import re
 from dataclasses import dataclass
 
 from dynqos.common.errors import KeyExprError
+from dynqos.common.modes import Flow as Flow  # re-exported: a key names its flow
 
 ROOT = "dynqos"
 UAV_ID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,32}")
-
-
-class Flow(str, enum.Enum):
-    DEFAULT = "default"
-    PRIORITY = "priority"
 
 
 class Stream(str, enum.Enum):

@@ -1,4 +1,4 @@
-"""Messages between drone and edge (DESIGN section 3) and their msgpack codec.
+"""Messages between drone and edge (docs/architecture.md) and their msgpack codec.
 
 Every payload is a msgpack map carrying the message type `t`, the schema version `v` and the
 fields. `decode` validates every field and raises only DecodeError, whatever bytes arrive, so a
@@ -16,6 +16,7 @@ import msgpack
 
 from dynqos.common import fields as f
 from dynqos.common.errors import DecodeError, MessageError
+from dynqos.common.modes import ControlSource, Flow, SupervisorState
 
 SCHEMA_VERSION = 1
 MAX_MESSAGE_BYTES = 24 * 1024 * 1024
@@ -31,9 +32,6 @@ VELOCITY_LIMIT_MPS = 1e3
 ACCEL_LIMIT_MPS2 = 100.0
 LATENCY_LIMIT_MS = 1e7
 
-STATES = ("q1", "q2", "q3", "q4", "q5", "q6", "qA")
-FLOWS = ("default", "priority")
-CONTROL_SOURCES = ("edge", "fallback")
 CAMERA_KINDS = ("rgb", "depth")
 CAMERA_ENCODINGS = ("jpeg", "png", "png16", "zstd16", "raw8", "raw16")
 
@@ -246,10 +244,10 @@ class SupervisorStatus(Message):
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
         **_COMMON,
         "stamp_ns": f.integer(),
-        "state": f.choice(STATES),
-        "flow": f.choice(FLOWS),
+        "state": f.member(SupervisorState),
+        "flow": f.member(Flow),
         "camera_rate_factor": f.real(0.0, 1.0),
-        "control_source": f.choice(CONTROL_SOURCES),
+        "control_source": f.member(ControlSource),
         "latency": f.choice(("LL", "HL", "NA")),
         "risk": f.choice(("LR", "MR", "HR", "NA")),
         "watchdog": f.boolean,
@@ -260,22 +258,26 @@ class SupervisorStatus(Message):
         "p_cc": _probability,
         "p_lat": _probability,
         "p_cs": _probability,
-        "prev_state": f.choice(STATES),
+        "prev_state": f.member(SupervisorState),
         "cause": f.text(200),
         "changed_ns": f.integer(),
         "rtt_ms": f.optional(_latency_ms),
         "camera_latency_ms": f.optional(_latency_ms),
         "setpoint_gap_ms": f.optional(_latency_ms),
-        "camera_flow": f.choice(("", *FLOWS)),
+        "camera_flow": f.member(Flow),
+        "fallbacks": f.integer(),
+        "control_changed_ns": f.integer(),
+        "command_age_ms": f.optional(_latency_ms),
         "rtt_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
         "camera_latency_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
     }
 
     stamp_ns: int
-    state: str
-    flow: str
+    state: SupervisorState
+    flow: Flow  # the state's flow
     camera_rate_factor: float
-    control_source: str
+    control_source: ControlSource  # who flies the drone now (what it does, not what it was asked)
+    camera_flow: Flow  # the camera's flow (it differs from `flow` while the camera probes the default flow)
     latency: str
     risk: str
     watchdog: bool
@@ -286,15 +288,17 @@ class SupervisorStatus(Message):
     p_cc: float
     p_lat: float
     p_cs: float
-    prev_state: str
+    prev_state: SupervisorState
     cause: str
     changed_ns: int
     rtt_ms: float | None = None  # the latest C&C RTT sample, for plots
     camera_latency_ms: float | None = None  # the latest camera latency sample
     setpoint_gap_ms: float | None = None  # longest pause between setpoints to the FC since the last status
-    camera_flow: str = ""  # the camera's flow when it differs from `flow` (a probe of the default flow)
     rtt_samples_ms: tuple[float, ...] = ()  # every C&C RTT measured since the last status, for statistics
     camera_latency_samples_ms: tuple[float, ...] = ()  # every camera latency since the last status
+    fallbacks: int = 0  # hand-overs to the fallback PID since the daemon started
+    control_changed_ns: int = 0  # when control_source last changed (onboard clock; 0: never)
+    command_age_ms: float | None = None  # age of the last valid command at that change (None: none yet)
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

@@ -1,6 +1,6 @@
 """The one place that turns config into zenoh sessions, and the thin publish/subscribe seam.
 
-A 5G QoS flow is a zenoh link with a priority range to its own router port (DESIGN section 2):
+A 5G QoS flow is a zenoh link with a priority range to its own router port (docs/architecture.md):
 the drone's session is a *peer* that connects to `tcp/<edge>:7447?prio=4-7` (default flow) and
 `tcp/<edge>:7448?prio=1-3#dscp=0xb8` (priority flow), listens on nothing and scouts nothing, so
 every byte crosses exactly those two links. Client mode would open only the first endpoint.
@@ -8,8 +8,9 @@ every byte crosses exactly those two links. Client mode would open only the firs
 Edge services are clients of the router. Shared memory is off by default: on one host it would
 let large payloads bypass the links (and the cell emulator).
 
-Pure code never imports zenoh: it sees `Bus`, `Publisher` and `BoundedQueue`. Subscriber
-callbacks only decode and hand off to a bounded queue; they never block.
+Pure code never imports zenoh: it sees the `Bus` and `Publisher` protocols of `common.bus`, which
+`ZenohBus` implements here. Subscriber callbacks only decode and hand off to a bounded queue; they
+never block.
 """
 
 from __future__ import annotations
@@ -26,9 +27,14 @@ from typing import Any
 import zenoh
 
 from dynqos.common.acl import access_control_policy
+from dynqos.common.bus import Bus as Bus
+from dynqos.common.bus import Priority as Priority
+from dynqos.common.bus import Publisher as Publisher
+from dynqos.common.bus import Received as Received
+from dynqos.common.bus import SubscriptionStats, delivery
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.config import ZenohConfig
-from dynqos.common.errors import ConfigError, DecodeError, TransportError
+from dynqos.common.errors import ConfigError, TransportError
 from dynqos.common.messages import Message, decode, encode
 from dynqos.common.queues import BoundedQueue
 
@@ -39,18 +45,6 @@ class Role(str, enum.Enum):
     DRONE = "drone"  # peer, connects to both flow ports, listens on nothing
     EDGE = "edge"  # client of the router
     ROUTER = "router"  # listens on both flow ports
-
-
-class Priority(enum.IntEnum):
-    """Zenoh's priorities, numbered as zenoh numbers them (1 = REAL_TIME)."""
-
-    REAL_TIME = 1
-    INTERACTIVE_HIGH = 2
-    INTERACTIVE_LOW = 3
-    DATA_HIGH = 4
-    DATA = 5
-    DATA_LOW = 6
-    BACKGROUND = 7
 
 
 DEFAULT_FLOW_PRIORITIES = (4, 7)
@@ -192,26 +186,8 @@ class LinkInfo:
     priorities: tuple[int, int] | None
 
 
-@dataclass(frozen=True, slots=True)
-class Received:
-    """One decoded message as handed from a zenoh callback to the consumer."""
-
-    key: str
-    message: Message
-    arrival_ns: int
-
-
-class SubscriptionStats:
-    """Counters of one subscription; written by the callback thread, read by anyone."""
-
-    def __init__(self) -> None:
-        self.received = 0
-        self.rejected = 0
-        self.last_error: str | None = None
-
-
-class Publisher:
-    """Publishes messages on one key with a priority fixed at declaration (zenoh's rule)."""
+class ZenohPublisher:
+    """A zenoh publisher on one key with a priority fixed at declaration (zenoh's rule)."""
 
     def __init__(self, inner: zenoh.Publisher, key: str) -> None:
         self._inner = inner
@@ -247,8 +223,8 @@ class Publisher:
         self._inner.undeclare()  # type: ignore[no-untyped-call]
 
 
-class Bus:
-    """A zenoh session seen through the few operations dynqos needs."""
+class ZenohBus:
+    """A zenoh session seen through the few operations dynqos needs (the `Bus` protocol)."""
 
     def __init__(self, session: zenoh.Session, clock: Clock | None = None) -> None:
         self._session = session
@@ -262,12 +238,12 @@ class Bus:
 
     def publisher(
         self, key: str, priority: Priority, *, drop_when_congested: bool = False, express: bool = False
-    ) -> Publisher:
+    ) -> ZenohPublisher:
         congestion = zenoh.CongestionControl.DROP if drop_when_congested else zenoh.CongestionControl.BLOCK
         inner = self._session.declare_publisher(
             key, priority=_ZENOH_PRIORITY[priority], congestion_control=congestion, express=express
         )
-        return Publisher(inner, key)
+        return ZenohPublisher(inner, key)
 
     def subscribe(
         self,
@@ -277,30 +253,13 @@ class Bus:
         expect: tuple[type[Message], ...] = (),
         decoder: Callable[[bytes], Message] = decode,
     ) -> SubscriptionStats:
-        """Decode every sample on key_expr into `queue`; bad payloads are counted, never raised.
-
-        With `expect`, a well-formed message of another type is rejected too, and so is one whose
-        drone id differs from the one in its key (a drone speaking for another)."""
+        """Decode every sample on key_expr into `queue`; bad payloads are counted, never raised."""
         stats = SubscriptionStats()
         clock = self._clock
+        deliver = delivery(queue, stats, expect, decoder)
 
         def on_sample(sample: zenoh.Sample) -> None:
-            arrival_ns = clock.now_ns()
-            key = str(sample.key_expr)
-            try:
-                message = decoder(sample.payload.to_bytes())
-                if expect and not isinstance(message, expect):
-                    raise DecodeError("t", f"a {message.TYPE} is not expected here")
-                if expect and key.split("/", 2)[1] != message.uav:
-                    raise DecodeError("uav", f"drone {message.uav!r} on another drone's key")
-            except DecodeError as exc:
-                stats.rejected += 1
-                stats.last_error = str(exc)
-                if stats.rejected == 1 or stats.rejected % 1000 == 0:
-                    log.warning("rejected message on %s (%d so far): %s", key, stats.rejected, exc)
-                return
-            stats.received += 1
-            queue.put(Received(key, message, arrival_ns))
+            deliver(str(sample.key_expr), sample.payload.to_bytes(), clock.now_ns())
 
         subscriber = self._session.declare_subscriber(key_expr, on_sample)
         with self._lock:
@@ -317,7 +276,7 @@ class Bus:
             subscriber.undeclare()
         self._session.close()  # type: ignore[no-untyped-call]
 
-    def __enter__(self) -> Bus:
+    def __enter__(self) -> ZenohBus:
         return self
 
     def __exit__(self, *_exc: object) -> None:
@@ -350,5 +309,5 @@ def open_bus(
     connect: Sequence[str] | None = None,
     listen: Sequence[str] | None = None,
     clock: Clock | None = None,
-) -> Bus:
-    return Bus(open_session(cfg, role, connect=connect, listen=listen), clock)
+) -> ZenohBus:
+    return ZenohBus(open_session(cfg, role, connect=connect, listen=listen), clock)

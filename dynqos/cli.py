@@ -160,24 +160,25 @@ def _cmd_edge(args: argparse.Namespace, config: Config) -> int:
         return 0
     bus = open_bus(config.zenoh, Role.EDGE)
     try:
-        service: Any
+        worker: Any
         if name == "mpc":
             from dynqos.edge.mpc_service import MpcService
 
-            service = MpcService(config, bus)
+            worker = MpcService(config, bus)
         elif name == "planner":
             from dynqos.edge.planner_service import PlannerService
 
-            service = PlannerService(config, bus)
+            worker = PlannerService(config, bus)
         else:
             from dynqos.edge.detector_service import DetectorService
 
-            service = DetectorService(config, bus)
-        service.service.install_signal_handlers()
-        service.service.health_file = _health_path(args)
-        service.service.write_health("ready")
+            worker = DetectorService(config, bus)
+        lifecycle = worker.service  # signals, health file and stop event of this process
+        lifecycle.install_signal_handlers()
+        lifecycle.health_file = _health_path(args)
+        lifecycle.write_health("ready")
         _ready_line(name)
-        service.run()
+        worker.run()
     finally:
         bus.close()
     return 0
@@ -268,7 +269,7 @@ def _cmd_demo(args: argparse.Namespace, config: Config) -> int:
     return 0 if result["ok"] else 1
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: one per option)
     common = _common_options()
     parser = argparse.ArgumentParser(
         prog="dynqos",

@@ -310,7 +310,7 @@ def _post_json(port: int, path: str, body: dict[str, Any]) -> dict[str, Any]:
         return data
 
 
-def run_scenario(
+def run_scenario(  # noqa: C901, PLR0915 (the scenario in order; see issue notes)
     scenario: Scenario, out: Path, *, stop: threading.Event | None = None, progress: bool = True
 ) -> dict[str, Any]:
     """Run one scenario into out/<name>/ and return its summary."""

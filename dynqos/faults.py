@@ -3,10 +3,10 @@
 A scenario's `[[scenario.faults]]` list (docs/reliability.md) says when each fault starts and how long
 it lasts. The injector acts only on what the run itself started: processes by their pid (SIGKILL and a
 restart, SIGSTOP/SIGCONT), the cell emulator through its control API, and a flood of camera frames
-from the recorder's own session. The outcome of each fault is read from the drone's status stream
-and the onboard log: how long after its last valid command the fallback took over, the longest pause
-in setpoints to the flight controller, and how long after the fault cleared control was back at the
-edge.
+from the recorder's own session. The outcome of each fault is measured from the drone's status stream
+(SupervisorStatus carries who flies, since when, and the age of the last valid command then): how long
+after its last valid command the fallback took over, the longest pause in setpoints to the flight
+controller, and how long after the fault cleared control was back at the edge.
 """
 
 from __future__ import annotations
@@ -15,11 +15,15 @@ import logging
 import signal
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any, Literal
 
+from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.errors import ConfigError
+from dynqos.common.messages import SupervisorStatus
+from dynqos.common.modes import ControlSource
 
 log = logging.getLogger(__name__)
 SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zenoh reconnects take seconds)
@@ -176,46 +180,52 @@ def log_times(text: str) -> list[tuple[float, str]]:
 def outcome(
     window: FaultWindow,
     onboard_log: list[tuple[float, str]],
-    status: list[Any],
-    next_start_wall: float | None,
+    status: Sequence[SupervisorStatus],
+    next_start_ns: int | None,
 ) -> dict[str, Any]:
-    """What the fault did: fallback, setpoint gaps, recovery, and the log lines that said so. Its
-    window runs from its start to SETTLE_S after it cleared, or to the next fault's start."""
+    """What the fault did, measured from the drone's SupervisorStatus stream: whether control fell back,
+    how long after the last valid command, the longest setpoint gap, and when control was back at the
+    edge. Its window runs from its start to SETTLE_S after it cleared, or to the next fault's start.
+    The onboard log only supplies the lines a reader will want to see beside the figures."""
     fault = window.fault
-    end_wall = window.end_wall if window.end_wall is not None else window.start_wall + fault.duration_s
-    end_ns = window.end_ns if window.end_ns is not None else window.start_ns + round(fault.duration_s * 1e9)
-    until_wall = end_wall + SETTLE_S
-    if next_start_wall is not None:
-        until_wall = min(until_wall, next_start_wall)
-    until_ns = end_ns + round((until_wall - end_wall) * 1e9)
-    lines = [(t, m) for t, m in onboard_log if window.start_wall <= t <= until_wall]
+    end_ns = window.end_ns if window.end_ns is not None else window.start_ns + to_ns(fault.duration_s)
+    until_ns = end_ns + to_ns(SETTLE_S)
+    if next_start_ns is not None:
+        until_ns = min(until_ns, next_start_ns)
+    seen = sorted((s for s in status if window.start_ns <= s.stamp_ns <= until_ns), key=lambda s: s.stamp_ns)
     fallback = next(
-        ((t, m) for t, m in lines if "fallback PID holding position" in m and t <= end_wall + 1), None
+        (
+            s
+            for s in seen
+            if s.control_source is ControlSource.FALLBACK
+            and window.start_ns <= s.control_changed_ns <= end_ns + NS_PER_S
+        ),
+        None,
     )
-    fallback_ms = None
-    if fallback is not None and "last valid command" in fallback[1]:
-        text = fallback[1].split("last valid command", 1)[1].split("ms ago", 1)[0].strip()
-        fallback_ms = float(text) if text.replace(".", "", 1).isdigit() else None
     back = None
     if fallback is not None:
-        back = next((t for t, m in lines if "control from the edge" in m and t >= fallback[0]), None)
-    gaps = [
-        s.setpoint_gap_ms
-        for s in status
-        if s.setpoint_gap_ms is not None and window.start_ns <= s.stamp_ns <= until_ns
-    ]
-    notable = [m.split(": ", 1)[-1] for _, m in lines if " WARNING " in f" {m}" or " ERROR " in f" {m}"]
-    notable += [m.split(": ", 1)[-1] for _, m in lines if "control from the edge" in m][:1]
+        since = fallback.control_changed_ns
+        edge = (s for s in seen if s.control_source is ControlSource.EDGE and s.control_changed_ns > since)
+        back = next(edge, None)
+    gaps = [s.setpoint_gap_ms for s in seen if s.setpoint_gap_ms is not None]
+    until_wall = window.start_wall + (until_ns - window.start_ns) / NS_PER_S
+    lines = [m for t, m in onboard_log if window.start_wall <= t <= until_wall]
+    notable = [m.split(": ", 1)[-1] for m in lines if m.startswith(("WARNING ", "ERROR "))]
+    notable += [m.split(": ", 1)[-1] for m in lines if "control from the edge" in m][:1]
     return {
         "kind": fault.kind,
         "at_s": fault.at_s,
         "duration_s": fault.duration_s,
         "fallback": fallback is not None,
-        "fallback_after_last_command_ms": fallback_ms,
-        "fallback_after_fault_s": None if fallback is None else round(fallback[0] - window.start_wall, 3),
+        "fallback_after_last_command_ms": None if fallback is None else fallback.command_age_ms,
+        "fallback_after_fault_s": (
+            None if fallback is None else round((fallback.control_changed_ns - window.start_ns) / NS_PER_S, 3)
+        ),
         "max_setpoint_gap_ms": max(gaps) if gaps else None,
         # None: never left the edge (no fallback), or not back within `settle` (see "recovered")
-        "back_at_edge_after_clear_s": None if back is None else round(max(0.0, back - end_wall), 3),
+        "back_at_edge_after_clear_s": (
+            None if back is None else round(max(0.0, (back.control_changed_ns - end_ns) / NS_PER_S), 3)
+        ),
         "recovered": fallback is None or back is not None,
         "log": notable[:4],
         "notes": window.notes,

@@ -8,14 +8,14 @@ import csv
 import itertools
 import json
 import math
-import re
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from dynqos.common.messages import STATES, Reference, State, SupervisorStatus
+from dynqos.common.messages import Reference, State, SupervisorStatus
+from dynqos.common.modes import SupervisorState
 from dynqos.faults import log_times, outcome
 
 if TYPE_CHECKING:
@@ -147,7 +147,7 @@ def summarise(
     errors = [(t0 + round(t * 1e9), e) for t, e in tracking_errors(rec)]
     loaded = bg_ns is not None
     rates = _cell_rates(rec, loaded_start, end_ns + 1, scenario.scale)
-    times: dict[str, float] = dict.fromkeys(STATES, 0.0)
+    times: dict[str, float] = dict.fromkeys((s.value for s in SupervisorState), 0.0)
     statuses = sorted(rec.status, key=lambda s: s.stamp_ns)
     for a, b in itertools.pairwise(statuses):
         if a.stamp_ns >= t0:
@@ -169,8 +169,7 @@ def summarise(
         elif after:
             changed = after[0].changed_ns if after[0].changed_ns >= bg_ns else after[0].stamp_ns
             first_switch = (changed - bg_ns) / 1e9
-    gaps = [float(g) for g in re.findall(r"max_setpoint_gap_ms=([\d.]+)", onboard_log)]
-    switches = [int(g) for g in re.findall(r"switches_to_fallback=(\d+)", onboard_log)]
+    gaps = [s.setpoint_gap_ms for s in statuses if s.setpoint_gap_ms is not None]
     return {
         "scenario": scenario.name,
         "description": scenario.description,
@@ -200,11 +199,11 @@ def summarise(
         "states_time_s": times,
         "transitions": transitions,
         "first_qos_switch_after_bg_s": first_switch,
-        "fallback_entered": bool(switches and switches[-1] > 0),
+        "fallback_entered": any(s.fallbacks > 0 for s in statuses),
         "setpoint_gap_max_ms": max(gaps) if gaps else None,
         "states_recorded": len(rec.states),
         "faults": [
-            outcome(w, log_times(onboard_log), statuses, nxt.start_wall if nxt else None)
+            outcome(w, log_times(onboard_log), statuses, nxt.start_ns if nxt else None)
             for w, nxt in itertools.zip_longest(rec.faults, rec.faults[1:])
         ],
         "memory_mb": {
@@ -266,7 +265,7 @@ def write_scenario(folder: Path, scenario: Scenario, rec: Recording, summary: di
     _plots(folder, scenario, rec, summary)
 
 
-def _plots(folder: Path, scenario: Scenario, rec: Recording, summary: dict[str, Any]) -> None:
+def _plots(folder: Path, scenario: Scenario, rec: Recording, summary: dict[str, Any]) -> None:  # noqa: PLR0915
     import matplotlib
 
     matplotlib.use("Agg")
@@ -337,7 +336,7 @@ def _plots(folder: Path, scenario: Scenario, rec: Recording, summary: dict[str, 
     plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(12, 2.5))
-    order = list(STATES)
+    order = [s.value for s in SupervisorState]
     points = [
         ((s.stamp_ns - t0) / 1e9, order.index(s.state))
         for s in sorted(rec.status, key=lambda s: s.stamp_ns)

@@ -1,6 +1,6 @@
 """One MPC controller per drone: reference handling, delay compensation, command horizons. Pure.
 
-Timing (DESIGN section 3): a Command carries the state's own stamp; setpoint k applies at
+Timing (docs/architecture.md, "Time"): a Command carries the state's own stamp; setpoint k applies at
 state_stamp + k * dt on the drone's clock, so no clock sync is needed and a late command is still
 usable. With delay compensation, the initial state is predicted forward by the drone's RTT estimate
 using the inputs the drone will be applying meanwhile (from the commands already sent), and the
@@ -10,12 +10,12 @@ already-committed inputs.
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from dynqos.common.geometry import yaw_of
 from dynqos.common.messages import MAX_HORIZON, State
 from dynqos.common.reference import ReferenceTrack
 from dynqos.edge.mpc_problem import Array, MpcProblem, MpcSettings
@@ -101,7 +101,7 @@ class DroneController:
         if window is None:
             if self.hold is None:
                 self.hold = x0[:3].copy()
-                self.hold_yaw = _yaw(state.quat)
+                self.hold_yaw = yaw_of(state.quat)
             reference = np.tile(np.concatenate([self.hold, np.zeros(3)]), (n + 1, 1))
             yaws = np.full(n + 1, self.hold_yaw)
         else:
@@ -120,8 +120,3 @@ class DroneController:
             yaw_rad=tuple(yaw_seq.tolist()),
             committed_steps=committed,
         )
-
-
-def _yaw(quat: tuple[float, float, float, float]) -> float:
-    w, x, y, z = quat
-    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))

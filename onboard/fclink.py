@@ -3,6 +3,11 @@
 A reader thread keeps the latest position, velocity and attitude (stamped with our monotonic clock on
 arrival), the FC's heartbeat (armed, custom mode) and command acks. Other threads send setpoints and
 commands through `send_*`, serialised by a lock. Heartbeat loss is reported, never raised.
+
+The daemon does not rely on the FC's stream configuration: when it first hears the FC (and again
+when the FC comes back after a silence) it asks for LOCAL_POSITION_NED and ATTITUDE_QUATERNION at the
+rate it needs with MAV_CMD_SET_MESSAGE_INTERVAL, as MAVSDK does. Only messages from the configured
+system id are read, so several vehicles can share one ground-station link.
 """
 
 from __future__ import annotations
@@ -11,7 +16,6 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
 from typing import Any
 
 from pymavlink import mavutil
@@ -19,21 +23,21 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.errors import TransportError
+from dynqos.onboard.fc import FcState
 
 log = logging.getLogger(__name__)
 
 PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD = 4, 6
 PX4_SUB_LOITER, PX4_SUB_LAND = 3, 6
-ACCEL_ONLY_MASK = 0b0000_1100_0011_1111  # ignore position, velocity and yaw rate; use accel and yaw
-POSITION_ONLY_MASK = 0b0000_1101_1111_1000  # ignore velocity, accel and yaw rate; use position and yaw
-
-
-@dataclass(frozen=True, slots=True)
-class FcState:
-    stamp_ns: int
-    pos_m: tuple[float, float, float]
-    vel_mps: tuple[float, float, float]
-    quat: tuple[float, float, float, float]
+# SET_POSITION_TARGET_LOCAL_NED type_mask bits (POSITION_TARGET_TYPEMASK): a set bit ignores the field.
+IGNORE_POSITION = 0b111
+IGNORE_VELOCITY = 0b111 << 3
+IGNORE_ACCEL = 0b111 << 6
+IGNORE_YAW_RATE = 1 << 11
+ACCEL_AND_YAW_MASK = IGNORE_POSITION | IGNORE_VELOCITY | IGNORE_YAW_RATE  # fly accel, turn to yaw
+POSITION_AND_YAW_MASK = IGNORE_VELOCITY | IGNORE_ACCEL | IGNORE_YAW_RATE  # hold position and yaw
+STREAM_HZ = 50  # what the daemon asks the FC for: its 50 Hz loop needs a fresh state every tick
+STREAMS = (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION)
 
 
 def serial_device_and_baud(url: str, default_baud: int = 921600) -> tuple[str, int]:
@@ -49,8 +53,18 @@ def serial_device_and_baud(url: str, default_baud: int = 921600) -> tuple[str, i
 
 
 class FcLink:
-    def __init__(self, url: str, *, clock: Clock | None = None, heartbeat_timeout_s: float = 3.0) -> None:
+    def __init__(
+        self,
+        url: str,
+        *,
+        clock: Clock | None = None,
+        heartbeat_timeout_s: float = 3.0,
+        fc_system_id: int = 1,
+        fc_component_id: int = 1,
+    ) -> None:
         self.url = url
+        self.fc_system_id = fc_system_id
+        self.fc_component_id = fc_component_id
         self.clock = clock or MonotonicClock()
         self.heartbeat_timeout_ns = round(heartbeat_timeout_s * 1e9)
         device, baud = serial_device_and_baud(url)
@@ -108,7 +122,7 @@ class FcLink:
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()
         now = self.clock.now_ns()
-        if msg.get_srcSystem() != 1 and kind != "COMMAND_ACK":
+        if msg.get_srcSystem() != self.fc_system_id:
             return
         if kind == "LOCAL_POSITION_NED":
             values = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
@@ -118,17 +132,29 @@ class FcLink:
             quat = (msg.q1, msg.q2, msg.q3, msg.q4)
             if all(math.isfinite(v) for v in quat):
                 self._quat = quat
-        elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
+        elif kind == "HEARTBEAT" and msg.get_srcComponent() == self.fc_component_id:
+            first = self.last_heartbeat_ns is None
             self.last_heartbeat_ns = now
             self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             self.custom_mode = msg.custom_mode
             if self.lost_reported:
                 log.info("fc link: heartbeat is back")
                 self.lost_reported = False
+                first = True  # it may have rebooted and forgotten the rates we asked for
+            if first:
+                self._request_streams()
         elif kind == "COMMAND_ACK":
+            if msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and msg.result != 0:
+                log.warning("fc link: the flight controller refused a message rate (result %d)", msg.result)
             with self._ack_event:
                 self._acks[msg.command] = msg.result
                 self._ack_event.notify_all()
+
+    def _request_streams(self) -> None:
+        """Ask for the state at STREAM_HZ; the acks are read (and a refusal logged) by the reader."""
+        interval_us = 1_000_000 // STREAM_HZ
+        for message_id in STREAMS:
+            self._send_command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, message_id, interval_us)
 
     def heartbeat_lost(self) -> bool:
         lost = (
@@ -165,13 +191,17 @@ class FcLink:
 
     def command(self, command: int, *params: float, timeout_s: float = 3.0) -> int | None:
         """Send COMMAND_LONG and wait for its COMMAND_ACK result (None on timeout)."""
-        p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
         with self._ack_event:
             self._acks.pop(command, None)
-        self._send(lambda mav: mav.command_long_send(1, 1, command, 0, *p))
+        self._send_command(command, *params)
         with self._ack_event:
             self._ack_event.wait_for(lambda: command in self._acks, timeout=timeout_s)
             return self._acks.pop(command, None)
+
+    def _send_command(self, command: int, *params: float) -> None:
+        p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
+        target = (self.fc_system_id, self.fc_component_id)
+        self._send(lambda mav: mav.command_long_send(*target, command, 0, *p))
 
     def arm(self) -> int | None:
         return self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
@@ -188,7 +218,20 @@ class FcLink:
     def send_accel(self, accel: tuple[float, float, float], yaw: float) -> None:
         self._send(
             lambda mav: mav.set_position_target_local_ned_send(
-                0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, ACCEL_ONLY_MASK, 0, 0, 0, 0, 0, 0, *accel, yaw, 0.0
+                0,
+                self.fc_system_id,
+                self.fc_component_id,
+                mavlink.MAV_FRAME_LOCAL_NED,
+                ACCEL_AND_YAW_MASK,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                *accel,
+                yaw,
+                0.0,
             )
         )
         self.setpoints_sent += 1
@@ -196,7 +239,20 @@ class FcLink:
     def send_position(self, pos: tuple[float, float, float], yaw: float) -> None:
         self._send(
             lambda mav: mav.set_position_target_local_ned_send(
-                0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_ONLY_MASK, *pos, 0, 0, 0, 0, 0, 0, yaw, 0.0
+                0,
+                self.fc_system_id,
+                self.fc_component_id,
+                mavlink.MAV_FRAME_LOCAL_NED,
+                POSITION_AND_YAW_MASK,
+                *pos,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                yaw,
+                0.0,
             )
         )
         self.setpoints_sent += 1

@@ -10,7 +10,8 @@ anyway. WebRTC's pacer does the same for video packets.
 
 from __future__ import annotations
 
-NS_PER_S = 1_000_000_000
+from dynqos.common.clock import NS_PER_S
+
 FRAME_HEADER_BYTES = 200  # one CameraFrame message on the link besides its payload (msgpack ~190, zenoh)
 
 

@@ -23,23 +23,18 @@ import random
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
+from dynqos.common.clock import NS_PER_S
 from dynqos.common.config import SupervisorConfig
 from dynqos.common.messages import SupervisorStatus
+from dynqos.common.modes import ControlSource, Flow, SupervisorState
 from dynqos.common.stats import Ema, SlidingWindow
 
-NS_PER_S = 1_000_000_000
 TRANSITION_LOG_SIZE = 1000
 
 
-class State(str, enum.Enum):
-    Q1 = "q1"
-    Q2 = "q2"
-    Q3 = "q3"
-    Q4 = "q4"
-    Q5 = "q5"
-    Q6 = "q6"
-    QA = "qA"
+State = SupervisorState
 
 
 Q1, Q2, Q3, Q4, Q5, Q6, QA = State
@@ -72,14 +67,10 @@ class Risk(str, enum.Enum):
 
 @dataclass(frozen=True, slots=True)
 class Actions:
-    flow: str  # "default" | "priority": the state's (and the status's) flow
+    flow: Flow  # the state's flow: the drone's state (and status) travel on it
     camera_rate_factor: float  # fraction of the nominal camera frame rate
-    control_source: str  # "edge" | "fallback"
-    camera_flow: str = ""  # the camera's flow; "" = the same as `flow` (it differs while probing)
-
-    @property
-    def camera(self) -> str:
-        return self.camera_flow or self.flow
+    control_source: ControlSource  # EDGE or FALLBACK: what the supervisor wants
+    camera_flow: Flow  # the camera's flow; it differs from `flow` while probing the default flow
 
 
 RATE_ADAPTATION_STATES = frozenset({Q4, Q5, Q6})
@@ -213,12 +204,12 @@ class Supervisor:
     def actions(self) -> Actions:
         state = self.state
         if state is QA:
-            return Actions("priority", self.config.min_rate_factor, "fallback")
+            return Actions(Flow.PRIORITY, self.config.min_rate_factor, ControlSource.FALLBACK, Flow.PRIORITY)
         if self._probe_since_ns is not None:  # the camera tries the default flow at q1's rate
-            return Actions("priority", 1.0, "edge", camera_flow="default")
-        flow = "priority" if state in PRIORITY_STATES else "default"
+            return Actions(Flow.PRIORITY, 1.0, ControlSource.EDGE, Flow.DEFAULT)
+        flow = Flow.PRIORITY if state in PRIORITY_STATES else Flow.DEFAULT
         rate = self._rate if state in RATE_ADAPTATION_STATES else 1.0
-        return Actions(flow, rate, "edge")
+        return Actions(flow, rate, ControlSource.EDGE, flow)
 
     def _signals(self, inputs: Inputs) -> Signals:
         cfg = self.config
@@ -284,7 +275,7 @@ class Supervisor:
             if self._rate == cfg.min_rate_factor:
                 self._min_rate_since_ns = now_ns
 
-    def _choose(self, signals: Signals, now_ns: int) -> tuple[State, str] | None:
+    def _choose(self, signals: Signals, now_ns: int) -> tuple[State, str] | None:  # noqa: C901 (Table I)
         cfg = self.config
         state = self.state
         if signals.watchdog:
@@ -422,40 +413,39 @@ class Supervisor:
         return signals.latency is Latency.LL and (signals.risk is not Risk.HR or self.state not in (Q2, Q3))
 
 
-def to_status(
-    decision: Decision,
-    *,
-    uav: str,
-    seq: int,
-    stamp_ns: int,
-    last: Transition | None,
-    rtt_ms: float | None = None,
-    camera_latency_ms: float | None = None,
-) -> SupervisorStatus:
-    """The SupervisorStatus message the daemon publishes for one decision."""
+def decision_fields(decision: Decision, last: Transition | None) -> dict[str, Any]:
+    """The SupervisorStatus fields that describe a decision: state, signals, P values, last transition."""
     s = decision.signals
+    return {
+        "state": decision.state,
+        "latency": s.latency.value,
+        "risk": s.risk.value,
+        "watchdog": s.watchdog,
+        "t_cam_ms": s.t_cam_ms,
+        "t_cc_ms": s.t_cc_ms,
+        "spaciousness_m": s.spaciousness_m,
+        "p_cam": s.p_cam or 0.0,
+        "p_cc": s.p_cc or 0.0,
+        "p_lat": s.p_lat or 0.0,
+        "p_cs": s.p_cs or 0.0,
+        "prev_state": last.source if last else decision.state,
+        "cause": (last.cause if last else "")[:200],
+        "changed_ns": last.stamp_ns if last else 0,
+    }
+
+
+def to_status(
+    decision: Decision, *, uav: str, seq: int, stamp_ns: int, last: Transition | None
+) -> SupervisorStatus:
+    """The status of a drone that does exactly what the decision's actions say."""
+    a = decision.actions
     return SupervisorStatus(
         uav=uav,
         seq=seq,
         stamp_ns=stamp_ns,
-        state=decision.state.value,
-        flow=decision.actions.flow,
-        camera_rate_factor=decision.actions.camera_rate_factor,
-        control_source=decision.actions.control_source,
-        latency=s.latency.value,
-        risk=s.risk.value,
-        watchdog=s.watchdog,
-        t_cam_ms=s.t_cam_ms,
-        t_cc_ms=s.t_cc_ms,
-        spaciousness_m=s.spaciousness_m,
-        p_cam=s.p_cam or 0.0,
-        p_cc=s.p_cc or 0.0,
-        p_lat=s.p_lat or 0.0,
-        p_cs=s.p_cs or 0.0,
-        prev_state=(last.source if last else decision.state).value,
-        cause=(last.cause if last else "")[:200],
-        changed_ns=last.stamp_ns if last else 0,
-        rtt_ms=rtt_ms,
-        camera_latency_ms=camera_latency_ms,
-        camera_flow=decision.actions.camera_flow,
+        flow=a.flow,
+        camera_flow=a.camera_flow,
+        camera_rate_factor=a.camera_rate_factor,
+        control_source=a.control_source,
+        **decision_fields(decision, last),
     )

@@ -387,7 +387,7 @@ class CellEmulator:
         while self._pending_events and self._pending_events[0].at_s <= elapsed_s:
             self.apply(self._pending_events.pop(0))
 
-    def apply(self, event: CellEventConfig) -> None:
+    def apply(self, event: CellEventConfig) -> None:  # noqa: C901 (one case per event kind)
         """Apply one event now (from the timeline or the control API)."""
         now = _now_ns()
         if event.kind == "background":

@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from dynqos.common.geometry import yaw_of as yaw_of  # re-exported for the simulator
+
 GRAVITY = 9.81
 Vec = NDArray[np.float64]
 
@@ -80,11 +82,6 @@ def rot_to_quat(r: Vec) -> Vec:
     out: Vec = np.array(q)
     out = out / np.linalg.norm(out) * (1 if out[0] >= 0 else -1)
     return out
-
-
-def yaw_of(q: Vec) -> float:
-    w, x, y, z = q
-    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
 @dataclass(slots=True)

@@ -111,7 +111,7 @@ class Renderer:
         np.maximum(depth_full, 0.0, out=depth_full)
         return np.clip(rgb, 0, 255).astype(np.uint8), depth_full.astype(np.float64)
 
-    def _cast(self, o: F32, d: F32) -> tuple[F32, F32, F32, F32]:
+    def _cast(self, o: F32, d: F32) -> tuple[F32, F32, F32, F32]:  # noqa: PLR0915 (a numpy kernel)
         """Nearest hit per ray: depth, surface normal, base colour and texture factor."""
         n = len(d)
         rows = np.arange(n)

@@ -38,8 +38,10 @@ SYSTEM_ID = 1
 COMPONENT_ID = 1
 TELEMETRY_HZ = 50
 LOCKSTEP_HEARTBEAT_S = 1.0  # in lock-step, repeat the heartbeat in wall time while the peer is silent
+STEPS_PER_TELEMETRY = PHYSICS_HZ // TELEMETRY_HZ
+# The streams a peer can re-rate with MAV_CMD_SET_MESSAGE_INTERVAL, as PX4 lets it.
+STREAMS = (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED)
 SUPPORTED_IGNORED_COMMANDS = {
-    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
     mavlink.MAV_CMD_REQUEST_MESSAGE,
     mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
 }
@@ -89,6 +91,7 @@ class MavlinkVehicle:
         self._selector = selectors.DefaultSelector()
         self._last_events = 0
         self.stopped = False
+        self.stream_steps = dict.fromkeys(STREAMS, STEPS_PER_TELEMETRY)  # message id -> physics steps; 0 off
         self.counters: dict[str, int] = {
             "setpoints": 0,
             "commands": 0,
@@ -144,17 +147,35 @@ class MavlinkVehicle:
             landed = mavlink.MAV_LANDED_STATE_LANDING
         self._send(self.mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, landed))
 
-    def telemetry(self) -> None:
+    def telemetry(self, step: int | None = None) -> None:
+        """Attitude and position: each at its own rate at physics step `step`, or both now (None)."""
         s = self.model.state
         t = self._time_boot_ms()
-        w, x, y, z = (float(v) for v in s.quat)
-        p, q, r = (float(v) for v in s.rates_rps)
-        self._send(self.mav.attitude_quaternion_encode(t, w, x, y, z, p, q, r))
-        self._send(
-            self.mav.local_position_ned_encode(
-                t, *(float(v) for v in s.pos_m), *(float(v) for v in s.vel_mps)
-            )
-        )
+
+        def due(message_id: int) -> bool:
+            every = self.stream_steps[message_id]
+            return every > 0 and (step is None or step % every == 0)
+
+        if due(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION):
+            w, x, y, z = (float(v) for v in s.quat)
+            p, q, r = (float(v) for v in s.rates_rps)
+            self._send(self.mav.attitude_quaternion_encode(t, w, x, y, z, p, q, r))
+        if due(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
+            pos, vel = (float(v) for v in s.pos_m), (float(v) for v in s.vel_mps)
+            self._send(self.mav.local_position_ned_encode(t, *pos, *vel))
+
+    def _set_interval(self, message_id: float, interval_us: float) -> Result:
+        """MAV_CMD_SET_MESSAGE_INTERVAL as PX4 reads it: -1 stops the stream, 0 restores its default
+        rate, a positive interval (microseconds) sets it, rounded to the physics step (200 Hz at most)."""
+        if not (math.isfinite(message_id) and math.isfinite(interval_us)) or int(message_id) not in STREAMS:
+            return Result.DENIED
+        if interval_us < -1:
+            return Result.DENIED
+        steps = {-1: 0, 0: STEPS_PER_TELEMETRY}.get(int(interval_us))
+        if steps is None:
+            steps = max(1, round(interval_us * PHYSICS_HZ / 1e6))
+        self.stream_steps[int(message_id)] = steps
+        return Result.ACCEPTED
 
     def _ack(self, command: int, result: Result, link: Link) -> None:
         self._send(self.mav.command_ack_encode(command, int(result)), link)
@@ -248,6 +269,8 @@ class MavlinkVehicle:
             if not (math.isfinite(msg.param2) and math.isfinite(msg.param3)):
                 return Result.DENIED
             return fc.set_mode(int(msg.param2), int(msg.param3), state, now)
+        if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return self._set_interval(msg.param1, msg.param2)
         if command in SUPPORTED_IGNORED_COMMANDS:
             return Result.ACCEPTED
         return Result.UNSUPPORTED
@@ -273,7 +296,6 @@ class MavlinkVehicle:
 
     def _run_lockstep(self, duration_s: float | None, should_stop: Callable[[], bool] | None) -> None:
         sim_start = self.model.now_ns
-        steps_per_telemetry = PHYSICS_HZ // TELEMETRY_HZ
         self.heartbeat()
         self.telemetry()
         last_heartbeat = time.monotonic()
@@ -288,7 +310,7 @@ class MavlinkVehicle:
                     last_heartbeat = time.monotonic()
                 continue
             self._peer_answered = False
-            for _ in range(steps_per_telemetry):
+            for _ in range(STEPS_PER_TELEMETRY):
                 self._step()
             last_heartbeat = time.monotonic()
 
@@ -296,8 +318,8 @@ class MavlinkVehicle:
         """One physics step, with telemetry, heartbeat, contact check and event log at their rates."""
         self.model.step()
         step = self.model.now_ns // STEP_NS
-        if step % (PHYSICS_HZ // TELEMETRY_HZ) == 0:
-            self.telemetry()
+        self.telemetry(step)
+        if step % STEPS_PER_TELEMETRY == 0:
             self._check_contact()
         if step % PHYSICS_HZ == 1:
             self.heartbeat()
@@ -323,10 +345,3 @@ class MavlinkVehicle:
         if len(events) > 1000:
             del events[:500]
             self._last_events = len(events)
-
-
-def mode_name(custom_mode: int) -> str:
-    """PX4's custom_mode as a name, e.g. OFFBOARD or HOLD."""
-    main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
-    mode = Mode.from_custom(main, sub)
-    return mode.name if mode else f"UNKNOWN({main},{sub})"

@@ -1,30 +1,62 @@
-"""An in-process closed loop: the simulator's vehicle, a delayed network, and the edge MPC.
+"""An in-process closed loop: the real onboard core, the real MPC service and the simulator's vehicle.
 
-States go up at 20 Hz with half the RTT of delay, commands come back with the other half; the drone
-applies the horizon setpoint for its current time as an acceleration setpoint at 50 Hz, as the onboard
-daemon does. Everything runs on the simulator's clock, so it is deterministic.
+The drone's OnboardCore and the edge's MpcService talk over a MemoryBus whose one-way delay is half
+the RTT; the planner's Reference goes out on the same bus. Every part runs on the vehicle model's
+clock, stepped at 200 Hz, with the core ticking at its 50 Hz setpoint rate and its setpoints applied
+to the simulated flight controller: the same decisions as the daemon, deterministic and fast.
 """
 
 from __future__ import annotations
 
-from collections import deque
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from dynqos.common.messages import Reference, State
+from dynqos.common import keys
+from dynqos.common.bus import MemoryBus, Priority, Publisher, Received
+from dynqos.common.clock import NS_PER_S
+from dynqos.common.config import Config, MpcConfig, OnboardConfig
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.messages import Command, Reference
+from dynqos.common.modes import ControlSource, Flow
+from dynqos.common.queues import BoundedQueue
 from dynqos.edge.missions import Mission
-from dynqos.edge.mpc import ControllerSettings, DroneController, Plan
+from dynqos.edge.mpc_service import MpcService
+from dynqos.onboard.core import SETPOINT_PERIOD_NS, OnboardCore, TickInput
+from dynqos.onboard.fc import AccelSetpoint, FcState
 from dynqos.sim.px4 import MAIN_OFFBOARD, Setpoint
-from dynqos.sim.vehicle_model import VehicleModel
+from dynqos.sim.vehicle_model import STEP_NS, VehicleModel
 
-STATE_NS = 50_000_000
-SETPOINT_NS = 20_000_000
+UAV = "uav1"
+REFERENCE_NS = 100_000_000
+
+
+class ModelClock:
+    def __init__(self, model: VehicleModel) -> None:
+        self.model = model
+
+    def now_ns(self) -> int:
+        return self.model.now_ns
+
+
+@dataclass
+class Flight:
+    rmse_m: float
+    commands: list[Command]
+    sources: dict[ControlSource, int] = field(
+        default_factory=dict
+    )  # ticks flown by each, after the first lap
+    core: OnboardCore | None = None
 
 
 def fly_circle(
-    rtt_ms: float, settings: ControllerSettings, seconds: float = 25.0, mission: Mission | None = None
-) -> tuple[float, list[Plan]]:
-    """RMSE (m) of position against the mission after the first lap (10 s), and every plan sent."""
+    rtt_ms: float,
+    mpc: MpcConfig | None = None,
+    seconds: float = 25.0,
+    mission: Mission | None = None,
+    qos: str = "priority",
+) -> Flight:
+    """Fly `mission` (a 2 m circle) through the loop; RMSE (m) against it after the first lap (10 s)."""
     mission = mission or Mission(kind="circle", lead_in_s=0.0, radius_m=2.0, period_s=10.0)
     model = VehicleModel()
     fc = model.fc
@@ -35,56 +67,62 @@ def fly_circle(
         fc.on_setpoint(Setpoint(pos_m=(0.0, 0.0, -1.5)), model.now_ns)
         model.advance(0.02)
     fc.set_mode(MAIN_OFFBOARD, 0, model.state, model.now_ns)
-    ctrl = DroneController("uav1", settings)
+
+    config = Config(mpc=mpc or MpcConfig(), onboard=OnboardConfig(camera="none", qos=qos))  # type: ignore[arg-type]
+    clock = ModelClock(model)
+    one_way_ns = round(rtt_ms * 1e6 / 2)  # the drone's traffic crosses the network; the planner's does not
+    bus = MemoryBus(clock, delays=[("dynqos/*/up/**", one_way_ns), ("dynqos/*/down/**", one_way_ns)])
+    service = MpcService(config, bus, clock)
+    core = OnboardCore(config, start_ns=clock.now_ns())
+    downlink: BoundedQueue[Received] = BoundedQueue(256)
+    bus.subscribe(keys.downlink(UAV, Downlink.COMMAND), downlink, expect=(Command,))
+    observed: BoundedQueue[Received] = BoundedQueue(100_000)
+    bus.subscribe(keys.downlink(UAV, Downlink.COMMAND), observed, expect=(Command,))
+    uplink: dict[tuple[Stream, Flow], Publisher] = {
+        (stream, flow): bus.publisher(keys.uplink(UAV, flow, stream), Priority.DATA)
+        for stream in Stream
+        for flow in Flow
+    }
+    planner = bus.publisher(keys.downlink(UAV, Downlink.REFERENCE), Priority.DATA)
+
     t0 = model.now_ns
-    half_ns = round(rtt_ms * 1e6 / 2)
-    uplink: deque[tuple[int, State]] = deque()
-    downlink: deque[tuple[int, Plan]] = deque()
-    active: Plan | None = None
-    plans: list[Plan] = []
     errors = []
-    seq = 0
+    sources: dict[ControlSource, int] = {}
+    ref_seq = 0
     while model.now_ns - t0 < seconds * 1e9:
         now = model.now_ns
-        if (now - t0) % STATE_NS == 0:
-            s = model.state
-            seq += 1
-            uplink.append(
-                (
-                    now + half_ns,
-                    State(
-                        uav="uav1",
-                        seq=seq,
-                        stamp_ns=now,
-                        pos_m=tuple(s.pos_m),
-                        vel_mps=tuple(s.vel_mps),
-                        quat=tuple(s.quat),
-                        rtt_est_ms=rtt_ms,
-                    ),
-                )
+        if (now - t0) % REFERENCE_NS == 0:
+            ref_seq += 1
+            pos, vel, yaw = mission.samples((now - t0) / 1e9, 0.05, 60)
+            planner.put(
+                Reference(uav=UAV, seq=ref_seq, stamp_ns=now, dt_s=0.05, pos_m=pos, vel_mps=vel, yaw_rad=yaw)
             )
-            if seq % 2 == 1:  # the planner's reference, every 100 ms
-                pos, vel, yaw = mission.samples((now - t0) / 1e9, 0.05, 60)
-                ctrl.reference.update(
-                    Reference(
-                        uav="uav1", seq=seq, stamp_ns=now, dt_s=0.05, pos_m=pos, vel_mps=vel, yaw_rad=yaw
-                    ),
-                    now,
-                )
-        while uplink and uplink[0][0] <= now:
-            _, state = uplink.popleft()
-            plan = ctrl.step(state, now)
-            assert plan is not None
-            plans.append(plan)
-            downlink.append((now + half_ns, plan))
-        while downlink and downlink[0][0] <= now:
-            _, active = downlink.popleft()
-        if active is not None and (now - t0) % SETPOINT_NS == 0:
-            k = min((now - active.state_stamp_ns) // STATE_NS, len(active.accel_mps2) - 1)
-            fc.on_setpoint(Setpoint(accel_mps2=active.accel_mps2[k], yaw_rad=active.yaw_rad[k]), now)
+        bus.pump()
+        service.process(timeout_s=0)
+        if (now - t0) % SETPOINT_PERIOD_NS == 0:
+            s = model.state
+            w, x, y, z = (float(q) for q in s.quat)
+            state = FcState(now, _triple(s.pos_m), _triple(s.vel_mps), (w, x, y, z))
+            out = core.tick(TickInput(now_ns=now, fc=state, downlink=downlink.drain(), offboard=True))
+            for item in out.publish:
+                uplink[item.stream, item.flow].put(item.message)
+            if now - t0 > 10 * NS_PER_S:
+                sources[core.control] = sources.get(core.control, 0) + 1
+            sp = out.setpoint
+            if isinstance(sp, AccelSetpoint):
+                fc.on_setpoint(Setpoint(accel_mps2=sp.accel_mps2, yaw_rad=sp.yaw_rad), now)
+            elif sp is not None:
+                fc.on_setpoint(Setpoint(pos_m=sp.pos_m, yaw_rad=sp.yaw_rad), now)
         model.step()
+        assert model.now_ns - now == STEP_NS
         t = (model.now_ns - t0) / 1e9
         if t > 10.0:
             p, _, _ = mission.sample(t)
             errors.append(float(np.linalg.norm(model.state.pos_m - np.array(p))))
-    return float(np.sqrt(np.mean(np.square(errors)))), plans
+    commands = [i.message for i in observed.drain() if isinstance(i.message, Command)]
+    rmse = float(np.sqrt(np.mean(np.square(errors))))
+    return Flight(rmse, commands, sources, core)
+
+
+def _triple(v: np.ndarray) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))

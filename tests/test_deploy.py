@@ -1,5 +1,5 @@
 """deploy/: the Kubernetes manifests, the systemd unit, the container image and their configs, checked
-offline (DESIGN section 9). Where a checker is missing on this machine the test says so and skips."""
+offline (docs/deploy.md). Where a checker is missing on this machine the test says so and skips."""
 
 from __future__ import annotations
 

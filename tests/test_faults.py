@@ -19,12 +19,19 @@ T_WD_MS = 150.0
 TICK_MS = 20.0
 
 
-def _status(stamp_ns: int, gap_ms: float | None) -> SupervisorStatus:
+def _status(
+    stamp_ns: int,
+    gap_ms: float | None,
+    source: str = "edge",
+    changed_ns: int = 0,
+    age_ms: float | None = None,
+) -> SupervisorStatus:
     return SupervisorStatus(
-        uav="uav1", seq=1, stamp_ns=stamp_ns, state="q1", flow="default", camera_rate_factor=1.0,
-        control_source="edge", latency="LL", risk="LR", watchdog=False, t_cam_ms=None, t_cc_ms=None,
-        spaciousness_m=None, p_cam=0.0, p_cc=0.0, p_lat=0.0, p_cs=0.0, prev_state="q1", cause="",
-        changed_ns=0, setpoint_gap_ms=gap_ms,
+        uav="uav1", seq=1, stamp_ns=stamp_ns, state="q1", flow="default", camera_flow="default",
+        camera_rate_factor=1.0, control_source=source, latency="LL", risk="LR", watchdog=False, t_cam_ms=None,
+        t_cc_ms=None, spaciousness_m=None, p_cam=0.0, p_cc=0.0, p_lat=0.0, p_cs=0.0, prev_state="q1",
+        cause="", changed_ns=0, setpoint_gap_ms=gap_ms, control_changed_ns=changed_ns, command_age_ms=age_ms,
+        fallbacks=int(source != "edge"),
     )  # fmt: skip
 
 
@@ -41,7 +48,7 @@ def test_faults_are_validated() -> None:
     assert [f.at_s for f in soak.faults] == [30 + 60 * k for k in range(10)]
 
 
-def test_outcome_reads_fallback_gaps_and_recovery_from_log_and_status() -> None:
+def test_outcome_measures_fallback_gaps_and_recovery_from_the_status_stream() -> None:
     log = log_times(
         "2026-11-22 08:00:00,000 INFO dynqos.onboard.daemon: onboard: control from the edge (seq 1)\n"
         "2026-11-22 08:00:10,160 WARNING dynqos.onboard.daemon: onboard: fallback PID holding position "
@@ -52,11 +59,18 @@ def test_outcome_reads_fallback_gaps_and_recovery_from_log_and_status() -> None:
         "(watchdog: last valid command 170 ms ago)\n"
     )
     assert len(log) == 4
+    s = 1_000_000_000
     start = log[0][0] + 10.0
-    window = FaultWindow(Fault(at_s=10, kind="mpc_kill", duration_s=2), start, 10_000_000_000)
-    window.end_wall, window.end_ns = start + 2.0, 12_000_000_000
-    statuses = [_status(9_000_000_000, 80.0), _status(11_000_000_000, 35.0), _status(13_000_000_000, 20.0)]
-    got = outcome(window, log, statuses, next_start_wall=start + 15.0)
+    window = FaultWindow(Fault(at_s=10, kind="mpc_kill", duration_s=2), start, 10 * s)
+    window.end_wall, window.end_ns = start + 2.0, 12 * s
+    statuses = [
+        _status(9 * s, 80.0),
+        _status(10_160_000_000, 35.0, "fallback", 10_160_000_000, 162.0),  # published at the change
+        _status(11 * s, 20.0, "fallback", 10_160_000_000, 162.0),
+        _status(13_500_000_000, 20.0, "edge", 13_500_000_000, 3.0),
+        _status(30 * s, 20.0, "fallback", 30 * s, 170.0),  # a later fault's
+    ]
+    got = outcome(window, log, statuses, next_start_ns=25 * s)
     assert got["fallback"] is True
     assert got["fallback_after_last_command_ms"] == 162.0
     assert got["fallback_after_fault_s"] == pytest.approx(0.16, abs=1e-3)
@@ -65,6 +79,16 @@ def test_outcome_reads_fallback_gaps_and_recovery_from_log_and_status() -> None:
     assert got["recovered"] is True
     # The 30 s fallback belongs to a later window: not reported here, and the next fault cuts it off.
     assert all("170 ms" not in line for line in got["log"])
+    assert any("162 ms" in line for line in got["log"])
+    # A fallback that never hands back is not a recovery; a window with no fallback is.
+    stuck = outcome(window, log, statuses[:3], next_start_ns=None)
+    assert (stuck["fallback"], stuck["recovered"], stuck["back_at_edge_after_clear_s"]) == (True, False, None)
+    calm = outcome(window, log, [_status(11 * s, 20.0)], next_start_ns=None)
+    assert (calm["fallback"], calm["recovered"], calm["fallback_after_last_command_ms"]) == (
+        False,
+        True,
+        None,
+    )
 
 
 def _check(result: dict[str, Any], kinds_with_fallback: set[str]) -> None:

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from dynqos.common import keys
 from dynqos.common import messages as m
 from dynqos.common.errors import DecodeError, MessageError
+from dynqos.common.modes import ControlSource, Flow, SupervisorState
 
 uav_ids = st.from_regex(keys.UAV_ID_PATTERN, fullmatch=True)
 u63 = st.integers(0, 2**63 - 1)
@@ -114,10 +115,11 @@ statuses = st.builds(
     uav=uav_ids,
     seq=u63,
     stamp_ns=u63,
-    state=st.sampled_from(m.STATES),
-    flow=st.sampled_from(m.FLOWS),
+    state=st.sampled_from(SupervisorState),
+    flow=st.sampled_from(Flow),
+    camera_flow=st.sampled_from(Flow),
     camera_rate_factor=reals(0, 1),
-    control_source=st.sampled_from(m.CONTROL_SOURCES),
+    control_source=st.sampled_from(ControlSource),
     latency=st.sampled_from(["LL", "HL", "NA"]),
     risk=st.sampled_from(["LR", "MR", "HR", "NA"]),
     watchdog=st.booleans(),
@@ -128,9 +130,12 @@ statuses = st.builds(
     p_cc=reals(0, 1),
     p_lat=reals(0, 1),
     p_cs=reals(0, 1),
-    prev_state=st.sampled_from(m.STATES),
+    prev_state=st.sampled_from(SupervisorState),
     cause=st.text(max_size=200),
     changed_ns=u63,
+    fallbacks=u63,
+    control_changed_ns=u63,
+    command_age_ms=st.none() | reals(0, 1e7),
 )
 any_message = st.one_of(states, commands(), frames, acks, detections(), references(), statuses)
 
@@ -347,8 +352,24 @@ def test_construction_validates_and_normalises() -> None:
 
 def _status() -> m.SupervisorStatus:
     return m.SupervisorStatus(
-        uav="u", seq=0, stamp_ns=0, state="q1", flow="default", camera_rate_factor=1.0,
+        uav="u", seq=0, stamp_ns=0, state="q1", flow="default", camera_flow="default", camera_rate_factor=1.0,
         control_source="edge", latency="LL", risk="LR", watchdog=False, t_cam_ms=None, t_cc_ms=None,
         spaciousness_m=None, p_cam=0.0, p_cc=0.0, p_lat=0.0, p_cs=0.0, prev_state="q1", cause="",
         changed_ns=0,
     )  # fmt: skip
+
+
+def test_every_control_source_travels_and_unknown_ones_are_rejected() -> None:
+    for source in ControlSource:  # the FC-silence hold included: the daemon must be able to report it
+        status = replace(_status(), control_source=source)
+        assert m.decode(m.encode(status)) == status
+        assert m.decode(m.encode(status)).control_source is source
+    body = msgpack.unpackb(m.encode(_status()), raw=False)
+    for name, bad in (
+        ("control_source", "fc-lost"),
+        ("flow", "best-effort"),
+        ("camera_flow", ""),
+        ("state", "q7"),
+    ):
+        with pytest.raises(DecodeError, match=name):
+            m.decode(msgpack.packb({**body, name: bad}, use_bin_type=True))

@@ -16,7 +16,8 @@ import pytest
 from dynqos.common import keys
 from dynqos.common.config import ZenohConfig
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import CameraFrame, Command, Reference, State, encode
+from dynqos.common.messages import CameraFrame, Command, Reference, State, SupervisorStatus, encode
+from dynqos.common.modes import ControlSource, Flow
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, open_bus
 from dynqos.edge.assembler import FrameAssembler
@@ -269,3 +270,65 @@ def test_onboard_speaks_sd_notify_ready_watchdog_and_stopping(tmp_path: Path) ->
         finally:
             onboard.stop()
             router.stop()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("qos", ["priority", "default", "dynamic"])
+def test_fc_silence_in_every_qos_mode_holds_position_and_resumes_at_the_edge(
+    loop: tuple[Path, ZenohConfig, dict[str, DynqosProcess]], qos: str
+) -> None:
+    """Wave 1 crashed here with a fixed flow: the FC's silence became a status the decoder refused.
+
+    The vehicle (our own child) is paused by its pid for 2 s mid-flight: the daemon must keep running,
+    report the hold in its status, keep the setpoint stream alive and hand control back to the edge."""
+    config, zcfg, procs = loop
+    observer = Observer(zcfg)
+    status: BoundedQueue[Received] = BoundedQueue(100_000)
+    observer.bus.subscribe(keys.uplink_any_flow("uav1", Stream.STATUS), status, expect=(SupervisorStatus,))
+
+    def statuses() -> list[SupervisorStatus]:
+        return [i.message for i in status.drain() if isinstance(i.message, SupervisorStatus)]
+
+    seen: list[SupervisorStatus] = []
+
+    def wait_for(source: ControlSource, after_ns: int, timeout_s: float) -> SupervisorStatus | None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            observer.wait_until(lambda s: False, 0.2)
+            seen.extend(statuses())
+            hit = [s for s in seen if s.control_source is source and s.control_changed_ns > after_ns]
+            if hit:
+                return hit[0]
+        return None
+
+    try:
+        procs["onboard"] = DynqosProcess(["onboard", "--takeoff", "--set", f"onboard.qos={qos}"], config)
+        assert observer.wait_until(lambda s: s.mode == "offboard", 60), "the drone never started offloading"
+        assert wait_for(ControlSource.EDGE, 0, 15), "the edge never took control"
+        observer.wait_until(lambda s: False, 2.0)
+        silence_ns = time.monotonic_ns()
+        procs["vehicle"].proc.send_signal(signal.SIGSTOP)
+        try:
+            hold = wait_for(ControlSource.HOLD, silence_ns, 2.0)
+        finally:
+            procs["vehicle"].proc.send_signal(signal.SIGCONT)
+        resumed_ns = time.monotonic_ns()
+        back = wait_for(ControlSource.EDGE, resumed_ns, 15)
+        alive = procs["onboard"].alive()
+    finally:
+        observer.bus.close()
+    log = procs.pop("onboard").stop()
+    assert alive, log[-3000:]
+    assert "Traceback" not in log
+    assert hold is not None, log[-3000:]
+    assert 450 <= (hold.control_changed_ns - silence_ns) / 1e6 <= 700  # STALE_STATE_NS after the last state
+    assert {s.flow for s in seen if s.stamp_ns >= silence_ns} <= (
+        {Flow(qos)} if qos != "dynamic" else {Flow.DEFAULT, Flow.PRIORITY}
+    )
+    assert back is not None, log[-3000:]
+    gaps = [s.setpoint_gap_ms for s in seen if s.setpoint_gap_ms is not None and s.stamp_ns >= silence_ns]
+    assert gaps
+    assert max(gaps) < 100, gaps  # the setpoint stream never paused: PX4 would leave offboard
+    assert "no state from the flight controller" in log
+    assert "the flight controller's state is back" in log

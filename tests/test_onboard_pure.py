@@ -155,37 +155,6 @@ def test_files_camera_streams_real_frames(shared_data: Path) -> None:
     assert all(v is not None and 1.0 <= v <= 10.0 for v in values)
 
 
-def test_fallback_holds_or_continues_the_mission_from_the_last_reference() -> None:
-    from dynqos.common.clock import FakeClock
-    from dynqos.common.config import load_config
-    from dynqos.common.messages import Reference
-    from dynqos.onboard.daemon import OnboardDaemon
-
-    positions = [(float(k), 0.0, -1.5) for k in range(5)]
-    reference = Reference(uav="uav1", seq=1, stamp_ns=0, dt_s=0.05, pos_m=positions,
-                          vel_mps=[(20.0, 0.0, 0.0)] * 5, yaw_rad=[0.3] * 5)  # fmt: skip
-    clock = FakeClock(1_000 * MS)
-    hold = OnboardDaemon(load_config(None, []), clock=clock)
-    hold.hold_target = np.array([9.0, 9.0, -1.0])
-    hold.reference.update(reference, 1_000 * MS)
-    target, velocity, _ = hold._fallback_target(1_100 * MS)
-    assert list(target) == [9.0, 9.0, -1.0]
-    assert velocity is None
-    cont = OnboardDaemon(load_config(None, ["onboard.fallback='continue'"]), clock=clock)
-    cont.hold_target = np.array([9.0, 9.0, -1.0])
-    assert list(cont._fallback_target(1_100 * MS)[0]) == [9.0, 9.0, -1.0]  # no reference yet: hold
-    cont.reference.update(reference, 1_000 * MS)
-    target, velocity, yaw = cont._fallback_target(1_100 * MS)  # 100 ms after arrival: sample 2
-    assert list(target) == pytest.approx([2.0, 0.0, -1.5])
-    assert velocity is not None
-    assert velocity[0] == pytest.approx(20.0)
-    assert yaw == pytest.approx(0.3)
-    target, velocity, _ = cont._fallback_target(5_000 * MS)  # long after: the last sample, no velocity
-    assert list(target) == pytest.approx([4.0, 0.0, -1.5])
-    assert velocity is not None
-    assert velocity[0] == 0.0
-
-
 def test_serial_urls_carry_their_baud_rate() -> None:
     from dynqos.onboard.fclink import serial_device_and_baud
 

@@ -449,7 +449,7 @@ class LoadedDefaultFlow:
         self.loaded = loaded
 
     def __call__(self, _t: float) -> Inputs:
-        camera_on_default = self.flight.sup.actions().camera == "default"
+        camera_on_default = self.flight.sup.actions().camera_flow == "default"
         cam = 150.0 if camera_on_default and self.loaded else 40.0
         return Inputs(cc_rtts_ms=[15.0], camera_latencies_ms=[cam], spaciousness_m=4.0)
 
@@ -471,16 +471,16 @@ def test_recovery_sends_the_camera_ahead_and_stays_when_the_default_flow_is_stil
     gaps = [b - a for a, b in itertools.pairwise(started)]
     assert gaps == sorted(gaps)  # each try waits longer than the one before
     assert gaps[-1] > gaps[0] + 1.0
-    probing = [d.actions for _, d in flight.decisions if d.actions.camera_flow]
+    probing = [d.actions for _, d in flight.decisions if d.actions.camera_flow != d.actions.flow]
     assert probing
-    assert {(a.flow, a.camera, a.camera_rate_factor) for a in probing} == {("priority", "default", 1.0)}
+    assert {(a.flow, a.camera_flow, a.camera_rate_factor) for a in probing} == {("priority", "default", 1.0)}
     # The load ends: the next probe passes and the machine returns to q1 after probe_s.
     cell.loaded = False
     flight.run_until(Q1, CONFIG.recover_max_s + 3.0, cell)
     assert flight.sup.log[-1].cause == "LL holds; the default flow carried the camera for 1 s"
-    assert flight.sup.actions() == Actions("default", 1.0, "edge")
+    assert flight.sup.actions() == Actions("default", 1.0, "edge", "default")
     status = to_status(flight.decisions[-1][1], uav="uav1", seq=1, stamp_ns=0, last=None)
-    assert status.camera_flow == ""
+    assert status.camera_flow == "default"
 
 
 def test_a_probe_ends_when_the_latency_turns_high() -> None:
@@ -489,12 +489,12 @@ def test_a_probe_ends_when_the_latency_turns_high() -> None:
     flight.run_until(Q3, 2.0, LOADED)
     while not flight.decisions[-1][1].note.startswith("probing"):
         flight.run(TICK_S, UNLOADED)
-    assert flight.sup.actions().camera == "default"
+    assert flight.sup.actions().camera_flow == "default"
     status = to_status(flight.decisions[-1][1], uav="uav1", seq=1, stamp_ns=0, last=None)
     assert (status.flow, status.camera_flow) == ("priority", "default")
     flight.run(TICK_S, LOADED)
     assert flight.decisions[-1][1].note.startswith("probe failed: latency HL")
-    assert flight.sup.actions().camera == "priority"
+    assert flight.sup.actions().camera_flow == "priority"
     assert flight.sup.state is Q3
 
 
@@ -506,7 +506,7 @@ def test_rate_adapted_states_probe_at_full_rate_and_q4_returns_at_once() -> None
     assert flight.sup.actions().camera_rate_factor == CONFIG.rate_factor
     while not flight.decisions[-1][1].note.startswith("probing"):
         flight.run(TICK_S, UNLOADED)
-    assert flight.sup.actions() == Actions("priority", 1.0, "edge", camera_flow="default")
+    assert flight.sup.actions() == Actions("priority", 1.0, "edge", "default")
     flight.run_until(Q1, 2.0, UNLOADED)
     # q4 is already on the default flow: nothing to probe.
     flight = Flight()

@@ -1,6 +1,6 @@
 """Real zenoh sessions on 127.0.0.1: a router with the two flow ports and a drone peer session.
 
-Relays in front of the router ports count which link carried which bytes (DESIGN section 2).
+Relays in front of the router ports count which link carried which bytes (docs/architecture.md).
 """
 
 from __future__ import annotations

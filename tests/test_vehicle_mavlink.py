@@ -17,7 +17,9 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
+from dynqos.common.geometry import yaw_of
 from dynqos.demo import free_port
+from dynqos.onboard.fclink import POSITION_AND_YAW_MASK
 from tests.procs import DYNQOS, DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
@@ -71,10 +73,9 @@ def wait_for(client: Any, predicate: Any, kind: str, timeout_s: float) -> Any:
     raise AssertionError(f"no {kind} matching within {timeout_s} s")
 
 
-def send_setpoint(client: Any, x: float, y: float, z: float) -> None:
-    mask = 0b0000_1101_1111_1000  # position only, yaw rate ignored, yaw used
-    client.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, mask, x, y, z,
-                                                  0, 0, 0, 0, 0, 0, 0.0, 0.0)  # fmt: skip
+def send_setpoint(client: Any, x: float, y: float, z: float, yaw: float = 0.0) -> None:
+    client.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_AND_YAW_MASK,
+                                                  x, y, z, 0, 0, 0, 0, 0, 0, yaw, 0.0)  # fmt: skip
 
 
 def test_telemetry_rates_and_identity(vehicle: tuple[VehicleProcess, Any]) -> None:
@@ -117,8 +118,39 @@ def test_arm_takeoff_offboard_and_fly(vehicle: tuple[VehicleProcess, Any]) -> No
         pos = client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=1)
         reached = pos is not None and abs(pos.x - 1.0) < 0.05 and abs(pos.y - 0.5) < 0.05
     assert reached
+    # The yaw of the setpoint is flown too (the onboard daemon sends the MPC's heading this way).
+    deadline = time.monotonic() + 10
+    yaw = 0.0
+    while time.monotonic() < deadline and abs(yaw - 1.0) > 0.05:
+        send_setpoint(client, 1.0, 0.5, -2.0, yaw=1.0)
+        att = client.recv_match(type="ATTITUDE_QUATERNION", blocking=True, timeout=1)
+        yaw = yaw_of((att.q1, att.q2, att.q3, att.q4)) if att is not None else yaw
+    assert yaw == pytest.approx(1.0, abs=0.05)
     # Setpoints stop: after COM_OF_LOSS_T the vehicle holds (AUTO.LOITER).
     wait_for(client, lambda m: m.custom_mode == (4 << 16) | (3 << 24), "HEARTBEAT", 5)
+
+
+def test_message_intervals_are_honoured_as_px4_does(vehicle: tuple[VehicleProcess, Any]) -> None:
+    _, client = vehicle
+    position, attitude = mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
+    interval = mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+
+    def gaps(kind: str, count: int = 12) -> set[int]:
+        client.recv_match(type=kind, blocking=True, timeout=5)  # the first may predate the change
+        stamps = [wait_for(client, lambda m: True, kind, 5).time_boot_ms for _ in range(count)]
+        return {b - a for a, b in itertools.pairwise(stamps)}
+
+    assert command(client, interval, position, 100_000) == mavlink.MAV_RESULT_ACCEPTED  # 10 Hz
+    assert gaps("LOCAL_POSITION_NED") == {100}  # in simulated time
+    assert command(client, interval, attitude, -1) == mavlink.MAV_RESULT_ACCEPTED  # off
+    client.recv_match(type="ATTITUDE_QUATERNION", blocking=True, timeout=0.5)
+    assert client.recv_match(type="ATTITUDE_QUATERNION", blocking=True, timeout=1.5) is None
+    assert command(client, interval, attitude, 0) == mavlink.MAV_RESULT_ACCEPTED  # back to the default
+    assert command(client, interval, position, 0) == mavlink.MAV_RESULT_ACCEPTED
+    assert gaps("ATTITUDE_QUATERNION") == {20}
+    assert gaps("LOCAL_POSITION_NED") == {20}
+    assert command(client, interval, mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, 100_000) == mavlink.MAV_RESULT_DENIED
+    assert command(client, interval, position, -5) == mavlink.MAV_RESULT_DENIED
 
 
 def test_unknown_and_bad_commands_are_refused(vehicle: tuple[VehicleProcess, Any]) -> None:

@@ -1,0 +1,219 @@
+"""The publish/subscribe seam: what dynqos code sees of the network, with an in-memory implementation.
+
+Pure and I/O code alike publish through a `Publisher` and receive through `Bus.subscribe` into a
+bounded queue; neither sees zenoh. `common.transport.ZenohBus` is the real implementation over a zenoh
+session (httpx's transport split is the model). `MemoryBus` delivers within one process, through the
+same codec and the same checks, so a test can drive the onboard core, the MPC or a whole closed loop
+without sockets and on a fake clock.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import re
+import threading
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.errors import DecodeError
+from dynqos.common.messages import Message, decode, encode
+from dynqos.common.queues import BoundedQueue
+
+log = logging.getLogger(__name__)
+
+
+class Priority(enum.IntEnum):
+    """Zenoh's priorities, numbered as zenoh numbers them (1 = REAL_TIME)."""
+
+    REAL_TIME = 1
+    INTERACTIVE_HIGH = 2
+    INTERACTIVE_LOW = 3
+    DATA_HIGH = 4
+    DATA = 5
+    DATA_LOW = 6
+    BACKGROUND = 7
+
+
+@dataclass(frozen=True, slots=True)
+class Received:
+    """One decoded message as handed from a subscription to the consumer."""
+
+    key: str
+    message: Message
+    arrival_ns: int
+
+
+class SubscriptionStats:
+    """Counters of one subscription; written by the delivering thread, read by anyone."""
+
+    def __init__(self) -> None:
+        self.received = 0
+        self.rejected = 0
+        self.last_error: str | None = None
+
+
+class Publisher(Protocol):
+    """Publishes messages on one key with a priority fixed at declaration (zenoh's rule)."""
+
+    key: str
+    sent: int
+
+    def put(self, message: Message) -> None: ...
+
+    def put_bytes(self, data: bytes) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class Bus(Protocol):
+    """A session seen through the few operations dynqos needs."""
+
+    def publisher(
+        self, key: str, priority: Priority, *, drop_when_congested: bool = False, express: bool = False
+    ) -> Publisher: ...
+
+    def subscribe(
+        self,
+        key_expr: str,
+        queue: BoundedQueue[Received],
+        *,
+        expect: tuple[type[Message], ...] = (),
+        decoder: Callable[[bytes], Message] = decode,
+    ) -> SubscriptionStats: ...
+
+    def close(self) -> None: ...
+
+
+def delivery(
+    queue: BoundedQueue[Received],
+    stats: SubscriptionStats,
+    expect: tuple[type[Message], ...],
+    decoder: Callable[[bytes], Message],
+) -> Callable[[str, bytes, int], None]:
+    """The one receive path of every Bus: decode, check, count, hand off; never raises, never blocks.
+
+    With `expect`, a well-formed message of another type is rejected too, and so is one whose drone id
+    differs from the one in its key (a drone speaking for another)."""
+
+    def deliver(key: str, payload: bytes, arrival_ns: int) -> None:
+        try:
+            message = decoder(payload)
+            if expect and not isinstance(message, expect):
+                raise DecodeError("t", f"a {message.TYPE} is not expected here")
+            if expect and key.split("/", 2)[1] != message.uav:
+                raise DecodeError("uav", f"drone {message.uav!r} on another drone's key")
+        except DecodeError as exc:
+            stats.rejected += 1
+            stats.last_error = str(exc)
+            if stats.rejected == 1 or stats.rejected % 1000 == 0:
+                log.warning("rejected message on %s (%d so far): %s", key, stats.rejected, exc)
+            return
+        stats.received += 1
+        queue.put(Received(key, message, arrival_ns))
+
+    return deliver
+
+
+def key_matcher(key_expr: str) -> re.Pattern[str]:
+    """A regular expression for a zenoh key expression: `*` is one chunk, `**` any number of chunks."""
+    parts = []
+    for chunk in key_expr.split("/"):
+        if chunk == "**":
+            parts.append("(?:[^/]+(?:/[^/]+)*)?")
+        elif chunk == "*":
+            parts.append("[^/]+")
+        else:
+            parts.append(re.escape(chunk))
+    pattern = "/".join(parts).replace("/(?:[^/]+(?:/[^/]+)*)?", "(?:/[^/]+)*")
+    return re.compile(pattern)
+
+
+class MemoryPublisher:
+    def __init__(self, bus: MemoryBus, key: str) -> None:
+        self._bus = bus
+        self.key = key
+        self.sent = 0
+
+    def put(self, message: Message) -> None:
+        self.put_bytes(encode(message))
+
+    def put_bytes(self, data: bytes) -> None:
+        self._bus.deliver(self.key, data)
+        self.sent += 1
+
+    def close(self) -> None:
+        pass
+
+
+class MemoryBus:
+    """Every subscriber of the process, matched by key expression; puts are delivered in order.
+
+    Messages cross the real codec, so what arrives is what would arrive over zenoh. `delays` gives a
+    one-way delay to the keys that match a key expression (the first match counts; say which traffic
+    crosses the network, e.g. `("dynqos/*/up/**", 10_000_000)`): such a put is held and `pump()`
+    delivers it when it is due on the bus clock, which a test on a fake clock controls. Other puts are
+    delivered at once. Several components (a drone's core, the MPC, an observer) can share one bus."""
+
+    def __init__(self, clock: Clock | None = None, *, delays: Sequence[tuple[str, int]] = ()) -> None:
+        if any(ns < 0 for _, ns in delays):
+            raise ValueError(f"delays must be >= 0 ns, got {list(delays)}")
+        self._clock = clock or MonotonicClock()
+        self._delays = [(key_matcher(expr), ns) for expr, ns in delays]
+        self._subscribers: list[tuple[re.Pattern[str], Callable[[str, bytes, int], None]]] = []
+        self._in_flight: deque[tuple[int, str, bytes]] = deque()
+        self._lock = threading.Lock()
+        self.published: dict[str, int] = {}  # key -> messages put (delivered or not)
+
+    def publisher(
+        self, key: str, priority: Priority, *, drop_when_congested: bool = False, express: bool = False
+    ) -> MemoryPublisher:
+        return MemoryPublisher(self, key)
+
+    def subscribe(
+        self,
+        key_expr: str,
+        queue: BoundedQueue[Received],
+        *,
+        expect: tuple[type[Message], ...] = (),
+        decoder: Callable[[bytes], Message] = decode,
+    ) -> SubscriptionStats:
+        stats = SubscriptionStats()
+        with self._lock:
+            self._subscribers.append((key_matcher(key_expr), delivery(queue, stats, expect, decoder)))
+        return stats
+
+    def deliver(self, key: str, data: bytes) -> None:
+        with self._lock:
+            self.published[key] = self.published.get(key, 0) + 1
+            delay_ns = next((ns for pattern, ns in self._delays if pattern.fullmatch(key)), 0)
+            if delay_ns:
+                self._in_flight.append((self._clock.now_ns() + delay_ns, key, data))
+                return
+        self._hand_over(key, data)
+
+    def pump(self) -> int:
+        """Deliver every held message that is due now; returns how many were."""
+        now = self._clock.now_ns()
+        due = []
+        with self._lock:
+            while self._in_flight and self._in_flight[0][0] <= now:
+                due.append(self._in_flight.popleft())
+        for _, key, data in due:
+            self._hand_over(key, data)
+        return len(due)
+
+    def _hand_over(self, key: str, data: bytes) -> None:
+        with self._lock:
+            targets = [deliver for pattern, deliver in self._subscribers if pattern.fullmatch(key)]
+        now = self._clock.now_ns()
+        for deliver in targets:
+            deliver(key, data, now)
+
+    def close(self) -> None:
+        with self._lock:
+            self._subscribers.clear()
+            self._in_flight.clear()

@@ -1,0 +1,149 @@
+"""The camera pipeline of the onboard daemon: grab, encode, pace and publish RGB-D on its own thread.
+
+It runs beside the 50 Hz control loop so that rendering or encoding an image never delays a setpoint.
+The control loop steers it through `CameraControl` (the flow and the rate the supervisor chose) and
+learns from it through two bounded queues: every image handed to the bus (`FrameSent`, which the
+onboard core needs before an ack for it can be matched) and the spaciousness of each depth image.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass
+from typing import Protocol
+
+from dynqos.common.bus import Publisher
+from dynqos.common.clock import Clock
+from dynqos.common.config import OnboardConfig
+from dynqos.common.messages import CameraFrame
+from dynqos.common.modes import Flow
+from dynqos.common.queues import BoundedQueue
+from dynqos.onboard.camera import CameraSource, RateController, RawFrame, encode_depth, encode_rgb
+from dynqos.onboard.core import FrameSent
+from dynqos.onboard.fc import FcState
+from dynqos.onboard.pacing import FRAME_HEADER_BYTES, Pacer, split
+from dynqos.onboard.risk import Spaciousness
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FlowPublishers:
+    """One publisher per flow for a stream, declared up front: switching flows is picking the other."""
+
+    default: Publisher
+    priority: Publisher
+
+    def pick(self, flow: Flow) -> Publisher:
+        return self.priority if flow is Flow.PRIORITY else self.default
+
+    def close(self) -> None:
+        self.default.close()
+        self.priority.close()
+
+
+@dataclass
+class CameraControl:
+    """What the control loop tells the camera: written by one thread, read by the other (plain values)."""
+
+    flow: Flow = Flow.DEFAULT
+    rate_factor: float = 1.0
+
+
+class PoseSource(Protocol):
+    def __call__(self) -> FcState | None: ...
+
+
+class CameraStream:
+    def __init__(
+        self,
+        uav: str,
+        config: OnboardConfig,
+        camera: CameraSource,
+        rgb: FlowPublishers,
+        depth: FlowPublishers,
+        *,
+        pose: PoseSource,
+        clock: Clock,
+        stop: threading.Event,
+    ) -> None:
+        self.uav = uav
+        self.config = config
+        self.camera = camera
+        self.rgb, self.depth = rgb, depth
+        self.pose = pose
+        self.clock = clock
+        self.stop = stop
+        self.control = CameraControl()
+        self.rate = RateController(config.camera_fps)
+        self.pacer = Pacer(config.camera_pace_mbps * 1e6) if config.camera_pace_mbps > 0 else None
+        self.sent: BoundedQueue[FrameSent] = BoundedQueue(1024)
+        self.spaciousness: BoundedQueue[float] = BoundedQueue(8)
+        self._risk: Spaciousness | None = None
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
+        self._thread.start()
+
+    def join(self, timeout_s: float) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout=timeout_s)
+
+    def _run(self) -> None:
+        seq = 0
+        while not self.stop.is_set():
+            now = self.clock.now_ns()
+            self.rate.factor = self.control.rate_factor
+            if not self.rate.due(now):
+                self.stop.wait(min(0.1, max(0.001, self.rate.wait_s(now))))  # the camera's frame rate
+                continue
+            state = self.pose()
+            raw = self.camera.grab((state.pos_m, state.quat) if state else None)
+            if raw is None:
+                continue
+            seq += 1
+            self._send_frame(raw, seq)
+
+    def _send_frame(self, raw: RawFrame, seq: int) -> None:
+        stamp = self.clock.now_ns()
+        flow = self.control.flow  # one flow for every part of both halves of the frame
+        self._send(
+            self.rgb.pick(flow), seq, stamp, raw, "rgb", "jpeg", encode_rgb(raw.rgb, self.config.jpeg_quality)
+        )
+        if raw.depth_m is None:
+            return
+        self._send(self.depth.pick(flow), seq, stamp, raw, "depth", "zstd16", encode_depth(raw.depth_m))
+        if self._risk is None:
+            h, w = raw.depth_m.shape[:2]
+            self._risk = Spaciousness(w, h, raw.intrinsics, stride=4)
+        value = self._risk(raw.depth_m)
+        if value is not None:
+            self.spaciousness.put(value)
+
+    def _send(
+        self, pub: Publisher, seq: int, stamp: int, raw: RawFrame, kind: str, encoding: str, data: bytes
+    ) -> None:
+        h, w = raw.rgb.shape[:2]
+        self.sent.put(FrameSent(seq, kind, stamp, len(data)))  # before the first part: an ack may follow
+        parts = [data] if self.pacer is None else split(data, self.config.camera_part_bytes)
+        for index, part in enumerate(parts):
+            if self.pacer is not None:
+                wait_ns = self.pacer.reserve(len(part) + FRAME_HEADER_BYTES, self.clock.now_ns())
+                if wait_ns > 0 and self.stop.wait(wait_ns / 1e9):
+                    return
+            frame = CameraFrame(
+                uav=self.uav,
+                seq=seq,
+                stamp_ns=stamp,
+                kind=kind,
+                encoding=encoding,
+                width=w,
+                height=h,
+                intrinsics=raw.intrinsics,
+                payload=part,
+                part=index,
+                parts=len(parts),
+            )
+            pub.put(frame)

@@ -1,0 +1,430 @@
+"""The drone's decisions as pure logic: one `tick` per control period, time passed in.
+
+The daemon (onboard/daemon.py) is a shell around this core: it reads the flight controller and the
+bus, calls `tick`, and writes what comes back. Everything that decides lives here, each in one place:
+
+- commands: which edge command is valid and which of its setpoints applies now (CommandTracker);
+- the State the drone publishes every T_mpc, and the supervisor's step after it;
+- who flies the drone, decided once per tick: the edge while the supervisor wants it and a valid
+  command covers now, else the fallback PID; and a position hold when the flight controller itself
+  has gone silent (its state is stale, so neither the edge nor the PID can fly on it);
+- the flow each stream takes and the camera's rate: the supervisor's actions in `qos = "dynamic"`, the
+  configured flow otherwise (the supervisor then only reports, and the watchdog still hands control to
+  the fallback);
+- the SupervisorStatus, with what the drone does (not what it was asked to do) and what was measured.
+
+No zenoh, MAVLink, OpenCV, threads or wall clock here: tests drive it tick by tick on a fake clock.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dynqos.common.bus import Received
+from dynqos.common.clock import NS_PER_S, to_ns
+from dynqos.common.config import Config
+from dynqos.common.geometry import yaw_of
+from dynqos.common.keys import Stream
+from dynqos.common.messages import (
+    LATENCY_LIMIT_MS,
+    MAX_STATUS_SAMPLES,
+    CameraAck,
+    Command,
+    Detections,
+    Message,
+    Reference,
+    State,
+    SupervisorStatus,
+)
+from dynqos.common.modes import ControlSource, Flow
+from dynqos.common.reference import ReferenceTrack
+from dynqos.onboard.commands import CommandTracker
+from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint, Setpoint
+from dynqos.onboard.monitors import CameraLatencyMonitor
+from dynqos.onboard.pid import CascadedPid
+from dynqos.onboard.supervisor import Decision, Inputs, Supervisor, decision_fields
+
+SETPOINT_HZ = 50
+SETPOINT_PERIOD_NS = NS_PER_S // SETPOINT_HZ
+STALE_STATE_NS = 500_000_000  # no position from the FC for this long: it is lost, stop using its state
+
+
+@dataclass(frozen=True, slots=True)
+class FrameSent:
+    """One image (both its parts if paced) handed to the bus by the camera pipeline."""
+
+    seq: int
+    kind: str
+    stamp_ns: int
+    nbytes: int  # encoded image bytes, message headers not counted
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TickInput:
+    """What the shell read since the last tick. `offboard` turns True once the FC flies offboard."""
+
+    now_ns: int
+    fc: FcState | None
+    downlink: Sequence[Received] = ()
+    frames_sent: Sequence[FrameSent] = ()
+    spaciousness_m: float | None = None
+    offboard: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Outgoing:
+    stream: Stream
+    flow: Flow
+    message: Message
+
+
+@dataclass(frozen=True, slots=True)
+class LogEvent:
+    level: int  # a `logging` level
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class TickOutput:
+    setpoint: Setpoint | None  # what the FC gets this tick; None before offboard or with no FC state
+    publish: tuple[Outgoing, ...]
+    camera_flow: Flow
+    camera_rate_factor: float
+    events: tuple[LogEvent, ...]
+
+
+class LatencySamples:
+    """The latency samples measured since the last SupervisorStatus (bounded: the newest are kept)."""
+
+    def __init__(self) -> None:
+        self._cams: deque[float] = deque(maxlen=MAX_STATUS_SAMPLES)
+        self._rtts: deque[float] = deque(maxlen=MAX_STATUS_SAMPLES)
+
+    def extend(self, cams: Iterable[float], rtts: Iterable[float]) -> None:
+        self._cams.extend(c for c in cams if 0 <= c <= LATENCY_LIMIT_MS)
+        self._rtts.extend(r for r in rtts if 0 <= r <= LATENCY_LIMIT_MS)
+
+    def take(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        out = (tuple(self._cams), tuple(self._rtts))
+        self._cams.clear()
+        self._rtts.clear()
+        return out
+
+
+@dataclass
+class Counters:
+    states: int = 0
+    setpoints: int = 0
+    fallback_ticks: int = 0
+    edge_ticks: int = 0
+    frames: int = 0
+    camera_bytes: int = 0  # encoded image bytes handed to the bus (headers not counted)
+    switches_to_fallback: int = 0
+    detections: int = 0
+
+
+@dataclass
+class _Hold:
+    """Where the drone holds (the fallback's target, or the FC-silence hold) and the last command."""
+
+    pos_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    yaw_rad: float = 0.0
+
+    def set(self, fc: FcState) -> None:
+        hold = hold_at(fc)
+        self.pos_m, self.yaw_rad = np.array(hold.pos_m), hold.yaw_rad
+
+
+class OnboardCore:
+    """The onboard decisions; `tick` once per setpoint period (50 Hz) with what the shell read."""
+
+    def __init__(self, config: Config, start_ns: int) -> None:
+        self.config = config
+        self.uav = config.drone.id
+        self.qos = config.onboard.qos
+        self.tracker = CommandTracker(
+            self.uav, to_ns(config.supervisor.watchdog_s), config.supervisor.window[1]
+        )
+        self.camera_monitor = CameraLatencyMonitor()
+        self.supervisor = Supervisor(config.supervisor, start_ns=start_ns)
+        self.pid = CascadedPid()
+        self.reference = ReferenceTrack()
+        self.samples = LatencySamples()
+        self.counters = Counters()
+        self.decision: Decision | None = None
+        self.control = ControlSource.NONE
+        self.offloading = False
+        self.fallbacks = 0
+        self.control_changed_ns = 0
+        self.command_age_ms: float | None = None
+        self.max_setpoint_gap_ms = 0.0
+        self._hold = _Hold()
+        self._last_accel = np.zeros(3)
+        self._space: float | None = None  # the newest spaciousness not yet given to the supervisor
+        self._state_seq = 0
+        self._status_seq = 0
+        self._t_mpc_ns = to_ns(config.control.t_mpc_s)
+        self._status_period_ns = round(NS_PER_S / config.onboard.status_hz)
+        self._next_state_ns: int | None = None
+        self._next_status_ns = start_ns
+        self._last_setpoint_ns: int | None = None
+        self._status_gap_ms = 0.0  # the longest setpoint gap since the last status
+        self._events: list[LogEvent] = []
+
+    # ---- the one entry point ------------------------------------------------------------------------
+
+    def tick(self, inp: TickInput) -> TickOutput:
+        now = inp.now_ns
+        self._events = []
+        publish: list[Outgoing] = []
+        self._take_in(inp)
+        if inp.offboard and not self.offloading and inp.fc is not None:
+            self._engage(inp.fc)
+        fresh = inp.fc is not None and now - inp.fc.stamp_ns <= STALE_STATE_NS
+        watchdog = self.tracker.watchdog_expired(now)
+        if fresh and inp.fc is not None and self._state_due(now):
+            publish.append(self._state(inp.fc, now))
+            self._supervise(now, watchdog)
+        elif watchdog and self.control is ControlSource.EDGE:
+            self._supervise(now, watchdog)  # the watchdog acts at once, not at the next supervisor tick
+        before = self.control
+        setpoint = self._control(inp.fc, now, watchdog)
+        self._measure_gap(setpoint, now)
+        flow, camera_flow, rate = self._flows()
+        if self.decision is not None and (now >= self._next_status_ns or self.control is not before):
+            self._next_status_ns = now + self._status_period_ns
+            publish.append(Outgoing(Stream.STATUS, flow, self._status(now, flow, camera_flow, rate)))
+        return TickOutput(setpoint, tuple(publish), camera_flow, rate, tuple(self._events))
+
+    # ---- inputs ---------------------------------------------------------------------------------------
+
+    def _take_in(self, inp: TickInput) -> None:
+        # Frames first: an ack in this batch may answer a frame reported in the same tick.
+        for frame in inp.frames_sent:
+            self.camera_monitor.frame_sent(frame.seq, frame.kind, frame.stamp_ns)
+            self.counters.camera_bytes += frame.nbytes
+            self.counters.frames += frame.kind == "rgb"
+        if inp.spaciousness_m is not None:
+            self._space = inp.spaciousness_m
+        for item in inp.downlink:
+            message = item.message
+            if isinstance(message, Command):
+                self.tracker.offer(message, item.arrival_ns)
+            elif isinstance(message, CameraAck):
+                self.camera_monitor.on_ack(message, item.arrival_ns)
+            elif isinstance(message, Detections):
+                self.counters.detections += 1
+            elif isinstance(message, Reference):
+                self.reference.update(message, item.arrival_ns)
+
+    def _engage(self, fc: FcState) -> None:
+        """The FC flies offboard: from now on every tick sends a setpoint, starting from a hold here."""
+        self.offloading = True
+        self._hold.set(fc)
+        self.pid.reset()
+
+    def _state_due(self, now: int) -> bool:
+        if self._next_state_ns is None:
+            self._next_state_ns = now
+        if now < self._next_state_ns:
+            return False
+        self._next_state_ns += self._t_mpc_ns
+        if self._next_state_ns < now:
+            self._next_state_ns = now + self._t_mpc_ns
+        return True
+
+    def _state(self, fc: FcState, now: int) -> Outgoing:
+        self._state_seq += 1
+        message = State(
+            uav=self.uav,
+            seq=self._state_seq,
+            stamp_ns=now,
+            pos_m=fc.pos_m,
+            vel_mps=fc.vel_mps,
+            quat=fc.quat,
+            rtt_est_ms=self.tracker.rtt_estimate_ms(),
+            mode="offboard" if self.offloading else "standby",
+        )
+        self.tracker.state_sent(self._state_seq, now)
+        self.counters.states += 1
+        return Outgoing(Stream.STATE, self._flows()[0], message)
+
+    def _supervise(self, now: int, watchdog: bool) -> None:
+        cams, rtts = self.camera_monitor.take_new(), self.tracker.take_new_rtts()
+        self.samples.extend(cams, rtts)
+        inputs = Inputs(
+            camera_latencies_ms=cams,
+            cc_rtts_ms=rtts,
+            camera_outstanding_ms=self.camera_monitor.oldest_outstanding_ms(now),
+            cc_outstanding_ms=self.tracker.oldest_unanswered_ms(now),
+            spaciousness_m=self._space,
+            watchdog_expired=watchdog,
+        )
+        self._space = None
+        decision = self.supervisor.step(inputs, now)
+        if decision.transition is not None:
+            t = decision.transition
+            p_lat = "NA" if t.p_lat is None else f"{t.p_lat:.2f}"
+            self._log(
+                logging.INFO, f"supervisor: {t.source.value} -> {t.target.value} ({t.cause}) P_lat={p_lat}"
+            )
+        if decision.note:
+            self._log(logging.INFO, f"supervisor: {decision.state.value}: {decision.note}")
+        self.decision = decision
+
+    def _flows(self) -> tuple[Flow, Flow, float]:
+        """(the state's flow, the camera's flow, the camera's rate factor)."""
+        if self.qos != "dynamic":
+            return Flow(self.qos), Flow(self.qos), 1.0
+        if self.decision is None:
+            return Flow.DEFAULT, Flow.DEFAULT, 1.0
+        a = self.decision.actions
+        return a.flow, a.camera_flow, a.camera_rate_factor
+
+    # ---- who flies --------------------------------------------------------------------------------------
+
+    def _source(self, watchdog: bool) -> ControlSource:
+        """The one edge-or-fallback decision: the edge while it is wanted and a valid command covers now."""
+        wanted = (
+            self.qos != "dynamic"  # fixed flow: the supervisor only reports
+            or self.decision is None
+            or self.decision.actions.control_source is ControlSource.EDGE
+        )
+        return ControlSource.EDGE if wanted and not watchdog else ControlSource.FALLBACK
+
+    def _control(self, fc: FcState | None, now: int, watchdog: bool) -> Setpoint | None:
+        if not self.offloading or fc is None:
+            return None
+        if now - fc.stamp_ns > STALE_STATE_NS:
+            if self.control is not ControlSource.HOLD:
+                silent_s = (now - fc.stamp_ns) / NS_PER_S
+                why = f"no state from the flight controller for {silent_s:.1f} s"
+                self._log(logging.ERROR, f"onboard: {why}: holding position")
+                self._hold.set(fc)
+                self._switch(ControlSource.HOLD, now)
+            return PositionSetpoint(_triple(self._hold.pos_m), self._hold.yaw_rad)
+        if self.control is ControlSource.HOLD:
+            self._log(logging.INFO, "onboard: the flight controller's state is back")
+        source = self._source(watchdog)
+        if source is ControlSource.EDGE:
+            setpoint = self.tracker.setpoint(now)
+            assert setpoint is not None  # the watchdog expires when no setpoint covers now
+            if self.control is not ControlSource.EDGE:
+                seq = self.tracker.active.seq if self.tracker.active else -1
+                self._log(logging.INFO, f"onboard: control from the edge (seq {seq})")
+                self._switch(ControlSource.EDGE, now)
+            accel, yaw = np.array(setpoint.accel_mps2), setpoint.yaw_rad
+            self.counters.edge_ticks += 1
+        else:
+            if self.control is not ControlSource.FALLBACK:
+                self._log(
+                    logging.WARNING,
+                    f"onboard: fallback PID holding position ({self._why_fallback(now, watchdog)})",
+                )
+                self.counters.switches_to_fallback += 1
+                self.fallbacks += 1
+                self._hold.set(fc)
+                self.pid.reset(self._last_accel)  # bumpless
+                self._switch(ControlSource.FALLBACK, now)
+            target, target_vel, yaw = self._fallback_target(now)
+            accel = self.pid.step(
+                np.array(fc.pos_m), np.array(fc.vel_mps), target, 1 / SETPOINT_HZ, target_vel
+            )
+            self.counters.fallback_ticks += 1
+        self._last_accel = accel
+        return AccelSetpoint(_triple(accel), yaw)
+
+    def _why_fallback(self, now: int, watchdog: bool) -> str:
+        if watchdog:
+            last = self.tracker.last_valid_ns
+            age = "never" if last is None else f"{(now - last) / 1e6:.0f} ms ago"
+            return f"watchdog: last valid command {age}"
+        return f"supervisor state {self.decision.state.value if self.decision else '-'}"
+
+    def _switch(self, source: ControlSource, now: int) -> None:
+        self.control = source
+        self.control_changed_ns = now
+        last = self.tracker.last_valid_ns
+        self.command_age_ms = None if last is None else (now - last) / 1e6
+
+    def _fallback_target(self, now: int) -> tuple[np.ndarray, np.ndarray | None, float]:
+        """Hold where the fallback took over, or (fallback = continue) follow the last reference while it
+        lasts; past its end the reference holds its last sample."""
+        if self.config.onboard.fallback == "continue":
+            window = self.reference.window(now, 1, self.config.control.t_mpc_s)
+            if window is not None:
+                states, yaws = window
+                return states[0, :3], states[0, 3:], float(yaws[0])
+        return self._hold.pos_m, None, self._hold.yaw_rad
+
+    # ---- what is measured and reported ----------------------------------------------------------------
+
+    def _measure_gap(self, setpoint: Setpoint | None, now: int) -> None:
+        if setpoint is None:
+            return
+        self.counters.setpoints += 1
+        if self._last_setpoint_ns is not None:
+            gap_ms = (now - self._last_setpoint_ns) / 1e6
+            self._status_gap_ms = max(self._status_gap_ms, gap_ms)
+            self.max_setpoint_gap_ms = max(self.max_setpoint_gap_ms, gap_ms)
+        self._last_setpoint_ns = now
+
+    def _status(self, now: int, flow: Flow, camera_flow: Flow, rate: float) -> SupervisorStatus:
+        assert self.decision is not None
+        self._status_seq += 1
+        cams, rtts = self.samples.take()
+        gap, self._status_gap_ms = self._status_gap_ms, 0.0
+        return SupervisorStatus(
+            uav=self.uav,
+            seq=self._status_seq,
+            stamp_ns=now,
+            flow=flow,
+            camera_flow=camera_flow,
+            camera_rate_factor=rate,
+            control_source=self.control,
+            rtt_ms=self.tracker.last_rtt_ms,
+            camera_latency_ms=self.camera_monitor.last_ms,
+            setpoint_gap_ms=gap if self.offloading else None,
+            rtt_samples_ms=rtts,
+            camera_latency_samples_ms=cams,
+            fallbacks=self.fallbacks,
+            control_changed_ns=self.control_changed_ns,
+            command_age_ms=self.command_age_ms,
+            **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),
+        )
+
+    def _log(self, level: int, text: str) -> None:
+        self._events.append(LogEvent(level, text))
+
+    def health(self, bus_rejected: int = 0) -> dict[str, object]:
+        """The health line's fields; `bus_rejected`: commands the bus refused before they reached us."""
+        t = self.tracker.counters
+        return {
+            "state": self.decision.state.value if self.decision else "-",
+            "flow": self._flows()[0].value,
+            "control": self.control.value,
+            "rtt_ms": f"{self.tracker.rtt_estimate_ms():.1f}",
+            "commands_ok": t.accepted,
+            "rejected": t.rejected + bus_rejected,
+            "stale": t.stale,
+            "unknown": t.unknown_state,
+            "expired": t.expired,
+            "future": t.future,
+            "wrong_drone": t.wrong_drone,
+            **vars(self.counters),
+            "max_setpoint_gap_ms": f"{self.max_setpoint_gap_ms:.1f}",
+        }
+
+
+def hold_at(fc: FcState) -> PositionSetpoint:
+    """A position hold where the FC says the drone is, facing where it faces."""
+    return PositionSetpoint(fc.pos_m, yaw_of(fc.quat))
+
+
+def _triple(v: np.ndarray) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))

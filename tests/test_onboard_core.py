@@ -1,0 +1,305 @@
+"""The onboard core, tick by tick on a fake clock: who flies, on which flow, and what it reports."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import pytest
+
+from dynqos.common.bus import Received
+from dynqos.common.config import Config, OnboardConfig, load_config
+from dynqos.common.keys import Stream
+from dynqos.common.messages import CameraAck, Command, Reference, State, SupervisorStatus, decode, encode
+from dynqos.common.modes import ControlSource, Flow, SupervisorState
+from dynqos.onboard.core import (
+    SETPOINT_PERIOD_NS,
+    STALE_STATE_NS,
+    FrameSent,
+    OnboardCore,
+    TickInput,
+    TickOutput,
+)
+from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint
+
+MS = 1_000_000
+QOS_MODES = ["dynamic", "default", "priority"]
+EDGE_ACCEL = (0.5, -0.25, 0.0)
+
+
+def config(qos: str = "dynamic", **onboard: object) -> Config:
+    return replace(Config(), onboard=replace(OnboardConfig(), qos=qos, **onboard))  # type: ignore[arg-type]
+
+
+@dataclass
+class Rig:
+    """A drone's core, a flight controller that reports where it is, and an edge that answers states.
+
+    The edge answers each State with a Command after `rtt_ms` (when `edge_up`); the FC's state is
+    stamped every tick while `fc_up`, and stays at its last stamp when the FC falls silent."""
+
+    core: OnboardCore
+    now: int = 1_000 * MS
+    rtt_ms: float = 20.0
+    edge_up: bool = True
+    fc_up: bool = True
+    offboard: bool = True
+    fc: FcState | None = None
+    spaciousness_m: float | None = 8.0
+    pending: list[tuple[int, Received]] = field(default_factory=list)
+    outputs: list[TickOutput] = field(default_factory=list)
+    extra: list[Received] = field(default_factory=list)
+
+    @classmethod
+    def make(cls, qos: str = "dynamic", **kwargs: object) -> Rig:
+        return cls(OnboardCore(config(qos), start_ns=1_000 * MS), **kwargs)  # type: ignore[arg-type]
+
+    def tick(self) -> TickOutput:
+        self.now += SETPOINT_PERIOD_NS
+        if self.fc_up or self.fc is None:
+            self.fc = FcState(self.now, (1.0, 2.0, -1.5), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))
+        due = [r for t, r in self.pending if t <= self.now]
+        self.pending = [(t, r) for t, r in self.pending if t > self.now]
+        downlink, self.extra = [*due, *self.extra], []
+        out = self.core.tick(
+            TickInput(now_ns=self.now, fc=self.fc, downlink=downlink, offboard=self.offboard,
+                      spaciousness_m=self.spaciousness_m)
+        )  # fmt: skip
+        for item in out.publish:
+            # Everything the core publishes must survive the codec: a status it cannot encode is a crash.
+            assert decode(encode(item.message)) == item.message
+            if isinstance(item.message, State) and self.edge_up:
+                arrival = self.now + round(self.rtt_ms * MS)
+                self.pending.append((arrival, Received("cmd", self.command_for(item.message), arrival)))
+        self.outputs.append(out)
+        return out
+
+    def command_for(self, state: State, uav: str = "uav1") -> Command:
+        return Command(uav=uav, seq=state.seq, state_seq=state.seq, state_stamp_ns=state.stamp_ns,
+                       edge_hold_ns=0, dt_s=0.05, accel_mps2=[EDGE_ACCEL] * 10,
+                       yaw_rad=[0.7] * 10)  # fmt: skip
+
+    def run(self, seconds: float) -> list[TickOutput]:
+        return [self.tick() for _ in range(round(seconds * 1e9 / SETPOINT_PERIOD_NS))]
+
+    def run_until(self, source: ControlSource, seconds: float) -> None:
+        for _ in range(round(seconds * 1e9 / SETPOINT_PERIOD_NS)):
+            self.tick()
+            if self.core.control is source:
+                return
+        raise AssertionError(f"never reached {source} in {seconds} s (control {self.core.control})")
+
+    def statuses(self, outs: Iterable[TickOutput] | None = None) -> list[SupervisorStatus]:
+        return [
+            p.message
+            for o in (self.outputs if outs is None else outs)
+            for p in o.publish
+            if isinstance(p.message, SupervisorStatus)
+        ]
+
+    def events(self) -> list[str]:
+        return [e.text for o in self.outputs for e in o.events]
+
+
+def test_before_offboard_nothing_flies_and_the_state_says_standby() -> None:
+    rig = Rig.make(offboard=False)
+    outs = rig.run(1.0)
+    assert all(o.setpoint is None for o in outs)
+    states = [p.message for o in outs for p in o.publish if isinstance(p.message, State)]
+    assert len(states) == 20  # every T_mpc = 50 ms
+    assert {s.mode for s in states} == {"standby"}
+    assert {s.control_source for s in rig.statuses()} == {ControlSource.NONE}
+    rig.offboard = True
+    rig.run(0.2)
+    assert rig.core.offloading
+    assert rig.outputs[-1].setpoint is not None
+
+
+@pytest.mark.parametrize("qos", QOS_MODES)
+def test_the_edge_flies_while_commands_come_and_the_watchdog_hands_over_in_time(qos: str) -> None:
+    rig = Rig.make(qos)
+    rig.run_until(ControlSource.EDGE, 4.0)
+    out = rig.tick()
+    assert out.setpoint == AccelSetpoint(EDGE_ACCEL, 0.7)  # the edge's setpoint and yaw, untouched
+    edge_accel = np.array(EDGE_ACCEL)
+    rig.edge_up = False
+    before = rig.now
+    rig.run_until(ControlSource.FALLBACK, 1.0)
+    handed_over_ms = (rig.now - before) / MS
+    # The last command answered a state at most T_mpc before; T_wd = 150 ms; plus one 20 ms tick.
+    assert handed_over_ms <= 150 + 50 + 20
+    first = rig.outputs[-1].setpoint
+    assert isinstance(first, AccelSetpoint)
+    assert np.allclose(first.accel_mps2, edge_accel, atol=0.2)  # bumpless: the PID starts from the edge's
+    status = rig.statuses([rig.outputs[-1]])  # published at the change, not at the next 5 Hz status
+    assert len(status) == 1
+    assert status[0].control_source is ControlSource.FALLBACK
+    assert status[0].fallbacks == rig.core.fallbacks
+    age_ms = status[0].command_age_ms
+    assert age_ms is not None
+    assert 150 < age_ms <= 150 + 20
+    assert status[0].control_changed_ns == rig.now
+    assert any("fallback PID holding position (watchdog: last valid command" in e for e in rig.events())
+    rig.edge_up = True
+    rig.run_until(ControlSource.EDGE, 5.0)
+    assert rig.statuses()[-1].control_source is ControlSource.EDGE
+
+
+@pytest.mark.parametrize("qos", QOS_MODES)
+def test_fc_silence_holds_position_keeps_the_stream_and_resumes(qos: str) -> None:
+    """The crash of wave 1: with a fixed flow, FC silence made a status the decoder refused."""
+    rig = Rig.make(qos)
+    rig.run_until(ControlSource.EDGE, 4.0)
+    rig.run(1.0)
+    rig.fc_up = False
+    silent = rig.run(2.0)
+    assert all(o.setpoint is not None for o in silent)  # a setpoint every tick: offboard survives
+    held = [o.setpoint for o in silent if isinstance(o.setpoint, PositionSetpoint)]
+    assert held
+    assert {h.pos_m for h in held} == {(1.0, 2.0, -1.5)}  # where the FC was last seen
+    hold_after_ms = (len(silent) - len(held)) * SETPOINT_PERIOD_NS / MS
+    assert STALE_STATE_NS / MS - 20 <= hold_after_ms <= STALE_STATE_NS / MS + 20
+    states = [p for o in silent[len(silent) - len(held) :] for p in o.publish if p.stream is Stream.STATE]
+    assert not states  # a stale state is not published
+    assert rig.core.control is ControlSource.HOLD
+    assert ControlSource.HOLD in {s.control_source for s in rig.statuses(silent)}
+    rig.fc_up = True
+    rig.run_until(ControlSource.EDGE, 5.0)
+    assert "onboard: the flight controller's state is back" in rig.events()
+    assert rig.core.max_setpoint_gap_ms == pytest.approx(20.0)
+
+
+def test_forged_stale_and_foreign_commands_never_fly() -> None:
+    rig = Rig.make("priority", edge_up=False)
+    rig.run(0.5)
+    assert rig.core.control is ControlSource.FALLBACK
+    state = [p.message for o in rig.outputs for p in o.publish if isinstance(p.message, State)][-1]
+    assert isinstance(state, State)
+    forged = replace(rig.command_for(state), state_stamp_ns=state.stamp_ns + 1)  # an altered echo
+    unknown = replace(rig.command_for(state), state_seq=10**6)  # answers no state we sent
+    foreign = rig.command_for(state, uav="uav2")
+    for command in (forged, unknown, foreign):
+        rig.extra.append(Received("cmd", command, rig.now))
+        rig.tick()
+    assert rig.core.control is ControlSource.FALLBACK
+    c = rig.core.tracker.counters
+    assert (c.unknown_state, c.wrong_drone, c.accepted) == (2, 1, 0)
+    good = rig.command_for(state)
+    rig.extra.append(Received("cmd", good, rig.now))
+    rig.tick()  # its horizon (500 ms) still covers now: the edge takes over
+    assert rig.core.control is ControlSource.EDGE
+    rig.extra.append(Received("cmd", good, rig.now))  # a replay
+    rig.tick()
+    assert rig.core.tracker.counters.stale == 1
+
+
+def _loaded_rig(qos: str, spaciousness_m: float) -> Rig:
+    rig = Rig.make(qos, spaciousness_m=spaciousness_m)
+    rig.run_until(ControlSource.EDGE, 4.0)
+    rig.run(3.0)
+    rig.rtt_ms = 120.0  # a loaded default flow
+    return rig
+
+
+def test_dynamic_qos_moves_the_state_to_the_priority_flow_and_back() -> None:
+    rig = _loaded_rig("dynamic", spaciousness_m=4.0)  # medium risk: q3 on high latency
+    outs = rig.run(3.0)
+    assert rig.core.decision is not None
+    assert rig.core.decision.state is SupervisorState.Q3
+    late = [p for o in outs[-20:] for p in o.publish]
+    assert {p.flow for p in late} == {Flow.PRIORITY}  # state and status
+    assert outs[-1].camera_flow is Flow.PRIORITY
+    rig.rtt_ms = 20.0
+    outs = rig.run(10.0)
+    probing = [
+        o for o in outs if o.camera_flow is Flow.DEFAULT and any(p.flow is Flow.PRIORITY for p in o.publish)
+    ]
+    assert probing  # the camera probed the default flow while the state stayed on the priority flow
+    assert rig.core.decision.state is SupervisorState.Q1
+    assert {p.flow for p in outs[-1].publish} <= {Flow.DEFAULT}
+
+
+def test_rate_adaptation_reaches_the_camera_and_persistent_latency_the_fallback() -> None:
+    rig = _loaded_rig("dynamic", spaciousness_m=8.0)  # low risk: q4, rate adaptation on the default flow
+    in_q4 = []
+    for _ in range(500):
+        out = rig.tick()
+        assert rig.core.decision is not None
+        if rig.core.decision.state is SupervisorState.Q4:
+            in_q4.append(out)
+        if rig.core.control is ControlSource.FALLBACK:
+            break
+    assert in_q4
+    assert {o.camera_flow for o in in_q4} == {Flow.DEFAULT}
+    assert min(o.camera_rate_factor for o in in_q4) < 1.0  # halved, and halved again
+    assert {p.flow for o in in_q4 for p in o.publish} == {Flow.DEFAULT}
+    # HL still holds at the minimum rate: qA, and the fallback flies although commands still come.
+    assert rig.core.decision is not None
+    assert rig.core.decision.state is SupervisorState.QA
+    assert rig.core.control is ControlSource.FALLBACK
+    assert any("fallback PID holding position (supervisor state qA)" in e for e in rig.events())
+
+
+@pytest.mark.parametrize("qos", ["default", "priority"])
+def test_a_fixed_flow_ignores_the_supervisors_flow_and_rate(qos: str) -> None:
+    rig = _loaded_rig(qos, spaciousness_m=4.0)
+    outs = rig.run(5.0)
+    assert rig.core.decision is not None
+    assert rig.core.decision.state is not SupervisorState.Q1  # it would switch...
+    assert {p.flow for o in outs for p in o.publish} == {Flow(qos)}  # ...but the drone does not
+    assert {(o.camera_flow, o.camera_rate_factor) for o in outs} == {(Flow(qos), 1.0)}
+    assert {s.flow for s in rig.statuses(outs)} == {Flow(qos)}
+    assert rig.core.control is ControlSource.EDGE  # and the edge keeps flying while commands come
+
+
+def test_camera_acks_become_latency_samples_in_the_status() -> None:
+    rig = Rig.make("dynamic")
+    rig.run(0.5)
+    stamp = rig.now
+    out = rig.core.tick(
+        TickInput(now_ns=rig.now + 1, fc=rig.fc, frames_sent=[FrameSent(1, "rgb", stamp, 1000)])
+    )
+    assert out.setpoint is not None
+    ack = CameraAck(uav="uav1", seq=1, frame_seq=1, kind="rgb", stamp_ns=stamp, edge_hold_ns=2 * MS)
+    rig.extra.append(Received("ack", ack, stamp + 30 * MS))
+    rig.run(0.5)
+    samples = [v for s in rig.statuses() for v in s.camera_latency_samples_ms]
+    assert samples == [pytest.approx(28.0)]
+    assert rig.core.counters.camera_bytes == 1000
+
+
+def test_fallback_holds_or_continues_the_mission_from_the_last_reference() -> None:
+    positions = [(float(k), 0.0, -1.5) for k in range(5)]
+    reference = Reference(uav="uav1", seq=1, stamp_ns=0, dt_s=0.05, pos_m=positions,
+                          vel_mps=[(20.0, 0.0, 0.0)] * 5, yaw_rad=[0.3] * 5)  # fmt: skip
+    hold = OnboardCore(load_config(None, []), start_ns=0)
+    hold._hold.pos_m = np.array([9.0, 9.0, -1.0])
+    hold.reference.update(reference, 1_000 * MS)
+    target, velocity, _ = hold._fallback_target(1_100 * MS)
+    assert list(target) == [9.0, 9.0, -1.0]
+    assert velocity is None
+    cont = OnboardCore(load_config(None, ["onboard.fallback='continue'"]), start_ns=0)
+    cont._hold.pos_m = np.array([9.0, 9.0, -1.0])
+    assert list(cont._fallback_target(1_100 * MS)[0]) == [9.0, 9.0, -1.0]  # no reference yet: hold
+    cont.reference.update(reference, 1_000 * MS)
+    target, velocity, yaw = cont._fallback_target(1_100 * MS)  # 100 ms after arrival: sample 2
+    assert list(target) == pytest.approx([2.0, 0.0, -1.5])
+    assert velocity is not None
+    assert velocity[0] == pytest.approx(20.0)
+    assert yaw == pytest.approx(0.3)
+    target, velocity, _ = cont._fallback_target(5_000 * MS)  # long after: the last sample, no velocity
+    assert list(target) == pytest.approx([4.0, 0.0, -1.5])
+    assert velocity is not None
+    assert velocity[0] == 0.0
+
+
+def test_log_events_carry_levels() -> None:
+    rig = Rig.make("priority")
+    rig.run_until(ControlSource.EDGE, 4.0)
+    rig.fc_up = False
+    rig.run(1.0)
+    levels = {e.text: e.level for o in rig.outputs for e in o.events}
+    assert any(t.startswith("onboard: no state from the flight controller") for t in levels)
+    assert logging.ERROR in levels.values()
