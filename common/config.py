@@ -437,6 +437,9 @@ class OnboardConfig:
     # SITL is N+1), so that several vehicles can share a ground-station link.
     fc_system_id: int = 1
     fc_component_id: int = 1
+    # command: the FC turns to the yaw of the edge's (or the fallback's) setpoint; free: the yaw is
+    # ignored and the FC keeps its own heading (how every setpoint went out before wave 2).
+    yaw: Literal["command", "free"] = "command"
     takeoff: bool = False
     takeoff_alt_m: float = 1.5
     connect_default: str = ""  # host:port of the default flow ("" = zenoh edge_host:default_port)

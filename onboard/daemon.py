@@ -89,6 +89,7 @@ class OnboardDaemon:
             heartbeat_timeout_s=cfg.heartbeat_timeout_s,
             fc_system_id=cfg.fc_system_id,
             fc_component_id=cfg.fc_component_id,
+            fly_yaw=cfg.yaw == "command",
         )
         self.link.start()
         self.bus = bus or open_bus(self.config.zenoh, Role.DRONE, connect=self.endpoints(), clock=self.clock)

@@ -33,6 +33,7 @@ PX4_SUB_LOITER, PX4_SUB_LAND = 3, 6
 IGNORE_POSITION = 0b111
 IGNORE_VELOCITY = 0b111 << 3
 IGNORE_ACCEL = 0b111 << 6
+IGNORE_YAW = 1 << 10
 IGNORE_YAW_RATE = 1 << 11
 ACCEL_AND_YAW_MASK = IGNORE_POSITION | IGNORE_VELOCITY | IGNORE_YAW_RATE  # fly accel, turn to yaw
 POSITION_AND_YAW_MASK = IGNORE_VELOCITY | IGNORE_ACCEL | IGNORE_YAW_RATE  # hold position and yaw
@@ -61,8 +62,11 @@ class FcLink:
         heartbeat_timeout_s: float = 3.0,
         fc_system_id: int = 1,
         fc_component_id: int = 1,
+        fly_yaw: bool = True,
     ) -> None:
         self.url = url
+        # Without fly_yaw ([onboard] yaw = "free") the yaw is ignored and the FC keeps its own heading.
+        self._yaw_bit = 0 if fly_yaw else IGNORE_YAW
         self.fc_system_id = fc_system_id
         self.fc_component_id = fc_component_id
         self.clock = clock or MonotonicClock()
