@@ -130,7 +130,7 @@ class Counters:
 
 @dataclass
 class _Hold:
-    """Where the drone holds (the fallback's target, or the FC-silence hold) and the last command."""
+    """Where the drone holds (the fallback's target, or the FC-silence hold)."""
 
     pos_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     yaw_rad: float = 0.0
@@ -159,7 +159,6 @@ class OnboardCore:
         self.decision: Decision | None = None
         self.control = ControlSource.NONE
         self.offloading = False
-        self.fallbacks = 0
         self.control_changed_ns = 0
         self.command_age_ms: float | None = None
         self.max_setpoint_gap_ms = 0.0
@@ -327,7 +326,6 @@ class OnboardCore:
                     f"onboard: fallback PID holding position ({self._why_fallback(now, watchdog)})",
                 )
                 self.counters.switches_to_fallback += 1
-                self.fallbacks += 1
                 self._hold.set(fc)
                 self.pid.reset(self._last_accel)  # bumpless
                 self._switch(ControlSource.FALLBACK, now)
@@ -392,7 +390,7 @@ class OnboardCore:
             setpoint_gap_ms=gap if self.offloading else None,
             rtt_samples_ms=rtts,
             camera_latency_samples_ms=cams,
-            fallbacks=self.fallbacks,
+            fallbacks=self.counters.switches_to_fallback,
             control_changed_ns=self.control_changed_ns,
             command_age_ms=self.command_age_ms,
             **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),

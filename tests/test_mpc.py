@@ -42,7 +42,7 @@ def test_closed_loop_tracks_a_2_m_10_s_circle(qos: str) -> None:
     # The edge flew the measured lap alone; the one fallback was the start, before the first command.
     assert set(flight.sources) == {ControlSource.EDGE}
     assert flight.core is not None
-    assert flight.core.fallbacks <= 1
+    assert flight.core.counters.switches_to_fallback <= 1
 
 
 def test_delay_compensation_beats_no_compensation_at_100_ms() -> None:

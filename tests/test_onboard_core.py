@@ -136,7 +136,7 @@ def test_the_edge_flies_while_commands_come_and_the_watchdog_hands_over_in_time(
     status = rig.statuses([rig.outputs[-1]])  # published at the change, not at the next 5 Hz status
     assert len(status) == 1
     assert status[0].control_source is ControlSource.FALLBACK
-    assert status[0].fallbacks == rig.core.fallbacks
+    assert status[0].fallbacks == rig.core.counters.switches_to_fallback
     age_ms = status[0].command_age_ms
     assert age_ms is not None
     assert 150 < age_ms <= 150 + 20
