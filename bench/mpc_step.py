@@ -25,10 +25,11 @@ from typing import Any
 import numpy as np
 
 from dynqos.bench.report import bench_parser, emit, judged, provenance
+from dynqos.common.config import ControlConfig, MpcConfig
 from dynqos.common.messages import Reference, State
 from dynqos.edge.missions import Mission
-from dynqos.edge.mpc import ControllerSettings, DroneController
-from dynqos.edge.mpc_problem import MpcProblem, MpcSettings
+from dynqos.edge.mpc import DroneController
+from dynqos.edge.mpc_problem import MpcProblem
 
 DT_NS = 50_000_000
 MISSION = Mission(kind="circle", lead_in_s=0.0)
@@ -49,7 +50,7 @@ def _state(uav: str, k: int, phase: float = 0.0) -> State:
 
 
 def _controller(uav: str, horizon: int) -> DroneController:
-    ctrl = DroneController(uav, ControllerSettings(mpc=MpcSettings(horizon=horizon)))
+    ctrl = DroneController(uav, MpcConfig(), ControlConfig(horizon=horizon))
     pos, vel, yaw = MISSION.samples(0.0, 0.05, 400)
     ctrl.reference.update(
         Reference(uav=uav, seq=1, stamp_ns=0, dt_s=0.05, pos_m=pos, vel_mps=vel, yaw_rad=yaw), 0
@@ -70,7 +71,7 @@ def step_vs_floor(horizon: int, steps: int) -> dict[str, Any]:
     solved, in the same order (so both are warm-started alike and take the same iterations): the
     difference is what our code adds around the solver."""
     ctrl = _controller("uav1", horizon)
-    bare = MpcProblem(MpcSettings(horizon=horizon))
+    bare = MpcProblem(MpcConfig(), ControlConfig(horizon=horizon))
     solved: list[tuple[Any, Any]] = []
     solve = ctrl.problem.solve
 
@@ -104,7 +105,7 @@ def cvxpy_step(horizon: int, steps: int) -> dict[str, float] | None:
         cp: Any = importlib.import_module("cvxpy")  # optional: only this comparison needs it
     except ImportError:
         return None
-    s = MpcSettings(horizon=horizon)
+    s = MpcConfig()
     ctrl = _controller("uav1", horizon)
     ad, bd = ctrl.problem.ad, ctrl.problem.bd
     q = np.diag([s.q_pos] * 3 + [s.q_vel] * 3)

@@ -93,7 +93,7 @@ def _cmd_sim_vehicle(args: argparse.Namespace, config: Config) -> int:
     import signal
 
     from dynqos.sim.vehicle import Link, MavlinkVehicle
-    from dynqos.sim.vehicle_model import VehicleConfig, VehicleModel
+    from dynqos.sim.vehicle_model import VehicleModel
     from dynqos.sim.world import default_world, load_world
 
     v = config.vehicle
@@ -105,16 +105,7 @@ def _cmd_sim_vehicle(args: argparse.Namespace, config: Config) -> int:
         raise DynqosError(f"--speed must be in 0.01..100, got {speed}")
     if args.duration is not None and args.duration <= 0:
         raise DynqosError(f"--duration must be > 0, got {args.duration}")
-    model = VehicleModel(
-        VehicleConfig(
-            wind=v.wind_mps,
-            gust_std_mps=v.gust_std_mps,
-            gust_tau_s=v.gust_tau_s,
-            seed=v.seed,
-            takeoff_alt_m=v.takeoff_alt_m,
-            offboard_loss_s=v.offboard_loss_s,
-        )
-    )
+    model = VehicleModel(v)
     links = [
         Link("offboard", (v.host, v.offboard_bind_port), (v.host, v.offboard_remote_port)),
         Link("gcs", (v.host, v.gcs_bind_port), (v.host, v.gcs_remote_port)),

@@ -11,24 +11,18 @@ already-committed inputs.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from dynqos.common.clock import NS_PER_S, to_ns
+from dynqos.common.config import ControlConfig, MpcConfig
 from dynqos.common.geometry import yaw_of
 from dynqos.common.messages import MAX_HORIZON, State
 from dynqos.common.reference import ReferenceTrack
-from dynqos.edge.mpc_problem import Array, MpcProblem, MpcSettings
+from dynqos.edge.mpc_problem import Array, MpcProblem
 
 HISTORY = 64
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class ControllerSettings:
-    mpc: MpcSettings = field(default_factory=MpcSettings)
-    compensate_delay: bool = True
-    command_steps: int = 10  # optimal setpoints sent after the committed ones
-    max_compensation_s: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,10 +44,10 @@ class _SentCommand:
 
 
 class DroneController:
-    def __init__(self, uav: str, settings: ControllerSettings | None = None) -> None:
+    def __init__(self, uav: str, mpc: MpcConfig | None = None, control: ControlConfig | None = None) -> None:
         self.uav = uav
-        self.settings = settings or ControllerSettings()
-        self.problem = MpcProblem(self.settings.mpc)
+        self.mpc = mpc or MpcConfig()
+        self.problem = MpcProblem(self.mpc, control)
         self.reference = ReferenceTrack()
         self.last_seq: int | None = None
         self.hold: Array | None = None
@@ -65,7 +59,7 @@ class DroneController:
     def _committed_inputs(self, stamp_ns: int, steps: int, rtt_ns: int) -> Array:
         """The inputs the drone will apply in [stamp, stamp + steps * dt): from the command that has
         arrived there by then (sent for an earlier state, arriving about one RTT after its stamp)."""
-        dt_ns = round(self.settings.mpc.dt_s * 1e9)
+        dt_ns = round(self.problem.dt_s * NS_PER_S)
         out = np.zeros((steps, 3))
         for j in range(steps):
             t = stamp_ns + j * dt_ns
@@ -86,17 +80,17 @@ class DroneController:
             return None
         self.last_seq = state.seq
         self.last_seen_ns = arrival_ns
-        s = self.settings
-        dt = s.mpc.dt_s
-        n = s.mpc.horizon
+        s = self.mpc
+        dt = self.problem.dt_s
+        n = self.problem.horizon
         x0 = np.array([*state.pos_m, *state.vel_mps])
         rtt_s = min(state.rtt_est_ms / 1000.0, s.max_compensation_s) if s.compensate_delay else 0.0
         committed = min(round(rtt_s / dt), MAX_HORIZON - 1)
         steps = max(1, min(s.command_steps, MAX_HORIZON - committed, n))
-        rtt_ns = round(rtt_s * 1e9)
+        rtt_ns = to_ns(rtt_s)
         past = self._committed_inputs(state.stamp_ns, committed, rtt_ns)
         x_start = self.problem.predict(x0, past)[-1] if committed else x0
-        ref_start_ns = arrival_ns - rtt_ns // 2 + round(committed * dt * 1e9)
+        ref_start_ns = arrival_ns - rtt_ns // 2 + to_ns(committed * dt)
         window = self.reference.window(ref_start_ns, n + 1, dt)
         if window is None:
             if self.hold is None:

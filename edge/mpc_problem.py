@@ -11,30 +11,16 @@ reference (q) change, and the previous solution warm-starts the next.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import osqp
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from dynqos.common.config import ControlConfig, MpcConfig
+
 Array = NDArray[np.float64]
 NX, NU = 6, 3
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class MpcSettings:
-    dt_s: float = 0.05
-    horizon: int = 20
-    q_pos: float = 10.0
-    q_vel: float = 1.0
-    r_acc: float = 0.1
-    terminal_factor: float = 5.0
-    v_max_mps: tuple[float, float, float] = (3.0, 3.0, 1.5)
-    a_max_mps2: tuple[float, float, float] = (6.0, 6.0, 4.0)  # ~35 deg of tilt; vertical thrust margin
-    drag_per_s: float = 0.25
-    eps: float = 1e-4
-    max_iter: int = 4000
 
 
 def discretise(dt: float, drag: float) -> tuple[Array, Array]:
@@ -56,10 +42,14 @@ class SolveError(RuntimeError):
 
 
 class MpcProblem:
-    def __init__(self, settings: MpcSettings | None = None) -> None:
-        s = self.settings = settings or MpcSettings()
-        n = s.horizon
-        self.ad, self.bd = discretise(s.dt_s, s.drag_per_s)
+    """The weights and limits are `[mpc]`; the step and horizon are `[control]` (the drone's T_mpc)."""
+
+    def __init__(self, mpc: MpcConfig | None = None, control: ControlConfig | None = None) -> None:
+        s = self.mpc = mpc or MpcConfig()
+        timing = control or ControlConfig()
+        self.dt_s = dt_s = timing.t_mpc_s
+        self.horizon = n = timing.horizon
+        self.ad, self.bd = discretise(dt_s, s.drag_per_s)
         q = np.diag([s.q_pos] * 3 + [s.q_vel] * 3)
         self._q = q
         self._qn = q * s.terminal_factor
@@ -85,7 +75,7 @@ class MpcProblem:
         # control returns from the fallback) must be allowed to brake, or the QP is infeasible and no
         # command goes out. Bound at step k: max(v_max, |v0| - 0.9 a_max k dt), per axis.
         self._v_max = np.array(s.v_max_mps)
-        self._braking = 0.9 * self._a_max * s.dt_s * np.arange(n + 1)[:, None]
+        self._braking = 0.9 * self._a_max * dt_s * np.arange(n + 1)[:, None]
         rows = (n + 1) * NX + np.arange(n + 1)[:, None] * NX + 3 + np.arange(3)[None, :]
         self._v_rows = rows.ravel()
         self.solver = osqp.OSQP()
@@ -99,7 +89,7 @@ class MpcProblem:
 
     def vectors(self, x0: Array, reference: Array) -> tuple[Array, Array, Array]:
         """(q, l, u) for initial state x0 (6) and reference states (N + 1, 6)."""
-        n = self.settings.horizon
+        n = self.horizon
         if reference.shape != (n + 1, NX):
             raise ValueError(f"reference must have shape {(n + 1, NX)}, got {reference.shape}")
         q = self._qvec
@@ -123,7 +113,7 @@ class MpcProblem:
         self.last_iterations = int(result.info.iter)
         if result.info.status_val != osqp.SolverStatus.OSQP_SOLVED:
             raise SolveError(f"OSQP status {result.info.status}")
-        n = self.settings.horizon
+        n = self.horizon
         inputs: Array = result.x[(n + 1) * NX :].reshape(n, NU)
         return np.clip(inputs, -self._a_max, self._a_max)
 

@@ -20,24 +20,11 @@ from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import Command, Reference, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received
-from dynqos.edge.mpc import ControllerSettings, DroneController
-from dynqos.edge.mpc_problem import MpcSettings, SolveError
+from dynqos.edge.mpc import DroneController
+from dynqos.edge.mpc_problem import SolveError
 from dynqos.edge.service import Service
 
 log = logging.getLogger(__name__)
-
-
-def controller_settings(config: Config) -> ControllerSettings:
-    m = config.mpc
-    return ControllerSettings(
-        mpc=MpcSettings(
-            dt_s=config.control.t_mpc_s, horizon=config.control.horizon, q_pos=m.q_pos, q_vel=m.q_vel,
-            r_acc=m.r_acc, terminal_factor=m.terminal_factor, v_max_mps=m.v_max_mps, a_max_mps2=m.a_max_mps2,
-            drag_per_s=m.drag_per_s, eps=m.eps, max_iter=m.max_iter,
-        ),
-        compensate_delay=m.compensate_delay, command_steps=m.command_steps,
-        max_compensation_s=m.max_compensation_s,
-    )  # fmt: skip
 
 
 @dataclass
@@ -61,7 +48,6 @@ class MpcService:
         self.config = config
         self.bus = bus
         self.clock = clock or MonotonicClock()
-        self.settings = controller_settings(config)
         self.controllers: dict[str, DroneController] = {}
         self.publishers: dict[str, Publisher] = {}
         self.queue: BoundedQueue[Received] = BoundedQueue(4096)
@@ -79,7 +65,7 @@ class MpcService:
     def _controller(self, uav: str) -> DroneController:
         ctrl = self.controllers.get(uav)
         if ctrl is None:
-            ctrl = self.controllers[uav] = DroneController(uav, self.settings)
+            ctrl = self.controllers[uav] = DroneController(uav, self.config.mpc, self.config.control)
             self.publishers[uav] = self.bus.publisher(
                 keys.downlink(uav, Downlink.COMMAND), Priority.REAL_TIME, express=True
             )

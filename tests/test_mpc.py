@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from dynqos.common.config import MpcConfig
+from dynqos.common.config import ControlConfig, MpcConfig
 from dynqos.common.messages import Reference, State
 from dynqos.common.modes import ControlSource
 from dynqos.common.reference import ReferenceTrack
 from dynqos.edge.missions import Mission, load_waypoints
-from dynqos.edge.mpc import ControllerSettings, DroneController
-from dynqos.edge.mpc_problem import MpcProblem, MpcSettings, SolveError, discretise
+from dynqos.edge.mpc import DroneController
+from dynqos.edge.mpc_problem import MpcProblem, SolveError, discretise
 from tests.closedloop import fly_circle
 
 
@@ -53,8 +53,8 @@ def test_delay_compensation_beats_no_compensation_at_100_ms() -> None:
 
 
 def test_solution_respects_every_constraint() -> None:
-    settings = MpcSettings(horizon=30)
-    problem = MpcProblem(settings)
+    settings = MpcConfig()
+    problem = MpcProblem(settings, ControlConfig(horizon=30))
     rng = np.random.default_rng(1)
     for _ in range(30):
         x0 = np.concatenate([rng.uniform(-3, 3, 3), rng.uniform(-1, 1, 3)])
@@ -69,7 +69,7 @@ def test_solution_respects_every_constraint() -> None:
 def test_a_drone_faster_than_v_max_gets_a_braking_plan_not_an_infeasible_qp() -> None:
     """After a gust or the fallback, the measured velocity may exceed v_max: the MPC must still answer
     (an infeasible QP sends nothing, and the watchdog would take over again and again)."""
-    settings = MpcSettings()
+    settings = MpcConfig()
     problem = MpcProblem(settings)
     v_max = np.array(settings.v_max_mps)
     x0 = np.array([0.0, 0.0, -1.5, 4.0, -3.5, 2.5])  # over the limit on every axis
@@ -83,16 +83,16 @@ def test_a_drone_faster_than_v_max_gets_a_braking_plan_not_an_infeasible_qp() ->
 
 def test_first_input_matches_an_independent_solve_of_the_same_qp() -> None:
     cp = pytest.importorskip("cvxpy")
-    settings = MpcSettings(horizon=20, eps=1e-7, max_iter=20_000)
-    problem = MpcProblem(settings)
+    settings = MpcConfig(eps=1e-7, max_iter=20_000)
+    problem = MpcProblem(settings, ControlConfig(horizon=20))
     x0 = np.array([0.3, -0.2, -1.0, 0.5, 0.1, 0.0])
-    t = np.arange(21) * settings.dt_s
+    t = np.arange(21) * problem.dt_s
     reference = np.column_stack(
         [2 * np.cos(t), 2 * np.sin(t), np.full(21, -1.5), -2 * np.sin(t), 2 * np.cos(t), np.zeros(21)]
     )
     ours = problem.solve(x0, reference)
     # The same QP written independently in cvxpy and solved by an interior-point solver (Clarabel).
-    ad, bd = discretise(settings.dt_s, settings.drag_per_s)
+    ad, bd = discretise(problem.dt_s, settings.drag_per_s)
     q = np.diag([settings.q_pos] * 3 + [settings.q_vel] * 3)
     x = cp.Variable((21, 6))
     u = cp.Variable((20, 3))
@@ -111,7 +111,7 @@ def test_first_input_matches_an_independent_solve_of_the_same_qp() -> None:
 
 
 def test_solve_errors_are_raised_not_sent() -> None:
-    problem = MpcProblem(MpcSettings(max_iter=10, eps=1e-9))
+    problem = MpcProblem(MpcConfig(max_iter=10, eps=1e-8))
     reference = np.tile([5.0, 5.0, -1.5, 0, 0, 0], (21, 1))
     with pytest.raises(SolveError):
         problem.solve(np.zeros(6), reference)
@@ -135,7 +135,7 @@ def test_stale_states_are_ignored_and_no_reference_holds_position() -> None:
 
 
 def test_commands_carry_committed_inputs_for_the_rtt() -> None:
-    ctrl = DroneController("uav1", ControllerSettings(command_steps=10))
+    ctrl = DroneController("uav1", MpcConfig(command_steps=10))
     for seq in range(1, 6):
         plan = ctrl.step(state(seq, rtt_ms=100.0), seq * 50_000_000)
         assert plan is not None

@@ -7,14 +7,15 @@ import math
 import numpy as np
 import pytest
 
+from dynqos.common.config import VehicleSimConfig
 from dynqos.sim.dynamics import QuadState, quat_to_rot, rot_to_quat, yaw_of
 from dynqos.sim.px4 import MAIN_AUTO, MAIN_OFFBOARD, SUB_AUTO_LOITER, Mode, Result, Setpoint
-from dynqos.sim.vehicle_model import VehicleConfig, VehicleModel
+from dynqos.sim.vehicle_model import VehicleModel
 
 SETPOINT_S = 0.02
 
 
-def airborne(alt: float = 2.0, config: VehicleConfig | None = None) -> VehicleModel:
+def airborne(alt: float = 2.0, config: VehicleSimConfig | None = None) -> VehicleModel:
     model = VehicleModel(config)
     assert model.fc.arm(True, model.state, True, model.now_ns) is Result.ACCEPTED
     assert model.fc.takeoff(alt, model.state, model.now_ns) is Result.ACCEPTED
@@ -143,7 +144,7 @@ def test_setpoint_type_mask() -> None:
 def test_wind_gusts_are_reproducible_for_a_seed() -> None:
     runs = []
     for _ in range(2):
-        model = airborne(2.0, VehicleConfig(wind=(2.0, 0.0, 0.0), gust_std_mps=1.0, seed=5))
+        model = airborne(2.0, VehicleSimConfig(wind_mps=(2.0, 0.0, 0.0), gust_std_mps=1.0, seed=5))
         model.advance(3.0)
         runs.append(model.state.pos_m.copy())
     assert np.array_equal(runs[0], runs[1])
