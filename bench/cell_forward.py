@@ -21,7 +21,7 @@ from typing import Any
 
 from dynqos.bench.loadgen import Sink, send_paced
 from dynqos.bench.report import bench_parser, emit, judged, provenance
-from dynqos.demo import Processes
+from dynqos.processes import Processes
 
 BARE_RELAY = r"""
 import asyncio, sys

@@ -23,7 +23,8 @@ from typing import Any
 
 from dynqos.bench.report import bench_parser, emit, judged, provenance
 from dynqos.bench.suite import spread
-from dynqos.demo import builtin_scenario, run_scenario
+from dynqos.runner import run_scenario
+from dynqos.scenario import builtin_scenario
 
 WINDOW_S = 1.0
 BOUND = 1.2

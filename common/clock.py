@@ -10,6 +10,7 @@ import time
 from typing import Protocol
 
 NS_PER_S = 1_000_000_000
+NS_PER_MS = 1_000_000
 
 
 class Clock(Protocol):
@@ -52,3 +53,7 @@ def seconds(ns: int) -> float:
 
 def to_ns(seconds_: float) -> int:
     return round(seconds_ * NS_PER_S)
+
+
+def millis(ns: int) -> float:
+    return ns / NS_PER_MS

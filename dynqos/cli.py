@@ -236,7 +236,8 @@ def _cmd_onboard(args: argparse.Namespace, config: Config) -> int:
 def _cmd_demo(args: argparse.Namespace, config: Config) -> int:
     from pathlib import Path
 
-    from dynqos.demo import DEFAULT_SCENARIOS, default_out_dir, load_scenario, run_demo
+    from dynqos.demo import default_out_dir, run_demo
+    from dynqos.scenario import DEFAULT_SCENARIOS, load_scenario
 
     if args.duration is not None and not 5 <= args.duration <= 3600:
         raise DynqosError(f"--duration must be in 5..3600 s, got {args.duration}")

@@ -15,15 +15,17 @@ import logging
 import signal
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any, Literal
 
+from dynqos.common.bus import Bus
 from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.errors import ConfigError
 from dynqos.common.messages import SupervisorStatus
 from dynqos.common.modes import ControlSource
+from dynqos.processes import Processes
 
 log = logging.getLogger(__name__)
 SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zenoh reconnects take seconds)
@@ -67,7 +69,7 @@ class Flood:
     """Camera frames for another drone id at FLOOD_FPS from the recorder's session: bounded in count
     and time, stopped at the fault's end."""
 
-    def __init__(self, bus: Any, duration_s: float) -> None:
+    def __init__(self, bus: Bus, duration_s: float) -> None:
         import cv2
         import numpy as np
 
@@ -114,9 +116,9 @@ class Flood:
 class FaultInjector:
     """Starts and ends faults on a running scenario's processes and cell."""
 
-    def __init__(self, procs: Any, cell_event: Any, bus: Any) -> None:
+    def __init__(self, procs: Processes, cell_event: Callable[[dict[str, Any]], object], bus: Bus) -> None:
         self.procs = procs
-        self.cell_event = cell_event  # callable(dict): POST /events to the cell emulator
+        self.cell_event = cell_event  # POST /events to the cell emulator
         self.bus = bus
         self.windows: list[FaultWindow] = []
         self._floods: dict[int, Flood] = {}

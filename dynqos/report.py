@@ -10,16 +10,15 @@ import json
 import math
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from dynqos.common.messages import Reference, State, SupervisorStatus
 from dynqos.common.modes import SupervisorState
 from dynqos.faults import log_times, outcome
-
-if TYPE_CHECKING:
-    from dynqos.demo import Recording, Scenario
+from dynqos.recording import Recording
+from dynqos.scenario import Scenario
 
 PAPER_TABLE_II = {
     "No QoS - No BG": {"uav_tx": 47, "uav_rx": 47, "rtt": "27.3", "bg_tx": None, "bg_rx": None},

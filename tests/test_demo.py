@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from dynqos.common.config import ZenohConfig, load_config
+from dynqos.scenario import builtin_scenario, scenario_config, with_bearers, write_config
 from tests.procs import DYNQOS
 
 KEYS = {
@@ -110,3 +112,21 @@ def test_bad_scenario_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
     )
     assert unknown.returncode == 2
     assert "unknown scenario 'nope'" in unknown.stderr
+
+
+@pytest.mark.parametrize("name", ["baseline", "bg-noqos", "bg-dynqos", "bg-staticqos", "faults"])
+def test_a_scenarios_config_is_written_and_read_back_unchanged(tmp_path: Path, name: str) -> None:
+    """What the runner writes is exactly what every process reads: qos, camera size and pace, the
+    cell's scaled buffer and the bearers' ports the cell reported all survive the round trip."""
+    scenario = builtin_scenario(name)
+    config = scenario_config(scenario, zenoh=ZenohConfig(default_port=7001, priority_port=7002),
+                             fc_port=14601, gcs_port=14602)  # fmt: skip
+    config = with_bearers(config, {"uav1-default": {"port": 17001}, "uav1-priority": {"port": 17002}})
+    path = tmp_path / "dynqos.toml"
+    write_config(path, scenario, config)
+    loaded = load_config(path)
+    assert loaded == config
+    assert loaded.onboard.qos == scenario.qos
+    assert loaded.onboard.connect_priority == "127.0.0.1:17002"
+    assert loaded.cell.ue_buffer_bytes == round(1_000_000 / scenario.scale)
+    assert loaded.onboard.camera_pace_mbps == pytest.approx(scenario.camera_pace_mbps / scenario.scale)

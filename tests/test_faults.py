@@ -12,8 +12,9 @@ import pytest
 
 from dynqos.common.errors import ConfigError
 from dynqos.common.messages import SupervisorStatus
-from dynqos.demo import Scenario, builtin_scenario, run_scenario
 from dynqos.faults import Fault, FaultWindow, log_times, outcome
+from dynqos.runner import run_scenario
+from dynqos.scenario import Scenario, builtin_scenario
 
 T_WD_MS = 150.0
 TICK_MS = 20.0

@@ -1,0 +1,120 @@
+"""The experiment's processes: `dynqos` subcommands started on free loopback ports, each with its own
+log, stopped in reverse order by their own pids (never by name: other processes on the machine are not
+ours to end). Used by the scenario runner, the fault injector and the benchmarks."""
+
+from __future__ import annotations
+
+import json
+import selectors
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+from dynqos.common.errors import DynqosError
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def rss_kb(pid: int) -> int | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+class Processes:
+    """The scenario's processes, started in order, stopped in reverse, each by its own pid."""
+
+    def __init__(self, config: Path, logs: Path) -> None:
+        self.config = config
+        self.logs = logs
+        self.procs: dict[str, subprocess.Popen[str]] = {}
+        self.info: dict[str, dict[str, Any]] = {}
+        self.started: dict[str, tuple[list[str], list[str] | None]] = {}
+        self.down: set[str] = set()  # killed on purpose (a fault), not a failure
+        self.exe = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
+
+    def start(
+        self, name: str, args: list[str], timeout_s: float = 30.0, program: list[str] | None = None
+    ) -> dict[str, Any]:
+        """Start `dynqos ARGS --config FILE` (or `PROGRAM ARGS --config FILE`), wait for its ready line."""
+        err = (self.logs / f"{name}.log").open("a" if name in self.started else "w")  # a restart appends
+        self.started[name] = (args, program)
+        proc = subprocess.Popen(
+            [*(program or [self.exe]), *args, "--config", str(self.config)],
+            stdout=subprocess.PIPE,
+            stderr=err,
+            text=True,
+            start_new_session=True,
+        )
+        err.close()
+        self.procs[name] = proc
+        assert proc.stdout is not None
+        with selectors.DefaultSelector() as selector:
+            selector.register(proc.stdout, selectors.EVENT_READ)
+            line = proc.stdout.readline() if selector.select(timeout=timeout_s) else ""
+        if not line:
+            raise DynqosError(f"{name} did not start: {self.tail(name)}")
+        info: dict[str, Any] = json.loads(line)
+        self.info[name] = info
+        return info
+
+    def tail(self, name: str, lines: int = 3) -> str:
+        path = self.logs / f"{name}.log"
+        text = path.read_text(errors="replace").strip().splitlines() if path.exists() else []
+        return " | ".join(text[-lines:]) or "(no output)"
+
+    def dead(self) -> list[str]:
+        """Processes that exited, except those a fault stopped on purpose."""
+        return [
+            name for name, proc in self.procs.items() if proc.poll() is not None and name not in self.down
+        ]
+
+    def kill(self, name: str) -> None:
+        """SIGKILL our own child by its pid (a crash, as far as everyone else can tell)."""
+        self.down.add(name)
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=10)
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+    def restart(self, name: str) -> None:
+        args, program = self.started[name]
+        self.start(name, args, program=program)
+        self.down.discard(name)
+
+    def signal(self, name: str, signum: int) -> None:
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.send_signal(signum)
+
+    def stop_all(self) -> dict[str, int | None]:
+        codes: dict[str, int | None] = {}
+        for name in reversed(list(self.procs)):
+            proc = self.procs[name]
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)  # in case a fault paused it
+                proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=5)
+            if proc.stdout is not None:
+                proc.stdout.close()
+            codes[name] = proc.returncode
+        return codes
