@@ -159,15 +159,7 @@ def summarise(
             transitions.append(
                 {"t_s": (s.changed_ns - t0) / 1e9, "from": s.prev_state, "to": s.state, "cause": s.cause}
             )
-    first_switch = None
-    if bg_ns is not None and scenario.qos == "dynamic":
-        after = [s for s in statuses if s.stamp_ns >= bg_ns and s.flow == "priority"]
-        before = [s for s in statuses if s.stamp_ns < bg_ns]
-        if before and before[-1].flow == "priority":
-            first_switch = 0.0  # already on the priority flow (for risk) when the load started
-        elif after:
-            changed = after[0].changed_ns if after[0].changed_ns >= bg_ns else after[0].stamp_ns
-            first_switch = (changed - bg_ns) / 1e9
+    first_switch, switch_cause = _first_qos_switch(statuses, bg_ns if scenario.qos == "dynamic" else None)
     gaps = [s.setpoint_gap_ms for s in statuses if s.setpoint_gap_ms is not None]
     return {
         "scenario": scenario.name,
@@ -198,6 +190,12 @@ def summarise(
         "states_time_s": times,
         "transitions": transitions,
         "first_qos_switch_after_bg_s": first_switch,
+        "first_qos_switch_cause": switch_cause,
+        "camera_fps": {
+            "configured": scenario.camera_fps,
+            "baseline": _acked_fps(cams, settle_ns, baseline_end),
+            "loaded": _acked_fps(cams, bg_ns, end_ns) if loaded else None,
+        },
         "fallback_entered": any(s.fallbacks > 0 for s in statuses),
         "setpoint_gap_max_ms": max(gaps) if gaps else None,
         "states_recorded": len(rec.states),
@@ -217,6 +215,32 @@ def summarise(
         "ok": ok,
         "failure": failure,
     }
+
+
+def _first_qos_switch(statuses: list[SupervisorStatus], bg_ns: int | None) -> tuple[float | None, str | None]:
+    """Seconds from the load's start to the drone's first move to the priority flow, and the cause the
+    supervisor gave for it. A drone already on the priority flow when the load started (for risk) did
+    not react to the load: 0.0, with the cause of the earlier move and "before the load" saying so."""
+    if bg_ns is None:
+        return None, None
+    before = [s for s in statuses if s.stamp_ns < bg_ns]
+    if before and before[-1].flow == "priority":
+        return 0.0, f"before the load: {before[-1].cause or 'unknown'}"
+    after = [s for s in statuses if s.stamp_ns >= bg_ns and s.flow == "priority"]
+    if not after:
+        return None, None
+    changed = after[0].changed_ns if after[0].changed_ns >= bg_ns else after[0].stamp_ns
+    return (changed - bg_ns) / 1e9, after[0].cause or "unknown"
+
+
+def _acked_fps(cams: list[tuple[int, float]], start: int | None, stop: int) -> float | None:
+    """Camera frames the detector acknowledged per second in [start, stop): two acks (RGB, depth) a
+    frame. Below the configured rate, the drone offered less than the scenario asks (a CPU that cannot
+    render and encode that fast, or frames lost on the way)."""
+    if start is None or stop <= start:
+        return None
+    acks = sum(1 for t, _ in cams if start <= t < stop)
+    return acks / 2 / ((stop - start) / 1e9)
 
 
 def write_scenario(folder: Path, scenario: Scenario, rec: Recording, summary: dict[str, Any]) -> None:
@@ -367,6 +391,20 @@ def tracking_errors_csv(states_csv: Path) -> list[tuple[float, float]] | None:
         return None
 
 
+def _camera_line(s: dict[str, Any]) -> list[str]:
+    fps = s["camera_fps"]
+    line = (
+        f"- camera: {_n(fps['baseline'])} of {_n(fps['configured'])} frames/s acknowledged before the load"
+        f", {_n(fps['loaded'])} under it"
+    )
+    if fps["baseline"] is not None and fps["baseline"] < 0.9 * fps["configured"]:
+        line += (
+            " **(the camera did not keep its rate: this machine offered less than the scenario asks, so "
+            'the load on the drone\'s flow is understated; see docs/demo.md, "Scaling")**'
+        )
+    return [line]
+
+
 def _same_wind_line(out: Path, s: dict[str, Any], baseline: dict[str, Any] | None) -> list[str]:
     """The baseline scenario flies the same mission in the same wind (same seed) with no load: over the
     same spans it shows how much of a loaded/baseline RMSE ratio is the gusts' and how much the load's."""
@@ -435,8 +473,10 @@ def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
             f"- tracking RMSE (m): baseline {_n(rmse['baseline'], 3)}, loaded {_n(rmse['loaded'], 3)}",
             *_same_wind_line(out, s, baseline),
             f"- first switch to the priority flow after the background started: "
-            f"{_n(s['first_qos_switch_after_bg_s'], 2)} s; fallback entered: {s['fallback_entered']}; "
+            f"{_n(s['first_qos_switch_after_bg_s'], 2)} s ({s['first_qos_switch_cause'] or 'none'}); "
+            f"fallback entered: {s['fallback_entered']}; "
             f"largest setpoint gap: {_n(s['setpoint_gap_max_ms'])} ms",
+            *_camera_line(s),
             "- time in states (s): "
             + ", ".join(f"{k} {v:.1f}" for k, v in s["states_time_s"].items() if v > 0),
             f"- ok: {s['ok']} {s['failure']}",

@@ -34,11 +34,13 @@ from dynqos.sim.world import default_world, load_world
 log = logging.getLogger(__name__)
 
 # Each stream's zenoh priority on (the default flow, the priority flow), and whether it may be dropped.
+# The status rides above the camera: zenoh serves a link's priorities strictly, so below the camera it
+# was starved and dropped whenever the link backed up, which is when a ground station needs it most.
 STREAMS = {
     Stream.STATE: (Priority.DATA_HIGH, Priority.REAL_TIME, False),
     Stream.CAMERA_RGB: (Priority.DATA, Priority.INTERACTIVE_LOW, True),
     Stream.CAMERA_DEPTH: (Priority.DATA, Priority.INTERACTIVE_LOW, True),
-    Stream.STATUS: (Priority.DATA_LOW, Priority.INTERACTIVE_LOW, True),
+    Stream.STATUS: (Priority.DATA_HIGH, Priority.INTERACTIVE_LOW, True),
 }
 
 

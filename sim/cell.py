@@ -32,7 +32,8 @@ from dynqos.sim.uebuffer import UeBuffer
 log = logging.getLogger(__name__)
 
 READ_CHUNK = 64 * 1024
-SOCKET_BUFFER = 64 * 1024
+SOCKET_BUFFER = 64 * 1024  # at full scale; divided by `scale` like every rate (socket_buffer_bytes)
+MIN_SOCKET_BUFFER = 4096
 UPSTREAM_HIGH_WATER = 256 * 1024  # edge side slow: stop granting this bearer
 DOWNLINK_HIGH_WATER = 4 * 1024 * 1024
 
@@ -217,12 +218,21 @@ class Bearer:
             conn.close()
 
 
+def socket_buffer_bytes(scale: float) -> int:
+    """The kernel socket buffer in front of (and behind) the emulated UE buffer. Bytes waiting in it
+    are queued as surely as bytes in the UE buffer, but the emulator cannot see them; unscaled, 64 KiB on
+    each side held ~0.5 s at a tenth of the rate and ~50 ms at full rate, so the scaled experiment's
+    latencies were not the full-scale ones. Scaled like the rates, it holds the same time at any scale."""
+    return max(MIN_SOCKET_BUFFER, round(SOCKET_BUFFER / scale))
+
+
 class CellEmulator:
     def __init__(
         self, cell: CellConfig, bearers: tuple[BearerConfig, ...], out_dir: Path | None = None
     ) -> None:
         self.cell = cell
         self.scale = cell.scale
+        self.socket_buffer = socket_buffer_bytes(cell.scale)
         self.loop = asyncio.get_running_loop()
         self.bearers = [Bearer(self, b, cell) for b in bearers]
         self.background = {
@@ -277,7 +287,7 @@ class CellEmulator:
         for bearer in self.bearers:
             sock = socket.socket(socket.AF_INET6 if ":" in self.cell.listen_host else socket.AF_INET)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.socket_buffer)
             port = bearer.listen_port
             try:
                 sock.bind((self.cell.listen_host, port))
@@ -313,7 +323,7 @@ class CellEmulator:
                 return
             sock = transport.get_extra_info("socket")
             if sock is not None:
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER)
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.socket_buffer)
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             assert isinstance(transport, asyncio.Transport)
             conn.edge = transport

@@ -28,6 +28,8 @@ KEYS = {
     "states_time_s",
     "transitions",
     "first_qos_switch_after_bg_s",
+    "first_qos_switch_cause",
+    "camera_fps",
     "fallback_entered",
     "setpoint_gap_max_ms",
     "ok",
