@@ -88,7 +88,9 @@ def test_supervisor_reaction_runs_the_scenario(smoke: tuple[dict[str, Any], str]
     (run,) = reaction["runs"]
     assert run["ok"]
     assert run["baseline_rtt_mean_ms"] > 0
-    assert run["switch_s"] is not None  # the background load made it switch
+    assert run["switch_s"] is not None  # the background load made it switch...
+    assert "HL" in run["switch_cause"]  # ...for its latency, not for risk before the load
+    assert not run["switch_cause"].startswith("before the load")
 
 
 def test_recovery_time_from_an_rtt_series() -> None:
