@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from dynqos.common.geometry import yaw_of
 from dynqos.common.messages import Reference, State, SupervisorStatus
 from dynqos.common.modes import SupervisorState
 from dynqos.faults import log_times, outcome
@@ -248,11 +249,14 @@ def write_scenario(folder: Path, scenario: Scenario, rec: Recording, summary: di
     t0 = rec.t0_ns
     with (folder / "states.csv").open("w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["t_s", "x_m", "y_m", "z_m", "uplink_latency_ms", "mode", "tracking_error_m"])
+        writer.writerow(
+            ["t_s", "x_m", "y_m", "z_m", "yaw_rad", "uplink_latency_ms", "mode", "tracking_error_m"]
+        )
         errors = dict(reference_errors((s for _, s in rec.states), rec.refs))
         for lat, st in rec.states:
             error = errors.get(st.stamp_ns)
-            writer.writerow([f"{(st.stamp_ns - t0) / 1e9:.3f}", *st.pos_m, f"{lat:.3f}", st.mode,
+            t_s, yaw = f"{(st.stamp_ns - t0) / 1e9:.3f}", f"{yaw_of(st.quat):.4f}"
+            writer.writerow([t_s, *st.pos_m, yaw, f"{lat:.3f}", st.mode,
                              "" if error is None else f"{error:.4f}"])  # fmt: skip
     columns = [
         "state",

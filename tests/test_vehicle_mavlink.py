@@ -18,7 +18,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from dynqos.common.geometry import yaw_of
-from dynqos.onboard.fclink import POSITION_AND_YAW_MASK
+from dynqos.onboard.fclink import IGNORE_YAW, POSITION_AND_YAW_MASK, FcLink
 from dynqos.processes import free_port
 from tests.procs import DYNQOS, DynqosProcess
 
@@ -73,9 +73,32 @@ def wait_for(client: Any, predicate: Any, kind: str, timeout_s: float) -> Any:
     raise AssertionError(f"no {kind} matching within {timeout_s} s")
 
 
-def send_setpoint(client: Any, x: float, y: float, z: float, yaw: float = 0.0) -> None:
-    client.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, POSITION_AND_YAW_MASK,
+def send_setpoint(client: Any, x: float, y: float, z: float, yaw: float = 0.0, mask: int = 0) -> None:
+    client.mav.set_position_target_local_ned_send(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED,
+                                                  POSITION_AND_YAW_MASK | mask,
                                                   x, y, z, 0, 0, 0, 0, 0, 0, yaw, 0.0)  # fmt: skip
+
+
+@pytest.mark.parametrize(("yaw_setting", "yaw_ignored"), [("command", False), ("free", True)])
+def test_the_fc_link_sends_the_yaw_only_when_told_to(yaw_setting: str, yaw_ignored: bool) -> None:
+    """[onboard] yaw reaches the wire: "free" sets IGNORE_YAW on every setpoint, "command" on none."""
+    port = free_udp_port()
+    receiver = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1, source_component=1)
+    link = FcLink(f"udpout:127.0.0.1:{port}", fly_yaw=yaw_setting == "command")
+    try:
+        link.send_accel((0.0, 0.0, 0.0), 1.0)
+        link.send_position((1.0, 2.0, -1.5), 1.0)
+        masks = []
+        deadline = time.monotonic() + 5
+        while len(masks) < 2 and time.monotonic() < deadline:
+            msg = receiver.recv_match(type="SET_POSITION_TARGET_LOCAL_NED", blocking=True, timeout=1)
+            if msg is not None:
+                masks.append(msg.type_mask)
+        assert len(masks) == 2
+        assert [bool(mask & IGNORE_YAW) for mask in masks] == [yaw_ignored, yaw_ignored]
+    finally:
+        link.close()
+        receiver.close()
 
 
 def test_telemetry_rates_and_identity(vehicle: tuple[VehicleProcess, Any]) -> None:
@@ -126,6 +149,13 @@ def test_arm_takeoff_offboard_and_fly(vehicle: tuple[VehicleProcess, Any]) -> No
         att = client.recv_match(type="ATTITUDE_QUATERNION", blocking=True, timeout=1)
         yaw = yaw_of((att.q1, att.q2, att.q3, att.q4)) if att is not None else yaw
     assert yaw == pytest.approx(1.0, abs=0.05)
+    # With IGNORE_YAW the heading is the FC's own: a setpoint's yaw changes nothing.
+    deadline = time.monotonic() + 1.5
+    while time.monotonic() < deadline:
+        send_setpoint(client, 1.0, 0.5, -2.0, yaw=-1.0, mask=IGNORE_YAW)
+        att = client.recv_match(type="ATTITUDE_QUATERNION", blocking=True, timeout=1)
+        yaw = yaw_of((att.q1, att.q2, att.q3, att.q4)) if att is not None else yaw
+    assert yaw == pytest.approx(1.0, abs=0.1)
     # Setpoints stop: after COM_OF_LOSS_T the vehicle holds (AUTO.LOITER).
     wait_for(client, lambda m: m.custom_mode == (4 << 16) | (3 << 24), "HEARTBEAT", 5)
 
