@@ -268,6 +268,7 @@ class SupervisorStatus(Message):
         "fallbacks": f.integer(),
         "control_changed_ns": f.integer(),
         "command_age_ms": f.optional(_latency_ms),
+        "camera_bytes": f.integer(),
         "rtt_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
         "camera_latency_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
     }
@@ -299,6 +300,7 @@ class SupervisorStatus(Message):
     fallbacks: int = 0  # hand-overs to the fallback PID since the daemon started
     control_changed_ns: int = 0  # when control_source last changed (onboard clock; 0: never)
     command_age_ms: float | None = None  # age of the last valid command at that change (None: none yet)
+    camera_bytes: int = 0  # camera bytes handed to zenoh since the daemon started, before any drop
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

@@ -256,7 +256,8 @@ def _cmd_demo(args: argparse.Namespace, config: Config) -> int:
         print(
             f"  {s['scenario']:<13} ok={s['ok']!s:<5} RTT baseline {rtt['baseline']['mean'] or 0:6.1f} ms"
             + (f", loaded {loaded:7.1f} ms" if loaded is not None else "")
-            + f", delivered {s['uav_delivered_mbps'] or 0:5.1f} of {s['uav_offered_mbps'] or 0:5.1f} Mbit/s"
+            + f", offered {s['uav_offered_mbps'] or 0:5.1f}, admitted {s['uav_admitted_mbps'] or 0:5.1f}"
+            + f", delivered {s['uav_delivered_mbps'] or 0:5.1f} Mbit/s"
         )
     return 0 if result["ok"] else 1
 

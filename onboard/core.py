@@ -391,6 +391,7 @@ class OnboardCore:
             rtt_samples_ms=rtts,
             camera_latency_samples_ms=cams,
             fallbacks=self.counters.switches_to_fallback,
+            camera_bytes=self.counters.camera_bytes,
             control_changed_ns=self.control_changed_ns,
             command_age_ms=self.command_age_ms,
             **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),

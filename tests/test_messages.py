@@ -136,6 +136,7 @@ statuses = st.builds(
     fallbacks=u63,
     control_changed_ns=u63,
     command_age_ms=st.none() | reals(0, 1e7),
+    camera_bytes=u63,
 )
 any_message = st.one_of(states, commands(), frames, acks, detections(), references(), statuses)
 
