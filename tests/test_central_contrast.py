@@ -34,8 +34,8 @@ def test_without_qos_latency_climbs_and_dynamic_qos_switches_on_it_and_holds(tmp
     without = run_scenario(noqos, tmp_path, progress=False)
     assert without["ok"], without["failure"]
     assert without["camera_fps"]["baseline"] >= 0.9 * noqos.camera_fps  # the machine kept the rate up
-    assert without["uav_offered_mbps"] > 1.1 * FAIR_SHARE_MBPS  # the drone asks for more than its share...
-    assert without["uav_delivered_mbps"] < 0.9 * without["uav_offered_mbps"]  # ...and does not get it
+    assert without["uav_offered_mbps"] > FAIR_SHARE_MBPS  # the drone asks for more than its share...
+    assert without["uav_delivered_mbps"] < without["uav_offered_mbps"]  # ...and does not get it
     assert without["uav_delivered_mbps"] <= 1.02 * FAIR_SHARE_MBPS
     baseline, loaded = without["rtt_ms"]["baseline"], without["rtt_ms"]["loaded"]
     print(f"no QoS: RTT {baseline['mean']:.1f} ms before the load, p95 {loaded['p95']:.1f} ms under it")
