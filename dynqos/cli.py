@@ -237,6 +237,7 @@ def _cmd_demo(args: argparse.Namespace, config: Config) -> int:
     from pathlib import Path
 
     from dynqos.demo import default_out_dir, run_demo
+    from dynqos.profile import DEFAULT_PROFILE, load_profile
     from dynqos.scenario import DEFAULT_SCENARIOS, load_scenario
 
     if args.duration is not None and not 5 <= args.duration <= 3600:
@@ -246,20 +247,28 @@ def _cmd_demo(args: argparse.Namespace, config: Config) -> int:
     out = Path(args.out) if args.out else default_out_dir()
     scenarios = [load_scenario(args.scenario_file)] if getattr(args, "scenario_file", None) else None
     names = getattr(args, "scenario", None) or list(DEFAULT_SCENARIOS)
+    profiles = [load_profile(name) for name in (args.profile or [DEFAULT_PROFILE])]
     result = run_demo(
-        names, out, duration_s=args.duration, scale=args.scale, seed=args.seed, scenarios=scenarios
-    )
+        names, out, duration_s=args.duration, scale=args.scale, seed=args.seed, scenarios=scenarios,
+        profiles=profiles, repeat=args.repeat,
+    )  # fmt: skip
     print(f"report: {out / 'report.md'}")
     for s in result["scenarios"]:
-        rtt = s["rtt_ms"]
-        loaded = (rtt["loaded"] or {}).get("mean")
-        print(
-            f"  {s['scenario']:<13} ok={s['ok']!s:<5} RTT baseline {rtt['baseline']['mean'] or 0:6.1f} ms"
-            + (f", loaded {loaded:7.1f} ms" if loaded is not None else "")
-            + f", offered {s['uav_offered_mbps'] or 0:5.1f}, admitted {s['uav_admitted_mbps'] or 0:5.1f}"
-            + f", delivered {s['uav_delivered_mbps'] or 0:5.1f} Mbit/s"
-        )
+        print(_demo_line(s))
     return 0 if result["ok"] else 1
+
+
+def _demo_line(s: dict[str, Any]) -> str:
+    from dynqos.report_md import figure
+
+    run_id = s["scenario"] if s.get("profile", "dynqos") == "dynqos" else f"{s['scenario']}@{s['profile']}"
+    loaded = figure(s, "rtt_ms.loaded.mean")
+    return (
+        f"  {run_id:<13} ok={s['ok']!s:<5} RTT baseline {figure(s, 'rtt_ms.baseline.mean')} ms"
+        + (f", loaded {loaded} ms" if loaded != "-" else "")
+        + f", offered {figure(s, 'uav_offered_mbps')}, admitted {figure(s, 'uav_admitted_mbps')}"
+        + f", delivered {figure(s, 'uav_delivered_mbps')} Mbit/s"
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: one per option)
@@ -432,6 +441,20 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
         sub.add_argument("--scale", type=float, metavar="F", help="divide every rate by F (default 10)")
         sub.add_argument(
             "--seed", type=int, metavar="N", help="seed for the simulator, cell jitter and supervisor"
+        )
+        sub.add_argument(
+            "--repeat",
+            type=int,
+            default=1,
+            metavar="N",
+            help="run each scenario N times (seeds N0, N0+1, ...); figures become mean [95%% interval]",
+        )
+        sub.add_argument(
+            "--profile",
+            action="append",
+            metavar="NAME",
+            help="dynqos (default) or paper (the paper's supervisor and 27.3 ms cell), or a profile file; "
+            "repeatable: each scenario flies under each profile, side by side in report.md",
         )
         sub.set_defaults(handler=_cmd_demo)
 

@@ -15,12 +15,17 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from dynqos.aggregate import repeated_summary
 from dynqos.common.errors import ConfigError
-from dynqos.report import write_report
+from dynqos.profile import DEFAULT_PROFILE, Profile, load_profile
+from dynqos.report_md import write_report
 from dynqos.runner import run_scenario
 from dynqos.scenario import Scenario, builtin_scenario
 
 log = logging.getLogger(__name__)
+
+
+MAX_REPEAT = 50
 
 
 def run_demo(
@@ -31,26 +36,19 @@ def run_demo(
     scale: float | None,
     seed: int | None,
     scenarios: list[Scenario] | None = None,
+    profiles: list[Profile] | None = None,
+    repeat: int = 1,
 ) -> dict[str, Any]:
+    """Every scenario under every profile, each `repeat` times with seeds seed, seed + 1, ...; then
+    summary.json over all of them and report.md."""
+    if not 1 <= repeat <= MAX_REPEAT:
+        raise ConfigError("--repeat", f"must be in 1..{MAX_REPEAT}, got {repeat}")
     chosen = scenarios if scenarios is not None else [builtin_scenario(n) for n in names]
-    overrides: dict[str, Any] = {}
-    if duration_s is not None:
-        overrides["duration_s"] = duration_s
-    if scale is not None:
-        overrides["scale"] = scale
-    if seed is not None:
-        overrides["seed"] = seed
-    runs = []
-    for scenario in chosen:
-        if overrides:
-            changes = dict(overrides)
-            if "duration_s" in changes and scenario.bg_start_s >= 0:
-                changes["bg_start_s"] = changes["duration_s"] / 2
-            try:
-                scenario = replace(scenario, **changes)
-            except ConfigError as exc:
-                raise exc.under(scenario.name) from None
-        runs.append(scenario)
+    runs = [
+        profile.apply(scenario)
+        for scenario in _overridden(chosen, duration_s, scale, seed)
+        for profile in profiles or [load_profile(DEFAULT_PROFILE)]
+    ]
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -70,20 +68,15 @@ def run_demo(
         for scenario in runs:
             if stop.is_set():
                 break
-            log.info("scenario %s: %s", scenario.name, scenario.description)
-            summary = run_scenario(scenario, out, stop=stop)
+            log.info("scenario %s: %s", scenario.run_id, scenario.description)
+            summary = _run_repeated(scenario, out, repeat, stop)
             summaries.append(summary)
-            log.info(
-                "scenario %s: ok=%s rtt baseline mean %s ms, loaded mean %s ms",
-                scenario.name,
-                summary["ok"],
-                _fmt(summary["rtt_ms"]["baseline"]),
-                _fmt(summary["rtt_ms"]["loaded"]),
-            )
+            log.info("scenario %s: ok=%s %s", scenario.run_id, summary["ok"], _headline(summary))
     finally:
         signal.signal(signal.SIGINT, previous)
     top = {
         "scenarios": summaries,
+        "repeat": repeat,
         "wall_time_s": time.monotonic() - started,
         "out": str(out),
         "ok": bool(summaries) and all(s["ok"] for s in summaries) and len(summaries) == len(runs),
@@ -91,6 +84,57 @@ def run_demo(
     (out / "summary.json").write_text(json.dumps(top, indent=2) + "\n")
     write_report(out, summaries)
     return top
+
+
+def _overridden(
+    chosen: list[Scenario], duration_s: float | None, scale: float | None, seed: int | None
+) -> list[Scenario]:
+    overrides: dict[str, Any] = {}
+    if duration_s is not None:
+        overrides["duration_s"] = duration_s
+    if scale is not None:
+        overrides["scale"] = scale
+    if seed is not None:
+        overrides["seed"] = seed
+    result = []
+    for scenario in chosen:
+        changes = dict(overrides)
+        if "duration_s" in changes and scenario.bg_start_s >= 0:
+            changes["bg_start_s"] = changes["duration_s"] / 2
+        try:
+            result.append(replace(scenario, **changes))
+        except ConfigError as exc:
+            raise exc.under(scenario.name) from None
+    return result
+
+
+def _run_repeated(scenario: Scenario, out: Path, repeat: int, stop: threading.Event) -> dict[str, Any]:
+    """One run into out/<run id>/, or `repeat` runs into out/<run id>/seed<N>/ with the aggregate in
+    out/<run id>/summary.json."""
+    if repeat == 1:
+        return run_scenario(scenario, out, stop=stop)
+    folder = out / scenario.run_id
+    runs = []
+    for k in range(repeat):
+        if stop.is_set():
+            break
+        seeded = replace(scenario, seed=scenario.seed + k)
+        runs.append(run_scenario(seeded, out, folder=folder / f"seed{seeded.seed}", stop=stop))
+    summary = repeated_summary(runs)
+    if len(runs) < repeat:
+        summary["ok"], summary["failure"] = False, summary["failure"] or "interrupted"
+    (folder / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def _headline(summary: dict[str, Any]) -> str:
+    if "aggregate" in summary:
+        agg = summary["aggregate"]
+        base, loaded = agg.get("rtt_ms.baseline.mean"), agg.get("rtt_ms.loaded.mean")
+        runs = len(summary["runs"])
+        return f"rtt baseline mean {_fmt(base)} ms, loaded mean {_fmt(loaded)} ms over {runs} runs"
+    rtt = summary["rtt_ms"]
+    return f"rtt baseline mean {_fmt(rtt['baseline'])} ms, loaded mean {_fmt(rtt['loaded'])} ms"
 
 
 def _fmt(stats: dict[str, Any] | None) -> str:

@@ -21,18 +21,6 @@ from dynqos.faults import log_times, outcome
 from dynqos.recording import Recording
 from dynqos.scenario import Scenario
 
-PAPER_TABLE_II = {
-    "No QoS - No BG": {"uav_tx": 47, "uav_rx": 47, "rtt": "27.3", "bg_tx": None, "bg_rx": None},
-    "No QoS - BG": {"uav_tx": 47, "uav_rx": 40, "rtt": "rises", "bg_tx": 80, "bg_rx": 40},
-    "Priority QoS - BG": {"uav_tx": 47, "uav_rx": 47, "rtt": "28.1", "bg_tx": 80, "bg_rx": 32.5},
-}
-SCENARIO_ROW = {
-    "baseline": "No QoS - No BG",
-    "bg-noqos": "No QoS - BG",
-    "bg-staticqos": "Priority QoS - BG",
-    "bg-dynqos": "Priority QoS - BG",
-}
-
 
 def stats(values: list[float]) -> dict[str, float | None]:
     if not values:
@@ -178,6 +166,7 @@ def summarise(
     gaps = [s.setpoint_gap_ms for s in statuses if s.setpoint_gap_ms is not None]
     return {
         "scenario": scenario.name,
+        "profile": scenario.profile,
         "description": scenario.description,
         "qos": scenario.qos,
         "mission": scenario.mission,
@@ -207,6 +196,7 @@ def summarise(
         "transitions": transitions,
         "first_qos_switch_after_bg_s": first_switch,
         "first_qos_switch_cause": switch_cause,
+        "hl_fraction_baseline": _hl_fraction(statuses, settle_ns, baseline_end),
         "camera_fps": {
             "configured": scenario.camera_fps,
             "baseline": _acked_fps(cams, settle_ns, baseline_end),
@@ -247,6 +237,13 @@ def _first_qos_switch(statuses: list[SupervisorStatus], bg_ns: int | None) -> tu
         return None, None
     changed = after[0].changed_ns if after[0].changed_ns >= bg_ns else after[0].stamp_ns
     return (changed - bg_ns) / 1e9, after[0].cause or "unknown"
+
+
+def _hl_fraction(statuses: list[SupervisorStatus], start_ns: int, stop_ns: int) -> float | None:
+    """The share of the unloaded flight's statuses in which the supervisor read high latency: with no
+    load it should be none; the paper's rho2 at the paper's own unloaded RTT makes it most."""
+    inside = [s for s in statuses if start_ns <= s.stamp_ns < stop_ns and s.latency != "NA"]
+    return sum(s.latency == "HL" for s in inside) / len(inside) if inside else None
 
 
 def _acked_fps(cams: list[tuple[int, float]], start: int | None, stop: int) -> float | None:
@@ -391,123 +388,3 @@ def _plots(folder: Path, scenario: Scenario, rec: Recording, summary: dict[str, 
     fig.tight_layout()
     fig.savefig(folder / "supervisor.png", dpi=90)
     plt.close(fig)
-
-
-def _n(value: float | None, digits: int = 1) -> str:
-    return "-" if value is None else f"{value:.{digits}f}"
-
-
-def tracking_errors_csv(states_csv: Path) -> list[tuple[float, float]] | None:
-    """(t_s, tracking error) from a scenario's states.csv (None when it cannot be read)."""
-    try:
-        with states_csv.open(newline="") as f:
-            return [
-                (float(row["t_s"]), float(row["tracking_error_m"]))
-                for row in csv.DictReader(f)
-                if row.get("tracking_error_m")
-            ]
-    except (OSError, ValueError, KeyError):
-        return None
-
-
-def _camera_line(s: dict[str, Any]) -> list[str]:
-    fps = s["camera_fps"]
-    line = (
-        f"- camera: {_n(fps['baseline'])} of {_n(fps['configured'])} frames/s acknowledged before the load"
-        f", {_n(fps['loaded'])} under it"
-    )
-    if fps["baseline"] is not None and fps["baseline"] < 0.9 * fps["configured"]:
-        line += (
-            " **(the camera did not keep its rate: this machine offered less than the scenario asks, so "
-            'the load on the drone\'s flow is understated; see docs/demo.md, "Scaling")**'
-        )
-    return [line]
-
-
-def _same_wind_line(out: Path, s: dict[str, Any], baseline: dict[str, Any] | None) -> list[str]:
-    """The baseline scenario flies the same mission in the same wind (same seed) with no load: over the
-    same spans it shows how much of a loaded/baseline RMSE ratio is the gusts' and how much the load's."""
-    start = s.get("bg_start_s")
-    if start is None or baseline is None or baseline["mission"] != s["mission"]:
-        return []
-    if (baseline["seed"], baseline["scale"]) != (s["seed"], s["scale"]):
-        return []
-    errors = tracking_errors_csv(out / "baseline" / "states.csv")
-    if errors is None:
-        return []
-    before = _rmse([e for t, e in errors if s.get("settle_s", 0.0) <= t < start])
-    after = _rmse([e for t, e in errors if t >= start])
-    if before is None or after is None:
-        return []
-    return [
-        f"- the baseline scenario (the same wind, no load) over the same spans: {_n(before, 3)} / "
-        f"{_n(after, 3)} m ({after / before:.2f}x): the part of the ratio that is the gusts'"
-    ]
-
-
-def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
-    lines = [
-        "# dynqos demo report",
-        "",
-        "The paper's scenarios, run on this machine through the emulated cell (see docs/cell.md). "
-        "Rates are at full scale; the run itself used 1/scale of every rate.",
-        "",
-        "## Beside the paper's Table II",
-        "",
-        "UAV: what the drone's application offered (its camera bytes handed to zenoh), what the cell "
-        "admitted into the drone's bearers and what it delivered. BG: the load configured, what the "
-        "background got. Over the loaded span (after settling when there is no load).",
-        "",
-        "| scenario | paper row | UAV offered / admitted / delivered (Mbit/s) | paper UAV Tx / Rx "
-        "| RTT mean baseline / loaded (ms) | paper RTT (ms) | BG configured / delivered (Mbit/s) "
-        "| paper BG Tx / Rx | ok |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for s in summaries:
-        row = SCENARIO_ROW.get(s["scenario"], "-")
-        paper = PAPER_TABLE_II.get(row, {})
-        rtt = s["rtt_ms"]
-        loaded = (rtt["loaded"] or {}).get("mean")
-        cells = [
-            s["scenario"],
-            row,
-            f"{_n(s['uav_offered_mbps'])} / {_n(s['uav_admitted_mbps'])} / {_n(s['uav_delivered_mbps'])}",
-            f"{paper.get('uav_tx', '-')} / {paper.get('uav_rx', '-')}",
-            f"{_n(rtt['baseline']['mean'])} / {_n(loaded)}",
-            str(paper.get("rtt", "-")),
-            f"{_n(s['bg_mbps']) if s['bg_start_s'] is not None else '-'} / {_n(s['bg_delivered_mbps'])}",
-            f"{paper.get('bg_tx') or '-'} / {paper.get('bg_rx') or '-'}",
-            str(s["ok"]),
-        ]
-        lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "## Scenarios", ""]
-    baseline = next((s for s in summaries if s["scenario"] == "baseline" and s["bg_start_s"] is None), None)
-    for s in summaries:
-        rtt, cam, rmse = s["rtt_ms"], s["camera_latency_ms"], s["tracking_rmse_m"]
-        lines += [
-            f"### {s['scenario']}",
-            "",
-            s["description"],
-            "",
-            f"- RTT (ms): baseline mean {_n(rtt['baseline']['mean'])}, p95 {_n(rtt['baseline']['p95'])}; "
-            f"loaded mean {_n((rtt['loaded'] or {}).get('mean'))}, "
-            f"p95 {_n((rtt['loaded'] or {}).get('p95'))}, max {_n((rtt['loaded'] or {}).get('max'))}",
-            f"- camera latency (ms): baseline mean {_n(cam['baseline']['mean'])}; loaded mean "
-            f"{_n((cam['loaded'] or {}).get('mean'))}",
-            f"- tracking RMSE (m): baseline {_n(rmse['baseline'], 3)}, loaded {_n(rmse['loaded'], 3)}",
-            *_same_wind_line(out, s, baseline),
-            f"- first switch to the priority flow after the background started: "
-            f"{_n(s['first_qos_switch_after_bg_s'], 2)} s ({s['first_qos_switch_cause'] or 'none'}); "
-            f"fallback entered: {s['fallback_entered']}; "
-            f"largest setpoint gap: {_n(s['setpoint_gap_max_ms'])} ms",
-            *_camera_line(s),
-            "- time in states (s): "
-            + ", ".join(f"{k} {v:.1f}" for k, v in s["states_time_s"].items() if v > 0),
-            f"- ok: {s['ok']} {s['failure']}",
-            "",
-            f"![{s['scenario']}]({s['scenario']}/overview.png)",
-            "",
-            f"![{s['scenario']} supervisor]({s['scenario']}/supervisor.png)",
-            "",
-        ]
-    (out / "report.md").write_text("\n".join(lines) + "\n")

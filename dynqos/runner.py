@@ -63,11 +63,16 @@ def _post_json(port: int, path: str, body: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_scenario(
-    scenario: Scenario, out: Path, *, stop: threading.Event | None = None, progress: bool = True
+    scenario: Scenario,
+    out: Path,
+    *,
+    folder: Path | None = None,
+    stop: threading.Event | None = None,
+    progress: bool = True,
 ) -> dict[str, Any]:
-    """Run one scenario into out/<name>/ and return its summary."""
+    """Run one scenario into `folder` (default out/<run id>/) and return its summary."""
     stop = stop or threading.Event()
-    folder = out / scenario.name
+    folder = folder or out / scenario.run_id
     logs = folder / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     config = scenario_config(

@@ -4,7 +4,7 @@ runs it. Scenarios come as TOML files (`dynqos run FILE`, or the built-in ones i
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 from typing import Literal
@@ -58,6 +58,15 @@ class Scenario:
     base_delay_ms: float = 5.0  # one way: with processing and camera head-of-line ~15 ms C&C RTT, below rho2
     faults: tuple[Fault, ...] = ()  # injected during the flight (dynqos/faults.py, docs/reliability.md)
     memory_sample_s: float = 5.0  # how often each process's resident memory is recorded
+    # The supervisor's settings ([scenario.supervisor]; a profile replaces them, dynqos/profile.py);
+    # its seed is the scenario's.
+    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+    profile: str = "dynqos"  # the profile applied (dynqos/profiles/), named in the summary
+
+    @property
+    def run_id(self) -> str:
+        """The run folder's name: the scenario's, and the profile's unless it is the default one."""
+        return self.name if self.profile == "dynqos" else f"{self.name}@{self.profile}"
 
     def __post_init__(self) -> None:
         if not 5 <= self.duration_s <= 3600:
@@ -118,7 +127,7 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
         # The drone's send buffer on the bulk link is a queue in front of the cell like the UE buffer;
         # scaled with the rates it holds the same time at any scale (docs/demo.md, "Scaling").
         zenoh=replace(zenoh, bulk_sndbuf_bytes=socket_buffer_bytes(scenario.scale)),
-        supervisor=SupervisorConfig(seed=scenario.seed),
+        supervisor=replace(scenario.supervisor, seed=scenario.seed),
         cell=CellConfig(
             scale=scenario.scale,
             ue_buffer_bytes=max(1500, round(1_000_000 / scenario.scale)),
