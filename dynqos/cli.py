@@ -258,6 +258,34 @@ def _cmd_demo(args: argparse.Namespace, config: Config) -> int:
     return 0 if result["ok"] else 1
 
 
+def _floats(text: str, option: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise DynqosError(f"{option} takes numbers separated by commas, got {text!r}") from None
+    if not values or any(v <= 0 for v in values):
+        raise DynqosError(f"{option} takes positive numbers separated by commas, got {text!r}")
+    return values
+
+
+def _cmd_sensitivity(args: argparse.Namespace, config: Config) -> int:
+    from pathlib import Path
+
+    from dynqos.demo import default_out_dir
+    from dynqos.sensitivity import run_sensitivity
+
+    if not 5 <= args.duration <= 3600:
+        raise DynqosError(f"--duration must be in 5..3600 s, got {args.duration}")
+    out = Path(args.out) if args.out else default_out_dir()
+    out.mkdir(parents=True, exist_ok=True)
+    result = run_sensitivity(
+        out, weights=_floats(args.weights, "--weights"), loads_mbps=_floats(args.loads, "--loads"),
+        duration_s=args.duration, seed=args.seed,
+    )  # fmt: skip
+    print(f"report: {out / 'sensitivity.md'}")
+    return 0 if result["ok"] else 1
+
+
 def _demo_line(s: dict[str, Any]) -> str:
     from dynqos.report_md import figure
 
@@ -457,6 +485,21 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
             "repeatable: each scenario flies under each profile, side by side in report.md",
         )
         sub.set_defaults(handler=_cmd_demo)
+
+    sensitivity = commands.add_parser(
+        "sensitivity",
+        parents=[common],
+        help="fly bg-staticqos once per priority weight and background load: where priority stops helping",
+        description="Fly the bg-staticqos scenario (priority flow all along) once per priority weight and "
+        "background load, and write summary.json, sensitivity.md and sensitivity.png: the drone's loaded "
+        "C&C RTT and delivered rate against the weight, one line per load.",
+    )
+    sensitivity.add_argument("--weights", default="1,2,4,8", metavar="W,W,...", help="priority weights")
+    sensitivity.add_argument("--loads", default="40,80,120", metavar="M,M,...", help="background Mbit/s")
+    sensitivity.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds per point")
+    sensitivity.add_argument("--seed", type=int, default=0, metavar="N", help="seed of every point")
+    sensitivity.add_argument("--out", metavar="DIR", help="output folder (default: runs/<date-time>)")
+    sensitivity.set_defaults(handler=_cmd_sensitivity)
 
     bench = commands.add_parser(
         "bench",

@@ -11,6 +11,7 @@ controller, and how long after the fault cleared control was back at the edge.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import signal
 import threading
@@ -18,6 +19,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
+from pathlib import Path
 from typing import Any, Literal
 
 from dynqos.common.bus import Bus
@@ -31,8 +33,9 @@ log = logging.getLogger(__name__)
 SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zenoh reconnects take seconds)
 
 FaultKind = Literal[
-    "mpc_kill", "router_kill", "coverage_loss", "downlink_loss", "fc_silence", "detector_flood", "background"
-]
+    "mpc_kill", "router_kill", "coverage_loss", "downlink_loss", "fc_silence", "detector_flood", "background",
+    "capacity", "trace",
+]  # fmt: skip
 FLOOD_FPS = 100.0  # several times what the detector can process
 FLOOD_MAX_FRAMES = 20_000
 
@@ -45,6 +48,8 @@ class Fault:
     kind: FaultKind
     duration_s: float = 1.0
     offered_mbps: float = 80.0  # background: the load while it lasts
+    uplink_mbps: float = 40.0  # capacity: the cell's uplink capacity while it lasts (full scale)
+    file: str = ""  # trace: a Mahimahi uplink trace the capacity follows while it lasts
 
     def __post_init__(self) -> None:
         if not 0 <= self.at_s <= 86400:
@@ -53,6 +58,10 @@ class Fault:
             raise ConfigError("duration_s", "must be in 0.05..3600 s")
         if not 0 <= self.offered_mbps <= 1e5:
             raise ConfigError("offered_mbps", "must be in 0..100000 Mbit/s")
+        if not 0 <= self.uplink_mbps <= 1e5:
+            raise ConfigError("uplink_mbps", "must be in 0..100000 Mbit/s")
+        if self.kind == "trace" and not self.file:
+            raise ConfigError("file", "a trace fault names its Mahimahi trace file")
 
 
 @dataclass
@@ -116,10 +125,18 @@ class Flood:
 class FaultInjector:
     """Starts and ends faults on a running scenario's processes and cell."""
 
-    def __init__(self, procs: Processes, cell_event: Callable[[dict[str, Any]], object], bus: Bus) -> None:
+    def __init__(
+        self,
+        procs: Processes,
+        cell_event: Callable[[dict[str, Any]], object],
+        bus: Bus,
+        *,
+        uplink_mbps: float = 81.3,
+    ) -> None:
         self.procs = procs
         self.cell_event = cell_event  # POST /events to the cell emulator
         self.bus = bus
+        self.uplink_mbps = uplink_mbps  # the cell's configured capacity, restored when a capacity fault ends
         self.windows: list[FaultWindow] = []
         self._floods: dict[int, Flood] = {}
 
@@ -138,6 +155,10 @@ class FaultInjector:
             self._floods[id(window)] = Flood(self.bus, fault.duration_s)
         elif kind == "background":
             self.cell_event({"kind": "background", "user": "bg", "offered_mbps": fault.offered_mbps})
+        elif kind == "capacity":
+            self.cell_event({"kind": "capacity", "uplink_mbps": fault.uplink_mbps})
+        elif kind == "trace":
+            self.cell_event({"kind": "trace", "file": str(Path(fault.file).resolve()), "mean_mbps": 0.0})
         log.info("fault: %s for %.1f s", kind, fault.duration_s)
         self.windows.append(window)
         return window
@@ -155,6 +176,8 @@ class FaultInjector:
             window.notes.append(f"{flood.close()} flood frames sent")
         elif kind == "background":
             self.cell_event({"kind": "background", "user": "bg", "offered_mbps": 0.0})
+        elif kind in ("capacity", "trace"):  # a capacity event also ends trace-driven capacity
+            self.cell_event({"kind": "capacity", "uplink_mbps": self.uplink_mbps})
         window.end_wall, window.end_ns = time.time(), time.monotonic_ns()
         log.info("fault cleared: %s", kind)
 
@@ -165,6 +188,26 @@ class FaultInjector:
 
 
 # ---- outcomes ----------------------------------------------------------------------------------------
+
+
+def _while_it_lasted(during: list[SupervisorStatus], start_ns: int) -> dict[str, Any]:
+    """What the drone saw and did while the fault lasted: its RTT, its time in each state, and how soon
+    its camera was slowed (the rate-adaptation states, q4-q6) after the fault began."""
+    rtts = sorted(v for s in during for v in s.rtt_samples_ms)
+    states: dict[str, float] = {}
+    for a, b in itertools.pairwise(during):
+        states[a.state.value] = states.get(a.state.value, 0.0) + (b.stamp_ns - a.stamp_ns) / NS_PER_S
+    slowed = next((s for s in during if s.camera_rate_factor < 1.0), None)
+    rtt = None
+    if rtts:
+        rtt = {"mean": sum(rtts) / len(rtts), "p95": rtts[min(len(rtts) - 1, int(0.95 * len(rtts)))]}
+    return {
+        "rtt_ms_during": rtt,
+        "states_s_during": {k: round(v, 2) for k, v in sorted(states.items())},
+        "camera_slowed_after_s": None
+        if slowed is None
+        else round((slowed.stamp_ns - start_ns) / NS_PER_S, 2),
+    }
 
 
 def log_times(text: str) -> list[tuple[float, str]]:
@@ -210,6 +253,7 @@ def outcome(
         edge = (s for s in seen if s.control_source is ControlSource.EDGE and s.control_changed_ns > since)
         back = next(edge, None)
     gaps = [s.setpoint_gap_ms for s in seen if s.setpoint_gap_ms is not None]
+    during = [s for s in seen if s.stamp_ns <= end_ns]
     until_wall = window.start_wall + (until_ns - window.start_ns) / NS_PER_S
     lines = [m for t, m in onboard_log if window.start_wall <= t <= until_wall]
     notable = [m.split(": ", 1)[-1] for m in lines if m.startswith(("WARNING ", "ERROR "))]
@@ -229,6 +273,7 @@ def outcome(
             None if back is None else round(max(0.0, (back.control_changed_ns - end_ns) / NS_PER_S), 3)
         ),
         "recovered": fallback is None or back is not None,
+        **_while_it_lasted(during, window.start_ns),
         "log": notable[:4],
         "notes": window.notes,
     }

@@ -167,6 +167,7 @@ def _single_section(out: Path, s: dict[str, Any], baseline: dict[str, Any] | Non
         f"fallback entered: {s['fallback_entered']}; "
         f"largest setpoint gap: {_n(s['setpoint_gap_max_ms'])} ms",
         *_camera_line(s),
+        *_fault_lines(s),
         "- time in states (s): " + ", ".join(f"{k} {v:.1f}" for k, v in s["states_time_s"].items() if v > 0),
         f"- ok: {s['ok']} {s['failure']}",
         "",
@@ -175,6 +176,22 @@ def _single_section(out: Path, s: dict[str, Any], baseline: dict[str, Any] | Non
         f"![{run_id} supervisor]({run_id}/supervisor.png)",
         "",
     ]
+
+
+def _fault_lines(s: dict[str, Any]) -> list[str]:
+    """Each injected fault or network change: what the drone saw and did while it lasted."""
+    lines = []
+    for f in s.get("faults", []):
+        rtt = f.get("rtt_ms_during") or {}
+        states = ", ".join(f"{k} {v:.1f}" for k, v in (f.get("states_s_during") or {}).items())
+        slowed = f.get("camera_slowed_after_s")
+        lines.append(
+            f"- {f['kind']} at {f['at_s']:g} s for {f['duration_s']:g} s: RTT while it lasted mean "
+            f"{_n(rtt.get('mean'))}, p95 {_n(rtt.get('p95'))} ms; states (s) {states or '-'}; camera "
+            + ("never slowed" if slowed is None else f"slowed {slowed:.2f} s after it began")
+            + f"; fallback {f['fallback']}"
+        )
+    return lines
 
 
 def _repeated_section(s: dict[str, Any]) -> list[str]:

@@ -88,7 +88,7 @@ def run_scenario(
     ok, failure = True, ""
     try:
         cell_port = _start_edge_and_cell(procs, scenario, config, config_path, folder)
-        _record_flight(scenario, config.zenoh, procs, cell_port, rec, stop, progress)
+        _record_flight(scenario, config, procs, cell_port, rec, stop, progress)
         if stop.is_set():
             ok, failure = False, "interrupted"
     except DynqosError as exc:
@@ -150,19 +150,22 @@ class _Streams:
 
 def _record_flight(
     scenario: Scenario,
-    zenoh: ZenohConfig,
+    config: Config,
     procs: Processes,
     cell_port: int,
     rec: Recording,
     stop: threading.Event,
     progress: bool,
 ) -> None:
-    bus = open_bus(zenoh, Role.EDGE)
+    bus = open_bus(config.zenoh, Role.EDGE)
+    uplink_mbps = config.cell.uplink_mbps
     try:
         streams = _Streams.subscribe(bus)
         procs.start("onboard", ["onboard", "--takeoff"])
         rec.offload_ns = rec.t0_ns = _wait_for_offload(streams.states, procs, stop)
-        injector = FaultInjector(procs, lambda event: _post_json(cell_port, "/events", event), bus)
+        injector = FaultInjector(
+            procs, lambda event: _post_json(cell_port, "/events", event), bus, uplink_mbps=uplink_mbps
+        )
         try:
             _fly(scenario, procs, cell_port, injector, rec, stop, progress)
         finally:

@@ -55,6 +55,7 @@ class Scenario:
     wind_mps: float = 0.5  # a steady breeze from the north...
     gust_std_mps: float = 0.5  # ...with gusts, so that control delay shows in the tracking
     gust_tau_s: float = 0.5  # short gusts: many per window, so windows compare alike (docs/demo.md)
+    priority_weight: float = 4.0  # the priority bearer's scheduling weight against 1 for everyone else
     base_delay_ms: float = 5.0  # one way: with processing and camera head-of-line ~15 ms C&C RTT, below rho2
     faults: tuple[Fault, ...] = ()  # injected during the flight (dynqos/faults.py, docs/reliability.md)
     memory_sample_s: float = 5.0  # how often each process's resident memory is recorded
@@ -77,6 +78,8 @@ class Scenario:
             raise ConfigError("bg_mbps", "rates must be in 0..100000 Mbit/s")
         if not 0.01 <= self.scale <= 1000:
             raise ConfigError("scale", "must be in 0.01..1000")
+        if not 0.1 <= self.priority_weight <= 100:
+            raise ConfigError("priority_weight", "must be in 0.1..100")
         if not 0 <= self.camera_pace_mbps <= 1e5:
             raise ConfigError("camera_pace_mbps", "must be in 0..100000 Mbit/s (0: no pacing)")
         for i, fault in enumerate(self.faults):
@@ -137,6 +140,7 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
             default_listen_port=0,
             priority_listen_port=0,
             seed=scenario.seed,
+            priority_weight=scenario.priority_weight,
         ),
         vehicle=VehicleSimConfig(
             wind_mps=(scenario.wind_mps, 0.0, 0.0),

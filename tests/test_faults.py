@@ -12,7 +12,7 @@ import pytest
 
 from dynqos.common.errors import ConfigError
 from dynqos.common.messages import SupervisorStatus
-from dynqos.faults import Fault, FaultWindow, log_times, outcome
+from dynqos.faults import Fault, FaultInjector, FaultWindow, log_times, outcome
 from dynqos.runner import run_scenario
 from dynqos.scenario import Scenario, builtin_scenario
 
@@ -90,6 +90,46 @@ def test_outcome_measures_fallback_gaps_and_recovery_from_the_status_stream() ->
         True,
         None,
     )
+
+
+class _NoProcs:
+    """The injector's processes, for faults that touch only the cell."""
+
+
+def test_capacity_and_trace_faults_change_the_cells_capacity_and_restore_it(tmp_path: Path) -> None:
+    events: list[dict[str, Any]] = []
+    injector = FaultInjector(_NoProcs(), events.append, bus=None, uplink_mbps=81.3)  # type: ignore[arg-type]
+    window = injector.begin(Fault(at_s=15, kind="capacity", duration_s=15, uplink_mbps=50))
+    injector.end(window)
+    trace = tmp_path / "dip.mahi"
+    trace.write_text("\n".join(str(ms) for ms in range(1, 101)) + "\n")
+    injector.end(injector.begin(Fault(at_s=1, kind="trace", duration_s=5, file=str(trace))))
+    assert events == [
+        {"kind": "capacity", "uplink_mbps": 50.0},
+        {"kind": "capacity", "uplink_mbps": 81.3},
+        {"kind": "trace", "file": str(trace.resolve()), "mean_mbps": 0.0},
+        {"kind": "capacity", "uplink_mbps": 81.3},  # also ends the trace
+    ]
+    with pytest.raises(ConfigError, match="file"):
+        Fault(at_s=1, kind="trace")
+    drop = builtin_scenario("capacity-drop")
+    assert [(f.kind, f.uplink_mbps) for f in drop.faults] == [("capacity", 50.0)]
+
+
+def test_outcome_says_what_the_drone_saw_and_did_while_a_fault_lasted() -> None:
+    s = 1_000_000_000
+    window = FaultWindow(Fault(at_s=10, kind="capacity", duration_s=2), 0.0, 10 * s)
+    window.end_wall, window.end_ns = 2.0, 12 * s
+    statuses = [
+        replace(_status(10 * s, 20.0), rtt_samples_ms=(20.0, 40.0)),
+        replace(_status(11 * s, 20.0), state="q6", camera_rate_factor=0.5, rtt_samples_ms=(60.0,)),
+        replace(_status(12 * s, 20.0), state="q6", camera_rate_factor=0.5, rtt_samples_ms=(30.0,)),
+        replace(_status(13 * s, 20.0), rtt_samples_ms=(500.0,)),  # after it ended: not counted
+    ]
+    got = outcome(window, [], statuses, next_start_ns=None)
+    assert got["rtt_ms_during"]["mean"] == pytest.approx(37.5)
+    assert got["states_s_during"] == {"q1": 1.0, "q6": 1.0}
+    assert got["camera_slowed_after_s"] == pytest.approx(1.0)
 
 
 def _check(result: dict[str, Any], kinds_with_fallback: set[str]) -> None:

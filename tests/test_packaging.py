@@ -41,7 +41,8 @@ def test_built_wheel_imports_every_component(tmp_path: Path) -> None:
                    "dynqos/bench/suite.py", "dynqos/bench/zenoh_echo.py", "dynqos/faults.py",
                    "dynqos/scenarios/faults.toml", "dynqos/scenarios/soak.toml",
                    "dynqos/scenarios/bg-dynqos-hover.toml", "dynqos/profiles/paper.toml",
-                   "dynqos/profiles/dynqos.toml"):  # fmt: skip
+                   "dynqos/profiles/dynqos.toml", "dynqos/profiles/no-rate-adaptation.toml",
+                   "dynqos/scenarios/capacity-drop.toml"):  # fmt: skip
         assert module in names
     code = (
         "import sys; sys.path.insert(0, sys.argv[1]);"
