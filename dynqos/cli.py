@@ -452,8 +452,8 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
             + text[1:]
             + ". Starts the router, cell emulator, simulator, planner, MPC, "
             "detector and onboard daemon as processes, flies, records, stops everything (also on Ctrl-C), "
-            "and "
-            "writes per scenario summary.json, timeseries.csv, cell.csv, plots and logs, plus report.md.",
+            "and writes per scenario summary.json, states.csv, supervisor.csv, latency.csv, cell.csv, "
+            "plots and logs, plus report.md (docs/demo.md).",
         )
         if name == "run":
             sub.add_argument("scenario_file", metavar="FILE", help="scenario file")
@@ -475,14 +475,16 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
             type=int,
             default=1,
             metavar="N",
-            help="run each scenario N times (seeds N0, N0+1, ...); figures become mean [95%% interval]",
+            help="run each scenario N times with seeds S, S+1, ... (S: --seed, else the scenario's); "
+            "figures become mean [95%% interval] (default 1)",
         )
         sub.add_argument(
             "--profile",
             action="append",
             metavar="NAME",
-            help="dynqos (default) or paper (the paper's supervisor and 27.3 ms cell), or a profile file; "
-            "repeatable: each scenario flies under each profile, side by side in report.md",
+            help="dynqos (the default), paper (the paper's supervisor on a cell with its 27.3 ms RTT), "
+            "no-rate-adaptation, or a profile file (dynqos/profiles/*.toml shows the format); repeatable: "
+            "each scenario flies under each profile, side by side in report.md",
         )
         sub.set_defaults(handler=_cmd_demo)
 
