@@ -36,18 +36,14 @@ class ProfileInfo:
 class Profile:
     name: str
     description: str
-    scenario: dict[str, Any] = field(default_factory=dict)  # scenario fields, checked when applied
-    supervisor: dict[str, Any] = field(default_factory=dict)  # [supervisor] settings, checked on load
+    scenario: dict[str, Any] = field(default_factory=dict)  # scenario fields it sets, converted on load
+    supervisor: dict[str, Any] = field(default_factory=dict)  # [supervisor] settings it sets, converted
 
     def apply(self, scenario: Scenario) -> Scenario:
-        """The scenario under this profile: its fields overridden, its supervisor settings replaced."""
-        try:
-            changed = build(Scenario, {"name": scenario.name, **self.scenario}, "scenario")
-        except ConfigError as exc:
-            raise exc.with_source(f"profile {self.name}") from None
-        overrides = {k: getattr(changed, k) for k in self.scenario}
-        supervisor = build(SupervisorConfig, self.supervisor, "supervisor")
-        return replace(scenario, **overrides, supervisor=supervisor, profile=self.name)
+        """The scenario under this profile: the fields and supervisor settings the profile names are
+        replaced; everything else, a scenario's own [scenario.supervisor] included, stays."""
+        supervisor = replace(scenario.supervisor, **self.supervisor)
+        return replace(scenario, **self.scenario, supervisor=supervisor, profile=self.name)
 
 
 def builtin_profiles() -> list[str]:
@@ -86,10 +82,14 @@ def _parse(text: str, source: str) -> Profile:
                 "scenario.name", "a profile changes how scenarios fly, not their names or faults"
             )
         supervisor = dict(table.get("supervisor", {}))
-        build(SupervisorConfig, supervisor, "supervisor")  # every key and value checked now
-        profile = Profile(name=info.name, description=info.description, scenario=scenario,
-                          supervisor=supervisor)  # fmt: skip
-        profile.apply(Scenario(name="check"))  # the scenario fields too
+        # Every key and value checked (and converted: arrays to tuples) now, not when a run starts.
+        checked = build(Scenario, {"name": "check", **scenario}, "scenario")
+        settings = build(SupervisorConfig, supervisor, "supervisor")
     except ConfigError as exc:
         raise exc.with_source(source) from None
-    return profile
+    return Profile(
+        name=info.name,
+        description=info.description,
+        scenario={k: getattr(checked, k) for k in scenario},
+        supervisor={k: getattr(settings, k) for k in supervisor},
+    )

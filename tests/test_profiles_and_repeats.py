@@ -65,6 +65,11 @@ def test_the_default_profile_changes_nothing() -> None:
     assert applied == scenario
     assert applied.supervisor == SupervisorConfig()
     assert applied.run_id == "bg-noqos"
+    # A scenario's own supervisor settings survive a profile; a profile changes only what it names.
+    own = replace(scenario, supervisor=SupervisorConfig(th_lat=0.6))
+    assert load_profile(DEFAULT_PROFILE).apply(own).supervisor.th_lat == 0.6
+    paper = load_profile("paper").apply(own).supervisor
+    assert (paper.th_lat, paper.cc_fast_window) == (0.6, 0)
 
 
 def test_bad_profiles_are_named_errors(tmp_path: Path) -> None:
