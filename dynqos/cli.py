@@ -288,11 +288,12 @@ def _cmd_sensitivity(args: argparse.Namespace, config: Config) -> int:
 
 def _demo_line(s: dict[str, Any]) -> str:
     from dynqos.report_md import figure
+    from dynqos.scenario import run_id
 
-    run_id = s["scenario"] if s.get("profile", "dynqos") == "dynqos" else f"{s['scenario']}@{s['profile']}"
+    name = run_id(s["scenario"], s.get("profile", "dynqos"))
     loaded = figure(s, "rtt_ms.loaded.mean")
     return (
-        f"  {run_id:<13} ok={s['ok']!s:<5} RTT baseline {figure(s, 'rtt_ms.baseline.mean')} ms"
+        f"  {name:<13} ok={s['ok']!s:<5} RTT baseline {figure(s, 'rtt_ms.baseline.mean')} ms"
         + (f", loaded {loaded} ms" if loaded != "-" else "")
         + f", offered {figure(s, 'uav_offered_mbps')}, admitted {figure(s, 'uav_admitted_mbps')}"
         + f", delivered {figure(s, 'uav_delivered_mbps')} Mbit/s"

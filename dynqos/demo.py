@@ -18,7 +18,7 @@ from typing import Any
 from dynqos.aggregate import repeated_summary
 from dynqos.common.errors import ConfigError
 from dynqos.profile import DEFAULT_PROFILE, Profile, load_profile
-from dynqos.report_md import write_report
+from dynqos.report_md import figure, write_report
 from dynqos.runner import run_scenario
 from dynqos.scenario import Scenario, builtin_scenario
 
@@ -128,17 +128,11 @@ def _run_repeated(scenario: Scenario, out: Path, repeat: int, stop: threading.Ev
 
 
 def _headline(summary: dict[str, Any]) -> str:
-    if "aggregate" in summary:
-        agg = summary["aggregate"]
-        base, loaded = agg.get("rtt_ms.baseline.mean"), agg.get("rtt_ms.loaded.mean")
-        runs = len(summary["runs"])
-        return f"rtt baseline mean {_fmt(base)} ms, loaded mean {_fmt(loaded)} ms over {runs} runs"
-    rtt = summary["rtt_ms"]
-    return f"rtt baseline mean {_fmt(rtt['baseline'])} ms, loaded mean {_fmt(rtt['loaded'])} ms"
-
-
-def _fmt(stats: dict[str, Any] | None) -> str:
-    return "-" if not stats or stats.get("mean") is None else f"{stats['mean']:.1f}"
+    runs = f" over {len(summary['runs'])} runs" if "runs" in summary else ""
+    return (
+        f"rtt baseline mean {figure(summary, 'rtt_ms.baseline.mean')} ms, "
+        f"loaded mean {figure(summary, 'rtt_ms.loaded.mean')} ms{runs}"
+    )
 
 
 def default_out_dir() -> Path:

@@ -62,7 +62,7 @@ def tracking_errors(rec: Recording) -> list[tuple[float, float]]:
     return [((stamp - rec.t0_ns) / 1e9, error) for stamp, error in errors]
 
 
-def _rmse(values: list[float]) -> float | None:
+def rmse(values: list[float]) -> float | None:
     return math.sqrt(sum(v * v for v in values) / len(values)) if values else None
 
 
@@ -189,8 +189,8 @@ def summarise(
         },
         "uplink_state_latency_ms": stats([lat for lat, s in rec.states if s.stamp_ns >= settle_ns]),
         "tracking_rmse_m": {
-            "baseline": _rmse(window(errors, settle_ns, baseline_end)),
-            "loaded": _rmse(window(errors, bg_ns, end_ns + 1)) if loaded else None,
+            "baseline": rmse(window(errors, settle_ns, baseline_end)),
+            "loaded": rmse(window(errors, bg_ns, end_ns + 1)) if loaded else None,
         },
         "states_time_s": times,
         "transitions": transitions,

@@ -9,6 +9,9 @@ import math
 from pathlib import Path
 from typing import Any
 
+from dynqos.report import rmse
+from dynqos.scenario import run_id
+
 PAPER_TABLE_II = {
     "No QoS - No BG": {"uav_tx": 47, "uav_rx": 47, "rtt": "27.3", "bg_tx": None, "bg_rx": None},
     "No QoS - BG": {"uav_tx": 47, "uav_rx": 40, "rtt": "rises", "bg_tx": 80, "bg_rx": 40},
@@ -23,7 +26,7 @@ SCENARIO_ROW = {
 }
 
 
-def _n(value: float | None, digits: int = 1) -> str:
+def fmt(value: float | None, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
@@ -48,18 +51,17 @@ def figure(summary: dict[str, Any], path: str, digits: int = 1) -> str:
     """A figure by its path in a summary: the value of one run, or "mean [low, high]" over repeated runs."""
     if "aggregate" not in summary:
         value = _lookup(summary, path)
-        return _n(value if isinstance(value, (int, float)) else None, digits)
+        return fmt(value if isinstance(value, (int, float)) else None, digits)
     agg = summary["aggregate"].get(path)
     if agg is None:
         return "-"
     if agg["n"] < 2:
-        return _n(agg["mean"], digits)
+        return fmt(agg["mean"], digits)
     return f"{agg['mean']:.{digits}f} [{agg['ci95_low']:.{digits}f}, {agg['ci95_high']:.{digits}f}]"
 
 
 def _run_id(summary: dict[str, Any]) -> str:
-    profile = summary.get("profile", "dynqos")
-    return summary["scenario"] if profile == "dynqos" else f"{summary['scenario']}@{profile}"
+    return run_id(summary["scenario"], summary.get("profile", "dynqos"))
 
 
 def _loaded(summary: dict[str, Any]) -> bool:
@@ -106,7 +108,7 @@ def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
 def _table_row(s: dict[str, Any]) -> str:
     row = SCENARIO_ROW.get(s["scenario"], "-")
     paper = PAPER_TABLE_II.get(row, {})
-    bg = _n(_lookup(s, "bg_mbps") or (s["runs"][0]["bg_mbps"] if "runs" in s else None), 0)
+    bg = fmt(_lookup(s, "bg_mbps") or (s["runs"][0]["bg_mbps"] if "runs" in s else None), 0)
     cells = [
         s["scenario"],
         s.get("profile", "dynqos"),
@@ -148,24 +150,24 @@ def _paper_profile_lines(summaries: list[dict[str, Any]]) -> list[str]:
 
 
 def _single_section(out: Path, s: dict[str, Any], baseline: dict[str, Any] | None) -> list[str]:
-    rtt, cam, rmse = s["rtt_ms"], s["camera_latency_ms"], s["tracking_rmse_m"]
+    rtt, cam, error_m = s["rtt_ms"], s["camera_latency_ms"], s["tracking_rmse_m"]
     run_id = _run_id(s)
     return [
         f"### {run_id}",
         "",
         s["description"],
         "",
-        f"- RTT (ms): baseline mean {_n(rtt['baseline']['mean'])}, p95 {_n(rtt['baseline']['p95'])}; "
-        f"loaded mean {_n((rtt['loaded'] or {}).get('mean'))}, "
-        f"p95 {_n((rtt['loaded'] or {}).get('p95'))}, max {_n((rtt['loaded'] or {}).get('max'))}",
-        f"- camera latency (ms): baseline mean {_n(cam['baseline']['mean'])}; loaded mean "
-        f"{_n((cam['loaded'] or {}).get('mean'))}",
-        f"- tracking RMSE (m): baseline {_n(rmse['baseline'], 3)}, loaded {_n(rmse['loaded'], 3)}",
+        f"- RTT (ms): baseline mean {fmt(rtt['baseline']['mean'])}, p95 {fmt(rtt['baseline']['p95'])}; "
+        f"loaded mean {fmt((rtt['loaded'] or {}).get('mean'))}, "
+        f"p95 {fmt((rtt['loaded'] or {}).get('p95'))}, max {fmt((rtt['loaded'] or {}).get('max'))}",
+        f"- camera latency (ms): baseline mean {fmt(cam['baseline']['mean'])}; loaded mean "
+        f"{fmt((cam['loaded'] or {}).get('mean'))}",
+        f"- tracking RMSE (m): baseline {fmt(error_m['baseline'], 3)}, loaded {fmt(error_m['loaded'], 3)}",
         *_same_wind_line(out, s, baseline),
         f"- first switch to the priority flow after the background started: "
-        f"{_n(s['first_qos_switch_after_bg_s'], 2)} s ({s['first_qos_switch_cause'] or 'none'}); "
+        f"{fmt(s['first_qos_switch_after_bg_s'], 2)} s ({s['first_qos_switch_cause'] or 'none'}); "
         f"fallback entered: {s['fallback_entered']}; "
-        f"largest setpoint gap: {_n(s['setpoint_gap_max_ms'])} ms",
+        f"largest setpoint gap: {fmt(s['setpoint_gap_max_ms'])} ms",
         *_camera_line(s),
         *_fault_lines(s),
         "- time in states (s): " + ", ".join(f"{k} {v:.1f}" for k, v in s["states_time_s"].items() if v > 0),
@@ -187,7 +189,7 @@ def _fault_lines(s: dict[str, Any]) -> list[str]:
         slowed = f.get("camera_slowed_after_s")
         lines.append(
             f"- {f['kind']} at {f['at_s']:g} s for {f['duration_s']:g} s: RTT while it lasted mean "
-            f"{_n(rtt.get('mean'))}, p95 {_n(rtt.get('p95'))} ms; states (s) {states or '-'}; camera "
+            f"{fmt(rtt.get('mean'))}, p95 {fmt(rtt.get('p95'))} ms; states (s) {states or '-'}; camera "
             + ("never slowed" if slowed is None else f"slowed {slowed:.2f} s after it began")
             + f"; fallback {f['fallback']}"
         )
@@ -251,8 +253,8 @@ def _spread_plot(out: Path, summaries: list[dict[str, Any]]) -> None:
 def _camera_line(s: dict[str, Any]) -> list[str]:
     fps = s["camera_fps"]
     line = (
-        f"- camera: {_n(fps['baseline'])} of {_n(fps['configured'])} frames/s acknowledged before the load"
-        f", {_n(fps['loaded'])} under it"
+        f"- camera: {fmt(fps['baseline'])} of {fmt(fps['configured'])} frames/s acknowledged before the load"
+        f", {fmt(fps['loaded'])} under it"
     )
     if fps["baseline"] is not None and fps["baseline"] < 0.9 * fps["configured"]:
         line += (
@@ -273,13 +275,13 @@ def _same_wind_line(out: Path, s: dict[str, Any], baseline: dict[str, Any] | Non
     errors = tracking_errors_csv(out / "baseline" / "states.csv")
     if errors is None:
         return []
-    before = _rmse([e for t, e in errors if s.get("settle_s", 0.0) <= t < start])
-    after = _rmse([e for t, e in errors if t >= start])
+    before = rmse([e for t, e in errors if s.get("settle_s", 0.0) <= t < start])
+    after = rmse([e for t, e in errors if t >= start])
     if before is None or after is None:
         return []
     return [
-        f"- the baseline scenario (the same wind, no load) over the same spans: {_n(before, 3)} / "
-        f"{_n(after, 3)} m ({after / before:.2f}x): the part of the ratio that is the gusts'"
+        f"- the baseline scenario (the same wind, no load) over the same spans: {fmt(before, 3)} / "
+        f"{fmt(after, 3)} m ({after / before:.2f}x): the part of the ratio that is the gusts'"
     ]
 
 
@@ -294,7 +296,3 @@ def tracking_errors_csv(states_csv: Path) -> list[tuple[float, float]] | None:
             ]
     except (OSError, ValueError, KeyError):
         return None
-
-
-def _rmse(values: list[float]) -> float | None:
-    return math.sqrt(sum(v * v for v in values) / len(values)) if values else None

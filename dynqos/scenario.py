@@ -66,8 +66,7 @@ class Scenario:
 
     @property
     def run_id(self) -> str:
-        """The run folder's name: the scenario's, and the profile's unless it is the default one."""
-        return self.name if self.profile == "dynqos" else f"{self.name}@{self.profile}"
+        return run_id(self.name, self.profile)
 
     def __post_init__(self) -> None:
         if not 5 <= self.duration_s <= 3600:
@@ -118,6 +117,12 @@ def builtin_scenario(name: str) -> Scenario:
         raise ConfigError("--scenario", f"unknown scenario {name!r} (known: {', '.join(known)})")
     with resources.as_file(path) as real:
         return load_scenario(real)
+
+
+def run_id(name: str, profile: str) -> str:
+    """A run folder's name (and a scenario's name in reports): the scenario's, and the profile's unless
+    it is the default one."""
+    return name if profile == "dynqos" else f"{name}@{profile}"
 
 
 def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs_port: int) -> Config:

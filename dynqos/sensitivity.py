@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common.errors import ConfigError
+from dynqos.report_md import fmt
 from dynqos.runner import run_scenario
 from dynqos.scenario import builtin_scenario
 
@@ -85,10 +86,6 @@ def _point(weight: float, load: float, summary: dict[str, Any]) -> dict[str, Any
     }
 
 
-def _n(value: float | None, digits: int = 1) -> str:
-    return "-" if value is None else f"{value:.{digits}f}"
-
-
 def markdown(result: dict[str, Any]) -> str:
     lines = [
         "# Sensitivity: priority weight and background load",
@@ -103,9 +100,10 @@ def markdown(result: dict[str, Any]) -> str:
     for p in result["points"]:
         lines.append(
             f"| {p['priority_weight']:g} | {p['share_of_full_cell']:.2f} | {p['bg_mbps']:g} "
-            f"| {_n(p['rtt_baseline_mean_ms'])} / {_n(p['rtt_loaded_mean_ms'])} "
-            f"| {_n(p['rtt_loaded_p95_ms'])} "
-            f"| {_n(p['uav_offered_mbps'])} / {_n(p['uav_delivered_mbps'])} | {_n(p['bg_delivered_mbps'])} |"
+            f"| {fmt(p['rtt_baseline_mean_ms'])} / {fmt(p['rtt_loaded_mean_ms'])} "
+            f"| {fmt(p['rtt_loaded_p95_ms'])} "
+            f"| {fmt(p['uav_offered_mbps'])} / {fmt(p['uav_delivered_mbps'])} "
+            f"| {fmt(p['bg_delivered_mbps'])} |"
         )
     lines += ["", "![sensitivity](sensitivity.png)", ""]
     return "\n".join(lines)
