@@ -9,7 +9,9 @@ globals.
 
 from __future__ import annotations
 
+import ipaddress
 import math
+import re
 import sys
 import types
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
@@ -177,8 +179,13 @@ class BearerConfig:
     listen_port: int = 0  # 0: any free port, reported on the emulator's ready line
     weight: float = 1.0
     ue_buffer_bytes: int = 0  # 0: the cell's ue_buffer_bytes
+    # The drone whose UE this bearer belongs to ("" = none). With [cell] qod = true a bearer of a drone
+    # has its `weight` only while a QoD session for that drone's device and this bearer's target port
+    # is AVAILABLE, and weight 1 otherwise (docs/qos.md).
+    ue: str = ""
 
     def __post_init__(self) -> None:
+        _require(not self.ue or UAV_ID_PATTERN.fullmatch(self.ue) is not None, "ue", "must be a drone id")
         _require(bool(self.name) and self.name.replace("-", "").replace("_", "").isalnum(), "name",
                  "must be letters, digits, - or _")  # fmt: skip
         _host_port(self.target, "target")
@@ -210,7 +217,7 @@ class CellEventConfig:
     """A timeline event; which fields it needs depends on `kind` (see docs/cell.md)."""
 
     at_s: float
-    kind: Literal["background", "capacity", "trace", "coverage_loss", "downlink_loss", "weight"]
+    kind: Literal["background", "capacity", "trace", "coverage_loss", "downlink_loss", "weight", "qod_end"]
     user: str = ""  # background: which background user
     bearer: str = ""  # weight: which bearer; coverage_loss with drop_connections: "" = all
     offered_mbps: float = -1.0  # background
@@ -220,6 +227,7 @@ class CellEventConfig:
     duration_s: float = 0.0  # coverage_loss, downlink_loss
     drop_connections: bool = False  # coverage_loss: also reset the TCP connections
     weight: float = 0.0  # weight
+    uav: str = ""  # qod_end: whose QoD sessions the network ends ("" = every drone's)
 
     def __post_init__(self) -> None:
         _require(0 <= self.at_s <= 86400, "at_s", "must be in 0..86400 s")
@@ -257,6 +265,16 @@ class CellConfig:
     priority_weight: float = 4.0
     record_interval_s: float = 0.1
     control_port: int = -1  # -1: no control API; 0: any free port
+    # The cell as an operator (docs/qos.md): with qod = true a drone's priority bearer gets its weight only
+    # while a CAMARA Quality-on-Demand session grants it (the control port serves the QoD API); false is a
+    # network with a static policy for the priority port (the `links` backend's assumption).
+    qod: bool = False
+    qod_max_sessions: int = -1  # sessions AVAILABLE at once (-1: no limit; 0: the operator grants none)
+    qod_setup_s: float = 0.05  # REQUESTED -> AVAILABLE (or UNAVAILABLE when refused) after this long
+    qod_max_duration_s: int = 86400  # a session's duration (with extensions) is capped here
+    qod_profiles: tuple[str, ...] = ("QOS_E", "QOS_S", "QOS_M", "QOS_L")  # what the operator offers
+    qod_auth: bool = False  # require OAuth2 client-credential tokens ([qos.camara] client_id/secret file)
+    qod_token_ttl_s: float = 3600.0
     trace: str = ""
     trace_mean_mbps: float = 0.0
     seed: int = 0
@@ -279,6 +297,10 @@ class CellConfig:
         _require(0.01 <= self.record_interval_s <= 60, "record_interval_s", "must be in 0.01..60 s")
         _require(-1 <= self.control_port <= 65535, "control_port", "must be -1 (off), 0 (any) or a port")
         _require(self.trace_mean_mbps >= 0, "trace_mean_mbps", "must be >= 0")
+        _require(self.qod_max_sessions >= -1, "qod_max_sessions", "must be -1 (no limit) or >= 0")
+        _require(0 <= self.qod_setup_s <= 60, "qod_setup_s", "must be in 0..60 s")
+        _require(1 <= self.qod_max_duration_s <= 10**7, "qod_max_duration_s", "must be in 1..10000000 s")
+        _require(1 <= self.qod_token_ttl_s <= 86400, "qod_token_ttl_s", "must be in 1..86400 s")
         names = [b.name for b in self.bearers]
         _require(len(set(names)) == len(names), "bearers", "bearer names must be unique")
         users = [b.name for b in self.background]
@@ -296,9 +318,9 @@ class CellConfig:
         host = zenoh.edge_host
         return (
             BearerConfig(name=f"{uav}-default", target=f"{host}:{zenoh.default_port}",
-                         listen_port=self.default_listen_port, weight=1.0),
+                         listen_port=self.default_listen_port, weight=1.0, ue=uav),
             BearerConfig(name=f"{uav}-priority", target=f"{host}:{zenoh.priority_port}",
-                         listen_port=self.priority_listen_port, weight=self.priority_weight),
+                         listen_port=self.priority_listen_port, weight=self.priority_weight, ue=uav),
         )  # fmt: skip
 
 
@@ -496,6 +518,137 @@ class OnboardConfig:
         _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
 
 
+_PHONE_NUMBER = re.compile(r"\+[1-9][0-9]{4,14}")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DeviceIpv4Config:
+    """CAMARA DeviceIpv4Addr: the public address, with the private address or the public port."""
+
+    publicAddress: str = ""
+    privateAddress: str = ""
+    publicPort: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("publicAddress", "privateAddress"):
+            value = getattr(self, name)
+            if value:
+                try:
+                    ipaddress.IPv4Address(value)
+                except ValueError:
+                    raise ConfigError(name, f"{value!r} is not an IPv4 address") from None
+        _require(0 <= self.publicPort <= 65535, "publicPort", "must be a port in 1..65535 (0: not given)")
+        if self.privateAddress or self.publicPort:
+            _require(
+                bool(self.publicAddress), "publicAddress", "is required with privateAddress or publicPort"
+            )
+        if self.publicAddress:
+            _require(bool(self.privateAddress or self.publicPort), "publicAddress",
+                     "needs privateAddress or publicPort as well (CAMARA DeviceIpv4Addr)")  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DeviceConfig:
+    """A drone's identity on the operator's network: a CAMARA `device` object (at least one identifier)."""
+
+    phoneNumber: str = ""
+    networkAccessIdentifier: str = ""
+    ipv4Address: DeviceIpv4Config = field(default_factory=DeviceIpv4Config)
+    ipv6Address: str = ""
+
+    def __post_init__(self) -> None:
+        if self.phoneNumber:
+            _require(_PHONE_NUMBER.fullmatch(self.phoneNumber) is not None, "phoneNumber",
+                     f"{self.phoneNumber!r} is not E.164 with a leading + (e.g. +46700000001)")  # fmt: skip
+        if self.ipv6Address:
+            try:
+                ipaddress.IPv6Address(self.ipv6Address)
+            except ValueError:
+                raise ConfigError("ipv6Address", f"{self.ipv6Address!r} is not an IPv6 address") from None
+        ids = "phoneNumber, ipv4Address, ipv6Address, networkAccessIdentifier"
+        _require(bool(self.as_api()), "device", f"needs at least one of {ids}")
+
+    def as_api(self) -> dict[str, Any]:
+        """The CAMARA `device` object: only the identifiers given."""
+        out: dict[str, Any] = {}
+        if self.phoneNumber:
+            out["phoneNumber"] = self.phoneNumber
+        if self.networkAccessIdentifier:
+            out["networkAccessIdentifier"] = self.networkAccessIdentifier
+        ipv4 = {k: v for k, v in asdict(self.ipv4Address).items() if v}
+        if ipv4:
+            out["ipv4Address"] = ipv4
+        if self.ipv6Address:
+            out["ipv6Address"] = self.ipv6Address
+        return out
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CamaraConfig:
+    """[qos.camara]: a CAMARA Quality-on-Demand API (v1.1.0) the agent asks for QoS sessions."""
+
+    api_root: str = ""  # e.g. https://api.operator.example/quality-on-demand/v1
+    token_url: str = ""  # OAuth2 token endpoint for client credentials ("" = no token)
+    client_id: str = ""
+    client_secret_file: str = ""  # a file holding the client secret (never the secret itself)
+    qos_profile: str = "QOS_E"
+    duration_s: int = 600  # requested per session; extended while priority is still wanted
+    extend_before_s: float = 30.0  # extend when the session has less than this left
+    application_server: str = ""  # the edge address the network sees ("" = [zenoh] edge_host)
+    sink: str = ""  # notifications URL given to the operator ("" = polling only)
+    sink_listen: str = ""  # host:port the agent serves that URL on ("" = no listener)
+    poll_interval_s: float = 0.2  # how often a REQUESTED session is read until it settles
+    timeout_s: float = 2.0  # every HTTP call ends within this
+    retry_after_denied_s: float = 10.0  # a denied drone asks again after this (doubling, up to 8x)
+    devices: dict[str, DeviceConfig] = field(default_factory=dict)  # drone id -> its device
+
+    def __post_init__(self) -> None:
+        for name in ("api_root", "token_url", "sink"):
+            url = getattr(self, name)
+            _require(not url or url.startswith(("http://", "https://")), name, "must be an http(s) URL")
+        _require(len(self.qos_profile) >= 3 and re.fullmatch(r"[A-Za-z0-9_.-]{3,256}", self.qos_profile)
+                 is not None, "qos_profile", "must be 3..256 of A-Z a-z 0-9 _ . -")  # fmt: skip
+        _require(1 <= self.duration_s <= 10**7, "duration_s", "must be in 1..10000000 s")
+        _require(0 <= self.extend_before_s < self.duration_s, "extend_before_s", "must be in 0..duration_s")
+        _require(0.01 <= self.poll_interval_s <= 60, "poll_interval_s", "must be in 0.01..60 s")
+        _require(0.05 <= self.timeout_s <= 60, "timeout_s", "must be in 0.05..60 s")
+        _require(0.1 <= self.retry_after_denied_s <= 3600, "retry_after_denied_s", "must be in 0.1..3600 s")
+        if self.sink_listen:
+            _host_port(self.sink_listen, "sink_listen")
+        if self.token_url:
+            _require(bool(self.client_id), "client_id", "is required with token_url")
+            _require(bool(self.client_secret_file), "client_secret_file", "is required with token_url")
+        for uav in self.devices:
+            _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"devices.{uav}", "is not a drone id")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class QosConfig:
+    """[qos]: how the network is asked for the priority flow (`dynqos edge qos`, docs/qos.md)."""
+
+    backend: Literal["links", "camara"] = "links"
+    hold_down_s: float = 5.0  # release a session only after the drone left priority this long
+    request_interval_s: float = 1.0  # the drone repeats its request this often
+    drone_timeout_s: float = 5.0  # the agent treats a drone it has not heard from this long as gone
+    agent_timeout_s: float = 3.0  # the drone reports "no agent" after this long without a grant
+    grant_interval_s: float = 1.0  # the agent repeats each drone's grant this often
+    health_interval_s: float = 5.0
+    camara: CamaraConfig = field(default_factory=CamaraConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("hold_down_s", "request_interval_s", "drone_timeout_s", "agent_timeout_s",
+                     "grant_interval_s", "health_interval_s"):  # fmt: skip
+            _require(0 <= getattr(self, name) <= 3600, name, "must be in 0..3600 s")
+        _require(self.request_interval_s >= 0.05, "request_interval_s", "must be >= 0.05 s")
+        _require(self.grant_interval_s >= 0.05, "grant_interval_s", "must be >= 0.05 s")
+        _require(self.drone_timeout_s > self.request_interval_s, "drone_timeout_s",
+                 "must exceed request_interval_s")  # fmt: skip
+        _require(self.agent_timeout_s > self.grant_interval_s, "agent_timeout_s",
+                 "must exceed grant_interval_s")  # fmt: skip
+        if self.backend == "camara":
+            _require(bool(self.camara.api_root), "camara.api_root", 'is required with backend = "camara"')
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Config:
     drone: DroneConfig = field(default_factory=DroneConfig)
@@ -508,6 +661,7 @@ class Config:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     onboard: OnboardConfig = field(default_factory=OnboardConfig)
+    qos: QosConfig = field(default_factory=QosConfig)
 
     def __post_init__(self) -> None:
         bearers = {b.name for b in self.cell.bearer_list(self.zenoh, self.drone.id)}
@@ -537,6 +691,11 @@ def _convert(tp: Any, value: Any, key: str) -> Any:  # noqa: C901 (one case per 
         if value not in options:
             raise ConfigError(key, f"{value!r} is not one of {', '.join(map(repr, options))}")
         return value
+    if origin is dict:
+        value_type = get_args(tp)[1]
+        if not isinstance(value, dict):
+            raise ConfigError(key, f"expected a table, got {type(value).__name__}")
+        return {str(k): _convert(value_type, v, f"{key}.{k}") for k, v in value.items()}
     if origin in (Union, types.UnionType):
         raise ConfigError(key, "unsupported type")  # pragma: no cover - no optional settings yet
     if origin is tuple:
@@ -663,6 +822,10 @@ def to_toml(config: Config) -> str:
     return "\n".join(lines)
 
 
+def _toml_key(key: str) -> str:
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else _toml_value(key)
+
+
 def _toml_value(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
@@ -672,4 +835,6 @@ def _toml_value(value: Any) -> str:
         return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):  # a nested table, inline
+        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
     raise TypeError(f"cannot write {type(value).__name__} as TOML")  # pragma: no cover

@@ -9,6 +9,8 @@ declared on, so a receiver subscribes to both flows with one wildcard:
     dynqos/<uav>/down/ack/camera          detector -> drone camera acks
     dynqos/<uav>/down/detections          detector -> drone detections
     dynqos/<uav>/ref                      planner -> MPC reference
+    dynqos/<uav>/up/<flow>/qos            drone -> QoS agent: priority wanted or not (QosRequest)
+    dynqos/<uav>/down/qos                 QoS agent -> drone: the network's grant (QosGrant)
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ class Stream(str, enum.Enum):
     CAMERA_RGB = "camera/rgb"
     CAMERA_DEPTH = "camera/depth"
     STATUS = "status"
+    QOS = "qos"
 
 
 class Downlink(str, enum.Enum):
@@ -36,6 +39,7 @@ class Downlink(str, enum.Enum):
     CAMERA_ACK = "down/ack/camera"
     DETECTIONS = "down/detections"
     REFERENCE = "ref"
+    QOS_GRANT = "down/qos"
 
 
 def check_uav_id(uav: object) -> str:

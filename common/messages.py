@@ -16,7 +16,7 @@ import msgpack
 
 from dynqos.common import fields as f
 from dynqos.common.errors import DecodeError, MessageError
-from dynqos.common.modes import ControlSource, Flow, SupervisorState
+from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 
 SCHEMA_VERSION = 1
 MAX_MESSAGE_BYTES = 24 * 1024 * 1024
@@ -269,6 +269,8 @@ class SupervisorStatus(Message):
         "control_changed_ns": f.integer(),
         "command_age_ms": f.optional(_latency_ms),
         "camera_bytes": f.integer(),
+        "qos_grant": f.member(Grant),
+        "qos_agent": f.boolean,
         "rtt_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
         "camera_latency_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
     }
@@ -301,10 +303,56 @@ class SupervisorStatus(Message):
     control_changed_ns: int = 0  # when control_source last changed (onboard clock; 0: never)
     command_age_ms: float | None = None  # age of the last valid command at that change (None: none yet)
     camera_bytes: int = 0  # camera bytes handed to zenoh since the daemon started, before any drop
+    qos_grant: Grant = Grant.NONE  # what the network grants the priority flow (the agent's last word)
+    qos_agent: bool = False  # a QoS agent answered recently (False: links only, no network request)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class QosRequest(Message):
+    """The drone to the QoS agent: whether it wants its priority flow from the network now. Sent on every
+    change and repeated every [qos] request_interval_s; the agent forgets a drone it no longer hears."""
+
+    TYPE: ClassVar[str] = "QosRequest"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {**_COMMON, "stamp_ns": f.integer(), "want": f.boolean}
+
+    stamp_ns: int
+    want: bool
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class QosGrant(Message):
+    """The QoS agent to the drone: what the network grants its priority flow, and why."""
+
+    TYPE: ClassVar[str] = "QosGrant"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **_COMMON,
+        "grant": f.member(Grant),
+        "backend": f.choice(("links", "camara")),
+        "session_id": f.text(64),
+        "reason": f.text(300),
+        "answers_seq": f.integer(),
+    }
+
+    grant: Grant
+    backend: str
+    session_id: str = ""  # the QoD session ("" with the links backend or when there is none)
+    reason: str = ""  # why the grant is what it is (the API's code and message on a refusal)
+    answers_seq: int = 0  # the newest QosRequest seq the agent had when it sent this
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
-    cls.TYPE: cls for cls in (State, Command, CameraFrame, CameraAck, Detections, Reference, SupervisorStatus)
+    cls.TYPE: cls
+    for cls in (
+        State,
+        Command,
+        CameraFrame,
+        CameraAck,
+        Detections,
+        Reference,
+        SupervisorStatus,
+        QosRequest,
+        QosGrant,
+    )
 }
 
 

@@ -46,3 +46,12 @@ class ControlSource(Name):
     EDGE = "edge"  # the edge MPC's horizon setpoint for now
     FALLBACK = "fallback"  # the onboard PID (the supervisor's qA, or the command watchdog)
     HOLD = "hold"  # the flight controller went silent: ask it to hold where it was last seen
+
+
+class Grant(Name):
+    """What the network has granted a drone's priority flow (the QoS agent's answer, docs/qos.md)."""
+
+    NONE = "none"  # not asked for (or released)
+    REQUESTED = "requested"  # asked; the network has not answered yet
+    AVAILABLE = "available"  # the network prioritises the flow
+    UNAVAILABLE = "unavailable"  # refused, ended by the network, or the API failed

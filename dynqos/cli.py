@@ -82,9 +82,21 @@ def _cmd_sim_cell(args: argparse.Namespace, config: Config) -> int:
 
     if args.duration is not None and args.duration <= 0:
         raise DynqosError(f"--duration must be > 0, got {args.duration}")
+    from dynqos.edge.qod_client import read_secret
+
     bearers = config.cell.bearer_list(config.zenoh, config.drone.id)
     out_dir = Path(args.out) if args.out else None
-    asyncio.run(run_cell(config.cell, bearers, out_dir=out_dir, duration_s=args.duration, ready=print_ready))
+    camara = config.qos.camara
+    devices = {uav: device.as_api() for uav, device in camara.devices.items()}
+    secret = read_secret(camara.client_secret_file) if config.cell.qod_auth else ""
+    if config.cell.qod_auth and not (camara.client_id and secret):
+        raise DynqosError("[cell] qod_auth = true needs [qos.camara] client_id and client_secret_file")
+    asyncio.run(
+        run_cell(
+            config.cell, bearers, out_dir=out_dir, duration_s=args.duration, ready=print_ready,
+            qod_devices=devices, qod_client=(camara.client_id, secret),
+        )
+    )  # fmt: skip
     return 0
 
 
@@ -152,6 +164,13 @@ def _cmd_edge(args: argparse.Namespace, config: Config) -> int:
     bus = open_bus(config.zenoh, Role.EDGE)
     try:
         worker: Any
+        if name == "qos":
+            from dynqos.edge.qos_agent import QosAgent
+
+            agent = QosAgent(config, bus)
+            agent.service.health_file = _health_path(args)
+            agent.run(ready=lambda: _ready_line("qos"))
+            return 0
         if name == "mpc":
             from dynqos.edge.mpc_service import MpcService
 
@@ -396,7 +415,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
     vehicle.set_defaults(handler=_cmd_sim_vehicle)
 
     edge_cmd = commands.add_parser(
-        "edge", help="edge services: router, mpc, planner, detector", parents=[common]
+        "edge", help="edge services: router, mpc, planner, detector, qos", parents=[common]
     )
     edge_sub = edge_cmd.add_subparsers(dest="edge_command", metavar="SERVICE", required=True)
     for name, text in (
@@ -409,6 +428,11 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
         (
             "detector",
             "the circle detector: acks every camera frame, detects circles in RGB, locates them with depth",
+        ),
+        (
+            "qos",
+            "the QoS agent: turns the drones' requests for priority into what the network needs ([qos] "
+            "backend: links, or camara for CAMARA Quality-on-Demand sessions; docs/qos.md)",
         ),
     ):
         sub = edge_sub.add_parser(
@@ -463,7 +487,8 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
                 "--scenario",
                 action="append",
                 metavar="NAME",
-                help="baseline, bg-noqos, bg-dynqos, bg-staticqos (repeatable; default: all)",
+                help="baseline, bg-noqos, bg-dynqos, bg-staticqos (repeatable; default: these four), or "
+                "bg-dynqos-hover, bg-dynqos-refused, capacity-drop, faults, soak",
             )
         sub.add_argument("--out", metavar="DIR", help="run folder (default: runs/<date-time>)")
         sub.add_argument("--duration", type=float, metavar="S", help="recorded flight time per scenario")

@@ -22,3 +22,4 @@ class Recording:
     offload_ns: int | None = None
     faults: list[FaultWindow] = field(default_factory=list)
     memory_kb: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # name -> (t_s, RSS kB)
+    qod: dict[str, Any] | None = None  # the emulated operator's QoD counters and sessions left at the end

@@ -202,6 +202,9 @@ def summarise(
             "baseline": _acked_fps(cams, settle_ns, baseline_end),
             "loaded": _acked_fps(cams, bg_ns, end_ns) if loaded else None,
         },
+        "qos_network": _qos_network(
+            scenario, statuses, rtts, bg_ns, window(rtts, settle_ns, baseline_end), rec.qod
+        ),
         "fallback_entered": any(s.fallbacks > 0 for s in statuses),
         "setpoint_gap_max_ms": max(gaps) if gaps else None,
         "states_recorded": len(rec.states),
@@ -237,6 +240,54 @@ def _first_qos_switch(statuses: list[SupervisorStatus], bg_ns: int | None) -> tu
         return None, None
     changed = after[0].changed_ns if after[0].changed_ns >= bg_ns else after[0].stamp_ns
     return (changed - bg_ns) / 1e9, after[0].cause or "unknown"
+
+
+RTT_BACK_FACTOR = 1.2  # "back": the RTT within this factor of its unloaded mean...
+RTT_BACK_SAMPLES = 10  # ...over this many samples in a row (0.5 s of states)
+
+
+def _qos_network(
+    scenario: Scenario,
+    statuses: list[SupervisorStatus],
+    rtts: list[tuple[int, float]],
+    bg_ns: int | None,
+    baseline: list[float],
+    qod: dict[str, Any] | None,
+) -> dict[str, Any]:
+    """What the network made of the drone's priority: from the supervisor's first move to the priority flow
+    under load, how long until the network's grant was AVAILABLE and until the RTT was back within 1.2x
+    of its unloaded mean; the grant at the end; and the QoD sessions the emulated operator saw."""
+    out: dict[str, Any] = {"backend": scenario.qos_backend, "decision_to_available_s": None,
+                           "decision_to_rtt_back_s": None}  # fmt: skip
+    if bg_ns is not None:
+        after = [s for s in statuses if s.stamp_ns >= bg_ns and s.flow == "priority"]
+        before = [s for s in statuses if s.stamp_ns < bg_ns]
+        if before and before[-1].flow == "priority":
+            after = [before[-1], *after]  # already on the priority flow when the load came
+        if after:
+            decided = max(after[0].changed_ns, bg_ns) if after[0].changed_ns else after[0].stamp_ns
+            granted = next(
+                (s.stamp_ns for s in statuses if s.stamp_ns >= decided and s.qos_grant == "available"), None
+            )
+            out["decision_to_available_s"] = None if granted is None else (granted - decided) / 1e9
+            out["decision_to_rtt_back_s"] = _rtt_back_after(rtts, decided, baseline)
+    out["grant_at_end"] = statuses[-1].qos_grant.value if statuses else None
+    out["agent_heard"] = any(s.qos_agent for s in statuses)
+    if qod is not None:
+        out["sessions"] = {k: qod.get(k, 0) for k in ("created", "extended", "deleted", "refused", "expired")}
+        out["sessions"]["open_at_end"] = len(qod.get("sessions", []))
+    return out
+
+
+def _rtt_back_after(rtts: list[tuple[int, float]], since_ns: int, baseline: list[float]) -> float | None:
+    if not baseline:
+        return None
+    limit = RTT_BACK_FACTOR * sum(baseline) / len(baseline)
+    later = [(t, v) for t, v in rtts if t >= since_ns]
+    for i in range(len(later) - RTT_BACK_SAMPLES + 1):
+        if all(v <= limit for _, v in later[i : i + RTT_BACK_SAMPLES]):
+            return (later[i][0] - since_ns) / 1e9
+    return None
 
 
 def _hl_fraction(statuses: list[SupervisorStatus], start_ns: int, stop_ns: int) -> float | None:

@@ -169,6 +169,7 @@ def _single_section(out: Path, s: dict[str, Any], baseline: dict[str, Any] | Non
         f"fallback entered: {s['fallback_entered']}; "
         f"largest setpoint gap: {fmt(s['setpoint_gap_max_ms'])} ms",
         *_camera_line(s),
+        *_qos_network_line(s),
         *_fault_lines(s),
         "- time in states (s): " + ", ".join(f"{k} {v:.1f}" for k, v in s["states_time_s"].items() if v > 0),
         f"- ok: {s['ok']} {s['failure']}",
@@ -178,6 +179,27 @@ def _single_section(out: Path, s: dict[str, Any], baseline: dict[str, Any] | Non
         f"![{run_id} supervisor]({run_id}/supervisor.png)",
         "",
     ]
+
+
+def _qos_network_line(s: dict[str, Any]) -> list[str]:
+    """What the network made of the drone's priority (docs/qos.md): grant and RTT after the decision,
+    and the QoD sessions the emulated operator saw."""
+    q = s.get("qos_network")
+    if not q or s.get("qos") == "default":
+        return []
+    line = (
+        f"- network QoS ({q['backend']}): from the decision to the priority flow, grant AVAILABLE after "
+        f"{fmt(q['decision_to_available_s'], 2)} s, RTT back within 1.2x after "
+        f"{fmt(q['decision_to_rtt_back_s'], 2)} s; grant at the end: {q['grant_at_end']}"
+    )
+    sessions = q.get("sessions")
+    if sessions:
+        line += (
+            f"; QoD sessions created {sessions['created']}, extended {sessions['extended']}, "
+            f"deleted {sessions['deleted']}, refused {sessions['refused']}, "
+            f"left open {sessions['open_at_end']}"
+        )
+    return [line]
 
 
 def _fault_lines(s: dict[str, Any]) -> list[str]:
@@ -213,6 +235,8 @@ def _repeated_section(s: dict[str, Any]) -> list[str]:
         f"{figure(s, 'first_qos_switch_after_bg_s', 2)} s (causes: "
         f"{'; '.join(sorted({run['first_qos_switch_cause'] or 'none' for run in s['runs']}))})",
         f"- camera frames/s acknowledged before the load: {figure(s, 'camera_fps.baseline')}",
+        f"- network QoS: grant AVAILABLE {figure(s, 'qos_network.decision_to_available_s', 2)} s and RTT "
+        f"back within 1.2x {figure(s, 'qos_network.decision_to_rtt_back_s', 2)} s after the decision",
         f"- ok: {s['ok']} {s['failure']}",
         "",
     ]

@@ -34,7 +34,7 @@ from dynqos.faults import FaultInjector, FaultWindow
 from dynqos.processes import Processes, free_port, rss_kb
 from dynqos.recording import Recording
 from dynqos.report import summarise, write_scenario
-from dynqos.scenario import UAV, Scenario, scenario_config, with_bearers, write_config
+from dynqos.scenario import UAV, Scenario, scenario_config, with_cell, write_config
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +103,8 @@ def run_scenario(
         ok, failure = False, f"processes exited with errors: {bad}"
     onboard_log = logs / "onboard.log"
     log_text = onboard_log.read_text(errors="replace") if onboard_log.exists() else ""
+    qod_file = folder / "qod.json"  # the operator's sessions once every process stopped (camara backend)
+    rec.qod = json.loads(qod_file.read_text()) if qod_file.exists() else None
     summary = summarise(scenario, rec, log_text, ok=ok, failure=failure)
     write_scenario(folder, scenario, rec, summary)
     return summary
@@ -112,10 +114,13 @@ def _start_edge_and_cell(
     procs: Processes, scenario: Scenario, config: Config, config_path: Path, folder: Path
 ) -> int:
     """Everything but the drone, in dependency order; returns the cell's control port. The drone's flows
-    connect to the bearer ports the cell reports, so the config is written again once it is up."""
+    connect to the bearer ports the cell reports and the QoS agent to its QoD API, so the config is
+    written again once it is up. The agent stops before the cell (reverse order): the sessions it deletes
+    on SIGTERM are gone from the cell's final qod.json."""
     procs.start("router", ["edge", "router"])
     cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
-    write_config(config_path, scenario, with_bearers(config, cell["bearers"]))
+    write_config(config_path, scenario, with_cell(config, cell))
+    procs.start("qos", ["edge", "qos"])
     procs.start("vehicle", ["sim", "vehicle", "--duration", "3600"])
     procs.start("planner", ["edge", "planner"])
     procs.start("mpc", ["edge", "mpc"])

@@ -7,15 +7,18 @@ import sys
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from dynqos.camera_sizing import camera_size_for, flight_views
 from dynqos.common.config import (
+    CamaraConfig,
     CellConfig,
     Config,
+    DeviceConfig,
     DroneConfig,
     OnboardConfig,
     PlannerConfig,
+    QosConfig,
     SupervisorConfig,
     VehicleSimConfig,
     ZenohConfig,
@@ -33,6 +36,8 @@ else:  # pragma: no cover
 
 DEFAULT_SCENARIOS = ("baseline", "bg-noqos", "bg-dynqos", "bg-staticqos")
 UAV = "uav1"  # the drone every scenario flies
+UAV_PHONE_NUMBER = "+46700000001"  # its identity on the emulated operator's network (a test range)
+QOD_DURATION_S = 30  # each QoD session is asked for this long, and extended while still wanted
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -56,6 +61,11 @@ class Scenario:
     gust_std_mps: float = 0.5  # ...with gusts, so that control delay shows in the tracking
     gust_tau_s: float = 0.5  # short gusts: many per window, so windows compare alike (docs/demo.md)
     priority_weight: float = 4.0  # the priority bearer's scheduling weight against 1 for everyone else
+    # How the network gives the priority flow its weight (docs/qos.md): camara, the emulated cell grants it
+    # only while a QoD session the QoS agent asked for is AVAILABLE (the truer model of the paper's
+    # network); links, by static policy for the priority port, the moment the drone uses it.
+    qos_backend: Literal["links", "camara"] = "camara"
+    qod_max_sessions: int = -1  # the emulated operator's admission limit (0: it grants no session)
     base_delay_ms: float = 5.0  # one way: with processing and camera head-of-line ~15 ms C&C RTT, below rho2
     faults: tuple[Fault, ...] = ()  # injected during the flight (dynqos/faults.py, docs/reliability.md)
     memory_sample_s: float = 5.0  # how often each process's resident memory is recorded
@@ -84,6 +94,8 @@ class Scenario:
         for i, fault in enumerate(self.faults):
             if fault.at_s + fault.duration_s > self.duration_s:
                 raise ConfigError(f"faults[{i}].at_s", "the fault must end before the run does")
+        if self.qod_max_sessions < -1:
+            raise ConfigError("qod_max_sessions", "must be -1 (no limit) or >= 0")
         if not 0.5 <= self.memory_sample_s <= 600:
             raise ConfigError("memory_sample_s", "must be in 0.5..600 s")
 
@@ -146,6 +158,8 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
             priority_listen_port=0,
             seed=scenario.seed,
             priority_weight=scenario.priority_weight,
+            qod=scenario.qos_backend == "camara",
+            qod_max_sessions=scenario.qod_max_sessions,
         ),
         vehicle=VehicleSimConfig(
             wind_mps=(scenario.wind_mps, 0.0, 0.0),
@@ -168,6 +182,17 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
             # of 30 s) and the scenarios' contrast changes; docs/demo.md says more.
             yaw="free",
         ),
+        # The QoS agent's api_root is the cell's control port, known once the cell is up (with_bearers).
+        qos=QosConfig(
+            backend=scenario.qos_backend,
+            camara=CamaraConfig(
+                api_root="http://127.0.0.1:1/quality-on-demand/v1",
+                duration_s=QOD_DURATION_S,
+                extend_before_s=QOD_DURATION_S / 3,
+                retry_after_denied_s=5.0,
+                devices={UAV: DeviceConfig(phoneNumber=UAV_PHONE_NUMBER)},
+            ),
+        ),
     )
     part_bytes = config.onboard.camera_part_bytes if scenario.camera_pace_mbps > 0 else 0
     target_bps = scenario.uav_mbps * 1e6 / scenario.scale
@@ -175,14 +200,18 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
     return replace(config, onboard=replace(config.onboard, camera_width=width, camera_height=height))
 
 
-def with_bearers(config: Config, bearers: dict[str, dict[str, int]]) -> Config:
-    """The config once the cell is up: the drone's flows connect to the bearers' ports it reported."""
+def with_cell(config: Config, cell: dict[str, Any]) -> Config:
+    """The config once the cell is up: the drone's flows connect to the bearers' ports it reported, and
+    the QoS agent asks its control port for QoD sessions."""
+    bearers = cell["bearers"]
     onboard = replace(
         config.onboard,
         connect_default=f"127.0.0.1:{bearers[f'{UAV}-default']['port']}",
         connect_priority=f"127.0.0.1:{bearers[f'{UAV}-priority']['port']}",
     )
-    return replace(config, onboard=onboard)
+    api_root = f"http://127.0.0.1:{cell['control_port']}/quality-on-demand/v1"
+    qos = replace(config.qos, camara=replace(config.qos.camara, api_root=api_root))
+    return replace(config, onboard=onboard, qos=qos)
 
 
 def write_config(path: Path, scenario: Scenario, config: Config) -> None:

@@ -11,7 +11,11 @@ bus, calls `tick`, and writes what comes back. Everything that decides lives her
 - the flow each stream takes and the camera's rate: the supervisor's actions in `qos = "dynamic"`, the
   configured flow otherwise (the supervisor then only reports, and the watchdog still hands control to
   the fallback);
-- the SupervisorStatus, with what the drone does (not what it was asked to do) and what was measured.
+- the SupervisorStatus, with what the drone does (not what it was asked to do) and what was measured;
+- the request for priority to the QoS agent (in flight: wanted while the state's flow is the priority
+  flow, always with `qos = "priority"`, never with `"default"`) and the grant it answers
+  (docs/qos.md). The drone never waits for it: it switches its link at once; a refusal is an input
+  to the supervisor.
 
 No zenoh, MAVLink, OpenCV, threads or wall clock here: tests drive it tick by tick on a fake clock.
 """
@@ -37,11 +41,13 @@ from dynqos.common.messages import (
     Command,
     Detections,
     Message,
+    QosGrant,
+    QosRequest,
     Reference,
     State,
     SupervisorStatus,
 )
-from dynqos.common.modes import ControlSource, Flow
+from dynqos.common.modes import ControlSource, Flow, Grant
 from dynqos.common.reference import ReferenceTrack
 from dynqos.onboard.commands import CommandTracker
 from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint, Setpoint
@@ -174,6 +180,13 @@ class OnboardCore:
         self._last_setpoint_ns: int | None = None
         self._status_gap_ms = 0.0  # the longest setpoint gap since the last status
         self._events: list[LogEvent] = []
+        self.grant = Grant.NONE  # the QoS agent's last word on the priority flow
+        self._grant_heard_ns: int | None = None
+        self._agent_timeout_ns = to_ns(config.qos.agent_timeout_s)
+        self._request_period_ns = to_ns(config.qos.request_interval_s)
+        self._requested: bool | None = None  # the last want sent (None: none yet)
+        self._next_request_ns = start_ns
+        self._request_seq = 0
 
     # ---- the one entry point ------------------------------------------------------------------------
 
@@ -191,11 +204,15 @@ class OnboardCore:
             self._supervise(now, watchdog)
         elif watchdog and self.control is ControlSource.EDGE:
             self._supervise(now, watchdog)  # the watchdog acts at once, not at the next supervisor tick
-        before = self.control
+        before, grant_before = self.control, self.reported_grant(now)
         setpoint = self._control(inp.fc, now, watchdog)
         self._measure_gap(setpoint, now)
         flow, camera_flow, rate = self._flows()
-        if self.decision is not None and (now >= self._next_status_ns or self.control is not before):
+        request = self._request(now, flow)
+        if request is not None:
+            publish.append(request)
+        changed = self.control is not before or self.reported_grant(now) is not grant_before
+        if self.decision is not None and (now >= self._next_status_ns or changed):
             self._next_status_ns = now + self._status_period_ns
             publish.append(Outgoing(Stream.STATUS, flow, self._status(now, flow, camera_flow, rate)))
         return TickOutput(setpoint, tuple(publish), camera_flow, rate, tuple(self._events))
@@ -220,6 +237,32 @@ class OnboardCore:
                 self.counters.detections += 1
             elif isinstance(message, Reference):
                 self.reference.update(message, item.arrival_ns)
+            elif isinstance(message, QosGrant) and message.uav == self.uav:
+                if message.grant is not self.grant:
+                    why = f" ({message.reason})" if message.reason else ""
+                    level = logging.WARNING if message.grant is Grant.UNAVAILABLE else logging.INFO
+                    self._log(level, f"qos: the network's grant is {message.grant.value}{why}")
+                self.grant, self._grant_heard_ns = message.grant, item.arrival_ns
+
+    def agent_heard(self, now: int) -> bool:
+        """A QoS agent answered within [qos] agent_timeout_s (else: links only, nobody asks the network)."""
+        return self._grant_heard_ns is not None and now - self._grant_heard_ns <= self._agent_timeout_ns
+
+    def reported_grant(self, now: int) -> Grant:
+        return self.grant if self.agent_heard(now) else Grant.NONE
+
+    def _request(self, now: int, flow: Flow) -> Outgoing | None:
+        """The QosRequest due now: on a change of want at once, else every request_interval_s."""
+        if self.qos == "default" or not self.offloading:
+            return None  # never asks; and nobody asks on the ground
+        want = self.qos == "priority" or flow is Flow.PRIORITY
+        if want == self._requested and now < self._next_request_ns:
+            return None
+        self._requested, self._next_request_ns = want, now + self._request_period_ns
+        self._request_seq += 1
+        return Outgoing(
+            Stream.QOS, flow, QosRequest(uav=self.uav, seq=self._request_seq, stamp_ns=now, want=want)
+        )
 
     def _engage(self, fc: FcState) -> None:
         """The FC flies offboard: from now on every tick sends a setpoint, starting from a hold here."""
@@ -263,6 +306,7 @@ class OnboardCore:
             cc_outstanding_ms=self.tracker.oldest_unanswered_ms(now),
             spaciousness_m=self._space,
             watchdog_expired=watchdog,
+            priority_denied=bool(self._requested) and self.reported_grant(now) is Grant.UNAVAILABLE,
         )
         self._space = None
         decision = self.supervisor.step(inputs, now)
@@ -394,6 +438,8 @@ class OnboardCore:
             camera_bytes=self.counters.camera_bytes,
             control_changed_ns=self.control_changed_ns,
             command_age_ms=self.command_age_ms,
+            qos_grant=self.reported_grant(now),
+            qos_agent=self.agent_heard(now),
             **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),
         )
 

@@ -19,7 +19,7 @@ from dynqos.common.bus import Bus, Priority, Received, SubscriptionStats
 from dynqos.common.clock import Clock, MonotonicClock, to_ns
 from dynqos.common.config import Config
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import CameraAck, Command, Detections, Reference
+from dynqos.common.messages import CameraAck, Command, Detections, QosGrant, Reference
 from dynqos.common.modes import Flow
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Role, default_flow_endpoint, open_bus, priority_flow_endpoint
@@ -41,6 +41,7 @@ STREAMS = {
     Stream.CAMERA_RGB: (Priority.DATA, Priority.INTERACTIVE_LOW, True),
     Stream.CAMERA_DEPTH: (Priority.DATA, Priority.INTERACTIVE_LOW, True),
     Stream.STATUS: (Priority.DATA_HIGH, Priority.INTERACTIVE_LOW, True),
+    Stream.QOS: (Priority.DATA_HIGH, Priority.INTERACTIVE_HIGH, False),
 }
 
 
@@ -64,6 +65,7 @@ class OnboardDaemon:
         self.commands: BoundedQueue[Received] = BoundedQueue(256)
         self.camera_replies: BoundedQueue[Received] = BoundedQueue(512)  # acks and detections
         self.references: BoundedQueue[Received] = BoundedQueue(16)
+        self.grants: BoundedQueue[Received] = BoundedQueue(16)  # the QoS agent's answers
         self.downlink_stats: dict[Downlink, SubscriptionStats] = {}
 
     # ---- set-up ---------------------------------------------------------------------------------------
@@ -111,6 +113,7 @@ class OnboardDaemon:
             (Downlink.COMMAND, self.commands, Command),
             (Downlink.CAMERA_ACK, self.camera_replies, CameraAck),
             (Downlink.DETECTIONS, self.camera_replies, Detections),
+            (Downlink.QOS_GRANT, self.grants, QosGrant),
         ]
         if cfg.fallback == "continue":  # the onboard planner continues the mission from the last reference
             routes.append((Downlink.REFERENCE, self.references, Reference))
@@ -191,7 +194,12 @@ class OnboardDaemon:
         link = self.link
         assert link is not None
         link.heartbeat_lost()  # logs once when the FC goes silent; setpoints keep flowing regardless
-        downlink = self.commands.drain() + self.camera_replies.drain() + self.references.drain()
+        downlink = (
+            self.commands.drain()
+            + self.camera_replies.drain()
+            + self.references.drain()
+            + self.grants.drain()
+        )
         frames = self.camera.sent.drain() if self.camera else []  # after the downlink: see camera_stream
         space = self.camera.spaciousness.drain() if self.camera else []
         out = self.core.tick(

@@ -92,6 +92,9 @@ class Inputs:
     cc_outstanding_ms: float | None = None
     spaciousness_m: float | None = None
     watchdog_expired: bool = False
+    # The network refused the priority flow (the QoS agent's grant is UNAVAILABLE): on the priority
+    # flow HL is then the paper's "priority applied but the delay still rises" at once.
+    priority_denied: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,6 +119,7 @@ class Signals:
     p_cc: float | None
     p_lat: float | None
     p_cs: float | None
+    priority_denied: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -240,7 +244,19 @@ class Supervisor:
         else:
             risk = Risk.HR if s_k <= cfg.risk_high_m else Risk.MR if s_k <= cfg.risk_medium_m else Risk.LR
             p_cs = 1.0 - sigmoid(s_k, cfg.mu[2], cfg.rho[2])  # rises as the space closes in
-        return Signals(latency, risk, inputs.watchdog_expired, t_cam, t_cc, s_k, p_cam, p_cc, p_lat, p_cs)
+        return Signals(
+            latency,
+            risk,
+            inputs.watchdog_expired,
+            t_cam,
+            t_cc,
+            s_k,
+            p_cam,
+            p_cc,
+            p_lat,
+            p_cs,
+            inputs.priority_denied,
+        )
 
     def _update_timers(self, signals: Signals, now_ns: int) -> None:
         if signals.latency is Latency.HL:
@@ -292,6 +308,10 @@ class Supervisor:
         # flushed the samples from before the last switch (N2 x T_mpc = 2.5 s by default).
         react = self._fires(self._held(self._hl_since_ns, now_ns, persist_ns), hl, p_lat)
         escalate = self._fires(self._held(self._hl_since_ns, now_ns, escalate_ns), hl, p_lat)
+        persists = "HL persists on the priority flow"
+        if signals.priority_denied and state in (Q2, Q3):
+            escalate = react  # waiting for priority to help is waiting for nothing
+            persists = "HL on the priority flow the network refused"
         recover = self._fires(self._held(self._ll_since_ns, now_ns, self._recover_ns), ll, p_ll)
 
         if state is Q1:
@@ -301,16 +321,12 @@ class Supervisor:
                 return (Q4, "LR and HL") if risk is Risk.LR else (Q3, f"{risk.value} and HL")
         elif state is Q2:
             if escalate:
-                return Q5, "HL persists on the priority flow (HR)"
+                return Q5, f"{persists} (HR)"
             if risk is not Risk.HR and recover:
                 return self._probe(signals, now_ns, "LL holds and risk is no longer HR")
         elif state is Q3:
             if escalate:
-                return (
-                    (Q5, "HL persists on the priority flow (HR)")
-                    if risk is Risk.HR
-                    else (Q6, "HL persists on the priority flow")
-                )
+                return (Q5, f"{persists} (HR)") if risk is Risk.HR else (Q6, persists)
             if risk is not Risk.HR and recover:
                 return self._probe(signals, now_ns, "LL holds")
         elif state in RATE_ADAPTATION_STATES:

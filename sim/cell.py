@@ -22,9 +22,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from dynqos.common.config import BearerConfig, CellConfig, CellEventConfig, build
+from dynqos.common.config import BearerConfig, CellConfig, CellEventConfig
 from dynqos.common.errors import ConfigError
+from dynqos.sim.control_api import ControlApi, Tap
 from dynqos.sim.delayline import DelayLine
+from dynqos.sim.qod import Notification, Operator
 from dynqos.sim.scheduler import CapacityBucket, VirtualUser, weighted_fair_share
 from dynqos.sim.traces import Trace, TraceError
 from dynqos.sim.uebuffer import UeBuffer
@@ -36,6 +38,7 @@ SOCKET_BUFFER = 64 * 1024  # at full scale; divided by `scale` like every rate (
 MIN_SOCKET_BUFFER = 4096
 UPSTREAM_HIGH_WATER = 256 * 1024  # edge side slow: stop granting this bearer
 DOWNLINK_HIGH_WATER = 4 * 1024 * 1024
+QOD_CHECK_TICKS = 10  # sessions settle and expire at this many TTIs' resolution
 
 
 def _now_ns() -> int:
@@ -106,6 +109,8 @@ class Bearer:
         self.name = cfg.name
         self.target = cfg.target_host_port
         self.weight = cfg.weight
+        self.ue = cfg.ue
+        self.granted = False  # a QoD session grants this bearer its weight (with [cell] qod = true)
         self.ue_capacity = cfg.ue_buffer_bytes or cell.ue_buffer_bytes
         self.connections: list[Connection] = []
         self.up_line: DelayLine[tuple[Connection, bytes]] = DelayLine(
@@ -121,6 +126,12 @@ class Bearer:
         self.server: asyncio.Server | None = None
         self.totals = {"offered_bytes": 0, "delivered_bytes": 0, "downlink_bytes": 0, "dropped_bytes": 0}
         self.interval = dict.fromkeys(self.totals, 0)
+
+    def effective_weight(self) -> float:
+        """Its weight: with QoD, a drone's bearer has more than 1 only while a session grants it."""
+        if self.emulator.operator is None or not self.ue or self.granted:
+            return self.weight
+        return min(self.weight, 1.0)
 
     def _count(self, key: str, nbytes: int) -> None:
         self.totals[key] += nbytes
@@ -253,6 +264,8 @@ class CellEmulator:
         self._next_tick_ns = self.start_ns
         self._pending_events = sorted(cell.events, key=lambda e: e.at_s)
         self.stopped = asyncio.Event()
+        self.operator: Operator | None = None  # the QoD API's sessions ([cell] qod = true)
+        self.notify: Callable[[list[Notification]], None] = lambda notes: None
         self.ticks = 0
         self.late_ticks = 0
         self._csv_file: TextIO | None = None
@@ -362,6 +375,9 @@ class CellEmulator:
         now = _now_ns()
         self.ticks += 1
         self._run_events(now)
+        if self.operator is not None and self.ticks % QOD_CHECK_TICKS == 0:
+            self.notify(self.operator.advance())
+            self.refresh_grants()
         elapsed_s = (now - self._last_tick_ns) / 1e9
         capacity = self.capacity_bits(now)
         self._last_tick_ns = now
@@ -369,7 +385,7 @@ class CellEmulator:
         weights: dict[str, float] = {}
         for bearer in self.bearers:
             demands[bearer.name] = bearer.demand_bits()
-            weights[bearer.name] = bearer.weight
+            weights[bearer.name] = bearer.effective_weight()
         for user in self.background.values():
             user.arrive(elapsed_s)
             demands["bg:" + user.name] = user.backlog_bits
@@ -390,6 +406,16 @@ class CellEmulator:
         if not self.stopped.is_set():
             self._schedule_tick()
 
+    def refresh_grants(self) -> None:
+        if self.operator is None:
+            return
+        for bearer in self.bearers:
+            granted = bool(bearer.ue) and self.operator.granted(bearer.ue, bearer.target[1])
+            if granted != bearer.granted:
+                bearer.granted = granted
+                log.info("bearer %s: weight %g (%s)", bearer.name, bearer.effective_weight(),
+                         "QoD session available" if granted else "no QoD session")  # fmt: skip
+
     # ---- events -------------------------------------------------------------------------------------
 
     def _run_events(self, now_ns: int) -> None:
@@ -397,8 +423,8 @@ class CellEmulator:
         while self._pending_events and self._pending_events[0].at_s <= elapsed_s:
             self.apply(self._pending_events.pop(0))
 
-    def apply(self, event: CellEventConfig) -> None:  # noqa: C901 (one case per event kind)
-        """Apply one event now (from the timeline or the control API)."""
+    def apply(self, event: CellEventConfig) -> str:  # noqa: C901 (one case per event kind)
+        """Apply one event now (from the timeline or the control API); returns what was done."""
         now = _now_ns()
         if event.kind == "background":
             user = self.background.get(event.user)
@@ -426,7 +452,14 @@ class CellEmulator:
             if target is None:
                 raise ConfigError("bearer", f"unknown bearer {event.bearer!r}")
             target.weight = event.weight
-        log.info("cell event at %.2f s: %s", (now - self.start_ns) / 1e9, _describe(event))
+        elif event.kind == "qod_end":
+            if self.operator is None:
+                raise ConfigError("kind", "qod_end needs [cell] qod = true")
+            self.notify(self.operator.end_sessions(event.uav))
+            self.refresh_grants()
+        text = _describe(event)
+        log.info("cell event at %.2f s: %s", (now - self.start_ns) / 1e9, text)
+        return text
 
     # ---- records and counters -----------------------------------------------------------------------
 
@@ -484,7 +517,8 @@ class CellEmulator:
             "bearers": {
                 b.name: {
                     "port": b.port,
-                    "weight": b.weight,
+                    "weight": b.effective_weight(),
+                    "granted": b.granted,
                     "connections": len(b.connections),
                     "buffer_bytes": b.buffered,
                     "queue_delay_ms": b.queue_delay_ms(now),
@@ -528,52 +562,9 @@ def _describe(event: CellEventConfig) -> str:
         + (" (connections dropped)" if event.drop_connections else ""),
         "downlink_loss": f"downlink lost for {event.duration_s:g} s (uplink unaffected)",
         "weight": f"bearer {event.bearer} weight {event.weight:g}",
+        "qod_end": f"the network ends the QoD sessions of {event.uav or 'every drone'}",
     }
     return fields[event.kind]
-
-
-# ---- control API (HTTP/JSON on localhost) -------------------------------------------------------------
-
-
-async def _serve_control(
-    emulator: CellEmulator, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
-) -> None:
-    status, body = 400, {"error": "bad request"}
-    try:
-        head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), timeout=5)
-        request_line, *header_lines = head.decode("latin-1").split("\r\n")
-        method, path, _ = request_line.split(" ", 2)
-        headers = {k.strip().lower(): v.strip() for k, _, v in (h.partition(":") for h in header_lines if h)}
-        length = int(headers.get("content-length", "0"))
-        if length > 64 * 1024:
-            raise ValueError("body too large")
-        payload = await asyncio.wait_for(reader.readexactly(length), timeout=5) if length else b""
-        if method == "GET" and path == "/counters":
-            status, body = 200, emulator.counters()
-        elif method == "POST" and path == "/events":
-            table = json.loads(payload or b"{}")
-            if not isinstance(table, dict):
-                raise ValueError("the body must be a JSON object")
-            table.setdefault("at_s", 0.0)
-            event = build(CellEventConfig, table)
-            emulator.apply(event)
-            status, body = 200, {"applied": _describe(event)}
-        else:
-            status, body = 404, {"error": f"no {method} {path}; use GET /counters or POST /events"}
-    except ConfigError as exc:
-        status, body = 400, {"error": str(exc)}
-    except (ValueError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError) as exc:
-        status, body = 400, {"error": f"{type(exc).__name__}: {exc}"}
-    data = json.dumps(body).encode()
-    reason = {200: "OK", 400: "Bad Request", 404: "Not Found"}[status]
-    writer.write(
-        f"HTTP/1.1 {status} {reason}\r\nContent-Type: application/json\r\nContent-Length: {len(data)}\r\n"
-        f"Connection: close\r\n\r\n".encode()
-        + data
-    )
-    with contextlib.suppress(ConnectionError):
-        await writer.drain()
-    writer.close()
 
 
 # ---- entry point ----------------------------------------------------------------------------------------
@@ -586,18 +577,36 @@ async def run_cell(
     out_dir: Path | None = None,
     duration_s: float | None = None,
     ready: Callable[[dict[str, Any]], None] | None = None,
+    qod_devices: dict[str, dict[str, Any]] | None = None,
+    qod_client: tuple[str, str] = ("", ""),
+    tap: Tap | None = None,
+    stop: asyncio.Event | None = None,
 ) -> dict[str, Any]:
-    """Run the emulator until stopped (SIGINT/SIGTERM) or `duration_s`; returns the final counters."""
+    """Run the emulator until stopped (SIGINT/SIGTERM, `stop` set) or `duration_s`; returns the final
+    counters. `qod_devices`: drone id -> CAMARA device, the UEs the operator knows ([cell] qod = true);
+    `qod_client`: the (client id, secret) its token endpoint accepts ([cell] qod_auth = true); `tap`
+    sees every control-API exchange (method, path, request JSON, status, response JSON)."""
     emulator = CellEmulator(cell, bearers, out_dir)
     await emulator.start()
-    control: asyncio.Server | None = None
+    control: ControlApi | None = None
     control_port = None
+    if cell.qod:
+        if cell.control_port < 0:
+            raise ConfigError(
+                "cell.control_port", "the QoD API ([cell] qod = true) needs a control port (0: any)"
+            )
+        servers = {b.ue: b.target_host_port[0] for b in bearers if b.ue}
+        emulator.operator = Operator(cell, dict(qod_devices or {}), servers, time.monotonic, time.time)
     try:
         if cell.control_port >= 0:
-            control = await asyncio.start_server(
-                lambda r, w: _serve_control(emulator, r, w), "127.0.0.1", cell.control_port
-            )
-            control_port = control.sockets[0].getsockname()[1]
+            control = ControlApi(emulator, emulator.operator, *qod_client, tap=tap)
+            try:
+                control_port = await control.start(cell.control_port)
+            except OSError as exc:
+                raise ConfigError(
+                    "cell.control_port", f"cannot listen on 127.0.0.1:{cell.control_port} ({exc.strerror})"
+                ) from None
+            emulator.notify = control.send
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 emulator.loop.add_signal_handler(sig, emulator.stopped.set)
@@ -608,6 +617,9 @@ async def run_cell(
             },
             "control_port": control_port,
         }
+        if stop is not None:
+            stopper = emulator.loop.create_task(stop.wait())
+            stopper.add_done_callback(lambda _: emulator.stopped.set())
         if ready is not None:
             ready(info)
         log.info("cell emulator ready: %s", json.dumps(info))
@@ -617,10 +629,18 @@ async def run_cell(
         else:
             await emulator.stopped.wait()
     finally:
+        counters = emulator.counters()
+        if emulator.operator is not None:
+            counters["qod"] = {
+                **vars(emulator.operator.counters),
+                "sessions": emulator.operator.open_sessions(),
+            }
+            if out_dir is not None:  # what the operator was left with, once every client has stopped
+                (out_dir / "qod.json").write_text(json.dumps(counters["qod"], indent=1) + "\n")
         if control is not None:
-            control.close()
+            await control.stop()
         await emulator.stop()
-    return emulator.counters()
+    return counters
 
 
 def print_ready(info: dict[str, Any]) -> None:

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from dynqos.common.config import ZenohConfig, load_config
-from dynqos.scenario import builtin_scenario, scenario_config, with_bearers, write_config
+from dynqos.scenario import builtin_scenario, scenario_config, with_cell, write_config
 from tests.procs import DYNQOS
 
 KEYS = {
@@ -82,6 +82,9 @@ def test_short_demo_writes_the_contract(tmp_path: Path) -> None:
         ):
             assert (out / name / artefact).exists(), artefact
         assert summary["setpoint_gap_max_ms"] < 100
+        # the QoD path: the emulated operator is left with no session once every process has stopped
+        assert summary["qos_network"]["backend"] == "camara"
+        assert summary["qos_network"]["sessions"]["open_at_end"] == 0, summary["qos_network"]
     baseline = json.loads((out / "baseline" / "summary.json").read_text())
     assert baseline["rtt_ms"]["baseline"]["mean"] < 27  # below rho2 with margin
     with (out / "baseline" / "latency.csv").open() as f:
@@ -94,6 +97,11 @@ def test_short_demo_writes_the_contract(tmp_path: Path) -> None:
     assert (
         loaded["uav_delivered_mbps"] >= 0.95 * loaded["uav_admitted_mbps"]
     )  # the priority flow keeps its rate
+    network = loaded["qos_network"]
+    assert network["sessions"]["created"] >= 1
+    assert network["sessions"]["deleted"] == network["sessions"]["created"]
+    assert network["grant_at_end"] == "available"
+    assert loaded["rtt_ms"]["loaded"]["mean"] < 1.2 * loaded["rtt_ms"]["baseline"]["mean"]
     report = (out / "report.md").read_text()
     assert "Table II" in report
     assert "baseline/overview.png" in report
@@ -124,12 +132,41 @@ def test_a_scenarios_config_is_written_and_read_back_unchanged(tmp_path: Path, n
     scenario = builtin_scenario(name)
     config = scenario_config(scenario, zenoh=ZenohConfig(default_port=7001, priority_port=7002),
                              fc_port=14601, gcs_port=14602)  # fmt: skip
-    config = with_bearers(config, {"uav1-default": {"port": 17001}, "uav1-priority": {"port": 17002}})
+    bearers = {"uav1-default": {"port": 17001}, "uav1-priority": {"port": 17002}}
+    config = with_cell(config, {"bearers": bearers, "control_port": 17003})
     path = tmp_path / "dynqos.toml"
     write_config(path, scenario, config)
     loaded = load_config(path)
     assert loaded == config
     assert loaded.onboard.qos == scenario.qos
     assert loaded.onboard.connect_priority == "127.0.0.1:17002"
+    assert loaded.qos.camara.api_root == "http://127.0.0.1:17003/quality-on-demand/v1"
+    assert loaded.cell.qod is (scenario.qos_backend == "camara")
     assert loaded.cell.ue_buffer_bytes == round(1_000_000 / scenario.scale)
     assert loaded.onboard.camera_pace_mbps == pytest.approx(scenario.camera_pace_mbps / scenario.scale)
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+@pytest.mark.timeout(400)
+def test_an_operator_that_refuses_priority_leaves_the_drone_adapting_not_crashing(tmp_path: Path) -> None:
+    """bg-dynqos-refused: the supervisor asks for priority under load and the emulated operator grants no
+    session. The drone is told so, throttles its camera or falls back, and its setpoints never pause."""
+    out = tmp_path / "run"
+    result = subprocess.run(
+        [DYNQOS, "demo", "--scenario", "bg-dynqos-refused", "--duration", "24", "--out", str(out)],
+        capture_output=True, text=True, timeout=360, check=False,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((out / "bg-dynqos-refused" / "summary.json").read_text())
+    assert summary["ok"] is True, summary["failure"]
+    network = summary["qos_network"]
+    assert network["decision_to_available_s"] is None  # never granted
+    assert network["sessions"]["refused"] >= 1
+    assert network["sessions"]["open_at_end"] == 0
+    assert summary["first_qos_switch_after_bg_s"] is not None  # it did ask, by moving to the priority flow
+    adapting = sum(summary["states_time_s"][q] for q in ("q4", "q5", "q6", "qA"))
+    assert adapting > 1.0, summary["states_time_s"]
+    assert summary["setpoint_gap_max_ms"] < 100
+    causes = [t["cause"] for t in summary["transitions"]]
+    assert any("the network refused" in c for c in causes), causes

@@ -65,8 +65,10 @@ def test_kustomize_renders_valid_manifests(folder: str) -> None:
     _validate(docs)
     workloads = [d for d in docs if d["kind"] in ("Deployment", "StatefulSet")]
     assert {w["metadata"]["name"] for w in workloads} == {
-        "dynqos-router", "dynqos-mpc", "dynqos-planner", "dynqos-detector",
+        "dynqos-router", "dynqos-mpc", "dynqos-planner", "dynqos-detector", "dynqos-qos",
     }  # fmt: skip
+    (qos,) = [w for w in workloads if w["metadata"]["name"] == "dynqos-qos"]
+    assert (qos["spec"]["replicas"], qos["spec"]["strategy"]["type"]) == (1, "Recreate")  # never two agents
     for workload in workloads:
         assert workload["metadata"]["namespace"] == "dynqos"
         pod = workload["spec"]["template"]["spec"]

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from dynqos.common import keys
 from dynqos.common import messages as m
 from dynqos.common.errors import DecodeError, MessageError
-from dynqos.common.modes import ControlSource, Flow, SupervisorState
+from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 
 uav_ids = st.from_regex(keys.UAV_ID_PATTERN, fullmatch=True)
 u63 = st.integers(0, 2**63 - 1)
@@ -137,8 +137,23 @@ statuses = st.builds(
     control_changed_ns=u63,
     command_age_ms=st.none() | reals(0, 1e7),
     camera_bytes=u63,
+    qos_grant=st.sampled_from(Grant),
+    qos_agent=st.booleans(),
 )
-any_message = st.one_of(states, commands(), frames, acks, detections(), references(), statuses)
+qos_requests = st.builds(m.QosRequest, uav=uav_ids, seq=u63, stamp_ns=u63, want=st.booleans())
+qos_grants = st.builds(
+    m.QosGrant,
+    uav=uav_ids,
+    seq=u63,
+    grant=st.sampled_from(Grant),
+    backend=st.sampled_from(["links", "camara"]),
+    session_id=st.text(max_size=64),
+    reason=st.text(max_size=300),
+    answers_seq=u63,
+)
+any_message = st.one_of(
+    states, commands(), frames, acks, detections(), references(), statuses, qos_requests, qos_grants
+)
 
 
 @given(any_message)
@@ -215,6 +230,8 @@ def test_wrong_typed_fields_give_decode_error_naming_the_field(
             m.Detections: detections(),
             m.Reference: references(),
             m.SupervisorStatus: statuses,
+            m.QosRequest: qos_requests,
+            m.QosGrant: qos_grants,
         }[cls]
     )
     body = msgpack.unpackb(m.encode(example), raw=False)

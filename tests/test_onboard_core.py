@@ -12,8 +12,18 @@ import pytest
 from dynqos.common.bus import Received
 from dynqos.common.config import Config, OnboardConfig, load_config
 from dynqos.common.keys import Stream
-from dynqos.common.messages import CameraAck, Command, Reference, State, SupervisorStatus, decode, encode
-from dynqos.common.modes import ControlSource, Flow, SupervisorState
+from dynqos.common.messages import (
+    CameraAck,
+    Command,
+    QosGrant,
+    QosRequest,
+    Reference,
+    State,
+    SupervisorStatus,
+    decode,
+    encode,
+)
+from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 from dynqos.onboard.core import (
     SETPOINT_PERIOD_NS,
     STALE_STATE_NS,
@@ -303,3 +313,87 @@ def test_log_events_carry_levels() -> None:
     levels = {e.text: e.level for o in rig.outputs for e in o.events}
     assert any(t.startswith("onboard: no state from the flight controller") for t in levels)
     assert logging.ERROR in levels.values()
+
+
+# ---- the request for priority and the network's grant (docs/qos.md) --------------------------------------
+
+
+def requests(outs: Iterable[TickOutput]) -> list[tuple[Flow, bool]]:
+    return [(p.flow, p.message.want) for o in outs for p in o.publish if isinstance(p.message, QosRequest)]
+
+
+class Agent:
+    """A QoS agent answering every request, as `dynqos edge qos` does, with a grant of its choosing."""
+
+    def __init__(self, rig: Rig, grant: Grant | None) -> None:
+        self.rig, self.grant, self.seq = rig, grant, 0
+
+    def answer(self, outs: Iterable[TickOutput]) -> None:
+        if self.grant is None:
+            return  # no agent at the edge
+        for want in [w for _, w in requests(outs)]:
+            self.seq += 1
+            grant = self.grant if want else Grant.NONE
+            message = QosGrant(uav="uav1", seq=self.seq, grant=grant, backend="camara", reason="test")
+            self.rig.extra.append(Received("qos", message, self.rig.now))
+
+    def run(self, seconds: float) -> list[TickOutput]:
+        outs = []
+        for _ in range(round(seconds * 1e9 / SETPOINT_PERIOD_NS)):
+            out = self.rig.tick()
+            self.answer([out])
+            outs.append(out)
+        return outs
+
+
+@pytest.mark.parametrize("qos", QOS_MODES)
+def test_the_drone_asks_for_priority_exactly_while_its_flow_is_the_priority_flow(qos: str) -> None:
+    rig = Rig.make(qos, offboard=False, spaciousness_m=4.0)
+    assert requests(rig.run(1.0)) == []  # on the ground nobody asks
+    rig.offboard = True
+    rig.run_until(ControlSource.EDGE, 4.0)
+    rig.run(3.0)
+    rig.rtt_ms = 120.0  # loaded: dynamic moves to q3, the priority flow
+    outs = rig.run(4.0)
+    asked = requests(rig.outputs)
+    if qos == "default":
+        assert asked == []  # never asks
+        return
+    # it goes on the flow chosen in that tick, and wants priority exactly when that is the priority flow
+    assert all(want is (qos == "priority" or flow is Flow.PRIORITY) for flow, want in asked)
+    assert (Flow.PRIORITY, True) in requests(outs)
+    if qos == "dynamic":
+        assert (Flow.DEFAULT, False) in requests(rig.outputs)
+        changes = [i for i, o in enumerate(outs) if any(p.flow is Flow.PRIORITY for p in o.publish)]
+        assert requests([outs[changes[0]]]) == [(Flow.PRIORITY, True)]  # asked in the tick it moved
+    assert 3 <= len(requests(outs)) <= 6  # then repeated every request_interval_s (1 s), not every tick
+
+
+@pytest.mark.parametrize("qos", ["dynamic", "priority"])
+def test_the_status_reports_the_grant_and_says_when_no_agent_answers(qos: str) -> None:
+    rig = _loaded_rig(qos, spaciousness_m=4.0)
+    agent = Agent(rig, Grant.AVAILABLE)
+    agent.run(3.0)
+    last = rig.statuses()[-1]
+    assert (last.qos_grant, last.qos_agent) == (Grant.AVAILABLE, True)
+    assert any("grant is available" in e for e in rig.events())
+    agent.grant = None  # the agent is gone: the drone flies on, links only, and says so
+    rig.run(4.0)
+    last = rig.statuses()[-1]
+    assert (last.qos_grant, last.qos_agent) == (Grant.NONE, False)
+    assert rig.core.control is ControlSource.EDGE
+
+
+def test_a_refused_grant_sends_the_drone_to_rate_adaptation_at_once() -> None:
+    rig = _loaded_rig("dynamic", spaciousness_m=4.0)
+    agent = Agent(rig, Grant.UNAVAILABLE)
+    for _ in range(100):
+        agent.run(0.05)
+        assert rig.core.decision is not None
+        if rig.core.decision.state is SupervisorState.Q6:
+            break
+    assert rig.core.decision is not None
+    assert rig.core.decision.state is SupervisorState.Q6
+    assert "the network refused" in rig.core.supervisor.log[-1].cause
+    assert rig.statuses()[-1].qos_grant is Grant.UNAVAILABLE
+    assert any("grant is unavailable (test)" in e for e in rig.events())

@@ -231,6 +231,24 @@ def test_q3_escalates_to_q5_in_hr_context() -> None:
     flight.run_until(Q5, CONFIG.escalate_s + 1.0, link(90.0, 160.0, space_m=0.5))
 
 
+def denied(profile: Profile) -> Profile:
+    """The same link, with the network refusing the priority flow (the QoS agent's UNAVAILABLE)."""
+    return lambda t: replace(profile(t), priority_denied=True)
+
+
+@pytest.mark.parametrize(("space_m", "start", "target"), [(4.0, Q3, Q6), (2.0, Q2, Q5)])
+def test_refused_priority_goes_to_rate_adaptation_without_waiting_for_it_to_help(
+    space_m: float, start: State, target: State
+) -> None:
+    flight = Flight()
+    flight.run(2.0, link(20.0, 40.0, space_m=space_m))
+    flight.run_until(start, 2.0, link(90.0, 160.0, space_m=space_m))
+    flight.run(CONFIG.dwell_s, link(90.0, 160.0, space_m=space_m))  # granted or not, q3/q2 is held its dwell
+    took = flight.run_until(target, CONFIG.escalate_s, denied(link(90.0, 160.0, space_m=space_m)))
+    assert took < 0.5 < CONFIG.escalate_s  # persist_s, not escalate_s
+    assert "the network refused" in flight.sup.log[-1].cause
+
+
 def test_q3_recovers_when_priority_flow_fixes_latency() -> None:
     flight = Flight()
     flight.run(2.0, UNLOADED)

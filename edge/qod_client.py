@@ -1,0 +1,236 @@
+"""A client of the CAMARA Quality-on-Demand API (quality-on-demand v1.1.0, CAMARA release r3.2).
+
+Only the calls dynqos needs: create, get, extend and delete a session, and retrieve a device's
+sessions (to clean up after a crashed agent and to resolve a 409). Every call is bounded by
+[qos.camara] timeout_s; 429 and 5xx are retried with jittered exponential back-off (a Retry-After
+header is honoured up to the cap) inside that bound; a 401 refreshes the OAuth2 token once and retries.
+Other errors raise QodError with the API's `code` and `message`. aiohttp, because the agent is an
+asyncio program and the emulated cell serves the API with the same library.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+import time
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+
+from dynqos.common.config import CamaraConfig
+from dynqos.common.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+RETRIES = 3  # attempts after the first, for 429 and 5xx, within the call's timeout
+BACKOFF_S = 0.1  # first back-off; doubles, with full jitter
+TOKEN_MARGIN_S = 30.0  # a token is refreshed this long (at most a quarter of its life) before it expires
+
+
+class QodError(Exception):
+    """The API answered with an error (status, CAMARA `code`, `message`), or did not answer (status 0)."""
+
+    def __init__(self, status: int, code: str, message: str) -> None:
+        super().__init__(f"{status} {code}: {message}")
+        self.status = status
+        self.code = code
+        self.message = message
+
+    @property
+    def transient(self) -> bool:
+        """Worth asking again later: no answer, throttled, or a server error."""
+        return self.status in (0, 429) or self.status >= 500
+
+
+@dataclass(frozen=True, slots=True)
+class SessionInfo:
+    """The fields of a CAMARA SessionInfo the agent acts on; `raw` is the whole object."""
+
+    session_id: str
+    qos_status: str
+    status_info: str
+    expires_in_s: float | None  # from expiresAt, on the local wall clock (None when not given)
+    raw: dict[str, Any]
+
+    @classmethod
+    def parse(cls, body: Any) -> SessionInfo:
+        if not isinstance(body, dict) or not isinstance(body.get("sessionId"), str):
+            raise QodError(502, "BAD_RESPONSE", f"not a SessionInfo: {str(body)[:200]}")
+        status = body.get("qosStatus")
+        if status not in ("REQUESTED", "AVAILABLE", "UNAVAILABLE"):
+            raise QodError(502, "BAD_RESPONSE", f"unknown qosStatus {status!r}")
+        expires = None
+        if isinstance(body.get("expiresAt"), str):
+            try:
+                at = datetime.fromisoformat(body["expiresAt"].replace("Z", "+00:00"))
+                expires = at.timestamp() - time.time()
+            except ValueError:
+                raise QodError(
+                    502, "BAD_RESPONSE", f"expiresAt {body['expiresAt']!r} is not RFC 3339"
+                ) from None
+        return cls(body["sessionId"], status, str(body.get("statusInfo", "")), expires, body)
+
+    def server_ports(self) -> list[int]:
+        spec = self.raw.get("applicationServerPorts") or {}
+        ports = list(spec.get("ports") or [])
+        for r in spec.get("ranges") or []:
+            ports.extend(range(int(r["from"]), int(r["to"]) + 1))
+        return ports
+
+
+def read_secret(path: str) -> str:
+    if not path:
+        return ""
+    try:
+        secret = Path(path).read_text(encoding="utf-8").strip()
+    except OSError as exc:
+        raise ConfigError("qos.camara.client_secret_file", f"cannot read {path} ({exc.strerror})") from None
+    if not secret:
+        raise ConfigError("qos.camara.client_secret_file", f"{path} is empty")
+    return secret
+
+
+class QodClient:
+    """One operator's QoD API. Create with `async with QodClient(cfg) as client`."""
+
+    def __init__(self, cfg: CamaraConfig, *, rng: random.Random | None = None) -> None:
+        self.cfg = cfg
+        self.root = cfg.api_root.rstrip("/")
+        self.secret = read_secret(cfg.client_secret_file) if cfg.token_url else ""
+        self.rng = rng or random.Random()
+        self.http: aiohttp.ClientSession | None = None
+        self._token = ""
+        self._token_expires = 0.0
+        self._token_lock = asyncio.Lock()
+        self.calls = 0
+        self.retries = 0
+        self.token_refreshes = 0
+
+    async def __aenter__(self) -> QodClient:
+        self.http = aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=self.cfg.timeout_s))
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self.http is not None:
+            await self.http.close()
+
+    # ---- the API ----------------------------------------------------------------------------------------
+
+    async def create(self, body: dict[str, Any]) -> SessionInfo:
+        return SessionInfo.parse(await self._call("POST", "/sessions", body, expect=(201, 200)))
+
+    async def get(self, session_id: str) -> SessionInfo:
+        return SessionInfo.parse(await self._call("GET", f"/sessions/{session_id}", expect=(200,)))
+
+    async def extend(self, session_id: str, seconds: int) -> SessionInfo:
+        body = {"requestedAdditionalDuration": seconds}
+        return SessionInfo.parse(
+            await self._call("POST", f"/sessions/{session_id}/extend", body, expect=(200,))
+        )
+
+    async def delete(self, session_id: str) -> None:
+        await self._call("DELETE", f"/sessions/{session_id}", expect=(204, 200))
+
+    async def retrieve(self, device: dict[str, Any]) -> list[SessionInfo]:
+        body = await self._call("POST", "/retrieve-sessions", {"device": device}, expect=(200,))
+        if not isinstance(body, list):
+            raise QodError(502, "BAD_RESPONSE", "retrieve-sessions did not answer an array")
+        return [SessionInfo.parse(item) for item in body]
+
+    # ---- one call: token, timeout, retries --------------------------------------------------------------
+
+    async def _call(
+        self, method: str, path: str, body: dict[str, Any] | None = None, *, expect: tuple[int, ...]
+    ) -> Any:
+        deadline = time.monotonic() + self.cfg.timeout_s
+        refreshed = False
+        attempt = 0
+        while True:
+            self.calls += 1
+            status, answer, retry_after = await self._once(method, path, body, deadline)
+            if status in expect:
+                return answer
+            if status == 401 and self.cfg.token_url and not refreshed:
+                refreshed = True
+                self._token_expires = 0.0  # the API no longer takes it: get a new one, try once more
+                continue
+            error = _error(status, answer)
+            if not error.transient or attempt >= RETRIES:
+                raise error
+            pause = retry_after if retry_after is not None else self.rng.uniform(0, BACKOFF_S * 2**attempt)
+            if time.monotonic() + pause >= deadline:
+                raise error
+            attempt += 1
+            self.retries += 1
+            log.debug("qod: %s %s: %s; retrying in %.2f s", method, path, error, pause)
+            await asyncio.sleep(pause)  # the back-off itself
+
+    async def _once(
+        self, method: str, path: str, body: dict[str, Any] | None, deadline: float
+    ) -> tuple[int, Any, float | None]:
+        assert self.http is not None, "use `async with QodClient(...)`"
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return 0, {"code": "TIMEOUT", "message": f"no answer within {self.cfg.timeout_s:g} s"}, None
+        headers = {"Accept": "application/json"}
+        try:
+            token = await asyncio.wait_for(self._bearer(), left)
+            if token:
+                headers["Authorization"] = f"Bearer {token}"
+            async with self.http.request(
+                method, self.root + path, json=body, headers=headers,
+                timeout=aiohttp.ClientTimeout(total=max(0.01, deadline - time.monotonic())),
+            ) as response:  # fmt: skip
+                answer: Any = None
+                if response.content_length != 0 and response.status != 204:
+                    with contextlib.suppress(aiohttp.ContentTypeError, ValueError):
+                        answer = await response.json(content_type=None)
+                return response.status, answer, _retry_after(response.headers.get("Retry-After"))
+        except QodError as exc:
+            return exc.status, {"code": exc.code, "message": exc.message}, None
+        except (TimeoutError, asyncio.TimeoutError):
+            return 0, {"code": "TIMEOUT", "message": f"no answer within {self.cfg.timeout_s:g} s"}, None
+        except aiohttp.ClientError as exc:
+            return 0, {"code": "UNREACHABLE", "message": f"{type(exc).__name__}: {exc}"[:300]}, None
+
+    async def _bearer(self) -> str:
+        """The access token, fetched (client credentials) when there is none or it is about to expire."""
+        if not self.cfg.token_url:
+            return ""
+        async with self._token_lock:
+            if time.monotonic() < self._token_expires and self._token:
+                return self._token
+            assert self.http is not None
+            form = {"grant_type": "client_credentials", "client_id": self.cfg.client_id,
+                    "client_secret": self.secret}  # fmt: skip
+            async with self.http.post(self.cfg.token_url, data=form) as response:
+                answer = await response.json(content_type=None) if response.status == 200 else None
+                if not isinstance(answer, dict) or not isinstance(answer.get("access_token"), str):
+                    raise QodError(401, "TOKEN", f"the token endpoint answered {response.status}")
+            self._token = answer["access_token"]
+            ttl = float(answer.get("expires_in", 3600))
+            # refreshed ahead of its expiry: a call never starts with a token about to lapse
+            self._token_expires = time.monotonic() + ttl - min(TOKEN_MARGIN_S, ttl / 4)
+            self.token_refreshes += 1
+            log.info("qod: new access token (expires in %.0f s)", ttl)
+            return self._token
+
+
+def _error(status: int, answer: Any) -> QodError:
+    if isinstance(answer, dict):
+        return QodError(status, str(answer.get("code", "")), str(answer.get("message", ""))[:300])
+    return QodError(status, "", "no error body")
+
+
+def _retry_after(value: str | None) -> float | None:
+    if value is None:
+        return None
+    try:
+        return min(5.0, max(0.0, float(value)))
+    except ValueError:
+        return None

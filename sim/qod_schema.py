@@ -1,0 +1,156 @@
+"""JSON Schemas of the CAMARA Quality-on-Demand v1.1.0 objects dynqos sends and serves.
+
+Written from the field set of the spec (`code/API_definitions/quality-on-demand.yaml` in
+camaraproject/QualityOnDemand, release r3.2): required fields, types, enums and patterns. The emulated
+operator validates every request body with them (a bad one is a 400 INVALID_ARGUMENT, as an operator
+answers); the tests validate what the client sends and what the emulator answers with the same schemas.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jsonschema
+
+QOS_STATUS = ["REQUESTED", "AVAILABLE", "UNAVAILABLE"]
+STATUS_INFO = ["DURATION_EXPIRED", "NETWORK_TERMINATED", "DELETE_REQUESTED"]
+EVENT_TYPE = "org.camaraproject.quality-on-demand.v1.qos-status-changed"
+
+_IPV4 = r"^(25[0-5]|2[0-4][0-9]|1?[0-9]?[0-9])(\.(25[0-5]|2[0-4][0-9]|1?[0-9]?[0-9])){3}$"
+_IPV4_OR_CIDR = _IPV4[:-1] + r"(/([0-9]|[12][0-9]|3[0-2]))?$"
+_UUID = r"^[0-9a-fA-F]{8}-[0-9a-fA-F]{4}-[0-9a-fA-F]{4}-[0-9a-fA-F]{4}-[0-9a-fA-F]{12}$"
+_DATE_TIME = r"^\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}(\.\d+)?(Z|[+-]\d{2}:\d{2})$"  # RFC 3339, with a zone
+
+PORT: dict[str, Any] = {"type": "integer", "minimum": 0, "maximum": 65535}
+PORTS_SPEC: dict[str, Any] = {
+    "type": "object",
+    "minProperties": 1,
+    "properties": {
+        "ranges": {
+            "type": "array",
+            "minItems": 1,
+            "items": {
+                "type": "object",
+                "required": ["from", "to"],
+                "properties": {"from": PORT, "to": PORT},
+            },
+        },
+        "ports": {"type": "array", "minItems": 1, "items": PORT},
+    },
+}
+DEVICE: dict[str, Any] = {
+    "type": "object",
+    "minProperties": 1,
+    "properties": {
+        "phoneNumber": {"type": "string", "pattern": r"^\+[1-9][0-9]{4,14}$"},
+        "networkAccessIdentifier": {"type": "string"},
+        "ipv4Address": {
+            "type": "object",
+            "properties": {
+                "publicAddress": {"type": "string", "pattern": _IPV4},
+                "privateAddress": {"type": "string", "pattern": _IPV4},
+                "publicPort": PORT,
+            },
+            "anyOf": [
+                {"required": ["publicAddress", "privateAddress"]},
+                {"required": ["publicAddress", "publicPort"]},
+            ],
+        },
+        "ipv6Address": {"type": "string"},
+    },
+}
+APPLICATION_SERVER: dict[str, Any] = {
+    "type": "object",
+    "minProperties": 1,
+    "properties": {
+        "ipv4Address": {"type": "string", "pattern": _IPV4_OR_CIDR},
+        "ipv6Address": {"type": "string"},
+    },
+}
+QOS_PROFILE: dict[str, Any] = {
+    "type": "string",
+    "minLength": 3,
+    "maxLength": 256,
+    "pattern": r"^[a-zA-Z0-9_.-]+$",
+}
+SINK_CREDENTIAL: dict[str, Any] = {
+    "type": "object",
+    "required": ["credentialType"],
+    "properties": {"credentialType": {"enum": ["PLAIN", "ACCESSTOKEN", "REFRESHTOKEN"]}},
+}
+_BASE = {
+    "device": DEVICE,
+    "applicationServer": APPLICATION_SERVER,
+    "devicePorts": PORTS_SPEC,
+    "applicationServerPorts": PORTS_SPEC,
+    "qosProfile": QOS_PROFILE,
+    "sink": {
+        "type": "string",
+        "pattern": r"^https?://.+$",
+    },  # the spec says https; the emulator takes http too
+    "sinkCredential": SINK_CREDENTIAL,
+}
+CREATE_SESSION: dict[str, Any] = {
+    "type": "object",
+    "required": ["applicationServer", "qosProfile", "duration"],
+    "properties": {**_BASE, "duration": {"type": "integer", "minimum": 1, "maximum": 2**31 - 1}},
+}
+SESSION_INFO: dict[str, Any] = {
+    "type": "object",
+    "required": ["sessionId", "duration", "qosStatus", "applicationServer", "qosProfile"],
+    "properties": {
+        **_BASE,
+        "device": {**DEVICE, "maxProperties": 1},
+        "sessionId": {"type": "string", "pattern": _UUID},
+        "duration": {"type": "integer", "minimum": 1},
+        "startedAt": {"type": "string", "pattern": _DATE_TIME},
+        "expiresAt": {"type": "string", "pattern": _DATE_TIME},
+        "qosStatus": {"enum": QOS_STATUS},
+        "statusInfo": {"enum": STATUS_INFO},
+    },
+    # startedAt and expiresAt are not returned while REQUESTED
+    "if": {"properties": {"qosStatus": {"const": "REQUESTED"}}},
+    "then": {"not": {"anyOf": [{"required": ["startedAt"]}, {"required": ["expiresAt"]}]}},
+}
+EXTEND_SESSION: dict[str, Any] = {
+    "type": "object",
+    "required": ["requestedAdditionalDuration"],
+    "properties": {"requestedAdditionalDuration": {"type": "integer", "minimum": 1, "maximum": 2**31 - 1}},
+}
+RETRIEVE_SESSIONS: dict[str, Any] = {"type": "object", "properties": {"device": DEVICE}}
+RETRIEVE_SESSIONS_OUTPUT: dict[str, Any] = {"type": "array", "items": SESSION_INFO}
+ERROR_INFO: dict[str, Any] = {
+    "type": "object",
+    "required": ["status", "code", "message"],
+    "properties": {"status": {"type": "integer"}, "code": {"type": "string"}, "message": {"type": "string"}},
+}
+QOS_STATUS_CHANGED: dict[str, Any] = {
+    "type": "object",
+    "required": ["id", "source", "specversion", "type", "time", "data"],
+    "properties": {
+        "id": {"type": "string"},
+        "source": {"type": "string"},
+        "specversion": {"const": "1.0"},
+        "type": {"const": EVENT_TYPE},
+        "datacontenttype": {"const": "application/json"},
+        "time": {"type": "string", "pattern": _DATE_TIME},
+        "data": {
+            "type": "object",
+            "required": ["sessionId", "qosStatus"],
+            "properties": {
+                "sessionId": {"type": "string", "pattern": _UUID},
+                "qosStatus": {"enum": ["AVAILABLE", "UNAVAILABLE"]},
+                "statusInfo": {"enum": STATUS_INFO},
+            },
+        },
+    },
+}
+
+
+def problem(schema: dict[str, Any], value: Any) -> str | None:
+    """None if `value` fits `schema`, else the first violation, as a CAMARA error message would say it."""
+    error = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(schema).iter_errors(value))
+    if error is None:
+        return None
+    where = ".".join(str(p) for p in error.absolute_path) or "body"
+    return f"{where}: {error.message}"[:300]

@@ -1,0 +1,419 @@
+"""The CAMARA QoD client (edge/qod_client.py) against the emulated operator (sim/qod.py, served by the
+cell's control API) over real HTTP on 127.0.0.1. Every request the client sends and every answer the
+emulator returns is checked against the schemas written from the spec (sim/qod_schema.py); what an
+operator may do that the emulator does not (throttle, fail, hang) comes from a scripted server."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+from aiohttp import web
+
+from dynqos.common.config import CamaraConfig, CellConfig, ZenohConfig
+from dynqos.edge.qod_client import QodClient, QodError
+from dynqos.sim import qod_schema as schema
+from dynqos.sim.cell import run_cell
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
+
+DEVICE = {"phoneNumber": "+46700000001"}
+SECRET = "s3cret-for-tests"
+
+
+def session_body(**changes: Any) -> dict[str, Any]:
+    body = {
+        "device": DEVICE,
+        "applicationServer": {"ipv4Address": "127.0.0.1"},
+        "applicationServerPorts": {"ports": [7448]},
+        "qosProfile": "QOS_E",
+        "duration": 60,
+    }
+    return body | changes
+
+
+def check(  # noqa: C901 (one case per route)
+    method: str, path: str, sent: Any, status: int, answer: Any, *, requests: bool = True
+) -> None:
+    """One exchange against the spec's schemas (`requests`: the request too); raises AssertionError naming
+    the violation."""
+
+    def fits(name: str, value: Any) -> None:
+        if name in ("CREATE_SESSION", "EXTEND_SESSION", "RETRIEVE_SESSIONS") and not requests:
+            return
+        problem = schema.problem(getattr(schema, name), value)
+        assert problem is None, f"{method} {path} -> {status}: {name}: {problem}\n{json.dumps(value)[:600]}"
+
+    route = path.removeprefix("/quality-on-demand/v1")
+    if route == path:
+        return  # not the QoD API (counters, events, token)
+    if status >= 400:
+        fits("ERROR_INFO", answer)
+        assert answer["status"] == status
+    if method == "POST" and route == "/sessions":
+        fits("CREATE_SESSION", sent)
+        if status == 201:
+            fits("SESSION_INFO", answer)
+    elif method == "POST" and route.endswith("/extend"):
+        fits("EXTEND_SESSION", sent)
+        if status == 200:
+            fits("SESSION_INFO", answer)
+    elif method == "POST" and route == "/retrieve-sessions":
+        fits("RETRIEVE_SESSIONS", sent)
+        if status == 200:
+            fits("RETRIEVE_SESSIONS_OUTPUT", answer)
+    elif method == "GET" and status == 200:
+        fits("SESSION_INFO", answer)
+    elif method == "DELETE":
+        assert status in (204, 404), status
+        assert status == 404 or answer is None
+
+
+@dataclass
+class Operator:
+    """The emulated cell in this process: its control API on a free port, every exchange kept."""
+
+    port: int = 0
+    exchanges: list[tuple[str, str, Any, int, Any]] = field(default_factory=list)
+    final: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def root(self) -> str:
+        return f"http://127.0.0.1:{self.port}/quality-on-demand/v1"
+
+    def record(self, method: str, path: str, sent: Any, status: int, answer: Any) -> None:
+        self.exchanges.append((method, path, sent, status, answer))
+
+    def camara(self, **changes: Any) -> CamaraConfig:
+        return replace(CamaraConfig(api_root=self.root, timeout_s=2.0), **changes)
+
+    async def counters(self) -> dict[str, Any]:
+        async with aiohttp.ClientSession() as http, http.get(f"http://127.0.0.1:{self.port}/counters") as r:
+            out: dict[str, Any] = await r.json()
+            return out
+
+    async def granted(self) -> bool:
+        return bool((await self.counters())["bearers"]["uav1-priority"]["granted"])
+
+
+@contextlib.asynccontextmanager
+async def emulated_operator(requests_valid: bool = True, **cell: Any) -> AsyncIterator[Operator]:
+    cfg = CellConfig(
+        qod=True, control_port=0, default_listen_port=0, priority_listen_port=0, qod_setup_s=0.05, **cell
+    )
+    rig = Operator()
+    ready: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
+    stop = asyncio.Event()
+    task = asyncio.create_task(
+        run_cell(
+            cfg, cfg.bearer_list(ZenohConfig(), "uav1"), ready=ready.set_result, qod_devices={"uav1": DEVICE},
+            qod_client=("dynqos-test", SECRET), tap=rig.record, stop=stop,
+        )
+    )  # fmt: skip
+    rig.port = (await asyncio.wait_for(ready, 10))["control_port"]
+    try:
+        yield rig
+    finally:
+        stop.set()
+        rig.final = await asyncio.wait_for(task, 10)
+        for exchange in rig.exchanges:
+            check(*exchange, requests=requests_valid)
+
+
+async def until(probe: Callable[[], Awaitable[bool]], timeout_s: float = 5.0) -> None:
+    """Poll the API (the thing under test) until `probe` holds; fail after `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while not await probe():
+        assert time.monotonic() < deadline, "timed out"
+        await asyncio.sleep(0.02)  # the polling interval of a client of this API
+
+
+def run(coro: Awaitable[None]) -> None:
+    asyncio.run(asyncio.wait_for(coro, 45))  # type: ignore[arg-type]
+
+
+def test_create_poll_to_available_extend_and_delete_grant_the_bearer_while_it_lives() -> None:
+    async def main() -> None:
+        async with emulated_operator() as op, QodClient(op.camara()) as client:
+            created = await client.create(session_body())
+            assert created.qos_status == "REQUESTED"
+            assert not await op.granted()
+            sid = created.session_id
+
+            async def available() -> bool:
+                return (await client.get(sid)).qos_status == "AVAILABLE"
+
+            await until(available)
+            info = await client.get(sid)
+            assert 55 < (info.expires_in_s or 0) <= 60
+            assert await op.granted()  # the priority bearer has its weight only now
+            extended = await client.extend(sid, 30)
+            assert extended.raw["duration"] == 90
+            assert 85 < (extended.expires_in_s or 0) <= 90
+            assert [s.session_id for s in await client.retrieve(DEVICE)] == [sid]
+            await client.delete(sid)
+            assert not await op.granted()
+            with pytest.raises(QodError) as gone:
+                await client.get(sid)
+            assert gone.value.status == 404
+        assert op.final["qod"]["created"] == 1
+        assert op.final["qod"]["extended"] == 1
+        assert op.final["qod"]["deleted"] == 1
+        assert op.final["qod"]["sessions"] == []
+
+    run(main())
+
+
+def test_a_second_session_for_the_flow_is_a_409_and_retrieve_finds_the_first() -> None:
+    async def main() -> None:
+        async with emulated_operator() as op, QodClient(op.camara()) as client:
+            first = await client.create(session_body())
+            with pytest.raises(QodError) as conflict:
+                await client.create(session_body())
+            assert conflict.value.status == 409
+            assert conflict.value.code == "CONFLICT"
+            found = await client.retrieve(DEVICE)
+            assert [s.session_id for s in found] == [first.session_id]
+            assert found[0].server_ports() == [7448]
+            await client.delete(first.session_id)
+
+    run(main())
+
+
+@pytest.mark.parametrize(
+    ("changes", "status", "code"),
+    [
+        ({"qosProfile": "QOS_NOT_OFFERED"}, 422, "QUALITY_ON_DEMAND.QOS_PROFILE_NOT_APPLICABLE"),
+        ({"device": {"phoneNumber": "+46799999999"}}, 404, "IDENTIFIER_NOT_FOUND"),
+        ({"applicationServer": {"ipv4Address": "192.0.2.1"}}, 400, "INVALID_ARGUMENT"),
+    ],
+)
+def test_what_the_operator_refuses_is_an_error_with_its_code_and_no_retry(
+    changes: dict[str, Any], status: int, code: str
+) -> None:
+    async def main() -> None:
+        async with emulated_operator() as op, QodClient(op.camara()) as client:
+            with pytest.raises(QodError) as refused:
+                await client.create(session_body(**changes))
+            assert (refused.value.status, refused.value.code) == (status, code)
+            assert not refused.value.transient
+            assert client.retries == 0
+        assert op.final["qod"]["sessions"] == []
+
+    run(main())
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"duration": 0},
+        {"device": {"phoneNumber": "0700"}},
+        {"qosProfile": None},
+        {"applicationServerPorts": {}},
+    ],
+)
+def test_the_emulator_answers_a_request_outside_the_spec_with_400(changes: dict[str, Any]) -> None:
+    async def main() -> None:
+        async with emulated_operator(requests_valid=False) as op, aiohttp.ClientSession() as http:
+            body = {k: v for k, v in session_body(**changes).items() if v is not None}
+            async with http.post(op.root + "/sessions", json=body) as r:
+                answer = await r.json()
+                assert (r.status, answer["code"]) == (400, "INVALID_ARGUMENT")
+        assert op.final["qod"]["created"] == 0
+
+    run(main())
+
+
+def test_an_expired_token_is_refreshed_once_and_the_call_retried() -> None:
+    async def main(tmp: Path) -> None:
+        async with emulated_operator(qod_auth=True) as op:
+            secret_file = tmp / "secret"
+            secret_file.write_text(SECRET + "\n")
+            cfg = op.camara(
+                token_url=f"http://127.0.0.1:{op.port}/oauth2/token", client_id="dynqos-test",
+                client_secret_file=str(secret_file),
+            )  # fmt: skip
+            async with QodClient(cfg) as client:
+                created = await client.create(session_body())
+                assert client.token_refreshes == 1
+                async with aiohttp.ClientSession() as http:  # the operator revokes every token
+                    await http.delete(f"http://127.0.0.1:{op.port}/oauth2/tokens")
+                info = await client.get(created.session_id)
+                assert info.session_id == created.session_id
+                assert client.token_refreshes == 2
+                await client.delete(created.session_id)
+            async with (
+                aiohttp.ClientSession() as http,
+                http.get(op.root + f"/sessions/{created.session_id}") as r,
+            ):
+                assert r.status == 401  # no token, no answer
+        statuses = [(m, p.rsplit("/", 1)[-1], s) for m, p, _, s, _ in op.exchanges]
+        assert ("GET", created.session_id, 401) in statuses
+        assert ("GET", created.session_id, 200) in statuses
+
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        run(main(Path(tmp)))
+
+
+def test_sessions_expire_and_the_network_can_end_them_with_a_notification() -> None:
+    async def main() -> None:
+        events: list[dict[str, Any]] = []
+        got = asyncio.Event()
+
+        async def sink(request: web.Request) -> web.Response:
+            events.append(json.loads(await request.read()))
+            got.set()
+            return web.Response(status=204)
+
+        app = web.Application()
+        app.router.add_post("/sink", sink)
+        runner = web.AppRunner(app)
+        await runner.setup()
+        site = web.TCPSite(runner, "127.0.0.1", 0)
+        await site.start()
+        sink_url = f"http://127.0.0.1:{runner.addresses[0][1]}/sink"
+        try:
+            async with emulated_operator() as op, QodClient(op.camara()) as client:
+                short = await client.create(session_body(duration=1))
+
+                async def ended() -> bool:
+                    return (await client.get(short.session_id)).qos_status == "UNAVAILABLE"
+
+                await until(ended)
+                assert (await client.get(short.session_id)).status_info == "DURATION_EXPIRED"
+                assert not await op.granted()
+                await client.delete(short.session_id)
+                long = await client.create(session_body(sink=sink_url))
+                await asyncio.wait_for(got.wait(), 5)  # AVAILABLE, notified
+                got.clear()
+                async with aiohttp.ClientSession() as http:
+                    await http.post(
+                        f"http://127.0.0.1:{op.port}/events", json={"kind": "qod_end", "uav": "uav1"}
+                    )
+                await asyncio.wait_for(got.wait(), 5)
+                info = await client.get(long.session_id)
+                assert (info.qos_status, info.status_info) == ("UNAVAILABLE", "NETWORK_TERMINATED")
+                assert not await op.granted()
+                with pytest.raises(QodError) as conflict:  # its resources stay until deleted
+                    await client.create(session_body())
+                assert conflict.value.status == 409
+                await client.delete(long.session_id)
+        finally:
+            await runner.cleanup()
+        for event in events:
+            assert schema.problem(schema.QOS_STATUS_CHANGED, event) is None
+        assert [e["data"]["qosStatus"] for e in events] == ["AVAILABLE", "UNAVAILABLE"]
+        assert events[1]["data"]["statusInfo"] == "NETWORK_TERMINATED"
+
+    run(main())
+
+
+def test_an_operator_that_cannot_grant_ends_the_request_network_terminated() -> None:
+    async def main() -> None:
+        async with emulated_operator(qod_max_sessions=0) as op, QodClient(op.camara()) as client:
+            created = await client.create(session_body())
+
+            async def settled() -> bool:
+                return (await client.get(created.session_id)).qos_status != "REQUESTED"
+
+            await until(settled)
+            info = await client.get(created.session_id)
+            assert (info.qos_status, info.status_info) == ("UNAVAILABLE", "NETWORK_TERMINATED")
+            assert not await op.granted()
+            await client.delete(created.session_id)
+        assert op.final["qod"]["refused"] == 1
+
+    run(main())
+
+
+# ---- what only a scripted operator does: throttle, fail, hang -------------------------------------------
+
+
+@contextlib.asynccontextmanager
+async def scripted(
+    answers: list[tuple[int, dict[str, str], Any, float]],
+) -> AsyncIterator[tuple[str, list[str]]]:
+    """A server answering POST /sessions with the scripted (status, headers, body, delay_s), in turn."""
+    seen: list[str] = []
+
+    async def handler(request: web.Request) -> web.Response:
+        sent = await request.json()
+        assert schema.problem(schema.CREATE_SESSION, sent) is None
+        status, headers, body, delay = answers[min(len(seen), len(answers) - 1)]
+        seen.append(f"{status}")
+        await asyncio.sleep(delay)  # a slow operator
+        return web.json_response(body, status=status, headers=headers)
+
+    app = web.Application()
+    app.router.add_post("/qod/sessions", handler)
+    runner = web.AppRunner(app)
+    await runner.setup()
+    await web.TCPSite(runner, "127.0.0.1", 0).start()
+    try:
+        yield f"http://127.0.0.1:{runner.addresses[0][1]}/qod", seen
+    finally:
+        await runner.cleanup()
+
+
+SESSION = {
+    "sessionId": "6f0d8f5e-1c7c-4d5b-9b1e-2a9d7c3e4f50", "duration": 60, "qosStatus": "REQUESTED",
+    "applicationServer": {"ipv4Address": "127.0.0.1"}, "qosProfile": "QOS_E",
+}  # fmt: skip
+BUSY = {"status": 429, "code": "TOO_MANY_REQUESTS", "message": "slow down"}
+DOWN = {"status": 503, "code": "UNAVAILABLE", "message": "maintenance"}
+
+
+def test_429_and_5xx_are_retried_with_backoff_then_succeed() -> None:
+    async def main() -> None:
+        script = [(429, {"Retry-After": "0.05"}, BUSY, 0.0), (503, {}, DOWN, 0.0), (201, {}, SESSION, 0.0)]
+        async with (
+            scripted(script) as (root, seen),
+            QodClient(CamaraConfig(api_root=root, timeout_s=3)) as client,
+        ):
+            info = await client.create(session_body())
+            assert info.session_id == SESSION["sessionId"]
+            assert seen == ["429", "503", "201"]
+            assert client.retries == 2
+
+    run(main())
+
+
+def test_an_operator_that_keeps_failing_gives_a_transient_error_within_the_timeout() -> None:
+    async def main() -> None:
+        async with (
+            scripted([(503, {}, DOWN, 0.0)]) as (root, seen),
+            QodClient(CamaraConfig(api_root=root, timeout_s=2)) as client,
+        ):
+            with pytest.raises(QodError) as failed:
+                await client.create(session_body())
+            assert failed.value.status == 503
+            assert failed.value.transient
+            assert len(seen) == 4  # the first try and three retries
+
+    run(main())
+
+
+def test_a_hanging_operator_is_cut_off_at_the_timeout() -> None:
+    async def main() -> None:
+        async with (
+            scripted([(201, {}, SESSION, 5.0)]) as (root, _),
+            QodClient(CamaraConfig(api_root=root, timeout_s=0.3)) as client,
+        ):
+            started = time.monotonic()
+            with pytest.raises(QodError) as hung:
+                await client.create(session_body())
+            assert hung.value.status == 0
+            assert hung.value.code == "TIMEOUT"
+            assert time.monotonic() - started < 2.0  # bounded by timeout_s, not by the operator
+
+    run(main())

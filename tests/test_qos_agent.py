@@ -1,0 +1,215 @@
+"""`dynqos edge qos` as a real process between a test drone (a zenoh session on 127.0.0.1) and the
+emulated operator (`dynqos sim cell` serving the QoD API): what the drone is told, which sessions exist,
+and that none is left behind, with each backend."""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+import urllib.request
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dynqos.common import keys
+from dynqos.common.config import ZenohConfig
+from dynqos.common.keys import Downlink, Flow, Stream
+from dynqos.common.messages import QosGrant, QosRequest
+from dynqos.common.modes import Grant
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Bus, Priority, Publisher, Received, Role, open_bus
+from tests.conftest import free_tcp_port
+from tests.procs import DynqosProcess
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
+
+UAV = "uav1"
+
+
+@dataclass
+class Rig:
+    config: Path
+    zenoh: ZenohConfig
+    cell_port: int
+    procs: dict[str, DynqosProcess]
+
+    def counters(self) -> dict[str, Any]:
+        with urllib.request.urlopen(f"http://127.0.0.1:{self.cell_port}/counters", timeout=5) as r:
+            out: dict[str, Any] = json.loads(r.read())
+            return out
+
+    def sessions(self) -> list[dict[str, Any]]:
+        sessions: list[dict[str, Any]] = self.counters()["qod"]["sessions"]
+        return sessions
+
+    def granted(self) -> bool:
+        return bool(self.counters()["bearers"][f"{UAV}-priority"]["granted"])
+
+
+def write_config(
+    path: Path, zcfg: ZenohConfig, cell_port: int, backend: str, cell: str = "", camara: str = ""
+) -> None:
+    path.write_text(
+        f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"
+        f"[cell]\nqod = true\ncontrol_port = {cell_port}\ndefault_listen_port = 0\npriority_listen_port = 0\n"
+        f"qod_setup_s = 0.1\n{cell}"
+        f'[qos]\nbackend = "{backend}"\nhold_down_s = 0.5\ngrant_interval_s = 0.2\nagent_timeout_s = 1.0\n'
+        "drone_timeout_s = 2.0\nrequest_interval_s = 0.2\nhealth_interval_s = 1.0\n"
+        f'[qos.camara]\napi_root = "http://127.0.0.1:{cell_port}/quality-on-demand/v1"\nduration_s = 4\n'
+        f"extend_before_s = 2\npoll_interval_s = 0.05\nretry_after_denied_s = 0.5\n{camara}"
+        f'[qos.camara.devices]\n{UAV} = {{ phoneNumber = "+46700000001" }}\n'
+    )
+
+
+@pytest.fixture
+def rig(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Rig]:
+    backend, cell, camara = (*getattr(request, "param", ("camara", "")), "")[:3]
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    cell_port = free_tcp_port()
+    config = tmp_path / "qos.toml"
+    write_config(config, zcfg, cell_port, backend, cell, camara)
+    procs: dict[str, DynqosProcess] = {}
+    try:
+        procs["router"] = DynqosProcess(["edge", "router"], config)
+        procs["cell"] = DynqosProcess(["sim", "cell"], config)
+        procs["agent"] = DynqosProcess(["edge", "qos"], config)
+        yield Rig(config, zcfg, cell_port, procs)
+    finally:
+        for proc in reversed(list(procs.values())):
+            proc.stop()
+
+
+class Drone:
+    """What the onboard daemon does for QoS, by hand: ask, and listen to the grants."""
+
+    def __init__(self, zcfg: ZenohConfig) -> None:
+        self.bus: Bus = open_bus(zcfg, Role.DRONE)
+        self.grants: BoundedQueue[Received] = BoundedQueue(1000)
+        self.bus.subscribe(keys.downlink(UAV, Downlink.QOS_GRANT), self.grants, expect=(QosGrant,))
+        self.pub: Publisher = self.bus.publisher(
+            keys.uplink(UAV, Flow.PRIORITY, Stream.QOS), Priority.DATA_HIGH
+        )
+        assert self.pub.wait_matched(20), "the agent never subscribed"
+        self.seq = 0
+        self.last: QosGrant | None = None
+
+    def ask(self, want: bool) -> None:
+        self.seq += 1
+        self.pub.put(QosRequest(uav=UAV, seq=self.seq, stamp_ns=time.monotonic_ns(), want=want))
+
+    def until(
+        self, want: bool, grant: Grant, timeout_s: float = 15.0, also: Callable[[], bool] = lambda: True
+    ) -> QosGrant:
+        """Keep asking (as the drone repeats its request) until the agent's grant is `grant`."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            self.ask(want)
+            item = self.grants.get(0.2)  # the request interval; a grant wakes it at once
+            while item is not None:
+                assert isinstance(item.message, QosGrant)
+                self.last = item.message
+                item = self.grants.get_nowait()
+            if self.last is not None and self.last.grant is grant and also():
+                return self.last
+        raise AssertionError(f"no {grant.value} grant within {timeout_s} s; last: {self.last}")
+
+    def close(self) -> None:
+        self.bus.close()
+
+
+@pytest.fixture
+def drone(rig: Rig) -> Iterator[Drone]:
+    d = Drone(rig.zenoh)
+    try:
+        yield d
+    finally:
+        d.close()
+
+
+def test_camara_a_drone_gets_a_session_while_it_wants_priority_and_none_after(rig: Rig, drone: Drone) -> None:
+    granted = drone.until(True, Grant.AVAILABLE, also=rig.granted)
+    assert granted.backend == "camara"
+    assert granted.session_id
+    (session,) = rig.sessions()
+    assert session["sessionId"] == granted.session_id
+    assert session["qosStatus"] == "AVAILABLE"
+    assert session["applicationServerPorts"] == {"ports": [rig.zenoh.priority_port]}
+    # duration 4 s, extended 2 s before it ends while still wanted: alive after 5 s
+    drone.until(True, Grant.AVAILABLE, also=lambda: rig.counters()["qod"]["extended"] >= 1)
+    assert rig.sessions()[0]["sessionId"] == granted.session_id
+    drone.until(False, Grant.NONE, also=lambda: rig.sessions() == [])  # after the hold-down
+    assert not rig.granted()
+    counters = rig.counters()["qod"]
+    assert (counters["created"], counters["deleted"]) == (1, 1)
+
+
+def test_camara_sigterm_deletes_the_sessions_it_holds(rig: Rig, drone: Drone) -> None:
+    drone.until(True, Grant.AVAILABLE)
+    assert len(rig.sessions()) == 1
+    rig.procs["agent"].proc.send_signal(signal.SIGTERM)
+    assert rig.procs["agent"].proc.wait(timeout=20) == 0
+    assert rig.sessions() == []
+    err = rig.procs["agent"].stop()
+    assert "deleted (stopping)" in err
+
+
+def test_camara_a_restarted_agent_cleans_what_a_crashed_one_left(rig: Rig, drone: Drone) -> None:
+    first = drone.until(True, Grant.AVAILABLE)
+    rig.procs["agent"].proc.kill()  # a crash: no clean-up
+    rig.procs["agent"].proc.wait(timeout=10)
+    rig.procs["agent"].stop()
+    assert [s["sessionId"] for s in rig.sessions()] == [first.session_id]  # left behind
+    rig.procs["agent"] = DynqosProcess(["edge", "qos"], rig.config)
+    again = drone.until(True, Grant.AVAILABLE, also=lambda: len(rig.sessions()) == 1)
+    assert again.session_id != first.session_id
+    assert [s["sessionId"] for s in rig.sessions()] == [again.session_id]
+    rig.procs["agent"].proc.send_signal(signal.SIGTERM)
+    rig.procs["agent"].proc.wait(timeout=20)
+    assert "left by an earlier agent" in rig.procs["agent"].stop()
+    assert rig.sessions() == []
+
+
+SINK_PORT = free_tcp_port()
+SINK = f'sink = "http://127.0.0.1:{SINK_PORT}/qod-events"\nsink_listen = "127.0.0.1:{SINK_PORT}"\n'
+
+
+@pytest.mark.parametrize(
+    "rig", [("camara", ""), ("camara", "", SINK)], indirect=True, ids=["polling", "sink"]
+)
+def test_camara_the_network_ending_a_session_is_told_and_asked_again(rig: Rig, drone: Drone) -> None:
+    drone.until(True, Grant.AVAILABLE)
+    end = json.dumps({"kind": "qod_end", "uav": UAV}).encode()
+    url = f"http://127.0.0.1:{rig.cell_port}/events"
+    headers = {"Content-Type": "application/json"}
+    urllib.request.urlopen(urllib.request.Request(url, data=end, headers=headers), timeout=5)
+    told = drone.until(True, Grant.UNAVAILABLE)
+    assert "NETWORK_TERMINATED" in told.reason
+    drone.until(True, Grant.AVAILABLE)  # after the back-off, a new session
+    counters = rig.counters()["qod"]
+    assert counters["terminated"] == 1
+    if "sink" in rig.config.read_text():  # the agent took the operator's notifications at its sink
+        assert counters["notified"] >= 2
+        assert counters["notify_failures"] == 0
+
+
+@pytest.mark.parametrize("rig", [("camara", "qod_max_sessions = 0\n")], indirect=True)
+def test_camara_an_operator_that_refuses_is_an_unavailable_grant_with_its_reason(
+    rig: Rig, drone: Drone
+) -> None:
+    told = drone.until(True, Grant.UNAVAILABLE)
+    assert "NETWORK_TERMINATED" in told.reason
+    assert not rig.granted()
+    drone.until(False, Grant.NONE, also=lambda: rig.sessions() == [])  # what it asked for is cleaned up
+    assert rig.counters()["qod"]["refused"] >= 1
+
+
+@pytest.mark.parametrize("rig", [("links", "")], indirect=True)
+def test_links_priority_is_available_at_once_and_the_network_is_not_asked(rig: Rig, drone: Drone) -> None:
+    granted = drone.until(True, Grant.AVAILABLE)
+    assert (granted.backend, granted.session_id) == ("links", "")
+    drone.until(False, Grant.NONE)
+    assert rig.counters()["qod"]["created"] == 0

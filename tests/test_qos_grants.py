@@ -1,0 +1,155 @@
+"""The QoS agent's per-drone rules (edge/qos_grants.py) on a fake clock: what call is due, what the
+drone is told."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from dynqos.common.clock import NS_PER_S
+from dynqos.common.config import CamaraConfig, QosConfig
+from dynqos.common.modes import Grant
+from dynqos.edge.qos_grants import DroneGrant, Op, QodStatus, Session
+
+S = NS_PER_S
+CAMARA = QosConfig(
+    backend="camara",
+    hold_down_s=5.0,
+    drone_timeout_s=5.0,
+    camara=CamaraConfig(api_root="http://127.0.0.1:1", duration_s=60, extend_before_s=10, poll_interval_s=0.2,
+                        retry_after_denied_s=10.0),
+)  # fmt: skip
+
+
+def available(expires_ns: int, sid: str = "s1") -> Session:
+    return Session(sid, QodStatus.AVAILABLE, "", expires_ns)
+
+
+def next_op(g: DroneGrant, now_ns: int) -> Op | None:
+    """The next call other than the periodic read of an AVAILABLE session (answered: unchanged)."""
+    op = g.next_op(now_ns)
+    while op is Op.POLL and g.session is not None and g.session.status is QodStatus.AVAILABLE:
+        g.observed(g.session, now_ns)
+        op = g.next_op(now_ns)
+    return op
+
+
+def test_links_backend_grants_at_once_and_makes_no_call() -> None:
+    g = DroneGrant("uav1", QosConfig(backend="links"), 0)
+    assert g.grant(0) is Grant.NONE
+    g.request(True, 1, S)
+    assert g.next_op(S) is None
+    assert g.grant(S) is Grant.AVAILABLE
+    g.request(False, 2, 2 * S)
+    assert g.grant(2 * S) is Grant.NONE
+
+
+def test_create_poll_until_available_then_extend_before_expiry() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    assert g.next_op(0) is Op.CREATE
+    assert g.grant(0) is Grant.REQUESTED
+    g.observed(Session("s1", QodStatus.REQUESTED), 0)
+    assert g.next_op(0) is None  # not before the poll interval
+    assert g.next_op(int(0.2 * S)) is Op.POLL
+    g.observed(available(60 * S), int(0.2 * S))
+    assert g.grant(int(0.2 * S)) is Grant.AVAILABLE
+    g.request(True, 2, 45 * S)  # the drone keeps asking
+    assert g.next_op(45 * S) is Op.POLL  # an AVAILABLE session is read now and then (a network end shows)
+    g.observed(available(60 * S), 45 * S)
+    assert g.next_op(45 * S) is None
+    assert g.next_deadline_ns(45 * S) <= 50 * S  # it wakes for the extension
+    g.request(True, 3, 50 * S)
+    assert next_op(g, 50 * S) is Op.EXTEND  # 10 s before expiry, still wanted
+    g.observed(available(120 * S), 50 * S)
+    assert g.next_op(50 * S) is None
+
+
+def test_release_waits_for_the_hold_down_and_a_flap_does_not_churn() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.observed(available(600 * S), 0)
+    g.request(False, 2, 1 * S)
+    assert next_op(g, 1 * S) is None
+    assert next_op(g, 5 * S) is None  # 4 s out of priority: held
+    g.request(True, 3, 5 * S)  # back in priority: the session was kept
+    g.request(False, 4, 6 * S)
+    assert next_op(g, 10 * S) is None  # the hold-down counts from the last change
+    assert next_op(g, 11 * S) is Op.DELETE
+    g.deleted(11 * S)
+    assert g.grant(11 * S) is Grant.NONE
+    assert next_op(g, 12 * S) is None
+
+
+def test_a_drone_gone_silent_is_released_after_its_timeout_and_the_hold_down() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.observed(available(600 * S), 0)
+    assert g.wants(5 * S)
+    assert not g.wants(6 * S)  # silent for longer than drone_timeout_s
+    assert next_op(g, 6 * S) is None  # the hold-down runs from its timeout (5 s)
+    assert next_op(g, 9 * S) is None
+    assert next_op(g, 10 * S) is Op.DELETE
+
+
+def test_a_session_the_network_ends_is_deleted_at_once_and_asked_again_after_backoff() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.observed(Session("s1", QodStatus.UNAVAILABLE, "NETWORK_TERMINATED"), S)
+    assert g.grant(S) is Grant.UNAVAILABLE
+    assert "NETWORK_TERMINATED" in g.reason
+    assert g.next_op(S) is Op.DELETE
+    g.deleted(S)
+    assert g.grant(S) is Grant.UNAVAILABLE  # still refused while wanted
+    g.request(True, 2, 5 * S)
+    assert g.next_op(5 * S) is None
+    g.request(True, 3, 11 * S)
+    assert g.next_op(11 * S) is Op.CREATE  # 10 s back-off
+    g.observed(Session("s2", QodStatus.UNAVAILABLE, "NETWORK_TERMINATED"), 12 * S)
+    g.deleted(12 * S)
+    g.request(True, 4, 31 * S)
+    assert g.next_op(31 * S) is None  # the back-off doubled: 20 s
+    g.request(True, 5, 32 * S)
+    assert g.next_op(32 * S) is Op.CREATE
+
+
+@pytest.mark.parametrize(
+    ("op", "expires_s", "again_s"),
+    [(Op.CREATE, 0, 10), (Op.POLL, 600, 1), (Op.EXTEND, 5, 1), (Op.DELETE, 600, 1)],
+)
+def test_a_failed_call_is_tried_again_later_not_at_once(op: Op, expires_s: int, again_s: int) -> None:
+    g = DroneGrant("uav1", replace(CAMARA, hold_down_s=0.0), 0)
+    g.request(op is not Op.DELETE, 1, 0)
+    if op is not Op.CREATE:
+        g.observed(available(expires_s * S), 0)
+    assert g.next_op(0) is (None if op is Op.POLL else op)
+    g.failed(op, "503 UNAVAILABLE: busy", 0)
+    assert g.next_op(0) is None
+    g.request(op is not Op.DELETE, 2, again_s * S - 1)
+    assert g.next_op(again_s * S - 1) is None
+    g.request(op is not Op.DELETE, 3, again_s * S)
+    assert (g.next_op(again_s * S) if op is Op.POLL else next_op(g, again_s * S)) is op
+    if op is Op.CREATE:
+        assert g.grant(0) is Grant.UNAVAILABLE
+        assert "503" in g.reason
+
+
+def test_a_new_episode_asks_at_once_even_after_a_refusal() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.denied("422 QUALITY_ON_DEMAND.QOS_PROFILE_NOT_APPLICABLE", 0)
+    assert g.grant(0) is Grant.UNAVAILABLE
+    g.request(False, 2, S)
+    assert g.grant(S) is Grant.NONE
+    g.request(True, 3, 2 * S)
+    assert g.next_op(2 * S) is Op.CREATE
+
+
+def test_a_notification_makes_the_session_read_at_once() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.observed(available(600 * S), 0)
+    assert g.next_op(0) is None
+    g.read_now()
+    assert g.next_op(0) is Op.POLL
