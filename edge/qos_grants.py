@@ -82,9 +82,10 @@ class DroneGrant:
     def request(self, want: bool, seq: int, now_ns: int) -> None:
         self.heard_ns = now_ns
         self.request_seq = max(self.request_seq, seq)
-        if want and not self.wanted:
+        if want and not self.wanted:  # a new episode: asks at once, and says so (not the last refusal)
             self._failures = 0
-            self._retry_at_ns = 0  # a new episode asks at once
+            self._retry_at_ns = 0
+            self.refused, self.reason = False, ""
         if want:
             self._unwanted_since_ns = None
         elif self._unwanted_since_ns is None:

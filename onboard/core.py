@@ -47,7 +47,7 @@ from dynqos.common.messages import (
     State,
     SupervisorStatus,
 )
-from dynqos.common.modes import ControlSource, Flow, Grant
+from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 from dynqos.common.reference import ReferenceTrack
 from dynqos.onboard.commands import CommandTracker
 from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint, Setpoint
@@ -255,7 +255,10 @@ class OnboardCore:
         """The QosRequest due now: on a change of want at once, else every request_interval_s."""
         if self.qos == "default" or not self.offloading:
             return None  # never asks; and nobody asks on the ground
-        want = self.qos == "priority" or flow is Flow.PRIORITY
+        # qA flies its state on the priority flow, but asks the network for it only when it came from
+        # a state that already wanted it: not on the first offboard ticks, nor after a watchdog in q1.
+        in_qa = self.decision is not None and self.decision.state is SupervisorState.QA
+        want = self.qos == "priority" or (flow is Flow.PRIORITY and (not in_qa or bool(self._requested)))
         if want == self._requested and now < self._next_request_ns:
             return None
         self._requested, self._next_request_ns = want, now + self._request_period_ns

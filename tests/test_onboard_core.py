@@ -359,6 +359,10 @@ def test_the_drone_asks_for_priority_exactly_while_its_flow_is_the_priority_flow
     if qos == "default":
         assert asked == []  # never asks
         return
+    if qos == "dynamic":  # the first offboard ticks fly qA (no command yet) on the priority flow...
+        assert asked[0] == (Flow.PRIORITY, False)  # ...and do not ask the network for it
+        while asked[0] == (Flow.PRIORITY, False):  # until the edge flies it (qA -> q1)
+            asked = asked[1:]
     # it goes on the flow chosen in that tick, and wants priority exactly when that is the priority flow
     assert all(want is (qos == "priority" or flow is Flow.PRIORITY) for flow, want in asked)
     assert (Flow.PRIORITY, True) in requests(outs)
@@ -397,3 +401,19 @@ def test_a_refused_grant_sends_the_drone_to_rate_adaptation_at_once() -> None:
     assert "the network refused" in rig.core.supervisor.log[-1].cause
     assert rig.statuses()[-1].qos_grant is Grant.UNAVAILABLE
     assert any("grant is unavailable (test)" in e for e in rig.events())
+
+
+def test_priority_stays_wanted_into_the_fallback_it_led_to_and_is_released_after() -> None:
+    rig = _loaded_rig("dynamic", spaciousness_m=4.0)  # q3, then q6, then qA at the lowest camera rate
+    for _ in range(1000):
+        rig.tick()
+        if rig.core.control is ControlSource.FALLBACK:
+            break
+    assert rig.core.decision is not None
+    assert rig.core.decision.state is SupervisorState.QA
+    outs = rig.run(2.0)
+    assert set(requests(outs)) == {(Flow.PRIORITY, True)}  # q6 -> qA: still wanted
+    rig.rtt_ms = 20.0
+    rig.run_until(ControlSource.EDGE, 20.0)
+    rig.run(2.0)
+    assert requests(rig.outputs)[-1] == (Flow.DEFAULT, False)

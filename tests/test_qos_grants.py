@@ -144,6 +144,10 @@ def test_a_new_episode_asks_at_once_even_after_a_refusal() -> None:
     assert g.grant(S) is Grant.NONE
     g.request(True, 3, 2 * S)
     assert g.next_op(2 * S) is Op.CREATE
+    assert g.grant(2 * S) is Grant.REQUESTED  # not the last episode's refusal
+    g.denied("422 again", 2 * S)
+    g.request(True, 4, 3 * S)
+    assert g.grant(3 * S) is Grant.UNAVAILABLE  # within an episode a refusal holds until a grant
 
 
 def test_a_notification_makes_the_session_read_at_once() -> None:
