@@ -242,8 +242,8 @@ def _first_qos_switch(statuses: list[SupervisorStatus], bg_ns: int | None) -> tu
     return (changed - bg_ns) / 1e9, after[0].cause or "unknown"
 
 
-RTT_BACK_FACTOR = 1.2  # "back": the RTT within this factor of its unloaded mean...
-RTT_BACK_SAMPLES = 10  # ...over this many samples in a row (0.5 s of states)
+RTT_BACK_FACTOR = 1.2  # "back": the mean of the next RTTs within this factor of the unloaded mean...
+RTT_BACK_SAMPLES = 10  # ...over this many samples (0.5 s of states), so one jittery sample is not "high"
 
 
 def _qos_network(
@@ -255,8 +255,9 @@ def _qos_network(
     qod: dict[str, Any] | None,
 ) -> dict[str, Any]:
     """What the network made of the drone's priority: from the supervisor's first move to the priority flow
-    under load, how long until the network's grant was AVAILABLE and until the RTT was back within 1.2x
-    of its unloaded mean; the grant at the end; and the QoD sessions the emulated operator saw."""
+    under load, how long until the network's grant was AVAILABLE and until the mean of the next ten RTTs
+    was back within 1.2x of the unloaded mean; the grant at the end; and the QoD sessions the emulated
+    operator saw."""
     out: dict[str, Any] = {"backend": scenario.qos_backend, "decision_to_available_s": None,
                            "decision_to_rtt_back_s": None}  # fmt: skip
     if bg_ns is not None:
@@ -285,7 +286,7 @@ def _rtt_back_after(rtts: list[tuple[int, float]], since_ns: int, baseline: list
     limit = RTT_BACK_FACTOR * sum(baseline) / len(baseline)
     later = [(t, v) for t, v in rtts if t >= since_ns]
     for i in range(len(later) - RTT_BACK_SAMPLES + 1):
-        if all(v <= limit for _, v in later[i : i + RTT_BACK_SAMPLES]):
+        if sum(v for _, v in later[i : i + RTT_BACK_SAMPLES]) <= limit * RTT_BACK_SAMPLES:
             return (later[i][0] - since_ns) / 1e9
     return None
 

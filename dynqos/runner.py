@@ -119,7 +119,7 @@ def _start_edge_and_cell(
     on SIGTERM are gone from the cell's final qod.json."""
     procs.start("router", ["edge", "router"])
     cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
-    write_config(config_path, scenario, with_cell(config, cell))
+    write_config(config_path, scenario, with_cell(config, cell, sink_port=free_port()))
     procs.start("qos", ["edge", "qos"])
     procs.start("vehicle", ["sim", "vehicle", "--duration", "3600"])
     procs.start("planner", ["edge", "planner"])

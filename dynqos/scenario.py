@@ -200,9 +200,10 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
     return replace(config, onboard=replace(config.onboard, camera_width=width, camera_height=height))
 
 
-def with_cell(config: Config, cell: dict[str, Any]) -> Config:
+def with_cell(config: Config, cell: dict[str, Any], sink_port: int = 0) -> Config:
     """The config once the cell is up: the drone's flows connect to the bearers' ports it reported, and
-    the QoS agent asks its control port for QoD sessions."""
+    the QoS agent asks its control port for QoD sessions and (`sink_port` > 0) takes the operator's
+    notifications on that port, as an agent that is told rather than only polling."""
     bearers = cell["bearers"]
     onboard = replace(
         config.onboard,
@@ -210,7 +211,11 @@ def with_cell(config: Config, cell: dict[str, Any]) -> Config:
         connect_priority=f"127.0.0.1:{bearers[f'{UAV}-priority']['port']}",
     )
     api_root = f"http://127.0.0.1:{cell['control_port']}/quality-on-demand/v1"
-    qos = replace(config.qos, camara=replace(config.qos.camara, api_root=api_root))
+    camara = replace(config.qos.camara, api_root=api_root)
+    if sink_port:
+        sink = f"127.0.0.1:{sink_port}"
+        camara = replace(camara, sink=f"http://{sink}/qod-events", sink_listen=sink)
+    qos = replace(config.qos, camara=camara)
     return replace(config, onboard=onboard, qos=qos)
 
 

@@ -194,6 +194,7 @@ class OnboardCore:
         now = inp.now_ns
         self._events = []
         publish: list[Outgoing] = []
+        grant_before = self.reported_grant(now)  # before this tick's grants are taken in
         self._take_in(inp)
         if inp.offboard and not self.offloading and inp.fc is not None:
             self._engage(inp.fc)
@@ -204,7 +205,7 @@ class OnboardCore:
             self._supervise(now, watchdog)
         elif watchdog and self.control is ControlSource.EDGE:
             self._supervise(now, watchdog)  # the watchdog acts at once, not at the next supervisor tick
-        before, grant_before = self.control, self.reported_grant(now)
+        before = self.control
         setpoint = self._control(inp.fc, now, watchdog)
         self._measure_gap(setpoint, now)
         flow, camera_flow, rate = self._flows()

@@ -39,9 +39,12 @@ def no_qos(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 @pytest.mark.slow
 @pytest.mark.integration
 @pytest.mark.timeout(420)
+@pytest.mark.parametrize("backend", ["camara", "links"])
 def test_without_qos_latency_climbs_and_dynamic_qos_switches_on_it_and_holds(
-    no_qos: dict[str, Any], tmp_path: Path
+    no_qos: dict[str, Any], tmp_path: Path, backend: str
 ) -> None:
+    """With either way the network gives the priority flow its weight (docs/qos.md): a QoD session the
+    QoS agent asks the emulated operator for, or a static policy for the priority port."""
     without = no_qos
     assert without["uav_offered_mbps"] > FAIR_SHARE_MBPS  # the drone asks for more than its share...
     assert without["uav_delivered_mbps"] < without["uav_offered_mbps"]  # ...and does not get it
@@ -50,7 +53,9 @@ def test_without_qos_latency_climbs_and_dynamic_qos_switches_on_it_and_holds(
     print(f"no QoS: RTT {baseline['mean']:.1f} ms before the load, p95 {loaded['p95']:.1f} ms under it")
     assert loaded["p95"] >= 3 * baseline["mean"]
 
-    dynamic = replace(builtin_scenario("bg-dynqos-hover"), duration_s=DURATION_S, bg_start_s=BG_START_S)
+    dynamic = replace(
+        builtin_scenario("bg-dynqos-hover"), duration_s=DURATION_S, bg_start_s=BG_START_S, qos_backend=backend
+    )
     noqos = builtin_scenario("bg-noqos")
     assert (dynamic.mission, dynamic.bg_mbps) == (noqos.mission, noqos.bg_mbps)  # only the QoS differs
     with_qos = run_scenario(dynamic, tmp_path, progress=False)
@@ -64,6 +69,15 @@ def test_without_qos_latency_climbs_and_dynamic_qos_switches_on_it_and_holds(
     assert not cause.startswith("before the load")
     assert switch_s <= 1.0
     assert loaded["mean"] <= 1.3 * baseline["mean"]
+    network = with_qos["qos_network"]
+    assert network["backend"] == backend
+    assert network["grant_at_end"] == "available"
+    assert network["decision_to_available_s"] is not None
+    if backend == "camara":
+        assert network["sessions"]["created"] >= 1
+        assert network["sessions"]["open_at_end"] == 0
+    else:
+        assert "sessions" not in network  # the network was never asked
 
 
 @pytest.mark.slow

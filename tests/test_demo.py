@@ -133,7 +133,7 @@ def test_a_scenarios_config_is_written_and_read_back_unchanged(tmp_path: Path, n
     config = scenario_config(scenario, zenoh=ZenohConfig(default_port=7001, priority_port=7002),
                              fc_port=14601, gcs_port=14602)  # fmt: skip
     bearers = {"uav1-default": {"port": 17001}, "uav1-priority": {"port": 17002}}
-    config = with_cell(config, {"bearers": bearers, "control_port": 17003})
+    config = with_cell(config, {"bearers": bearers, "control_port": 17003}, sink_port=17004)
     path = tmp_path / "dynqos.toml"
     write_config(path, scenario, config)
     loaded = load_config(path)
@@ -141,6 +141,7 @@ def test_a_scenarios_config_is_written_and_read_back_unchanged(tmp_path: Path, n
     assert loaded.onboard.qos == scenario.qos
     assert loaded.onboard.connect_priority == "127.0.0.1:17002"
     assert loaded.qos.camara.api_root == "http://127.0.0.1:17003/quality-on-demand/v1"
+    assert loaded.qos.camara.sink_listen == "127.0.0.1:17004"
     assert loaded.cell.qod is (scenario.qos_backend == "camara")
     assert loaded.cell.ue_buffer_bytes == round(1_000_000 / scenario.scale)
     assert loaded.onboard.camera_pace_mbps == pytest.approx(scenario.camera_pace_mbps / scenario.scale)
