@@ -295,7 +295,7 @@ class QosAgent:
 
     # ---- start and stop -------------------------------------------------------------------------------
 
-    async def _clean_leftovers(self) -> None:
+    async def _clean_leftovers(self, whose: str = "left by an earlier agent") -> None:
         """Sessions for our priority port that a crashed agent left: found per device, deleted."""
         assert self.client is not None
         for uav, device in self.camara.devices.items():
@@ -304,18 +304,21 @@ class QosAgent:
                     if self.port in info.server_ports():
                         await self.client.delete(info.session_id)
                         self.cleaned += 1
-                        log.warning(
-                            "qos agent: deleted %s's session %s left by an earlier agent",
-                            uav,
-                            info.session_id,
-                        )
+                        log.warning("qos agent: deleted %s's session %s %s", uav, info.session_id, whose)
             except QodError as exc:
                 log.warning("qos agent: cannot check %s for leftover sessions (%s)", uav, exc)
 
     async def _shut_down(self) -> None:
-        for task in self.tasks.values():
-            task.cancel()
-        await asyncio.gather(*self.tasks.values(), return_exceptions=True)
+        """Let each drone's call in flight finish (a create cancelled mid-way would leave a session we
+        never heard of), delete every session held, then sweep the devices for any left anyway."""
+        for wake in self.wakes.values():
+            wake.set()
+        tasks = list(self.tasks.values())
+        if tasks:
+            _, late = await asyncio.wait(tasks, timeout=self.camara.timeout_s + 1)
+            for task in late:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
         held = [g for g in self.drones.values() if g.session is not None]
 
         async def release(grant: DroneGrant) -> None:
@@ -337,6 +340,9 @@ class QosAgent:
         if held:
             with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
                 await asyncio.wait_for(asyncio.gather(*(release(g) for g in held)), SHUTDOWN_S)
+        if self.client is not None:
+            with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
+                await asyncio.wait_for(self._clean_leftovers("unaccounted for at shutdown"), SHUTDOWN_S)
         for grant in self.drones.values():
             self._tell(grant, Grant.NONE)
 

@@ -4,8 +4,10 @@ and that none is left behind, with each backend."""
 
 from __future__ import annotations
 
+import http.server
 import json
 import signal
+import threading
 import time
 import urllib.request
 from collections.abc import Callable, Iterator
@@ -213,3 +215,99 @@ def test_links_priority_is_available_at_once_and_the_network_is_not_asked(rig: R
     assert (granted.backend, granted.session_id) == ("links", "")
     drone.until(False, Grant.NONE)
     assert rig.counters()["qod"]["created"] == 0
+
+
+class SlowOperator:
+    """A scripted QoD operator (http.server on 127.0.0.1, in a thread) whose create answers only after
+    `delay_s`: what a real one may do, and what the emulated cell never does."""
+
+    SESSION_ID = "6f0d8f5e-1c7c-4d5b-9b1e-2a9d7c3e4f50"
+
+    def __init__(self, port: int, delay_s: float) -> None:
+        self.created = threading.Event()
+        self.create_seen = threading.Event()
+        self.calls: list[str] = []
+        self.port = port
+        operator = self
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def log_message(self, *_: object) -> None:
+                pass
+
+            def _answer(self, status: int, body: Any = None) -> None:
+                data = b"" if body is None else json.dumps(body).encode()
+                self.send_response(status)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(data)))
+                self.end_headers()
+                self.wfile.write(data)
+
+            def _session(self, status: str) -> dict[str, Any]:
+                return {
+                    "sessionId": operator.SESSION_ID, "duration": 60, "qosStatus": status,
+                    "applicationServer": {"ipv4Address": "127.0.0.1"}, "qosProfile": "QOS_E",
+                    "applicationServerPorts": {"ports": [operator.port]},
+                }  # fmt: skip
+
+            def do_POST(self) -> None:
+                self.rfile.read(int(self.headers.get("Content-Length", 0)))
+                operator.calls.append(f"POST {self.path}")
+                if self.path.endswith("/retrieve-sessions"):
+                    alive = (
+                        operator.created.is_set()
+                        and f"DELETE /qod/sessions/{operator.SESSION_ID}" not in operator.calls
+                    )
+                    self._answer(200, [self._session("AVAILABLE")] if alive else [])
+                    return
+                operator.create_seen.set()
+                time.sleep(delay_s)  # the slow operator, on its own handler thread
+                operator.created.set()
+                self._answer(201, self._session("REQUESTED"))
+
+            def do_GET(self) -> None:
+                operator.calls.append(f"GET {self.path}")
+                self._answer(200, self._session("AVAILABLE"))
+
+            def do_DELETE(self) -> None:
+                operator.calls.append(f"DELETE {self.path}")
+                self._answer(204)
+
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+
+    @property
+    def root(self) -> str:
+        return f"http://127.0.0.1:{self.server.server_address[1]}/qod"
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+def test_camara_a_create_in_flight_at_sigterm_is_waited_for_and_its_session_deleted(tmp_path: Path) -> None:
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    operator = SlowOperator(zcfg.priority_port, delay_s=1.0)
+    config = tmp_path / "qos.toml"
+    config.write_text(
+        f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"
+        f'[qos]\nbackend = "camara"\n[qos.camara]\napi_root = "{operator.root}"\ntimeout_s = 3.0\n'
+        f'[qos.camara.devices]\n{UAV} = {{ phoneNumber = "+46700000001" }}\n'
+    )
+    procs = [DynqosProcess(["edge", "router"], config)]
+    drone = None
+    try:
+        procs.append(DynqosProcess(["edge", "qos"], config))
+        drone = Drone(zcfg)
+        drone.ask(True)
+        assert operator.create_seen.wait(15), "the agent never asked the operator"
+        procs[1].proc.send_signal(signal.SIGTERM)  # while the create is still unanswered
+        assert procs[1].proc.wait(timeout=20) == 0
+        assert operator.created.is_set()
+        assert f"DELETE /qod/sessions/{SlowOperator.SESSION_ID}" in operator.calls, operator.calls
+    finally:
+        if drone is not None:
+            drone.close()
+        for proc in reversed(procs):
+            proc.stop()
+        operator.close()
