@@ -60,6 +60,7 @@ def repeated_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "mission": first.get("mission"),
         "duration_s": first.get("duration_s"),
         "scale": first.get("scale"),
+        "bg_mbps": first.get("bg_mbps"),  # a setting, the same in every run
         "seeds": [run.get("seed") for run in runs],
         "runs": runs,
         "aggregate": aggregate(runs),

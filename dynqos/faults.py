@@ -190,13 +190,21 @@ class FaultInjector:
 # ---- outcomes ----------------------------------------------------------------------------------------
 
 
+def time_in_states(statuses: Sequence[SupervisorStatus], since_ns: int | None = None) -> dict[str, float]:
+    """Seconds in each supervisor state: a status's state lasts until the next status. Only the spans
+    that start at or after `since_ns` count (all of them when None)."""
+    out: dict[str, float] = {}
+    for a, b in itertools.pairwise(statuses):
+        if since_ns is None or a.stamp_ns >= since_ns:
+            out[a.state.value] = out.get(a.state.value, 0.0) + (b.stamp_ns - a.stamp_ns) / NS_PER_S
+    return out
+
+
 def _while_it_lasted(during: list[SupervisorStatus], start_ns: int) -> dict[str, Any]:
     """What the drone saw and did while the fault lasted: its RTT, its time in each state, and how soon
     its camera was slowed (the rate-adaptation states, q4-q6) after the fault began."""
     rtts = sorted(v for s in during for v in s.rtt_samples_ms)
-    states: dict[str, float] = {}
-    for a, b in itertools.pairwise(during):
-        states[a.state.value] = states.get(a.state.value, 0.0) + (b.stamp_ns - a.stamp_ns) / NS_PER_S
+    states = time_in_states(during)
     slowed = next((s for s in during if s.camera_rate_factor < 1.0), None)
     rtt = None
     if rtts:

@@ -17,7 +17,7 @@ import numpy as np
 from dynqos.common.geometry import yaw_of
 from dynqos.common.messages import Reference, State, SupervisorStatus
 from dynqos.common.modes import SupervisorState
-from dynqos.faults import log_times, outcome
+from dynqos.faults import log_times, outcome, time_in_states
 from dynqos.recording import Recording
 from dynqos.scenario import Scenario
 
@@ -149,11 +149,8 @@ def summarise(
     errors = [(t0 + round(t * 1e9), e) for t, e in tracking_errors(rec)]
     loaded = bg_ns is not None
     rates = _cell_rates(rec, loaded_start, end_ns + 1, scenario.scale)
-    times: dict[str, float] = dict.fromkeys((s.value for s in SupervisorState), 0.0)
     statuses = sorted(rec.status, key=lambda s: s.stamp_ns)
-    for a, b in itertools.pairwise(statuses):
-        if a.stamp_ns >= t0:
-            times[a.state] += (b.stamp_ns - a.stamp_ns) / 1e9
+    times = dict.fromkeys((s.value for s in SupervisorState), 0.0) | time_in_states(statuses, since_ns=t0)
     transitions = []
     seen = set()
     for s in statuses:

@@ -108,7 +108,7 @@ def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
 def _table_row(s: dict[str, Any]) -> str:
     row = SCENARIO_ROW.get(s["scenario"], "-")
     paper = PAPER_TABLE_II.get(row, {})
-    bg = fmt(_lookup(s, "bg_mbps") or (s["runs"][0]["bg_mbps"] if "runs" in s else None), 0)
+    bg = fmt(s.get("bg_mbps"), 0)
     cells = [
         s["scenario"],
         s.get("profile", "dynqos"),

@@ -12,7 +12,7 @@ import pytest
 
 from dynqos.common.errors import ConfigError
 from dynqos.common.messages import SupervisorStatus
-from dynqos.faults import Fault, FaultInjector, FaultWindow, log_times, outcome
+from dynqos.faults import Fault, FaultInjector, FaultWindow, log_times, outcome, time_in_states
 from dynqos.runner import run_scenario
 from dynqos.scenario import Scenario, builtin_scenario
 
@@ -47,6 +47,17 @@ def test_faults_are_validated() -> None:
     soak = builtin_scenario("soak")
     assert soak.duration_s == 600
     assert [f.at_s for f in soak.faults] == [30 + 60 * k for k in range(10)]
+
+
+def test_time_in_states_lasts_each_state_until_the_next_status() -> None:
+    ms = 1_000_000
+    statuses = [
+        replace(_status(t * ms, None), state=state)
+        for t, state in [(0, "q1"), (200, "q1"), (500, "q3"), (1500, "q6"), (1600, "q6")]
+    ]
+    assert time_in_states(statuses) == pytest.approx({"q1": 0.5, "q3": 1.0, "q6": 0.1})
+    assert time_in_states(statuses, since_ns=500 * ms) == pytest.approx({"q3": 1.0, "q6": 0.1})
+    assert time_in_states(statuses[:1]) == {}
 
 
 def test_outcome_measures_fallback_gaps_and_recovery_from_the_status_stream() -> None:
