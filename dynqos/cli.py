@@ -161,6 +161,10 @@ def _cmd_edge(args: argparse.Namespace, config: Config) -> int:
 
         run_router(config, ready=lambda: _ready_line("router"), health_file=_health_path(args))
         return 0
+    if name == "qos":
+        from dynqos.edge.qos_agent import preflight
+
+        preflight(config)  # the operator settings, before any network is opened
     bus = open_bus(config.zenoh, Role.EDGE)
     try:
         worker: Any

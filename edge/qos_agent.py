@@ -37,7 +37,7 @@ from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import QosGrant, QosRequest
 from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
-from dynqos.edge.qod_client import QodClient, QodError, SessionInfo
+from dynqos.edge.qod_client import QodClient, QodError, SessionInfo, read_secret
 from dynqos.edge.qos_grants import DroneGrant, Op, QodStatus, Session
 from dynqos.edge.service import Service
 
@@ -45,6 +45,23 @@ log = logging.getLogger(__name__)
 
 SHUTDOWN_S = 10.0  # deleting every session on SIGTERM ends within this
 FORGET_AFTER = 10  # a silent drone with no session is forgotten after this many drone timeouts
+
+
+def preflight(config: Config) -> None:
+    """What the operator settings need, checked before any network is opened: an IP address for the
+    application server (the network identifies the flow by address) and a readable client secret."""
+    if config.qos.backend != "camara":
+        return
+    server = config.qos.camara.application_server or config.zenoh.edge_host
+    try:
+        ipaddress.ip_network(server, strict=False)
+    except ValueError:
+        raise ConfigError(
+            "qos.camara.application_server",
+            f"{server!r} is not an IP address: the network identifies the flow by address",
+        ) from None
+    if config.qos.camara.token_url:
+        read_secret(config.qos.camara.client_secret_file)
 
 
 class QosAgent:
@@ -69,14 +86,7 @@ class QosAgent:
         self.errors = 0
         self.cleaned = 0
         self._logged: set[tuple[str, int, str]] = set()
-        if self.qos.backend == "camara":
-            try:
-                ipaddress.ip_network(self.server, strict=False)
-            except ValueError:
-                raise ConfigError(
-                    "qos.camara.application_server",
-                    f"{self.server!r} is not an IP address: the network identifies the flow by address",
-                ) from None
+        preflight(config)
 
     # ---- the process --------------------------------------------------------------------------------------
 
