@@ -257,18 +257,14 @@ def _qos_network(
     operator saw."""
     out: dict[str, Any] = {"backend": scenario.qos_backend, "decision_to_available_s": None,
                            "decision_to_rtt_back_s": None}  # fmt: skip
-    if bg_ns is not None:
-        after = [s for s in statuses if s.stamp_ns >= bg_ns and s.flow == "priority"]
-        before = [s for s in statuses if s.stamp_ns < bg_ns]
-        if before and before[-1].flow == "priority":
-            after = [before[-1], *after]  # already on the priority flow when the load came
-        if after:
-            decided = max(after[0].changed_ns, bg_ns) if after[0].changed_ns else after[0].stamp_ns
-            granted = next(
-                (s.stamp_ns for s in statuses if s.stamp_ns >= decided and s.qos_grant == "available"), None
-            )
-            out["decision_to_available_s"] = None if granted is None else (granted - decided) / 1e9
-            out["decision_to_rtt_back_s"] = _rtt_back_after(rtts, decided, baseline)
+    switch_s, _ = _first_qos_switch(statuses, bg_ns)  # 0.0: already on the priority flow at the load
+    if bg_ns is not None and switch_s is not None:
+        decided = bg_ns + round(switch_s * 1e9)
+        granted = next(
+            (s.stamp_ns for s in statuses if s.stamp_ns >= decided and s.qos_grant == "available"), None
+        )
+        out["decision_to_available_s"] = None if granted is None else (granted - decided) / 1e9
+        out["decision_to_rtt_back_s"] = _rtt_back_after(rtts, decided, baseline)
     out["grant_at_end"] = statuses[-1].qos_grant.value if statuses else None
     out["agent_heard"] = any(s.qos_agent for s in statuses)
     if qod is not None:

@@ -24,6 +24,7 @@ import aiohttp
 
 from dynqos.common.config import CamaraConfig
 from dynqos.common.errors import ConfigError
+from dynqos.sim.qod_schema import ports_named
 
 log = logging.getLogger(__name__)
 
@@ -76,11 +77,7 @@ class SessionInfo:
         return cls(body["sessionId"], status, str(body.get("statusInfo", "")), expires, body)
 
     def server_ports(self) -> list[int]:
-        spec = self.raw.get("applicationServerPorts") or {}
-        ports = list(spec.get("ports") or [])
-        for r in spec.get("ranges") or []:
-            ports.extend(range(int(r["from"]), int(r["to"]) + 1))
-        return ports
+        return sorted(ports_named(self.raw.get("applicationServerPorts")))
 
 
 def read_secret(path: str) -> str:

@@ -262,7 +262,7 @@ class QosAgent:
         assert self.client is not None
         device = self.camara.devices[grant.uav].as_api()
         try:
-            mine = [s for s in await self.client.retrieve(device) if self.port in s.server_ports()]
+            mine = await self._ours(device)
         except QodError as exc:
             grant.failed(Op.CREATE, f"409, then retrieve-sessions: {exc}", self.clock.now_ns())
             return
@@ -278,6 +278,11 @@ class QosAgent:
             with contextlib.suppress(QodError):
                 await self.client.delete(info.session_id)
                 log.info("qos agent: %s deleted ended session %s (409 on create)", grant.uav, info.session_id)
+
+    async def _ours(self, device: dict[str, Any]) -> list[SessionInfo]:
+        """The device's sessions that name our priority port: the ones this agent (or an earlier one) made."""
+        assert self.client is not None
+        return [s for s in await self.client.retrieve(device) if self.port in s.server_ports()]
 
     def _session_body(self, device: dict[str, Any]) -> dict[str, Any]:
         address = "ipv6Address" if ":" in self.server else "ipv4Address"
@@ -310,11 +315,10 @@ class QosAgent:
         assert self.client is not None
         for uav, device in self.camara.devices.items():
             try:
-                for info in await self.client.retrieve(device.as_api()):
-                    if self.port in info.server_ports():
-                        await self.client.delete(info.session_id)
-                        self.cleaned += 1
-                        log.warning("qos agent: deleted %s's session %s %s", uav, info.session_id, whose)
+                for info in await self._ours(device.as_api()):
+                    await self.client.delete(info.session_id)
+                    self.cleaned += 1
+                    log.warning("qos agent: deleted %s's session %s %s", uav, info.session_id, whose)
             except QodError as exc:
                 log.warning("qos agent: cannot check %s for leftover sessions (%s)", uav, exc)
 

@@ -25,6 +25,7 @@ from dynqos.sim.qod_schema import (
     EVENT_TYPE,
     EXTEND_SESSION,
     RETRIEVE_SESSIONS,
+    ports_named,
     problem,
 )
 
@@ -50,11 +51,7 @@ class Session:
     ended_wall: float | None = None
 
     def ports(self) -> set[int]:
-        spec = self.body.get("applicationServerPorts") or {}
-        out = set(spec.get("ports") or [])
-        for r in spec.get("ranges") or []:
-            out.update(range(r["from"], r["to"] + 1))
-        return out
+        return ports_named(self.body.get("applicationServerPorts"))
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,7 +154,7 @@ class Operator:
             return self._reject(422, "QUALITY_ON_DEMAND.QOS_PROFILE_NOT_APPLICABLE", why), []
         now = self.monotonic()
         self._expire_and_settle(now)
-        ports = Session("", uav, {}, body, 1).ports()
+        ports = ports_named(body.get("applicationServerPorts"))
         for other in self.sessions.values():
             if other.uav == uav and (not ports or not other.ports() or ports & other.ports()):
                 self.counters.conflicts += 1

@@ -147,6 +147,15 @@ QOS_STATUS_CHANGED: dict[str, Any] = {
 }
 
 
+def ports_named(spec: dict[str, Any] | None) -> set[int]:
+    """The ports a PortsSpec names (its `ports` and every port of its `ranges`); empty when absent."""
+    spec = spec or {}
+    out = set(spec.get("ports") or [])
+    for r in spec.get("ranges") or []:
+        out.update(range(int(r["from"]), int(r["to"]) + 1))
+    return out
+
+
 def problem(schema: dict[str, Any], value: Any) -> str | None:
     """None if `value` fits `schema`, else the first violation, as a CAMARA error message would say it."""
     error = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(schema).iter_errors(value))

@@ -73,6 +73,7 @@ def busy_ports() -> Iterator[tuple[int, int, int]]:
 
 def _cases(closed: int, closed2: int, taken: int, tmp: Path) -> list[tuple[list[str], str]]:
     unreachable = ["--set", f"zenoh.default_port={closed}", "--set", "zenoh.connect_timeout_s=1"]
+    camara = ["edge", "qos", "--set", "qos.backend=camara", "--set", "qos.camara.api_root=http://127.0.0.1:1"]
     return [
         (["edge", "mpc", *unreachable], "cannot open zenoh edge session"),
         (["edge", "planner", *unreachable], "cannot open zenoh edge session"),
@@ -81,12 +82,7 @@ def _cases(closed: int, closed2: int, taken: int, tmp: Path) -> list[tuple[list[
         (["edge", "qos", "--set", "qos.backend=camara"], "qos.camara.api_root: is required"),
         (
             [
-                "edge",
-                "qos",
-                "--set",
-                "qos.backend=camara",
-                "--set",
-                "qos.camara.api_root=http://127.0.0.1:1",
+                *camara,
                 "--set",
                 "qos.camara.token_url=http://127.0.0.1:1/token",
                 "--set",
@@ -96,19 +92,7 @@ def _cases(closed: int, closed2: int, taken: int, tmp: Path) -> list[tuple[list[
             ],
             "cannot read",
         ),
-        (
-            [
-                "edge",
-                "qos",
-                "--set",
-                "qos.backend=camara",
-                "--set",
-                "qos.camara.api_root=http://127.0.0.1:1",
-                "--set",
-                "zenoh.edge_host=edge.example",
-            ],
-            "is not an IP address",
-        ),
+        ([*camara, "--set", "zenoh.edge_host=edge.example"], "is not an IP address"),
         (["sim", "cell", "--set", "cell.qod=true"], "needs a control port"),
         (
             ["sim", "cell", "--set", "cell.qod=true", "--set", "cell.qod_auth=true"],
