@@ -623,6 +623,27 @@ class CamaraConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class ArbiterConfig:
+    """[qos.arbiter]: the budget and the timers of `policy = "arbiter"` (edge/arbiter.py, docs/fleet.md)."""
+
+    max_grants: int = -1  # at most this many drones hold priority at once (-1: no limit by count)
+    max_share: float = 1.0  # ...and together offer at most this share of uplink_mbps (1: no limit)
+    uplink_mbps: float = 0.0  # the cell's uplink the share is of (what the operator contracts)
+    min_hold_s: float = 3.0  # a grant is revoked for higher latency alone only after this long
+    rotate_after_s: float = 30.0  # drones of equal need take turns this often
+
+    def __post_init__(self) -> None:
+        _require(-1 <= self.max_grants <= 10_000, "max_grants", "must be -1 (no limit) or 0..10000")
+        _require(0 < self.max_share <= 1, "max_share", "must be in (0, 1]")
+        _require(0 <= self.uplink_mbps <= 1e6, "uplink_mbps", "must be in 0..1000000 Mbit/s")
+        _require(self.max_share == 1 or self.uplink_mbps > 0, "uplink_mbps",
+                 "is required (> 0) when max_share is below 1")  # fmt: skip
+        _require(0 <= self.min_hold_s <= 3600, "min_hold_s", "must be in 0..3600 s")
+        _require(0.1 <= self.rotate_after_s <= 3600, "rotate_after_s", "must be in 0.1..3600 s")
+        _require(self.rotate_after_s >= self.min_hold_s, "rotate_after_s", "must be at least min_hold_s")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class QosConfig:
     """[qos]: how the network is asked for the priority flow (`dynqos edge qos`, docs/qos.md)."""
 
@@ -633,7 +654,10 @@ class QosConfig:
     agent_timeout_s: float = 3.0  # the drone reports "no agent" after this long without a grant
     grant_interval_s: float = 1.0  # the agent repeats each drone's grant this often
     health_interval_s: float = 5.0
+    # Who gets priority: every drone that asks, or (arbiter) the neediest within [qos.arbiter]'s budget.
+    policy: Literal["grant-all", "arbiter"] = "grant-all"
     camara: CamaraConfig = field(default_factory=CamaraConfig)
+    arbiter: ArbiterConfig = field(default_factory=ArbiterConfig)
 
     def __post_init__(self) -> None:
         for name in ("hold_down_s", "request_interval_s", "drone_timeout_s", "agent_timeout_s",
@@ -647,6 +671,10 @@ class QosConfig:
                  "must exceed grant_interval_s")  # fmt: skip
         if self.backend == "camara":
             _require(bool(self.camara.api_root), "camara.api_root", 'is required with backend = "camara"')
+        # With links the network prioritises whoever uses the priority port: a revoked grant could not
+        # be taken back, so the arbiter's budget would be a wish.
+        _require(self.policy != "arbiter" or self.backend == "camara", "policy",
+                 'the arbiter needs backend = "camara" (a network that enforces its grants)')  # fmt: skip
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -11,6 +11,7 @@ declared on, so a receiver subscribes to both flows with one wildcard:
     dynqos/<uav>/ref                      planner -> MPC reference
     dynqos/<uav>/up/<flow>/qos            drone -> QoS agent: priority wanted or not (QosRequest)
     dynqos/<uav>/down/qos                 QoS agent -> drone: the network's grant (QosGrant)
+    dynqos/<uav>/down/qos/decision        QoS agent's arbiter -> drone and tools (QosDecision)
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ class Downlink(str, enum.Enum):
     DETECTIONS = "down/detections"
     REFERENCE = "ref"
     QOS_GRANT = "down/qos"
+    QOS_DECISION = "down/qos/decision"
 
 
 def check_uav_id(uav: object) -> str:

@@ -33,6 +33,7 @@ ACCEL_LIMIT_MPS2 = 100.0
 LATENCY_LIMIT_MS = 1e7
 
 CAMERA_KINDS = ("rgb", "depth")
+RISK_LEVELS = ("HR", "MR", "LR", "NA")
 CAMERA_ENCODINGS = ("jpeg", "png", "png16", "zstd16", "raw8", "raw16")
 
 _position = f.vector(3, -POSITION_LIMIT_M, POSITION_LIMIT_M)
@@ -313,10 +314,46 @@ class QosRequest(Message):
     change and repeated every [qos] request_interval_s; the agent forgets a drone it no longer hears."""
 
     TYPE: ClassVar[str] = "QosRequest"
-    SCHEMA: ClassVar[dict[str, f.Validator]] = {**_COMMON, "stamp_ns": f.integer(), "want": f.boolean}
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **_COMMON,
+        "stamp_ns": f.integer(),
+        "want": f.boolean,
+        "risk": f.choice(RISK_LEVELS),
+        "latency_excess": f.real(-1.0, 1.0),
+        "offered_mbps": f.real(0.0, 1e5),
+    }
 
     stamp_ns: int
     want: bool
+    # The drone's need, for an arbiter that cannot grant everyone (edge/arbiter.py): its supervisor's
+    # risk level, P_lat minus th_lat (0 while there is no latency evidence), and what it sends upward.
+    risk: str = "NA"
+    latency_excess: float = 0.0
+    offered_mbps: float = 0.0
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class QosDecision(Message):
+    """The QoS agent's arbiter to everyone listening: one decision on one drone's priority, and why
+    (`dynqos/<uav>/down/qos/decision`; tools subscribe to every drone's)."""
+
+    TYPE: ClassVar[str] = "QosDecision"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **_COMMON,
+        "stamp_ns": f.integer(),
+        "action": f.choice(("grant", "deny", "revoke", "release")),
+        "reason": f.text(500),
+        "risk": f.choice(RISK_LEVELS),
+        "latency_excess": f.real(-1.0, 1.0),
+        "holders": f.sequence(f.uav_id, max_len=1024),
+    }
+
+    stamp_ns: int
+    action: str
+    reason: str
+    risk: str  # the drone's need as the arbiter saw it
+    latency_excess: float
+    holders: tuple[str, ...]  # who holds priority after this decision
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -352,6 +389,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         SupervisorStatus,
         QosRequest,
         QosGrant,
+        QosDecision,
     )
 }
 

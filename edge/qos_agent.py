@@ -10,6 +10,10 @@ never do. Backends ([qos] backend, docs/qos.md):
 - `camara`: one CAMARA Quality-on-Demand session per drone (edge/qod_client.py), created, followed,
   extended and deleted by the rules in edge/qos_grants.py.
 
+With `[qos] policy = "arbiter"` (camara only) a drone gets a session only while the arbiter
+(edge/arbiter.py) admits it; every decision is logged, counted and published on
+`dynqos/<uav>/down/qos/decision`.
+
 One asyncio task per drone: a slow or failing API call for one drone never holds up another, and
 nothing here is on the drone's control path. On start the sessions a crashed agent left behind are
 found (retrieve-sessions per configured device) and deleted; on SIGTERM every session it holds is.
@@ -34,9 +38,10 @@ from dynqos.common.clock import NS_PER_S, Clock, MonotonicClock, to_ns
 from dynqos.common.config import Config
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import QosGrant, QosRequest
+from dynqos.common.messages import QosDecision, QosGrant, QosRequest
 from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
+from dynqos.edge.arbiter import Action, Arbiter, Decision, Need
 from dynqos.edge.qod_client import QodClient, QodError, SessionInfo, read_secret
 from dynqos.edge.qos_grants import DroneGrant, Op, QodStatus, Session
 from dynqos.edge.service import Service
@@ -86,6 +91,11 @@ class QosAgent:
         self.errors = 0
         self.cleaned = 0
         self._logged: set[tuple[str, int, str]] = set()
+        self.arbiter = Arbiter(config.qos.arbiter) if config.qos.policy == "arbiter" else None
+        self.needs: dict[str, Need] = {}  # each drone's need, from its latest request
+        self.refusals: dict[str, str] = {}  # why the arbiter does not admit a drone
+        self.decision_pubs: dict[str, Publisher] = {}
+        self.decisions = {action: 0 for action in Action}
         preflight(config)
 
     # ---- the process --------------------------------------------------------------------------------------
@@ -107,7 +117,14 @@ class QosAgent:
                 if self.camara.sink_listen:
                     sink = await self._serve_sink()
             forward.start()
-            log.info("qos agent: backend %s, priority port %d, ready", self.qos.backend, self.port)
+            if self.arbiter is not None:
+                stack.push_async_callback(
+                    _cancel, asyncio.get_running_loop().create_task(self._arbitrate_loop())
+                )
+            log.info(
+                "qos agent: backend %s, policy %s, priority port %d, ready",
+                self.qos.backend, self.qos.policy, self.port,
+            )  # fmt: skip
             if ready is not None:
                 ready()
             self.service.write_health("ready")
@@ -143,11 +160,76 @@ class QosAgent:
                 keys.downlink(uav, Downlink.QOS_GRANT), Priority.INTERACTIVE_HIGH
             )
             self.tasks[uav] = asyncio.get_running_loop().create_task(self._drone(uav))
+            if self.arbiter is not None:
+                grant.admit(False, "waiting for the arbiter")
+                self.decision_pubs[uav] = self.bus.publisher(
+                    keys.downlink(uav, Downlink.QOS_DECISION), Priority.INTERACTIVE_HIGH
+                )
             log.info("qos agent: %s asks for the first time (want=%s)", uav, message.want)
         if message.want != grant.wanted:
             log.info("qos agent: %s %s priority", uav, "wants" if message.want else "no longer wants")
         grant.request(message.want, message.seq, self.clock.now_ns())
+        self.needs[uav] = Need(
+            risk=message.risk, latency_excess=message.latency_excess, offered_mbps=message.offered_mbps
+        )
+        self._arbitrate()
         self.wakes[uav].set()
+
+    # ---- the arbiter (policy "arbiter") ---------------------------------------------------------------
+
+    async def _arbitrate_loop(self) -> None:
+        """Decide again when a min-hold or turn ends, or a drone goes silent or its hold-down ends."""
+        assert self.arbiter is not None
+        while not self.stopping.is_set():
+            now = self.clock.now_ns()
+            wait_s = min(0.5, max(0.001, (self.arbiter.next_change_ns(now) - now) / NS_PER_S))
+            with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
+                await asyncio.wait_for(self.stopping.wait(), wait_s)
+            if not self.stopping.is_set():
+                self._arbitrate()
+
+    def _arbitrate(self) -> None:
+        """The arbiter's decisions for the drones' needs now; each drone's grant follows them."""
+        if self.arbiter is None:
+            return
+        now = self.clock.now_ns()
+        needs: dict[str, Need] = {}
+        for uav, grant in self.drones.items():
+            need = self.needs.get(uav, Need())
+            if grant.wants(now):
+                needs[uav] = need
+            elif grant.lingering(now):
+                needs[uav] = Need(offered_mbps=need.offered_mbps, lingering=True)
+        for decision in self.arbiter.decide(needs, now):
+            self._decided(decision, now)
+        for uav, grant in self.drones.items():
+            admitted = uav in self.arbiter.holders
+            reason = self.refusals.get(uav, "waiting for the arbiter")
+            if (admitted, reason if not admitted else "") != (grant.admitted, grant.arbiter_reason):
+                grant.admit(admitted, f"the arbiter: {reason}" if not admitted else "")
+                self.wakes[uav].set()
+
+    def _decided(self, decision: Decision, now: int) -> None:
+        assert self.arbiter is not None
+        uav, action = decision.uav, decision.action
+        self.decisions[action] += 1
+        if action in (Action.DENY, Action.REVOKE):
+            self.refusals[uav] = decision.reason
+        else:
+            self.refusals.pop(uav, None)
+        level = logging.WARNING if action is Action.REVOKE else logging.INFO
+        log.log(level, "qos agent: arbiter %s %s: %s", action.value, uav, decision.reason)
+        publisher = self.decision_pubs.get(uav)
+        if publisher is None:
+            return
+        self.seq += 1
+        publisher.put(
+            QosDecision(
+                uav=uav, seq=self.seq, stamp_ns=now, action=action.value, reason=decision.reason[:500],
+                risk=decision.need.risk, latency_excess=max(-1.0, min(1.0, decision.need.latency_excess)),
+                holders=tuple(sorted(self.arbiter.holders)),
+            )
+        )  # fmt: skip
 
     # ---- one drone --------------------------------------------------------------------------------------
 
@@ -173,7 +255,7 @@ class QosAgent:
                         "qos agent: %s grant %s%s",
                         uav,
                         state.value,
-                        f" ({grant.reason})" if grant.reason else "",
+                        f" ({grant.why()})" if grant.why() else "",
                     )
                 self._tell(grant, state)
                 told, next_tell = state, now + repeat_ns
@@ -192,9 +274,12 @@ class QosAgent:
         self.drones.pop(uav, None)
         self.wakes.pop(uav, None)
         self.tasks.pop(uav, None)
-        publisher = self.publishers.pop(uav, None)
-        if publisher is not None:
-            publisher.close()
+        self.needs.pop(uav, None)
+        self.refusals.pop(uav, None)
+        for publishers in (self.publishers, self.decision_pubs):
+            publisher = publishers.pop(uav, None)
+            if publisher is not None:
+                publisher.close()
 
     def _tell(self, grant: DroneGrant, state: Grant) -> None:
         self.seq += 1
@@ -202,7 +287,7 @@ class QosAgent:
         self.publishers[grant.uav].put(
             QosGrant(
                 uav=grant.uav, seq=self.seq, grant=state, backend=self.qos.backend, session_id=session_id,
-                reason=grant.reason[:300], answers_seq=grant.request_seq,
+                reason=grant.why()[:300], answers_seq=grant.request_seq,
             )
         )  # fmt: skip
 
@@ -390,7 +475,20 @@ class QosAgent:
     def health(self) -> str:
         sessions = sum(g.session is not None for g in self.drones.values())
         calls = f" api_calls={self.client.calls} retries={self.client.retries}" if self.client else ""
+        arbiter = ""
+        if self.arbiter is not None:
+            d = self.decisions
+            arbiter = (
+                f" holders={len(self.arbiter.holders)} grants={d[Action.GRANT]} denials={d[Action.DENY]} "
+                f"revocations={d[Action.REVOKE]} releases={d[Action.RELEASE]}"
+            )
         return (
             f"drones={len(self.drones)} sessions={sessions} errors={self.errors} "
-            f"leftovers_cleaned={self.cleaned}{calls} rejected={self.stats.rejected}"
+            f"leftovers_cleaned={self.cleaned}{calls}{arbiter} rejected={self.stats.rejected}"
         )
+
+
+async def _cancel(task: asyncio.Task[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task

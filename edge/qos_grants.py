@@ -11,7 +11,9 @@ back; `grant` is what the drone is told. Rules a user relies on live here, each 
 - a session the network ended (UNAVAILABLE) is deleted at once (the API wants its resources released
   before another is created) and asked for again after a back-off while still wanted;
 - a refusal (400/403/404/422) or an API that keeps failing (429, 5xx, timeouts) is a grant of
-  UNAVAILABLE with the reason, and the next attempt waits, doubling up to 8x.
+  UNAVAILABLE with the reason, and the next attempt waits, doubling up to 8x;
+- a drone the arbiter does not admit (policy "arbiter", edge/arbiter.py) is told UNAVAILABLE with the
+  arbiter's reason, and a session it holds is deleted at once: a revocation frees the budget now.
 """
 
 from __future__ import annotations
@@ -76,6 +78,22 @@ class DroneGrant:
         self._next_read_ns = 0
         self._next_extend_ns = 0
         self._next_delete_ns = 0
+        self.admitted = True  # the arbiter lets it hold priority (always, with policy "grant-all")
+        self.arbiter_reason = ""
+
+    # ---- what the arbiter says --------------------------------------------------------------------------
+
+    def admit(self, admitted: bool, reason: str) -> None:
+        self.admitted = admitted
+        self.arbiter_reason = "" if admitted else reason
+
+    def why(self) -> str:
+        """The reason the drone is told with its grant."""
+        return self.reason if self.admitted else self.arbiter_reason
+
+    def lingering(self, now_ns: int) -> bool:
+        """It no longer wants priority but still holds its session (the hold-down)."""
+        return self.session is not None and not self.wants(now_ns) and self.admitted
 
     # ---- what the drone says ----------------------------------------------------------------------------
 
@@ -110,13 +128,14 @@ class DroneGrant:
     # ---- what to do -------------------------------------------------------------------------------------
 
     def next_op(self, now_ns: int) -> Op | None:
-        wants = self._track(now_ns)
+        wants = self._track(now_ns) and self.admitted
         if not self.camara:
             return None
         s = self.session
         if s is None:
             return Op.CREATE if wants and now_ns >= self._retry_at_ns else None
-        if s.status is QodStatus.UNAVAILABLE or (not wants and self._released(now_ns)):
+        revoked = not self.admitted
+        if s.status is QodStatus.UNAVAILABLE or revoked or (not wants and self._released(now_ns)):
             return Op.DELETE if now_ns >= self._next_delete_ns else None
         if now_ns >= self._next_read_ns or (s.expires_ns is not None and now_ns >= s.expires_ns):
             return Op.POLL
@@ -145,6 +164,8 @@ class DroneGrant:
         return min(future) if future else now_ns + self._watch_ns
 
     def grant(self, now_ns: int) -> Grant:
+        if not self.admitted:
+            return Grant.UNAVAILABLE if self.wants(now_ns) or self.session is not None else Grant.NONE
         if not self.camara:
             return Grant.AVAILABLE if self.wants(now_ns) else Grant.NONE
         s = self.session

@@ -185,8 +185,11 @@ class OnboardCore:
         self._agent_timeout_ns = to_ns(config.qos.agent_timeout_s)
         self._request_period_ns = to_ns(config.qos.request_interval_s)
         self._requested: bool | None = None  # the last want sent (None: none yet)
+        self._requested_risk = ""  # the risk level that request carried
         self._next_request_ns = start_ns
         self._request_seq = 0
+        self._offered_at: tuple[int, int] = (start_ns, 0)  # (when, camera bytes) at the last request
+        self._offered_mbps = 0.0
 
     # ---- the one entry point ------------------------------------------------------------------------
 
@@ -260,13 +263,29 @@ class OnboardCore:
         # a state that already wanted it: not on the first offboard ticks, nor after a watchdog in q1.
         in_qa = self.decision is not None and self.decision.state is SupervisorState.QA
         want = self.qos == "priority" or (flow is Flow.PRIORITY and (not in_qa or bool(self._requested)))
-        if want == self._requested and now < self._next_request_ns:
+        signals = self.decision.signals if self.decision is not None else None
+        risk = signals.risk.value if signals is not None else "NA"
+        new_need = want and risk != self._requested_risk  # an arbiter ranks by risk: say so at once
+        if want == self._requested and not new_need and now < self._next_request_ns:
             return None
-        self._requested, self._next_request_ns = want, now + self._request_period_ns
+        self._requested, self._requested_risk = want, risk
+        self._next_request_ns = now + self._request_period_ns
         self._request_seq += 1
-        return Outgoing(
-            Stream.QOS, flow, QosRequest(uav=self.uav, seq=self._request_seq, stamp_ns=now, want=want)
-        )
+        p_lat = signals.p_lat if signals is not None else None
+        excess = 0.0 if p_lat is None else p_lat - self.config.supervisor.th_lat
+        request = QosRequest(
+            uav=self.uav, seq=self._request_seq, stamp_ns=now, want=want, risk=risk,
+            latency_excess=excess, offered_mbps=self._offered(now),
+        )  # fmt: skip
+        return Outgoing(Stream.QOS, flow, request)
+
+    def _offered(self, now: int) -> float:
+        """The camera's bytes per second since the last request (over at least 0.2 s), in Mbit/s."""
+        since, sent = self._offered_at
+        if now - since >= NS_PER_S // 5:
+            self._offered_mbps = (self.counters.camera_bytes - sent) * 8e3 / (now - since)
+            self._offered_at = (now, self.counters.camera_bytes)
+        return self._offered_mbps
 
     def _engage(self, fc: FcState) -> None:
         """The FC flies offboard: from now on every tick sends a setpoint, starting from a hold here."""

@@ -80,6 +80,11 @@ def test_effective_config_round_trips_through_toml(tmp_path: Path) -> None:
         ("[onboard]\ncamera_pace_mbps = -5\n", "onboard.camera_pace_mbps", "0: no pacing"),
         ("[onboard]\ncamera_part_bytes = 100\n", "onboard.camera_part_bytes", "512..1048576"),
         ("[vehicle]\ngust_tau_s = 0\n", "vehicle.gust_tau_s", "0.05..600 s"),
+        ("[qos]\npolicy = 'arbiter'\n", "qos.policy", 'needs backend = "camara"'),
+        ("[qos]\npolicy = 'fair'\n", "qos.policy", "not one of"),
+        ("[qos.arbiter]\nmax_share = 0.5\n", "qos.arbiter.uplink_mbps", "required"),
+        ("[qos.arbiter]\nmax_grants = -2\n", "qos.arbiter.max_grants", "-1 (no limit)"),
+        ("[qos.arbiter]\nmin_hold_s = 10\nrotate_after_s = 5\n", "qos.arbiter.rotate_after_s", "min_hold_s"),
     ],
 )
 def test_bad_values_name_file_key_and_reason(tmp_path: Path, text: str, key: str, reason: str) -> None:

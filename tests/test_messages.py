@@ -140,7 +140,28 @@ statuses = st.builds(
     qos_grant=st.sampled_from(Grant),
     qos_agent=st.booleans(),
 )
-qos_requests = st.builds(m.QosRequest, uav=uav_ids, seq=u63, stamp_ns=u63, want=st.booleans())
+risks = st.sampled_from(m.RISK_LEVELS)
+qos_requests = st.builds(
+    m.QosRequest,
+    uav=uav_ids,
+    seq=u63,
+    stamp_ns=u63,
+    want=st.booleans(),
+    risk=risks,
+    latency_excess=reals(-1, 1),
+    offered_mbps=reals(0, 1e5),
+)
+qos_decisions = st.builds(
+    m.QosDecision,
+    uav=uav_ids,
+    seq=u63,
+    stamp_ns=u63,
+    action=st.sampled_from(["grant", "deny", "revoke", "release"]),
+    reason=st.text(max_size=500),
+    risk=risks,
+    latency_excess=reals(-1, 1),
+    holders=st.lists(uav_ids, max_size=8).map(tuple),
+)
 qos_grants = st.builds(
     m.QosGrant,
     uav=uav_ids,
@@ -152,7 +173,16 @@ qos_grants = st.builds(
     answers_seq=u63,
 )
 any_message = st.one_of(
-    states, commands(), frames, acks, detections(), references(), statuses, qos_requests, qos_grants
+    states,
+    commands(),
+    frames,
+    acks,
+    detections(),
+    references(),
+    statuses,
+    qos_requests,
+    qos_grants,
+    qos_decisions,
 )
 
 
@@ -232,6 +262,7 @@ def test_wrong_typed_fields_give_decode_error_naming_the_field(
             m.SupervisorStatus: statuses,
             m.QosRequest: qos_requests,
             m.QosGrant: qos_grants,
+            m.QosDecision: qos_decisions,
         }[cls]
     )
     body = msgpack.unpackb(m.encode(example), raw=False)

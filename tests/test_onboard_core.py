@@ -58,6 +58,7 @@ class Rig:
     offboard: bool = True
     fc: FcState | None = None
     spaciousness_m: float | None = 8.0
+    frame_bytes: int = 0  # > 0: the camera hands the bus an image of this size every tick
     pending: list[tuple[int, Received]] = field(default_factory=list)
     outputs: list[TickOutput] = field(default_factory=list)
     extra: list[Received] = field(default_factory=list)
@@ -73,9 +74,10 @@ class Rig:
         due = [r for t, r in self.pending if t <= self.now]
         self.pending = [(t, r) for t, r in self.pending if t > self.now]
         downlink, self.extra = [*due, *self.extra], []
+        frames = [FrameSent(len(self.outputs), "rgb", self.now, self.frame_bytes)] if self.frame_bytes else []
         out = self.core.tick(
             TickInput(now_ns=self.now, fc=self.fc, downlink=downlink, offboard=self.offboard,
-                      spaciousness_m=self.spaciousness_m)
+                      spaciousness_m=self.spaciousness_m, frames_sent=frames)
         )  # fmt: skip
         for item in out.publish:
             # Everything the core publishes must survive the codec: a status it cannot encode is a crash.
@@ -417,3 +419,26 @@ def test_priority_stays_wanted_into_the_fallback_it_led_to_and_is_released_after
     rig.run_until(ControlSource.EDGE, 20.0)
     rig.run(2.0)
     assert requests(rig.outputs)[-1] == (Flow.DEFAULT, False)
+
+
+def test_the_request_carries_the_drones_need_and_a_new_risk_is_said_at_once() -> None:
+    rig = _loaded_rig("dynamic", spaciousness_m=4.0)  # MR (3..5 m), latency high: q3, priority wanted
+    rig.frame_bytes = 12_500  # 50 images a second: 5 Mbit/s
+    rig.run(3.0)
+    asked = [p.message for o in rig.outputs for p in o.publish if isinstance(p.message, QosRequest)]
+    wanted = [r for r in asked if r.want]
+    assert wanted
+    assert wanted[-1].risk == "MR"
+    assert wanted[-1].latency_excess > 0  # P_lat over th_lat: the supervisor sees high latency
+    assert wanted[-1].offered_mbps == pytest.approx(5.0, rel=0.05)
+    rig.spaciousness_m = 1.0  # clutter closer than 3 m: high risk
+    before = len(rig.outputs)
+    for _ in range(50):  # within a second (the repeat period), well before it
+        rig.tick()
+        new = [
+            p.message for o in rig.outputs[before:] for p in o.publish if isinstance(p.message, QosRequest)
+        ]
+        if any(r.risk == "HR" for r in new):
+            break
+    assert any(r.risk == "HR" and r.want for r in new)
+    assert len(rig.outputs) - before < 50

@@ -4,6 +4,7 @@ and that none is left behind, with each backend."""
 
 from __future__ import annotations
 
+import contextlib
 import http.server
 import json
 import signal
@@ -74,6 +75,13 @@ def rig(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Rig]:
     cell_port = free_tcp_port()
     config = tmp_path / "qos.toml"
     write_config(config, zcfg, cell_port, backend, cell, camara)
+    with running(config, zcfg, cell_port) as started:
+        yield started
+
+
+@contextlib.contextmanager
+def running(config: Path, zcfg: ZenohConfig, cell_port: int) -> Iterator[Rig]:
+    """The router, the emulated cell and the agent with `config`; each stopped by its pid after."""
     procs: dict[str, DynqosProcess] = {}
     try:
         procs["router"] = DynqosProcess(["edge", "router"], config)

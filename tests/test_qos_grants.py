@@ -157,3 +157,34 @@ def test_a_notification_makes_the_session_read_at_once() -> None:
     assert g.next_op(0) is None
     g.read_now()
     assert g.next_op(0) is Op.POLL
+
+
+def test_a_drone_the_arbiter_does_not_admit_is_told_why_and_its_session_goes_at_once() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.admit(False, "the arbiter: waiting")
+    g.request(True, 1, 0)
+    assert next_op(g, 0) is None  # no session is asked for before the arbiter admits it
+    assert g.grant(0) is Grant.UNAVAILABLE
+    assert g.why() == "the arbiter: waiting"
+    g.admit(True, "")
+    assert next_op(g, 0) is Op.CREATE
+    g.observed(available(60 * S), 0)
+    assert g.grant(0) is Grant.AVAILABLE
+    g.admit(False, "the arbiter: for uav2 (HR)")  # revoked while still wanted: no hold-down
+    assert next_op(g, S) is Op.DELETE
+    assert g.grant(S) is Grant.UNAVAILABLE
+    g.deleted(S)
+    assert next_op(g, 2 * S) is None
+    assert not g.lingering(2 * S)
+
+
+def test_a_drone_in_its_hold_down_is_lingering_until_its_session_is_gone() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.observed(available(60 * S), 0)
+    assert not g.lingering(0)
+    g.request(False, 2, S)
+    assert g.lingering(2 * S)
+    assert next_op(g, 6 * S) is Op.DELETE  # the hold-down (5 s) is over
+    g.deleted(6 * S)
+    assert not g.lingering(6 * S)
