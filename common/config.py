@@ -342,6 +342,7 @@ class VehicleSimConfig:
     offboard_loss_s: float = 1.0
     lockstep: bool = False  # advance 20 ms per answer from the offboard peer instead of real time
     world_file: str = ""  # TOML/JSON world for contact checks; "" = the default arena
+    start_m: tuple[float, float] = (0.0, 0.0)  # where it stands before take-off (north, east), local NED
 
     def __post_init__(self) -> None:
         for name in ("offboard_bind_port", "offboard_remote_port", "gcs_bind_port", "gcs_remote_port"):
@@ -352,6 +353,7 @@ class VehicleSimConfig:
         _require(0.05 <= self.gust_tau_s <= 600, "gust_tau_s", "must be in 0.05..600 s")
         _require(0.5 <= self.takeoff_alt_m <= 100, "takeoff_alt_m", "must be in 0.5..100 m")
         _require(0.1 <= self.offboard_loss_s <= 60, "offboard_loss_s", "must be in 0.1..60 s (COM_OF_LOSS_T)")
+        _require(all(abs(c) <= 1e4 for c in self.start_m), "start_m", "must be within 10 km of the origin")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -24,6 +24,7 @@ log = logging.getLogger("dynqos")
 Handler = Callable[[argparse.Namespace, Config], int]
 
 EXIT_USAGE = 2
+MAX_INSTANCE = 254  # MAVLink system ids are 1..255
 
 
 def _common_options() -> argparse.ArgumentParser:
@@ -117,12 +118,21 @@ def _cmd_sim_vehicle(args: argparse.Namespace, config: Config) -> int:
         raise DynqosError(f"--speed must be in 0.01..100, got {speed}")
     if args.duration is not None and args.duration <= 0:
         raise DynqosError(f"--duration must be > 0, got {args.duration}")
+    n = args.instance
+    if not 0 <= n <= MAX_INSTANCE:
+        raise DynqosError(f"--instance must be in 0..{MAX_INSTANCE}, got {n}")
+
+    def plus_n(port: int) -> int:  # PX4 SITL's multi-vehicle ports; 0 (any free port) stays 0
+        if port and port + n > 65535:
+            raise DynqosError(f"--instance {n}: port {port} + {n} is past 65535")
+        return port + n if port else 0
+
     model = VehicleModel(v)
     links = [
-        Link("offboard", (v.host, v.offboard_bind_port), (v.host, v.offboard_remote_port)),
-        Link("gcs", (v.host, v.gcs_bind_port), (v.host, v.gcs_remote_port)),
+        Link("offboard", (v.host, plus_n(v.offboard_bind_port)), (v.host, plus_n(v.offboard_remote_port))),
+        Link("gcs", (v.host, plus_n(v.gcs_bind_port)), (v.host, v.gcs_remote_port)),  # one GCS sees all
     ]
-    vehicle = MavlinkVehicle(model, links, speed=speed, lockstep=lockstep, world=world)
+    vehicle = MavlinkVehicle(model, links, speed=speed, lockstep=lockstep, world=world, system_id=n + 1)
     try:
         vehicle.open()
     except OSError as exc:
@@ -135,6 +145,8 @@ def _cmd_sim_vehicle(args: argparse.Namespace, config: Config) -> int:
     signal.signal(signal.SIGINT, stop)
     info = {
         "ready": True,
+        "instance": n,
+        "system_id": n + 1,
         "links": {link.name: {"bind": link.bind[1], "remote": link.remote[1]} for link in links},
         "clock": "lockstep" if lockstep else "realtime",
         "world": world_file or "default",
@@ -416,6 +428,15 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
         "--speed", type=float, metavar="X", help="simulated seconds per wall second (default 1)"
     )
     vehicle.add_argument("--duration", type=float, metavar="S", help="stop after S simulated seconds")
+    vehicle.add_argument(
+        "--instance",
+        type=int,
+        default=0,
+        metavar="N",
+        help="vehicle N of a fleet, as PX4 SITL numbers them: MAVLink system id N+1, the offboard and "
+        "ground-station ports + N (14580+N -> 14540+N, 18570+N -> 14550: one ground station sees every "
+        f"vehicle); 0..{MAX_INSTANCE} (default 0)",
+    )
     vehicle.set_defaults(handler=_cmd_sim_vehicle)
 
     edge_cmd = commands.add_parser(

@@ -34,7 +34,7 @@ from dynqos.sim.world import World, collision
 
 log = logging.getLogger(__name__)
 
-SYSTEM_ID = 1
+SYSTEM_ID = 1  # instance 0's
 COMPONENT_ID = 1
 TELEMETRY_HZ = 50
 LOCKSTEP_HEARTBEAT_S = 1.0  # in lock-step, repeat the heartbeat in wall time while the peer is silent
@@ -77,6 +77,7 @@ class MavlinkVehicle:
         speed: float = 1.0,
         lockstep: bool = False,
         world: World | None = None,
+        system_id: int = SYSTEM_ID,
     ) -> None:
         if not speed > 0:
             raise ValueError("speed must be > 0")
@@ -87,7 +88,8 @@ class MavlinkVehicle:
         self.world = world
         self.touching: str | None = None
         self._peer_answered = False
-        self.mav = mavlink.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=COMPONENT_ID)
+        self.system_id = system_id  # PX4 SITL: instance N is system N + 1
+        self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=COMPONENT_ID)
         self._selector = selectors.DefaultSelector()
         self._last_events = 0
         self.stopped = False
@@ -220,7 +222,10 @@ class MavlinkVehicle:
         kind = msg.get_type()
         fc, state, now = self.model.fc, self.model.state, self.model.now_ns
         if kind == "SET_POSITION_TARGET_LOCAL_NED":
-            if msg.target_system not in (0, SYSTEM_ID) or msg.coordinate_frame != mavlink.MAV_FRAME_LOCAL_NED:
+            if (
+                msg.target_system not in (0, self.system_id)
+                or msg.coordinate_frame != mavlink.MAV_FRAME_LOCAL_NED
+            ):
                 self.counters["ignored"] += 1
                 return
             setpoint = Setpoint.from_mavlink(
@@ -237,13 +242,13 @@ class MavlinkVehicle:
             self.counters["setpoints"] += 1
             self._peer_answered = True  # lock-step: the controller has answered this period
         elif kind in ("COMMAND_LONG", "COMMAND_INT"):
-            if msg.target_system not in (0, SYSTEM_ID):
+            if msg.target_system not in (0, self.system_id):
                 return
             self.counters["commands"] += 1
             self._ack(msg.command, self._command(msg), link)
         elif kind == "SET_MODE":
             if (
-                msg.target_system in (0, SYSTEM_ID)
+                msg.target_system in (0, self.system_id)
                 and msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
             ):
                 main, sub = (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF

@@ -23,6 +23,7 @@ class VehicleModel:
         self.params = params or QuadParams()
         wind = Wind(cfg.wind_mps, gust_std_mps=cfg.gust_std_mps, gust_tau_s=cfg.gust_tau_s, seed=cfg.seed)
         self.plant = Quadrotor(self.params, wind)
+        self.plant.state.pos_m[:2] = cfg.start_m  # on the ground where it was spawned
         self.fc = FlightController(
             self.params,
             offboard_loss_s=self.config.offboard_loss_s,

@@ -363,3 +363,64 @@ def test_bad_world_file_exits_2(tmp_path: Path) -> None:
         assert proc.returncode == 2
         assert proc.stderr.count("\n") == 1
         assert str(path) in proc.stderr
+
+
+def test_instances_follow_px4_sitl_ids_and_ports_and_one_ground_station_sees_them_all(tmp_path: Path) -> None:
+    """`--instance N`: system id N+1, offboard to 14540+N's stand-in (base + N), every vehicle to one GCS
+    port; a command for one system moves only that vehicle; each stands where [vehicle] start_m says."""
+    base, gcs_port = free_udp_port(), free_udp_port()
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{gcs_port}", source_system=255, source_component=190)
+    offboard = mavutil.mavlink_connection(
+        f"udpin:127.0.0.1:{base + 2}", source_system=255, source_component=1
+    )
+    config = tmp_path / "vehicle.toml"
+    config.write_text(
+        f"[vehicle]\noffboard_bind_port = 0\ngcs_bind_port = 0\noffboard_remote_port = {base}\n"
+        f"gcs_remote_port = {gcs_port}\nstart_m = [3.0, -4.0]\n"
+    )
+    procs = [
+        DynqosProcess(["sim", "vehicle", "--instance", str(n), "--duration", "120"], config) for n in (1, 2)
+    ]
+    try:
+        assert offboard.wait_heartbeat(timeout=10) is not None
+        assert offboard.target_system == 3  # instance 2 on its own offboard port
+        pos = wait_for(offboard, lambda m: True, "LOCAL_POSITION_NED", 5)
+        assert (pos.x, pos.y) == pytest.approx((3.0, -4.0), abs=0.01)
+        seen: set[int] = set()
+        deadline = time.monotonic() + 10
+        while seen != {2, 3} and time.monotonic() < deadline:
+            hb = gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=1)
+            if hb is not None:
+                seen.add(hb.get_srcSystem())
+        assert seen == {2, 3}
+
+        offboard.mav.command_long_send(3, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        ack = wait_for(
+            offboard, lambda m: m.command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM, "COMMAND_ACK", 10
+        )
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        armed: dict[int, bool] = {}
+        deadline = time.monotonic() + 10
+        while not armed.get(3) or 2 not in armed:
+            assert time.monotonic() < deadline, armed
+            hb = gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=1)
+            if hb is not None:
+                armed[hb.get_srcSystem()] = bool(hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+        assert armed == {2: False, 3: True}
+    finally:
+        for proc in procs:
+            proc.stop()
+        gcs.close()
+        offboard.close()
+
+
+def test_a_bad_instance_exits_2(tmp_path: Path) -> None:
+    config = tmp_path / "vehicle.toml"
+    config.write_text("[vehicle]\noffboard_bind_port = 0\ngcs_bind_port = 0\n")
+    result = subprocess.run(
+        [DYNQOS, "sim", "vehicle", "--instance", "300", "--config", str(config)],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert result.returncode == 2
+    assert "--instance must be in 0..254" in result.stderr
+    assert "Traceback" not in result.stderr
