@@ -394,6 +394,34 @@ class MpcConfig:
         _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
 
 
+def _check_mission(m: PlannerConfig | DroneMissionConfig) -> None:
+    _require(0.2 <= m.altitude_m <= 100, "altitude_m", "must be in 0.2..100 m")
+    _require(0.1 <= m.radius_m <= 100, "radius_m", "must be in 0.1..100 m")
+    _require(1.0 <= m.period_s <= 3600, "period_s", "must be in 1..3600 s")
+    _require(0.05 <= m.speed_mps <= 20, "speed_mps", "must be in 0.05..20 m/s")
+    _require(m.mission != "waypoints" or bool(m.waypoints_file), "waypoints_file",
+             "the waypoints mission needs a waypoints_file")  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DroneMissionConfig:
+    """[planner.drones.<uav>]: the mission one drone of a fleet flies instead of the planner's. It is a
+    whole mission: keys it leaves out take these defaults, not the planner's."""
+
+    mission: Literal["hover", "circle", "figure8", "waypoints"] = "circle"
+    center_m: tuple[float, float] = (0.0, 0.0)
+    altitude_m: float = 1.5
+    radius_m: float = 2.0
+    period_s: float = 10.0
+    yaw: Literal["tangent", "fixed", "center"] = "tangent"
+    fixed_yaw_rad: float = 0.0
+    waypoints_file: str = ""
+    speed_mps: float = 1.0
+
+    def __post_init__(self) -> None:
+        _check_mission(self)
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class PlannerConfig:
     """`dynqos edge planner`: the mission every discovered drone flies (docs/edge.md)."""
@@ -411,18 +439,16 @@ class PlannerConfig:
     publish_hz: float = 10.0
     samples: int = 60
     health_interval_s: float = 5.0
+    drones: dict[str, DroneMissionConfig] = field(default_factory=dict)  # drone id -> its own mission
 
     def __post_init__(self) -> None:
-        _require(0.2 <= self.altitude_m <= 100, "altitude_m", "must be in 0.2..100 m")
-        _require(0.1 <= self.radius_m <= 100, "radius_m", "must be in 0.1..100 m")
-        _require(1.0 <= self.period_s <= 3600, "period_s", "must be in 1..3600 s")
+        _check_mission(self)
         _require(0 <= self.lead_in_s <= 600, "lead_in_s", "must be in 0..600 s")
-        _require(0.05 <= self.speed_mps <= 20, "speed_mps", "must be in 0.05..20 m/s")
         _require(0.5 <= self.publish_hz <= 100, "publish_hz", "must be in 0.5..100 Hz")
         _require(2 <= self.samples <= 400, "samples", "must be in 2..400")
-        _require(self.mission != "waypoints" or bool(self.waypoints_file), "waypoints_file",
-                 "the waypoints mission needs a waypoints_file")  # fmt: skip
         _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
+        for uav in self.drones:
+            _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"drones.{uav}", "is not a drone id")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -10,7 +10,7 @@ import logging
 
 from dynqos.common import keys
 from dynqos.common.clock import Clock, MonotonicClock
-from dynqos.common.config import Config, PlannerConfig
+from dynqos.common.config import Config, DroneMissionConfig, PlannerConfig
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import Reference, State
 from dynqos.common.queues import BoundedQueue
@@ -21,12 +21,14 @@ from dynqos.edge.service import Service
 log = logging.getLogger(__name__)
 
 
-def mission_from_config(cfg: PlannerConfig) -> Mission:
-    waypoints = load_waypoints(cfg.waypoints_file) if cfg.mission == "waypoints" else ()
+def mission_from_config(cfg: PlannerConfig, uav: str | None = None) -> Mission:
+    """The planner's mission, or the one `[planner.drones.<uav>]` gives that drone."""
+    m: PlannerConfig | DroneMissionConfig = cfg.drones.get(uav, cfg) if uav is not None else cfg
+    waypoints = load_waypoints(m.waypoints_file) if m.mission == "waypoints" else ()
     return Mission(
-        kind=cfg.mission, center_m=cfg.center_m, altitude_m=cfg.altitude_m, radius_m=cfg.radius_m,
-        period_s=cfg.period_s, yaw=cfg.yaw, fixed_yaw_rad=cfg.fixed_yaw_rad, lead_in_s=cfg.lead_in_s,
-        waypoints=waypoints, speed_mps=cfg.speed_mps,
+        kind=m.mission, center_m=m.center_m, altitude_m=m.altitude_m, radius_m=m.radius_m,
+        period_s=m.period_s, yaw=m.yaw, fixed_yaw_rad=m.fixed_yaw_rad, lead_in_s=cfg.lead_in_s,
+        waypoints=waypoints, speed_mps=m.speed_mps,
     )  # fmt: skip
 
 
@@ -34,7 +36,8 @@ class PlannerService:
     def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
         self.config = config
         self.cfg = config.planner
-        self.mission = mission_from_config(self.cfg)
+        self.mission = mission_from_config(self.cfg)  # every drone's but those [planner.drones] names
+        self.missions = {uav: mission_from_config(self.cfg, uav) for uav in self.cfg.drones}
         self.bus = bus
         self.clock = clock or MonotonicClock()
         self.dt_s = config.control.t_mpc_s
@@ -54,19 +57,24 @@ class PlannerService:
                 self.publishers[message.uav] = self.bus.publisher(
                     keys.downlink(message.uav, Downlink.REFERENCE), Priority.INTERACTIVE_HIGH
                 )
+                mission = self.missions.get(message.uav, self.mission)
                 log.info(
-                    "planner: %s mission %s starts for %s", self.cfg.mission, self.mission.kind, message.uav
+                    "planner: %s mission (centre %s) starts for %s",
+                    mission.kind,
+                    mission.center_m,
+                    message.uav,
                 )
 
     def publish(self) -> None:
         now = self.clock.now_ns()
         for uav, start in self.started_ns.items():
             t = (now - start) / 1e9
-            pos, vel, yaw = self.mission.samples(t, self.dt_s, self.cfg.samples)
+            mission = self.missions.get(uav, self.mission)
+            pos, vel, yaw = mission.samples(t, self.dt_s, self.cfg.samples)
             self.seq += 1
             reference = Reference(
                 uav=uav, seq=self.seq, stamp_ns=now, dt_s=self.dt_s, pos_m=pos, vel_mps=vel, yaw_rad=yaw,
-                mission=self.cfg.mission,
+                mission=mission.kind,
             )  # fmt: skip
             self.publishers[uav].put(reference)
             self.sent += 1

@@ -12,8 +12,8 @@ from dynqos.common.config import Config, load_config, to_toml
 from dynqos.common.errors import ConfigError
 
 
-def write(tmp_path: Path, text: str) -> Path:
-    path = tmp_path / "dynqos.toml"
+def write(tmp_path: Path, text: str, name: str = "dynqos.toml") -> Path:
+    path = tmp_path / name
     path.write_text(text)
     return path
 
@@ -156,3 +156,24 @@ def test_console_script_help_and_version() -> None:
     assert "config" in result.stdout
     version = subprocess.run([exe, "version"], capture_output=True, text=True, timeout=60, check=True)
     assert version.stdout.startswith("dynqos ")
+
+
+def test_per_drone_missions_and_the_arbiter_round_trip_and_reach_the_planner(tmp_path: Path) -> None:
+    from dynqos.edge.planner_service import mission_from_config
+
+    path = write(
+        tmp_path,
+        "[planner]\naltitude_m = 2.0\n[planner.drones.uav2]\ncenter_m = [10.0, -4.0]\nradius_m = 1.5\n"
+        "[planner.drones.uav3]\nmission = 'hover'\ncenter_m = [-6.0, 0.0]\n"
+        "[qos]\nbackend = 'camara'\npolicy = 'arbiter'\n[qos.camara]\napi_root = 'http://127.0.0.1:1'\n"
+        "[qos.arbiter]\nmax_grants = 2\n",
+    )
+    config = load_config(path)
+    again = write(tmp_path, to_toml(config), "again.toml")
+    assert load_config(again) == config
+    assert mission_from_config(config.planner, "uav1").center_m == (0.0, 0.0)  # not listed: the planner's
+    assert mission_from_config(config.planner, "uav1").altitude_m == 2.0
+    uav2 = mission_from_config(config.planner, "uav2")
+    assert (uav2.kind, uav2.center_m, uav2.radius_m, uav2.altitude_m) == ("circle", (10.0, -4.0), 1.5, 1.5)
+    assert mission_from_config(config.planner, "uav3").kind == "hover"
+    assert config.qos.arbiter.max_grants == 2
