@@ -45,13 +45,13 @@ class Wind:
     def __post_init__(self) -> None:
         self._rng = random.Random(self.seed)
 
-    def step(self, dt_s: float) -> Vec:
+    def step(self, dt_s: float) -> tuple[float, float, float]:
         if self.gust_std_mps > 0:
             a = math.exp(-dt_s / self.gust_tau_s)
             b = self.gust_std_mps * math.sqrt(1 - a * a)
             self._gust = [a * g + b * self._rng.gauss(0.0, 1.0) for g in self._gust]
-        air: Vec = np.array(self.mean_mps) + np.array(self._gust)
-        return air
+        m, g = self.mean_mps, self._gust
+        return (m[0] + g[0], m[1] + g[1], m[2] + g[2])
 
 
 def quat_to_rot(q: Vec) -> Vec:
@@ -112,44 +112,56 @@ class Quadrotor:
         self.wind = wind or Wind()
         self.state = QuadState()
         self.on_ground = True
-        self._inertia = np.array(self.params.inertia)
-        self._drag = np.array(self.params.drag_per_s)
-        self._max_torque = np.array(self.params.max_torque_nm)
-        self._air = np.zeros(3)
+        self._inertia = self.params.inertia
+        self._drag = self.params.drag_per_s
+        self._air: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
-    def _derivative(self, x: Vec, thrust_cmd: float, torque_cmd: Vec) -> Vec:
+    def _derivative(self, x: list[float], thrust_cmd: float, torque_cmd: tuple[float, ...]) -> list[float]:
+        """dx/dt on plain floats: numpy's per-call overhead on 3-vectors was most of a simulator's CPU,
+        and a fleet runs one simulator per drone."""
         p = self.params
-        vel, quat, rates = x[3:6], x[6:10], x[10:13]
-        thrust, torque = x[13], x[14:17]
-        rot = quat_to_rot(quat / np.linalg.norm(quat))
-        force = rot @ np.array([0.0, 0.0, -thrust])  # thrust along body -z
-        accel = force / p.mass_kg + np.array([0.0, 0.0, GRAVITY]) - self._drag * (vel - self._air)
-        w, qx, qy, qz = quat
-        omega_q = np.array(
-            [
-                -qx * rates[0] - qy * rates[1] - qz * rates[2],
-                w * rates[0] + qy * rates[2] - qz * rates[1],
-                w * rates[1] - qx * rates[2] + qz * rates[0],
-                w * rates[2] + qx * rates[1] - qy * rates[0],
-            ]
-        )
-        rate_dot = (torque - np.cross(rates, self._inertia * rates)) / self._inertia
-        thrust_dot = (thrust_cmd - thrust) / p.motor_tau_s
-        torque_dot = (torque_cmd - torque) / p.motor_tau_s
-        return np.concatenate([vel, accel, 0.5 * omega_q, rate_dot, [thrust_dot], torque_dot])
+        vx, vy, vz, w, qx, qy, qz, r0, r1, r2, thrust, t0, t1, t2 = x[3:17]
+        norm = math.sqrt(w * w + qx * qx + qy * qy + qz * qz)
+        nw, nx, ny, nz = w / norm, qx / norm, qy / norm, qz / norm
+        # thrust along body -z: the third column of the rotation, times -thrust
+        col = (2 * (nx * nz + nw * ny), 2 * (ny * nz - nw * nx), 1 - 2 * (nx * nx + ny * ny))
+        air, drag, inertia, tau = self._air, self._drag, self._inertia, p.motor_tau_s
+        ax = -thrust * col[0] / p.mass_kg - drag[0] * (vx - air[0])
+        ay = -thrust * col[1] / p.mass_kg - drag[1] * (vy - air[1])
+        az = -thrust * col[2] / p.mass_kg + GRAVITY - drag[2] * (vz - air[2])
+        i0, i1, i2 = inertia[0] * r0, inertia[1] * r1, inertia[2] * r2  # rates x (I rates): gyroscopic
+        return [
+            vx, vy, vz, ax, ay, az,
+            0.5 * (-qx * r0 - qy * r1 - qz * r2),
+            0.5 * (w * r0 + qy * r2 - qz * r1),
+            0.5 * (w * r1 - qx * r2 + qz * r0),
+            0.5 * (w * r2 + qx * r1 - qy * r0),
+            (t0 - (r1 * i2 - r2 * i1)) / inertia[0],
+            (t1 - (r2 * i0 - r0 * i2)) / inertia[1],
+            (t2 - (r0 * i1 - r1 * i0)) / inertia[2],
+            (thrust_cmd - thrust) / tau,
+            (torque_cmd[0] - t0) / tau, (torque_cmd[1] - t1) / tau, (torque_cmd[2] - t2) / tau,
+        ]  # fmt: skip
 
     def step(self, thrust_cmd: float, torque_cmd: Vec, dt_s: float) -> QuadState:
         p = self.params
         thrust_cmd = min(max(thrust_cmd, 0.0), p.max_thrust_n)
-        torque_cmd = np.clip(torque_cmd, -self._max_torque, self._max_torque)
+        torque = tuple(
+            min(max(float(t), -m), m) for t, m in zip(torque_cmd, self.params.max_torque_nm, strict=True)
+        )
         self._air = self.wind.step(dt_s)
-        x = self.state.pack()
-        k1 = self._derivative(x, thrust_cmd, torque_cmd)
-        k2 = self._derivative(x + 0.5 * dt_s * k1, thrust_cmd, torque_cmd)
-        k3 = self._derivative(x + 0.5 * dt_s * k2, thrust_cmd, torque_cmd)
-        k4 = self._derivative(x + dt_s * k3, thrust_cmd, torque_cmd)
-        x = x + dt_s / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-        state = QuadState.unpack(x)
+        x = self.state.pack().tolist()
+        half = 0.5 * dt_s
+        k1 = self._derivative(x, thrust_cmd, torque)
+        k2 = self._derivative([a + half * b for a, b in zip(x, k1, strict=True)], thrust_cmd, torque)
+        k3 = self._derivative([a + half * b for a, b in zip(x, k2, strict=True)], thrust_cmd, torque)
+        k4 = self._derivative([a + dt_s * b for a, b in zip(x, k3, strict=True)], thrust_cmd, torque)
+        sixth = dt_s / 6.0
+        x = [
+            a + sixth * (b1 + 2 * b2 + 2 * b3 + b4)
+            for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4, strict=True)
+        ]
+        state = QuadState.unpack(np.array(x))
         # The ground (z = 0 in NED) holds the vehicle up until thrust lifts it.
         if state.pos_m[2] >= 0.0:
             state.pos_m[2] = 0.0
