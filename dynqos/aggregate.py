@@ -55,6 +55,7 @@ def repeated_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return {
         "scenario": first["scenario"],
         "profile": first.get("profile", "dynqos"),
+        "fleet": first.get("fleet", False),
         "description": first.get("description", ""),
         "qos": first.get("qos"),
         "mission": first.get("mission"),

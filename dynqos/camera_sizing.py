@@ -29,8 +29,8 @@ TAKEOFF_HEADING_RAD = 0.0  # the simulated vehicle starts facing north; `yaw = "
 def flight_views(config: Config, views: int = VIEWS) -> list[Pose]:
     """Camera poses along one period of the configured mission, each tilted by the acceleration the
     mission asks for there (thrust = a - g) and facing the heading the drone holds."""
-    mission = mission_from_config(config.planner)
-    period = config.planner.period_s
+    mission = mission_from_config(config.planner, config.drone.id)  # the drone's own, in a fleet
+    period = mission.period_s
     start = mission.lead_in_s + 1e-3  # in the mission proper, not its lead-in
     step = 1e-3
     poses: list[Pose] = []
@@ -57,25 +57,29 @@ def attitude(accel_ned: np.ndarray, yaw: float) -> tuple[float, float, float, fl
 
 
 def camera_size_for(
-    target_bps: float, fps: float, views: Sequence[Pose], part_bytes: int = 0
+    target_bps: float, fps: float, views: Sequence[Pose], part_bytes: int = 0, world_file: str = ""
 ) -> tuple[int, int]:
     """A 4:3 image size whose RGB-D frames (JPEG + zstd16, in parts of `part_bytes` when paced) seen
     from `views` at `fps` offer about target_bps, message headers included. Small images compress
     worse per pixel, so the size found by area is measured and corrected twice."""
     width = 640
     for _ in range(3):
-        linear = math.sqrt(target_bps / fps / frame_bits(width, width * 3 // 4, views, part_bytes))
+        bits = frame_bits(width, width * 3 // 4, views, part_bytes, world_file)
+        linear = math.sqrt(target_bps / fps / bits)
         width = max(64, min(1280, round(width * linear / 4) * 4))
     return width, width * 3 // 4
 
 
-def frame_bits(width: int, height: int, views: Sequence[Pose], part_bytes: int = 0) -> float:
-    """Mean size in bits of one RGB-D frame on the wire, over `views`."""
+def frame_bits(
+    width: int, height: int, views: Sequence[Pose], part_bytes: int = 0, world_file: str = ""
+) -> float:
+    """Mean size in bits of one RGB-D frame on the wire, over `views` of the world the drone flies in."""
     from dynqos.onboard.camera import SimCamera, encode_depth, encode_rgb
     from dynqos.onboard.pacing import FRAME_HEADER_BYTES
-    from dynqos.sim.world import default_world
+    from dynqos.sim.world import default_world, load_world
 
-    camera = SimCamera(default_world(), width, height)  # the onboard camera's optics
+    world = load_world(world_file) if world_file else default_world()
+    camera = SimCamera(world, width, height)  # the onboard camera's optics
     total = 0.0
     for pose in views:
         raw = camera.grab(pose)

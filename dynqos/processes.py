@@ -5,6 +5,7 @@ ours to end). Used by the scenario runner, the fault injector and the benchmarks
 from __future__ import annotations
 
 import json
+import os
 import selectors
 import shutil
 import signal
@@ -22,6 +23,37 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
         sock.bind(("127.0.0.1", 0))
         port: int = sock.getsockname()[1]
         return port
+
+
+def cpu_s(pid: int) -> float | None:
+    """CPU seconds (user + system) a live process has used, its threads included (/proc/PID/stat)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def free_udp_block(count: int) -> int:
+    """The first of `count` consecutive free UDP ports on 127.0.0.1 (a fleet's offboard ports)."""
+    for _ in range(50):
+        base = free_port(socket.SOCK_DGRAM)
+        if base + count > 65536:
+            continue
+        socks: list[socket.socket] = []
+        try:
+            for port in range(base, base + count):
+                sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(sock)
+                sock.bind(("127.0.0.1", port))
+            return base
+        except OSError:
+            continue
+        finally:
+            for sock in socks:
+                sock.close()
+    raise DynqosError(f"no {count} consecutive free UDP ports on 127.0.0.1")
 
 
 def rss_kb(pid: int) -> int | None:
@@ -42,18 +74,24 @@ class Processes:
         self.logs = logs
         self.procs: dict[str, subprocess.Popen[str]] = {}
         self.info: dict[str, dict[str, Any]] = {}
-        self.started: dict[str, tuple[list[str], list[str] | None]] = {}
+        self.started: dict[str, tuple[list[str], list[str] | None, Path | None]] = {}
         self.down: set[str] = set()  # killed on purpose (a fault), not a failure
         self.exe = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
 
     def start(
-        self, name: str, args: list[str], timeout_s: float = 30.0, program: list[str] | None = None
+        self,
+        name: str,
+        args: list[str],
+        timeout_s: float = 30.0,
+        program: list[str] | None = None,
+        config: Path | None = None,
     ) -> dict[str, Any]:
-        """Start `dynqos ARGS --config FILE` (or `PROGRAM ARGS --config FILE`), wait for its ready line."""
+        """Start `dynqos ARGS --config FILE` (or `PROGRAM ARGS --config FILE`), wait for its ready line.
+        FILE is the scenario's config, or `config` (a fleet's drone has its own)."""
         err = (self.logs / f"{name}.log").open("a" if name in self.started else "w")  # a restart appends
-        self.started[name] = (args, program)
+        self.started[name] = (args, program, config)
         proc = subprocess.Popen(
-            [*(program or [self.exe]), *args, "--config", str(self.config)],
+            [*(program or [self.exe]), *args, "--config", str(config or self.config)],
             stdout=subprocess.PIPE,
             stderr=err,
             text=True,
@@ -93,14 +131,22 @@ class Processes:
             proc.stdout.close()
 
     def restart(self, name: str) -> None:
-        args, program = self.started[name]
-        self.start(name, args, program=program)
+        args, program, config = self.started[name]
+        self.start(name, args, program=program, config=config)
         self.down.discard(name)
 
     def signal(self, name: str, signum: int) -> None:
         proc = self.procs[name]
         if proc.poll() is None:
             proc.send_signal(signum)
+
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU seconds each process still running has used so far (read before they are stopped)."""
+        out = {}
+        for name, proc in self.procs.items():
+            if proc.poll() is None and (used := cpu_s(proc.pid)) is not None:
+                out[name] = round(used, 2)
+        return out
 
     def stop_all(self) -> dict[str, int | None]:
         codes: dict[str, int | None] = {}

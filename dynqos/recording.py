@@ -23,3 +23,4 @@ class Recording:
     faults: list[FaultWindow] = field(default_factory=list)
     memory_kb: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # name -> (t_s, RSS kB)
     qod: dict[str, Any] | None = None  # the emulated operator's QoD counters and sessions left at the end
+    cpu_s: dict[str, float] = field(default_factory=dict)  # process name -> CPU seconds, read at the end

@@ -218,6 +218,7 @@ def summarise(
             }
             for name, samples in rec.memory_kb.items()
         },
+        "cpu_s": rec.cpu_s,  # each process's CPU seconds over its whole life (start-up included)
         "ok": ok,
         "failure": failure,
     }
@@ -301,7 +302,10 @@ def _acked_fps(cams: list[tuple[int, float]], start: int | None, stop: int) -> f
     return acks / 2 / ((stop - start) / 1e9)
 
 
-def write_scenario(folder: Path, scenario: Scenario, rec: Recording, summary: dict[str, Any]) -> None:
+def write_scenario(
+    folder: Path, scenario: Scenario, rec: Recording, summary: dict[str, Any], *, plots: bool = True
+) -> None:
+    """summary.json, states.csv, supervisor.csv, latency.csv and (plots) overview.png, supervisor.png."""
     (folder / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     t0 = rec.t0_ns
     with (folder / "states.csv").open("w", newline="") as f:
@@ -346,7 +350,8 @@ def write_scenario(folder: Path, scenario: Scenario, rec: Recording, summary: di
             t_s = f"{(sv.stamp_ns - t0) / 1e9:.3f}"
             writer.writerows([t_s, "rtt", v] for v in sv.rtt_samples_ms)
             writer.writerows([t_s, "camera", v] for v in sv.camera_latency_samples_ms)
-    _plots(folder, scenario, rec, summary)
+    if plots:
+        _plots(folder, scenario, rec, summary)
 
 
 def _plots(folder: Path, scenario: Scenario, rec: Recording, summary: dict[str, Any]) -> None:  # noqa: PLR0915

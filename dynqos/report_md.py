@@ -70,6 +70,10 @@ def _loaded(summary: dict[str, Any]) -> bool:
 
 
 def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
+    from dynqos.fleet_report import fleet_comparison, fleet_section
+
+    fleets = [s for s in summaries if s.get("fleet")]
+    summaries = [s for s in summaries if not s.get("fleet")]
     repeated = any("aggregate" in s for s in summaries)
     lines = [
         "# dynqos demo report",
@@ -81,6 +85,19 @@ def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
             if repeated
             else []
         ),
+    ]
+    if summaries:
+        lines += _single_scenarios(out, summaries, repeated)
+    if fleets:
+        lines += ["", "## Fleets", "", "Several drones in one cell (docs/fleet.md). Rates at full scale.", ""]
+        lines += fleet_comparison(fleets)
+        for s in fleets:
+            lines += fleet_section(s)
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+
+
+def _single_scenarios(out: Path, summaries: list[dict[str, Any]], repeated: bool) -> list[str]:
+    lines = [
         "",
         "## Beside the paper's Table II",
         "",
@@ -102,7 +119,7 @@ def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
     baseline = next((s for s in summaries if _run_id(s) == "baseline" and "aggregate" not in s), None)
     for s in summaries:
         lines += _repeated_section(s) if "aggregate" in s else _single_section(out, s, baseline)
-    (out / "report.md").write_text("\n".join(lines) + "\n")
+    return lines
 
 
 def _table_row(s: dict[str, Any]) -> str:

@@ -18,6 +18,7 @@ import sys
 import threading
 import time
 import urllib.request
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -71,6 +72,10 @@ def run_scenario(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Run one scenario into `folder` (default out/<run id>/) and return its summary."""
+    if scenario.fleet:
+        from dynqos.fleet import run_fleet
+
+        return run_fleet(scenario, out, folder=folder, stop=stop, progress=progress)
     stop = stop or threading.Event()
     folder = folder or out / scenario.run_id
     logs = folder / "logs"
@@ -85,29 +90,49 @@ def run_scenario(
     write_config(config_path, scenario, config)
     procs = Processes(config_path, logs)
     rec = Recording()
-    ok, failure = True, ""
-    try:
+
+    def fly() -> None:
         cell_port = _start_edge_and_cell(procs, scenario, config, config_path, folder)
         _record_flight(scenario, config, procs, cell_port, rec, stop, progress)
+
+    ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
+    onboard_log = logs / "onboard.log"
+    log_text = onboard_log.read_text(errors="replace") if onboard_log.exists() else ""
+    summary = summarise(scenario, rec, log_text, ok=ok, failure=failure)
+    write_scenario(folder, scenario, rec, summary)
+    return summary
+
+
+def fly_and_stop(
+    scenario: Scenario,
+    folder: Path,
+    procs: Processes,
+    rec: Recording,
+    fly: Callable[[], None],
+    stop: threading.Event,
+    progress: bool,
+) -> tuple[bool, str]:
+    """Run `fly` (start the rest and record the flight); whatever happens, read each process's CPU, stop
+    them all in reverse order and read the QoD sessions the operator was left with. (ok, failure)."""
+    ok, failure = True, ""
+    try:
+        fly()
         if stop.is_set():
             ok, failure = False, "interrupted"
     except DynqosError as exc:
         ok, failure = False, str(exc)
         log.error("scenario %s failed: %s", scenario.name, exc)
     finally:
+        rec.cpu_s = procs.cpu_seconds()
         codes = procs.stop_all()
         if progress:
             sys.stderr.write("\n")
     bad = {name: code for name, code in codes.items() if code not in (0, -signal.SIGTERM)}
     if ok and bad:
         ok, failure = False, f"processes exited with errors: {bad}"
-    onboard_log = logs / "onboard.log"
-    log_text = onboard_log.read_text(errors="replace") if onboard_log.exists() else ""
     qod_file = folder / "qod.json"  # the operator's sessions once every process stopped (camara backend)
     rec.qod = json.loads(qod_file.read_text()) if qod_file.exists() else None
-    summary = summarise(scenario, rec, log_text, ok=ok, failure=failure)
-    write_scenario(folder, scenario, rec, summary)
-    return summary
+    return ok, failure
 
 
 def _start_edge_and_cell(
@@ -138,11 +163,11 @@ class _Streams:
     status: BoundedQueue[Received]
 
     @classmethod
-    def subscribe(cls, bus: Bus) -> _Streams:
+    def subscribe(cls, bus: Bus, uav: str = UAV) -> _Streams:
         streams = cls(BoundedQueue(QUEUE_ITEMS), BoundedQueue(QUEUE_ITEMS), BoundedQueue(QUEUE_ITEMS))
-        bus.subscribe(keys.uplink_any_flow(UAV, Stream.STATE), streams.states, expect=(State,))
-        bus.subscribe(keys.downlink(UAV, Downlink.REFERENCE), streams.refs, expect=(Reference,))
-        bus.subscribe(keys.uplink_any_flow(UAV, Stream.STATUS), streams.status, expect=(SupervisorStatus,))
+        bus.subscribe(keys.uplink_any_flow(uav, Stream.STATE), streams.states, expect=(State,))
+        bus.subscribe(keys.downlink(uav, Downlink.REFERENCE), streams.refs, expect=(Reference,))
+        bus.subscribe(keys.uplink_any_flow(uav, Stream.STATUS), streams.status, expect=(SupervisorStatus,))
         return streams
 
     def drain_into(self, rec: Recording) -> None:
@@ -181,14 +206,17 @@ def _record_flight(
         bus.close()
 
 
-def _wait_for_offload(states: BoundedQueue[Received], procs: Processes, stop: threading.Event) -> int:
-    """The stamp of the first state the drone sends in offboard mode: the flight's time zero."""
+def _wait_for_offload(
+    states: BoundedQueue[Received], procs: Processes, stop: threading.Event, name: str = "onboard"
+) -> int:
+    """The stamp of the first state the drone sends in offboard mode: the flight's time zero. The
+    states before it are dropped; those after it stay queued for the recording."""
     deadline = time.monotonic() + OFFLOAD_TIMEOUT_S
     while time.monotonic() < deadline and not stop.is_set():
         item = states.get(0.5)
         if item is not None and isinstance(item.message, State) and item.message.mode == "offboard":
             return item.message.stamp_ns
-    raise DynqosError(f"the drone never started offloading: {procs.tail('onboard')}")
+    raise DynqosError(f"{name}: the drone never started offloading: {procs.tail(name)}")
 
 
 def _fly(

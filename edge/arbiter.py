@@ -86,7 +86,9 @@ class Arbiter:
         self._rotate_ns = to_ns(config.rotate_after_s)
         self.holders: dict[str, int] = {}  # uav -> when it was granted
         self.waiting: dict[str, int] = {}  # uav -> when it began to wait
-        self._told_denied: dict[str, str] = {}  # the reason a waiting drone was last told
+        # Why a waiting drone was last told no, as (kind, holders): a new denial is said (and counted) only
+        # when that changes, not each time a holder's latency moves.
+        self._told_denied: dict[str, tuple[str, tuple[str, ...]]] = {}
         self.needs: dict[str, Need] = {}
 
     @property
@@ -124,13 +126,13 @@ class Arbiter:
         for uav in contenders:
             need = needs[uav]
             if blocked is not None and need.rank < blocked:
-                decisions += self._deny(uav, need, "a drone that needs it more is waiting")
+                decisions += self._deny(uav, need, "blocked", "a drone that needs it more is waiting")
                 continue
             evict = self._make_room(uav, needs, now_ns)
             if evict is None:
                 if blocked is None and self._fits([uav], needs):  # one that could never fit blocks nobody
                     blocked = need.rank
-                decisions += self._deny(uav, need, self._why_full(uav, needs))
+                decisions += self._deny(uav, need, "full", self._why_full(uav, needs))
                 continue
             for other in evict:
                 del self.holders[other]
@@ -185,10 +187,11 @@ class Arbiter:
         holders = ", ".join(f"{h} ({needs[h].describe()})" for h in sorted(self.holders))
         return f"the budget is held by {holders}"
 
-    def _deny(self, uav: str, need: Need, reason: str) -> list[Decision]:
-        if self._told_denied.get(uav) == reason:
+    def _deny(self, uav: str, need: Need, kind: str, reason: str) -> list[Decision]:
+        key = (kind, tuple(sorted(self.holders)))
+        if self._told_denied.get(uav) == key:
             return []
-        self._told_denied[uav] = reason
+        self._told_denied[uav] = key
         return [Decision(uav, Action.DENY, reason, need)]
 
     def next_change_ns(self, now_ns: int) -> int:

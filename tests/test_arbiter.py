@@ -179,3 +179,15 @@ def test_a_drone_whose_need_stays_highest_is_granted_within_min_hold(
             joined = now
         if now - joined >= config.min_hold_s * S:
             assert "star" in arb.holders, (seed, needs, arb.holders)
+
+
+def test_a_waiting_drone_is_told_again_only_when_the_holders_change() -> None:
+    arb = Arbiter(ArbiterConfig(max_grants=1))
+    arb.decide({"a": Need(risk="HR", latency_excess=0.1), "b": LR}, 0)
+    quiet = [
+        arb.decide({"a": Need(risk="HR", latency_excess=x / 10), "b": LR}, k * S)
+        for k, x in enumerate(range(5))
+    ]
+    assert quiet == [[]] * 5  # a's latency moved; b's case did not
+    out = arb.decide({"c": HR, "b": LR}, 10 * S)  # a left, c took its place: b is told who holds it now
+    assert actions(out) == [("a", Action.RELEASE), ("c", Action.GRANT), ("b", Action.DENY)]
