@@ -53,6 +53,10 @@ HEADLINES: dict[str, Headline] = {
         "drones_one_process": r["one_process"]["max_drones_at_20hz"],
         "drones_two_processes": r["two_processes"]["max_drones_at_20hz"],
     },
+    "edge_per_drone": lambda r: {
+        "per_drone_core_share": r["per_drone_core_share"],
+        "bare_osqp_core_share_per_drone": r["bare_osqp_core_share_per_drone"],
+    },
     "onboard_camera": lambda r: {"encode_publish_core_share": r["encode_publish_core_share_at_30fps"]},
     "vehicle_sim": lambda r: {
         "lockstep_speed": r["lockstep"]["sim_s_per_wall_s"],

@@ -559,7 +559,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
         parents=[common],
         help="run the benchmarks (what the runtime costs, beside its floor) and write bench-results.json",
         description="Runs each benchmark against its floor and target (all by default: supervisor_step, "
-        "mpc_step, control_loop, fleet_zenoh, onboard_camera, vehicle_sim, cell_forward, "
+        "mpc_step, control_loop, fleet_zenoh, edge_per_drone, onboard_camera, vehicle_sim, cell_forward, "
         "supervisor_reaction), prints one verdict line each, and writes bench-results.json (every "
         "figure) and bench-results.md (the tables) into --out. Benchmarks report; the exit code is 0 "
         "whatever the verdicts. docs/benchmarks.md explains each one.",

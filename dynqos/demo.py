@@ -129,6 +129,17 @@ def _run_repeated(scenario: Scenario, out: Path, repeat: int, stop: threading.Ev
 
 def _headline(summary: dict[str, Any]) -> str:
     runs = f" over {len(summary['runs'])} runs" if "runs" in summary else ""
+    if summary.get("fleet"):
+        first = summary["runs"][0] if "runs" in summary else summary
+        parts = []
+        for uav, d in first["drones"].items():
+            rtt = f"drones.{uav}.rtt_ms"
+            parts.append(
+                f"{uav} ({d['risk_zone']} risk) rtt baseline mean {figure(summary, rtt + '.baseline.mean')} "
+                f"ms, "
+                f"loaded mean {figure(summary, rtt + '.loaded.mean')} ms"
+            )
+        return "; ".join(parts) + runs
     return (
         f"rtt baseline mean {figure(summary, 'rtt_ms.baseline.mean')} ms, "
         f"loaded mean {figure(summary, 'rtt_ms.loaded.mean')} ms{runs}"

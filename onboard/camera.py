@@ -40,7 +40,10 @@ class SimCamera:
     def __init__(self, world: World, width: int, height: int, seed: int = 0) -> None:
         intrinsics = Intrinsics(width=width, height=height, fx=525.0 * width / 640, fy=525.0 * height / 480,
                                 cx=(width - 1) / 2, cy=(height - 1) / 2)  # fmt: skip
-        self.renderer = Renderer(world, intrinsics, seed=seed)
+        # Rays are cast at 160 x 120 at most and the image resized; a smaller image (a fleet's scaled
+        # camera) casts no more rays than it has pixels.
+        render_size = (min(160, width), min(120, height))
+        self.renderer = Renderer(world, intrinsics, render_size=render_size, seed=seed)
 
     def grab(self, pose: Pose | None) -> RawFrame | None:
         if pose is None:

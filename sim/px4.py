@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dynqos.sim.dynamics import GRAVITY, QuadParams, QuadState, Vec, quat_to_rot, yaw_of
+from dynqos.sim.dynamics import GRAVITY, QuadParams, QuadState, Vec, cross3, quat_to_rot, yaw_of
 
 # PX4 custom modes (px4_custom_mode.h)
 MAIN_MANUAL, MAIN_POSCTL, MAIN_AUTO, MAIN_OFFBOARD = 1, 3, 4, 6
@@ -288,9 +288,9 @@ class FlightController:
             horizontal /= max(np.linalg.norm(horizontal), 1e-9)
             z_body = horizontal * math.sin(g.tilt_max_rad) + np.array([0.0, 0.0, math.cos(g.tilt_max_rad)])
         x_course = np.array([math.cos(yaw), math.sin(yaw), 0.0])
-        y_body = np.cross(z_body, x_course)
-        y_body /= max(np.linalg.norm(y_body), 1e-9)
-        x_body = np.cross(y_body, z_body)
+        y_body = cross3(z_body, x_course)
+        y_body /= max(float(np.linalg.norm(y_body)), 1e-9)
+        x_body = cross3(y_body, z_body)
         r_des = np.column_stack([x_body, y_body, z_body])
         rot = quat_to_rot(state.quat)
         thrust = float(-thrust_vec @ rot[:, 2])
@@ -300,5 +300,5 @@ class FlightController:
         wn = np.array([g.att_wn, g.att_wn, g.yaw_wn])
         k_r = inertia * wn**2
         k_w = inertia * 2 * g.att_zeta * wn
-        torque = -k_r * e_rot - k_w * state.rates_rps + np.cross(state.rates_rps, inertia * state.rates_rps)
+        torque = -k_r * e_rot - k_w * state.rates_rps + cross3(state.rates_rps, inertia * state.rates_rps)
         return thrust, torque

@@ -68,6 +68,13 @@ def test_loop_and_fleet_over_real_zenoh(smoke: tuple[dict[str, Any], str]) -> No
         (row,) = fleet[key]["rows"]
         assert row["drones"] == 10
         assert row["answered"] > 0
+    edge = _result(smoke, "edge_per_drone")
+    assert [r["drones"] for r in edge["rows"]] == [1, 2]
+    for row in edge["rows"]:
+        assert set(row["core_share"]) == {"router", "mpc", "planner", "detector", "qos"}
+        assert row["core_share"]["mpc"] > 0  # it solved for the drones it heard
+        assert row["commands_per_s"] > 10 * row["drones"]  # 20 Hz each, less what the smoke span cuts
+    assert edge["bare_osqp_core_share_per_drone"] > 0
 
 
 def test_camera_simulator_and_cell_figures(smoke: tuple[dict[str, Any], str]) -> None:
