@@ -322,10 +322,14 @@ def _cmd_sensitivity(args: argparse.Namespace, config: Config) -> int:
 
 
 def _demo_line(s: dict[str, Any]) -> str:
-    from dynqos.report_md import figure
+    from dynqos.figures import figure
     from dynqos.scenario import run_id
 
     name = run_id(s["scenario"], s.get("profile", "dynqos"))
+    if s.get("fleet"):
+        from dynqos.demo import headline
+
+        return f"  {name:<13} ok={s['ok']!s:<5} {headline(s)}"
     loaded = figure(s, "rtt_ms.loaded.mean")
     return (
         f"  {name:<13} ok={s['ok']!s:<5} RTT baseline {figure(s, 'rtt_ms.baseline.mean')} ms"

@@ -17,8 +17,9 @@ from typing import Any
 
 from dynqos.aggregate import repeated_summary
 from dynqos.common.errors import ConfigError
+from dynqos.figures import figure
 from dynqos.profile import DEFAULT_PROFILE, Profile, load_profile
-from dynqos.report_md import figure, write_report
+from dynqos.report_md import write_report
 from dynqos.runner import run_scenario
 from dynqos.scenario import Scenario, builtin_scenario
 
@@ -71,7 +72,7 @@ def run_demo(
             log.info("scenario %s: %s", scenario.run_id, scenario.description)
             summary = _run_repeated(scenario, out, repeat, stop)
             summaries.append(summary)
-            log.info("scenario %s: ok=%s %s", scenario.run_id, summary["ok"], _headline(summary))
+            log.info("scenario %s: ok=%s %s", scenario.run_id, summary["ok"], headline(summary))
     finally:
         signal.signal(signal.SIGINT, previous)
     top = {
@@ -127,7 +128,7 @@ def _run_repeated(scenario: Scenario, out: Path, repeat: int, stop: threading.Ev
     return summary
 
 
-def _headline(summary: dict[str, Any]) -> str:
+def headline(summary: dict[str, Any]) -> str:
     runs = f" over {len(summary['runs'])} runs" if "runs" in summary else ""
     if summary.get("fleet"):
         first = summary["runs"][0] if "runs" in summary else summary

@@ -23,9 +23,9 @@ from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Received, Role, open_bus
 from dynqos.faults import FaultInjector
 from dynqos.fleet_report import summarise_fleet, write_fleet
+from dynqos.flight import QUEUE_ITEMS, Streams, fly, fly_and_stop, post_json, wait_for_offload
 from dynqos.processes import Processes, free_port, free_udp_block
 from dynqos.recording import Recording
-from dynqos.runner import QUEUE_ITEMS, _fly, _post_json, _Streams, _wait_for_offload, fly_and_stop
 from dynqos.scenario import Scenario, fleet_configs, with_cell, write_config
 
 log = logging.getLogger(__name__)
@@ -108,21 +108,21 @@ def _record_fleet(
     """Start every drone, wait until all of them offload, then fly the scenario."""
     bus = open_bus(zenoh, Role.EDGE)
     try:
-        streams = {uav: _Streams.subscribe(bus, uav) for uav in paths}
+        streams = {uav: Streams.subscribe(bus, uav) for uav in paths}
         heard: BoundedQueue[Received] = BoundedQueue(QUEUE_ITEMS)
         bus.subscribe(keys.downlink_all_drones(Downlink.QOS_DECISION), heard, expect=(QosDecision,))
         # One drone at a time takes off and starts offloading: four take-offs at once on two cores
         # are a start-up no fleet flies, and their latencies would be the baseline's.
         for uav, path in paths.items():
             procs.start(f"onboard-{uav}", ["onboard", "--takeoff"], config=path)
-            recs[uav].offload_ns = _wait_for_offload(streams[uav].states, procs, stop, f"onboard-{uav}")
+            recs[uav].offload_ns = wait_for_offload(streams[uav].states, procs, stop, f"onboard-{uav}")
         # The flight's time zero is when the last drone offloads: from then on every drone is recorded.
         rec.t0_ns = rec.offload_ns = time.monotonic_ns()
         injector = FaultInjector(
-            procs, lambda event: _post_json(cell_port, "/events", event), bus, uplink_mbps=uplink_mbps
+            procs, lambda event: post_json(cell_port, "/events", event), bus, uplink_mbps=uplink_mbps
         )
         try:
-            _fly(scenario, procs, cell_port, injector, rec, stop, progress)
+            fly(scenario, procs, cell_port, injector, rec, stop, progress)
         finally:
             injector.close()
         for uav, s in streams.items():

@@ -13,6 +13,7 @@ from typing import Any
 
 from dynqos.common.clock import NS_PER_S
 from dynqos.common.messages import QosDecision, SupervisorStatus
+from dynqos.figures import figure
 from dynqos.recording import Recording
 from dynqos.report import _cell_rates, summarise, write_scenario
 from dynqos.scenario import Scenario, run_id
@@ -212,8 +213,6 @@ def _f(value: float | None, digits: int = 1) -> str:
 def fleet_section(s: dict[str, Any]) -> list[str]:
     """One fleet scenario: its setting, a row per drone, the arbiter's counts and the timeline. Figures
     of a repeated scenario are mean [95% interval] over its runs."""
-    from dynqos.report_md import figure
-
     first = s["runs"][0] if "aggregate" in s else s
     name = run_id(first["scenario"], first.get("profile", "dynqos"))
     runs = f" ({len(s['runs'])} runs)" if "aggregate" in s else ""
@@ -274,8 +273,6 @@ def fleet_comparison(fleets: list[dict[str, Any]]) -> list[str]:
     high = sorted({u for s in firsts for u, d in s["drones"].items() if d["risk_zone"] == "high"})
     if not high or len(fleets) < 2:
         return []
-    from dynqos.report_md import figure
-
     lines = [
         "### The high-risk drones under each policy",
         "",

@@ -9,6 +9,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from dynqos.figures import figure, fmt, lookup, mean_of
+from dynqos.fleet_report import fleet_comparison, fleet_section
 from dynqos.report import rmse
 from dynqos.scenario import run_id
 
@@ -26,40 +28,6 @@ SCENARIO_ROW = {
 }
 
 
-def fmt(value: float | None, digits: int = 1) -> str:
-    return "-" if value is None else f"{value:.{digits}f}"
-
-
-def _lookup(summary: dict[str, Any], path: str) -> Any:
-    value: Any = summary
-    for part in path.split("."):
-        if not isinstance(value, dict):
-            return None
-        value = value.get(part)
-    return value
-
-
-def _mean(summary: dict[str, Any], path: str) -> float | None:
-    if "aggregate" in summary:
-        agg = summary["aggregate"].get(path)
-        return None if agg is None else float(agg["mean"])
-    value = _lookup(summary, path)
-    return float(value) if isinstance(value, (int, float)) else None
-
-
-def figure(summary: dict[str, Any], path: str, digits: int = 1) -> str:
-    """A figure by its path in a summary: the value of one run, or "mean [low, high]" over repeated runs."""
-    if "aggregate" not in summary:
-        value = _lookup(summary, path)
-        return fmt(value if isinstance(value, (int, float)) else None, digits)
-    agg = summary["aggregate"].get(path)
-    if agg is None:
-        return "-"
-    if agg["n"] < 2:
-        return fmt(agg["mean"], digits)
-    return f"{agg['mean']:.{digits}f} [{agg['ci95_low']:.{digits}f}, {agg['ci95_high']:.{digits}f}]"
-
-
 def _run_id(summary: dict[str, Any]) -> str:
     return run_id(summary["scenario"], summary.get("profile", "dynqos"))
 
@@ -70,8 +38,6 @@ def _loaded(summary: dict[str, Any]) -> bool:
 
 
 def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
-    from dynqos.fleet_report import fleet_comparison, fleet_section
-
     fleets = [s for s in summaries if s.get("fleet")]
     summaries = [s for s in summaries if not s.get("fleet")]
     repeated = any("aggregate" in s for s in summaries)
@@ -150,7 +116,7 @@ def _paper_profile_lines(summaries: list[dict[str, Any]]) -> list[str]:
         return []
     lines = ["", "## The paper's parameters at the paper's baseline", ""]
     for s in paper:
-        hl = _mean(s, "hl_fraction_baseline")
+        hl = mean_of(s, "hl_fraction_baseline")
         share = "-" if hl is None else f"{100 * hl:.0f}%"
         lines.append(
             f"- {s['scenario']}: unloaded C&C RTT {figure(s, 'rtt_ms.baseline.mean')} ms against the "
@@ -274,7 +240,7 @@ def _spread_plot(out: Path, summaries: list[dict[str, Any]]) -> None:
     for i, s in enumerate(summaries):
         for offset, path, colour in ((-0.15, "rtt_ms.baseline.mean", "tab:blue"),
                                      (0.15, "rtt_ms.loaded.mean", "tab:red")):  # fmt: skip
-            values = [v for run in s.get("runs", [s]) if isinstance(v := _lookup(run, path), (int, float))]
+            values = [v for run in s.get("runs", [s]) if isinstance(v := lookup(run, path), (int, float))]
             if not values:
                 continue
             ax.scatter([i + offset] * len(values), values, color=colour, alpha=0.5, s=14)

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common.errors import ConfigError
-from dynqos.report_md import fmt
+from dynqos.figures import fmt
 from dynqos.runner import run_scenario
 from dynqos.scenario import builtin_scenario
 

@@ -141,7 +141,7 @@ def check_invariants(arb: Arbiter, needs: dict[str, Need]) -> None:
             assert not (count_ok and rate_ok), (uav, need, {h: needs[h] for h in holders})
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(configs, steps_strategy)
 def test_budget_and_risk_order_hold_after_every_decision(
     config: ArbiterConfig, steps: list[tuple[int, dict[str, Need]]]
@@ -149,7 +149,7 @@ def test_budget_and_risk_order_hold_after_every_decision(
     run(config, steps)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(configs, steps_strategy)
 def test_same_inputs_same_decisions_whatever_the_order_they_are_listed_in(
     config: ArbiterConfig, steps: list[tuple[int, dict[str, Need]]]
@@ -158,7 +158,7 @@ def test_same_inputs_same_decisions_whatever_the_order_they_are_listed_in(
     assert run(config, steps) == run(config, reversed_steps)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(configs, st.lists(needs_strategy, min_size=1, max_size=20), st.integers(0, 4))
 def test_a_drone_whose_need_stays_highest_is_granted_within_min_hold(
     config: ArbiterConfig, others_seq: list[dict[str, Need]], seed: int

@@ -13,8 +13,9 @@ import pytest
 from dynqos.aggregate import aggregate, interval, repeated_summary
 from dynqos.common.config import SupervisorConfig, ZenohConfig
 from dynqos.common.errors import ConfigError
+from dynqos.figures import figure
 from dynqos.profile import DEFAULT_PROFILE, load_profile
-from dynqos.report_md import figure, write_report
+from dynqos.report_md import write_report
 from dynqos.scenario import builtin_scenario, scenario_config
 from tests.procs import DYNQOS
 
