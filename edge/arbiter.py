@@ -15,7 +15,8 @@ danger keep their real-time loop and the others degrade through the supervisor's
 - a drone that no longer wants priority but whose session is in its hold-down keeps its place until
   anyone else needs it;
 - when a contender cannot be placed yet, nobody who needs less is granted in its stead (one that would
-  not fit even alone blocks nobody);
+  not fit even alone blocks nobody): so a drone can wait while a lower risk holds a grant only when a
+  drone that needs more than it is waiting too, for room that revoking the lower risk would not make;
 - if a holder's offered rate grows past the budget, the lowest need is revoked until it fits again.
 
 Decisions are deterministic for a given sequence of inputs: ties end in the order drones began to wait,
@@ -90,6 +91,7 @@ class Arbiter:
         # when that changes, not each time a holder's latency moves.
         self._told_denied: dict[str, tuple[str, tuple[str, ...]]] = {}
         self.needs: dict[str, Need] = {}
+        self.blocked: tuple[int, int] | None = None  # the rank of the neediest drone left waiting last round
 
     @property
     def budget_mbps(self) -> float:
@@ -123,6 +125,7 @@ class Arbiter:
             self.waiting.setdefault(uav, now_ns)
         contenders.sort(key=lambda u: (tuple(-x for x in needs[u].rank), self.waiting[u], u))
         blocked: tuple[int, int] | None = None
+        self.blocked = None
         for uav in contenders:
             need = needs[uav]
             if blocked is not None and need.rank < blocked:
@@ -131,7 +134,7 @@ class Arbiter:
             evict = self._make_room(uav, needs, now_ns)
             if evict is None:
                 if blocked is None and self._fits([uav], needs):  # one that could never fit blocks nobody
-                    blocked = need.rank
+                    blocked = self.blocked = need.rank
                 decisions += self._deny(uav, need, "full", self._why_full(uav, needs))
                 continue
             for other in evict:
