@@ -190,13 +190,18 @@ class FaultInjector:
 # ---- outcomes ----------------------------------------------------------------------------------------
 
 
-def time_in_states(statuses: Sequence[SupervisorStatus], since_ns: int | None = None) -> dict[str, float]:
-    """Seconds in each supervisor state: a status's state lasts until the next status. Only the spans
-    that start at or after `since_ns` count (all of them when None)."""
+def time_in_states(
+    statuses: Sequence[SupervisorStatus], since_ns: int | None = None, field: str = "state"
+) -> dict[str, float]:
+    """Seconds with each value of a status field (the supervisor state by default; `risk`, `qos_grant`...):
+    a status's value lasts until the next status. Only the spans that start at or after `since_ns` count
+    (all of them when None)."""
     out: dict[str, float] = {}
     for a, b in itertools.pairwise(statuses):
         if since_ns is None or a.stamp_ns >= since_ns:
-            out[a.state.value] = out.get(a.state.value, 0.0) + (b.stamp_ns - a.stamp_ns) / NS_PER_S
+            value = getattr(a, field)
+            key = str(getattr(value, "value", value))
+            out[key] = out.get(key, 0.0) + (b.stamp_ns - a.stamp_ns) / NS_PER_S
     return out
 
 

@@ -11,9 +11,11 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from dynqos.common.clock import NS_PER_S
 from dynqos.common.messages import QosDecision, SupervisorStatus
+from dynqos.faults import time_in_states
 from dynqos.figures import figure
+from dynqos.onboard.supervisor import PRIORITY_STATES as SUPERVISOR_PRIORITY_STATES
+from dynqos.onboard.supervisor import RATE_ADAPTATION_STATES as SUPERVISOR_RATE_ADAPTATION_STATES
 from dynqos.recording import Recording
 from dynqos.report import _cell_rates, summarise, write_scenario
 from dynqos.scenario import Scenario, run_id
@@ -24,7 +26,8 @@ DRONE_FIELDS = (
     "tracking_rmse_m", "states_time_s", "transitions", "first_qos_switch_after_bg_s", "camera_fps",
     "fallback_entered", "setpoint_gap_max_ms", "states_recorded",
 )  # fmt: skip
-PRIORITY_STATES = ("q2", "q3", "q5", "q6")
+PRIORITY_STATES = sorted(s.value for s in SUPERVISOR_PRIORITY_STATES)  # q2, q3, q5, q6
+RATE_ADAPTATION_STATES = sorted(s.value for s in SUPERVISOR_RATE_ADAPTATION_STATES)  # q4, q5, q6
 RTT_LIMIT = 1.2  # a high-risk drone's loaded RTT mean within this factor of its own baseline...
 DELIVERED_SHARE = 0.95  # ...delivering at least this share of what it put into its bearers...
 GAP_LIMIT_MS = 100.0  # ...and no drone's setpoints paused longer than this
@@ -39,14 +42,8 @@ def drone_recording(rec: Recording, uav: str, own: Recording) -> Recording:
     return replace(own, cell=cell, t0_ns=rec.t0_ns, bg_on_ns=rec.bg_on_ns, offload_ns=rec.t0_ns)
 
 
-def _spans(statuses: list[SupervisorStatus], since_ns: int, key: str) -> dict[str, float]:
-    """Seconds with each value of a status field (a status's value lasts until the next status)."""
-    out: dict[str, float] = {}
-    for a, b in itertools.pairwise(statuses):
-        if a.stamp_ns >= since_ns:
-            value = str(getattr(a, key).value if hasattr(getattr(a, key), "value") else getattr(a, key))
-            out[value] = out.get(value, 0.0) + (b.stamp_ns - a.stamp_ns) / NS_PER_S
-    return {k: round(v, 2) for k, v in sorted(out.items())}
+def _spans(statuses: list[SupervisorStatus], since_ns: int, field: str) -> dict[str, float]:
+    return {k: round(v, 2) for k, v in sorted(time_in_states(statuses, since_ns, field).items())}
 
 
 def _drone(
@@ -62,7 +59,7 @@ def _drone(
     out["granted_time_s"] = _spans(statuses, rec.t0_ns, "qos_grant").get("available", 0.0)
     out["risk_time_s"] = _spans(statuses, rec.t0_ns, "risk")
     out["rate_adaptation_time_s"] = round(
-        sum(single["states_time_s"].get(q, 0.0) for q in ("q4", "q5", "q6")), 2
+        sum(single["states_time_s"].get(q, 0.0) for q in RATE_ADAPTATION_STATES), 2
     )
     base, loaded = single["rtt_ms"]["baseline"], single["rtt_ms"]["loaded"]
     out["rtt_loaded_over_baseline"] = (
