@@ -14,6 +14,7 @@ import math
 import re
 import sys
 import types
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
@@ -827,8 +828,32 @@ def _merge(table: dict[str, Any], parts: list[str], value: Any) -> None:
     node[parts[-1]] = value
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
-    """Load a TOML file (or the defaults when path is None) and apply `--set KEY=VALUE` overrides."""
+ENV_PREFIX = "DYNQOS_"
+ENV_NESTING = "__"
+
+
+def environment_overrides(environ: Mapping[str, str]) -> list[tuple[str, str]]:
+    """Settings from the environment, the Kubernetes way: `DYNQOS_<SECTION>__<KEY>=VALUE` (nested as
+    pydantic-settings nests them: `DYNQOS_QOS__CAMARA__API_ROOT`), case-insensitive, as
+    (variable, `section.key=value`) pairs in a stable order. Variables without `__` (such as a test's
+    `DYNQOS_SOAK_S`) are not settings."""
+    found = []
+    for name in sorted(environ):
+        rest = name[len(ENV_PREFIX) :] if name.upper().startswith(ENV_PREFIX) else ""
+        if ENV_NESTING in rest:
+            path = ".".join(part.lower() for part in rest.split(ENV_NESTING))
+            found.append((name, f"{path}={environ[name]}"))
+    return found
+
+
+def load_config(
+    path: str | Path | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    *,
+    environment: list[tuple[str, str]] | tuple[tuple[str, str], ...] = (),
+) -> Config:
+    """Load a TOML file (or the defaults when path is None), then apply `environment` (from
+    `environment_overrides`) and then the `--set KEY=VALUE` overrides: the later wins."""
     table: dict[str, Any] = {}
     source = "<defaults>"
     if path is not None:
@@ -843,15 +868,25 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             table = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError("", f"not valid TOML ({exc})", source=source) from None
+    by_key: dict[str, str] = {}  # setting -> the variable or option that set it last
+    for variable, text in environment:
+        parts, value = _parse_override(text)
+        _merge(table, parts, value)
+        by_key[".".join(parts)] = f"environment variable {variable}"
     for text in overrides:
         parts, value = _parse_override(text)
         _merge(table, parts, value)
-        if path is None:
-            source = "--set"
+        by_key[".".join(parts)] = "--set"
     try:
         return build(Config, table)
     except ConfigError as exc:
-        raise exc.with_source(source) from None
+        named = [who for key, who in by_key.items() if _related(exc.key, key)]
+        raise exc.with_source(named[-1] if named else source) from None
+
+
+def _related(a: str, b: str) -> bool:
+    """One key path is the other or lies inside it (`qos` and `qos.camara.api_root`)."""
+    return a == b or a.startswith(b + ".") or b.startswith(a + ".")
 
 
 def to_dict(config: Config) -> dict[str, Any]:

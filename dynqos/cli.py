@@ -10,13 +10,14 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from dynqos import __version__
-from dynqos.common.config import Config, load_config, to_toml
+from dynqos.common.config import Config, environment_overrides, load_config, to_toml
 from dynqos.common.errors import DynqosError
 
 log = logging.getLogger("dynqos")
@@ -27,28 +28,61 @@ EXIT_USAGE = 2
 MAX_INSTANCE = 254  # MAVLink system ids are 1..255
 
 
-def _common_options() -> argparse.ArgumentParser:
+COMMON_LEVELS = 3  # dynqos [options] COMMAND [options] ACTION [options]: the common options at each level
+
+
+def _common_options(level: int, *, settings: bool = True) -> argparse.ArgumentParser:
+    """The common options of one level of subcommand, each stored under its own name per level.
+
+    argparse copies a subcommand's defaults over its parent's values, so a single `--set` or `--config`
+    given before the subcommand would be silently lost; with one name per level none is lost and `main`
+    joins them (`_join_common_options`).
+    """
     common = argparse.ArgumentParser(add_help=False)
-    group = common.add_argument_group("common options")
-    group.add_argument("--config", metavar="FILE", help="TOML config file (default: built-in defaults)")
-    group.add_argument(
-        "--set",
-        metavar="KEY=VALUE",
-        action="append",
-        default=[],
-        dest="overrides",
-        help="override one setting, e.g. --set supervisor.th_lat=0.6 (repeatable)",
-    )
+    group = common.add_argument_group("common options (accepted before or after any subcommand)")
+    if settings:
+        _settings_options(group, level)
     group.add_argument(
         "--log-level",
-        default="info",
+        dest=f"log_level_{level}",
         choices=["debug", "info", "warning", "error"],
         help="logging verbosity (default: info)",
     )
     return common
 
 
+def _settings_options(group: argparse._ArgumentGroup, level: int) -> None:
+    group.add_argument(
+        "--config",
+        metavar="FILE",
+        dest=f"config_{level}",
+        help="TOML config file (default: built-in defaults)",
+    )
+    group.add_argument(
+        "--set",
+        metavar="KEY=VALUE",
+        action="append",
+        dest=f"overrides_{level}",
+        help="override one setting, e.g. --set supervisor.th_lat=0.6 (repeatable; wins over the "
+        "environment's DYNQOS_<SECTION>__<KEY> and the config file)",
+    )
+
+
+def _join_common_options(args: argparse.Namespace) -> None:
+    """args.config, args.overrides and args.log_level from every level they were given at."""
+    configs = [getattr(args, f"config_{n}", None) for n in range(COMMON_LEVELS)]
+    given = list(dict.fromkeys(c for c in configs if c))
+    if len(given) > 1:
+        raise DynqosError(f"two config files given ({' and '.join(given)}); pass one")
+    args.config = given[0] if given else None
+    args.overrides = [o for n in range(COMMON_LEVELS) for o in getattr(args, f"overrides_{n}", None) or []]
+    levels = [getattr(args, f"log_level_{n}", None) for n in range(COMMON_LEVELS)]
+    args.log_level = next((lvl for lvl in reversed(levels) if lvl), "info")  # the innermost one given
+
+
 def _cmd_config_show(args: argparse.Namespace, config: Config) -> int:
+    for variable, setting in args.environment:
+        sys.stdout.write(f"# from the environment: {variable} -> {setting}\n")
     sys.stdout.write(to_toml(config))
     return 0
 
@@ -339,8 +373,16 @@ def _demo_line(s: dict[str, Any]) -> str:
     )
 
 
+def _how_it_connects(service: str) -> str:
+    if service == "router":
+        return (
+            "Listens on [zenoh] router_listen_host (loopback by default), one port per flow; with tls = true "
+            "it takes only mutual-TLS sessions and applies the access control of [zenoh] acl_drones."
+        )
+    return "Connects to the router at [zenoh] edge_host:default_port as a client."
+
+
 def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: one per option)
-    common = _common_options()
     parser = argparse.ArgumentParser(
         prog="dynqos",
         description=(
@@ -348,16 +390,19 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
             "Eclipse Zenoh, and keep real-time constraints when the 5G cell is loaded by switching QoS "
             "flows, throttling the camera or falling back to an onboard PID."
         ),
-        epilog="Run 'dynqos COMMAND --help' for the options of one command.",
+        epilog="Run 'dynqos COMMAND --help' for the options of one command. Every setting can also be "
+        "given by an environment variable DYNQOS_<SECTION>__<KEY> (e.g. DYNQOS_DRONE__ID=uav7); the "
+        "config file < the environment < --set.",
+        parents=[_common_options(0)],
     )
     parser.add_argument("--version", action="version", version=f"dynqos {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    config_cmd = commands.add_parser("config", help="inspect configuration", parents=[common])
+    config_cmd = commands.add_parser("config", help="inspect configuration", parents=[_common_options(1)])
     config_sub = config_cmd.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     show = config_sub.add_parser(
         "show",
-        parents=[common],
+        parents=[_common_options(2)],
         help="print the effective config (defaults + file + --set) as TOML",
         description="Print the effective configuration: built-in defaults, then FILE, then --set overrides.",
     )
@@ -365,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
     show.set_defaults(handler=_cmd_config_show)
     zenoh_show = config_sub.add_parser(
         "zenoh",
-        parents=[common],
+        parents=[_common_options(2)],
         help="print the zenoh config (JSON5) a router, edge or drone session opens with",
         description="Print the zenoh settings dynqos derives from [zenoh] for one role: endpoints with their "
         "priority ranges, TLS files and, for the router, the access-control policy from acl_drones. Use it "
@@ -377,11 +422,16 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
     )
     zenoh_show.set_defaults(handler=_cmd_config_zenoh)
 
-    sim_cmd = commands.add_parser("sim", help="simulators: the emulated 5G cell", parents=[common])
+    sim_cmd = commands.add_parser(
+        "sim",
+        help="simulators: the emulated 5G cell, and a simulated quadrotor with its camera behind a MAVLink "
+        "flight controller",
+        parents=[_common_options(1)],
+    )
     sim_sub = sim_cmd.add_subparsers(dest="sim_command", metavar="SIMULATOR", required=True)
     cell = sim_sub.add_parser(
         "cell",
-        parents=[common],
+        parents=[_common_options(2)],
         help="run the 5G cell emulator between the drone and the edge router",
         description=(
             "A user-space 5G uplink: one TCP listener per bearer (QoS flow) forwarding to an edge router "
@@ -399,7 +449,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
 
     vehicle = sim_sub.add_parser(
         "vehicle",
-        parents=[common],
+        parents=[_common_options(2)],
         help="run the simulated quadrotor that speaks MAVLink like PX4 SITL",
         description=(
             "A rigid-body quadrotor with a PX4-like flight controller (arming, takeoff, hold, land, offboard "
@@ -444,7 +494,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
     vehicle.set_defaults(handler=_cmd_sim_vehicle)
 
     edge_cmd = commands.add_parser(
-        "edge", help="edge services: router, mpc, planner, detector, qos", parents=[common]
+        "edge", help="edge services: router, mpc, planner, detector, qos", parents=[_common_options(1)]
     )
     edge_sub = edge_cmd.add_subparsers(dest="edge_command", metavar="SERVICE", required=True)
     for name, text in (
@@ -466,11 +516,10 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
     ):
         sub = edge_sub.add_parser(
             name,
-            parents=[common],
+            parents=[_common_options(2)],
             help=text,
-            description=text[0].upper() + text[1:] + ". "
-            "Connects to the router at [zenoh] edge_host:default_port as a client; prints one "
-            "JSON line when ready, a health line every few seconds, stops on SIGTERM.",
+            description=text[0].upper() + text[1:] + ". " + _how_it_connects(name) + " Prints one JSON "
+            "line when ready, a health line every few seconds, stops on SIGTERM.",
         )
         sub.add_argument(
             "--health-file",
@@ -481,7 +530,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
 
     onboard = commands.add_parser(
         "onboard",
-        parents=[common],
+        parents=[_common_options(1)],
         help="the drone's daemon: MAVLink to the FC, uplink to the edge, supervisor, fallback PID",
         description=(
             "Connects to the flight controller ([onboard] mavlink_url, default udpin:127.0.0.1:14540 like "
@@ -500,7 +549,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
     ):
         sub = commands.add_parser(
             name,
-            parents=[common],
+            parents=[_common_options(1, settings=False)],
             help=text,
             description=text[0].upper()
             + text[1:]
@@ -545,7 +594,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
 
     sensitivity = commands.add_parser(
         "sensitivity",
-        parents=[common],
+        parents=[_common_options(1, settings=False)],
         help="fly bg-staticqos once per priority weight and background load: where priority stops helping",
         description="Fly the bg-staticqos scenario (priority flow all along) once per priority weight and "
         "background load, and write summary.json, sensitivity.md and sensitivity.png: the drone's loaded "
@@ -560,7 +609,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
 
     bench = commands.add_parser(
         "bench",
-        parents=[common],
+        parents=[_common_options(1, settings=False)],
         help="run the benchmarks (what the runtime costs, beside its floor) and write bench-results.json",
         description="Runs each benchmark against its floor and target (all by default: supervisor_step, "
         "mpc_step, control_loop, fleet_zenoh, edge_per_drone, onboard_camera, vehicle_sim, cell_forward, "
@@ -582,7 +631,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
 
     health = commands.add_parser(
         "health",
-        parents=[common],
+        parents=[_common_options(1, settings=False)],
         help="check a service's health file (exit 0 if fresh): for Kubernetes exec probes",
         description="Prints the last health line written by a service started with --health-file FILE "
         "and exits 0 if it is at most --max-age seconds old; otherwise says why and exits 2.",
@@ -595,7 +644,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
 
     certs = commands.add_parser(
         "certs",
-        parents=[common],
+        parents=[_common_options(1, settings=False)],
         help="make a development CA and mTLS certificates for the router, the edge and each drone",
         description="Writes into --out: ca.pem and ca-key.pem (kept and reused if present), router.pem "
         "(server and client auth; names: localhost, 127.0.0.1 and each --router-host), edge.pem (CN edge, "
@@ -618,9 +667,21 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
     certs.add_argument("--days", type=int, default=365, metavar="N", help="validity (default 365 days)")
     certs.set_defaults(handler=_cmd_certs)
 
-    version = commands.add_parser("version", help="print the version", parents=[common])
+    version = commands.add_parser(
+        "version", help="print the version", parents=[_common_options(1, settings=False)]
+    )
     version.set_defaults(handler=_cmd_version)
     return parser
+
+
+BUILDS_ITS_OWN_CONFIG: dict[Handler, str] = {
+    _cmd_demo: "each scenario builds its own config; change settings with --profile FILE",
+    _cmd_sensitivity: "each point builds its own config from the scenario",
+    _cmd_bench: "each benchmark sets up what it measures",
+    _cmd_health: "it reads only the health file",
+    _cmd_certs: "it reads only its own options",
+    _cmd_version: "it reads nothing",
+}  # commands that read no settings: a --config or --set given to them would be silently ignored
 
 
 def _config_path(args: argparse.Namespace) -> str | None:
@@ -634,14 +695,21 @@ def _config_path(args: argparse.Namespace) -> str | None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    try:
+        _join_common_options(args)
+    except DynqosError as exc:
+        parser.error(str(exc))  # exit 2 with the usage line
     logging.basicConfig(
         level=getattr(logging, args.log_level.upper()),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
     handler: Handler = args.handler
+    if handler in BUILDS_ITS_OWN_CONFIG and (args.config or args.overrides):
+        parser.error(f"'{args.command}' takes no --config or --set: {BUILDS_ITS_OWN_CONFIG[handler]}")
     try:
-        config = load_config(_config_path(args), args.overrides)
+        args.environment = environment_overrides(os.environ)
+        config = load_config(_config_path(args), args.overrides, environment=args.environment)
         return handler(args, config)
     except DynqosError as exc:
         print(f"dynqos: error: {exc}", file=sys.stderr)

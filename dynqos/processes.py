@@ -12,9 +12,11 @@ import signal
 import socket
 import subprocess
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from dynqos.common.config import environment_overrides
 from dynqos.common.errors import DynqosError
 
 
@@ -66,6 +68,14 @@ def rss_kb(pid: int) -> int | None:
     return None
 
 
+def child_environment(environ: Mapping[str, str]) -> dict[str, str]:
+    """The environment of a process the runner starts: without DYNQOS_<SECTION>__<KEY> settings, which
+    the runner has already folded into the config file it hands the process (a fleet drone's own
+    `drone.id` must not be overridden by the one the user set for the run)."""
+    settings = {name for name, _ in environment_overrides(environ)}
+    return {name: value for name, value in environ.items() if name not in settings}
+
+
 class Processes:
     """The scenario's processes, started in order, stopped in reverse, each by its own pid."""
 
@@ -96,6 +106,7 @@ class Processes:
             stderr=err,
             text=True,
             start_new_session=True,
+            env=child_environment(os.environ),
         )
         err.close()
         self.procs[name] = proc

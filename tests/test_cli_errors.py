@@ -27,6 +27,10 @@ COMMANDS = [
     ["edge", "detector"],
     ["edge", "qos"],
     ["onboard"],
+]
+# These read no settings (a scenario, a profile or their own options say what they do), so a --config or
+# --set given to them is refused rather than silently ignored.
+READ_NO_SETTINGS = [
     ["demo"],
     ["run", "scenario.toml"],
     ["certs", "--out", "pki", "--drone", "uav1"],
@@ -55,6 +59,18 @@ def test_bad_configuration_is_one_line_and_exit_2(
     assert err.count("\n") == 1, err
     assert err.startswith("dynqos: error: ")
     assert message in err
+
+
+@pytest.mark.parametrize("command", READ_NO_SETTINGS, ids=lambda c: " ".join(c[:2]))
+@pytest.mark.parametrize(("extra", "_"), BAD_CONFIG[:2], ids=["config", "set"])
+def test_settings_given_to_a_command_that_reads_none_are_refused(
+    command: list[str], extra: list[str], _: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for argv in ([*command, *extra], [*extra, *command]):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2
+        assert extra[0] in capsys.readouterr().err
 
 
 @pytest.fixture
