@@ -1,87 +1,127 @@
-"""The router's access-control policy: each drone reaches only its own keys.
+"""The router's access-control policy: every identity reaches only the keys its job needs.
 
-Zenoh matches a connecting session's certificate common name (mTLS) against `subjects`; we give every
-drone its id as CN and the edge services the CN `edge`. Default deny, then per drone:
+Zenoh matches a connecting session's certificate common name (mTLS) against `subjects`. A drone's CN
+is its id; each edge service has its own CN (`edge-mpc`, `edge-planner`, `edge-detector`, `edge-qos`),
+so a compromised detector, which parses camera frames from the network, cannot command a drone.
+Default deny, then:
 
-- ingress put on `dynqos/<id>/up/**`: it may publish its own state, camera and status, nothing else;
-- ingress declare_subscriber on `dynqos/<id>/down/**` and `dynqos/<id>/ref`: it may listen to its own
-  commands, acks, detections and reference (the fallback's `continue` mode reads the reference);
-- egress put on those keys: the router delivers them to it;
-- egress declare_subscriber on `dynqos/**`: it learns which of its keys the edge listens to (zenoh only
-  sends a put where a subscriber was declared, so without this the drone's own state would go nowhere).
+- a drone publishes only `dynqos/<id>/up/**` and receives only `dynqos/<id>/down/**` and
+  `dynqos/<id>/ref` (the fallback's `continue` mode reads the reference);
+- an edge service publishes only its outputs and subscribes only to its inputs (`EDGE_ROLES`);
+- everyone may learn which keys are subscribed (egress declare_subscriber on `dynqos/**`): zenoh only
+  sends a put where a subscriber was declared, so without this no publisher's data would go anywhere.
 
-Zenoh applies a rule only where the message's key is included in the rule's key expression, so a
-drone that declares a wider subscriber (`dynqos/**`) matches no allow rule and is refused.
-The edge subject may do anything under `dynqos/**`.
+A rule applies only where the message's key is included in the rule's key expression, so a session
+that declares a wider subscriber (`dynqos/**`, `**`) matches no allow rule and is refused. Queries,
+queryables and liveliness are used by no dynqos component and are denied to everyone.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
-from dynqos.common.keys import ROOT, check_uav_id
+from dynqos.common.keys import (
+    ROOT,
+    Downlink,
+    Stream,
+    check_uav_id,
+    downlink_all_drones,
+    uplink_all_drones,
+)
 
-EDGE_SUBJECT = "edge"
+
+@dataclass(frozen=True, slots=True)
+class EdgeRole:
+    """What one edge service may read (subscribe to) and write (publish)."""
+
+    reads: tuple[str, ...]
+    writes: tuple[str, ...]
+
+
+EDGE_ROLES: dict[str, EdgeRole] = {
+    "mpc": EdgeRole(
+        reads=(uplink_all_drones(Stream.STATE), downlink_all_drones(Downlink.REFERENCE)),
+        writes=(downlink_all_drones(Downlink.COMMAND),),
+    ),
+    "planner": EdgeRole(
+        reads=(uplink_all_drones(Stream.STATE),),
+        writes=(downlink_all_drones(Downlink.REFERENCE),),
+    ),
+    "detector": EdgeRole(
+        reads=(uplink_all_drones(Stream.CAMERA_RGB), uplink_all_drones(Stream.CAMERA_DEPTH)),
+        writes=(downlink_all_drones(Downlink.CAMERA_ACK), downlink_all_drones(Downlink.DETECTIONS)),
+    ),
+    "qos": EdgeRole(
+        reads=(uplink_all_drones(Stream.QOS),),
+        writes=(downlink_all_drones(Downlink.QOS_GRANT), downlink_all_drones(Downlink.QOS_DECISION)),
+    ),
+}
+EDGE_PREFIX = "edge-"
+ROUTER_COMMON_NAME = "router"
+
+
+def edge_common_name(service: str) -> str:
+    """The certificate CN of an edge service (`edge-mpc`)."""
+    if service not in EDGE_ROLES:
+        raise ValueError(f"no edge service {service!r} (known: {', '.join(EDGE_ROLES)})")
+    return EDGE_PREFIX + service
+
+
+def reserved_name(name: str) -> bool:
+    """Names that are identities of the edge, never a drone's id."""
+    return name in (ROUTER_COMMON_NAME, "edge") or name.startswith(EDGE_PREFIX)
+
+
+def _rule(rule_id: str, flow: str, messages: list[str], keys: list[str] | tuple[str, ...]) -> dict[str, Any]:
+    return {
+        "id": rule_id,
+        "permission": "allow",
+        "flows": [flow],
+        "messages": messages,
+        "key_exprs": list(keys),
+    }
+
+
+def _reader_and_writer(
+    name: str, reads: list[str] | tuple[str, ...], writes: list[str] | tuple[str, ...]
+) -> list[dict[str, Any]]:
+    """Rules for a subject that subscribes to `reads` and publishes on `writes`."""
+    return [
+        _rule(f"{name}-subscribe", "ingress", ["declare_subscriber"], reads),
+        _rule(f"{name}-receive", "egress", ["put"], reads),
+        _rule(f"{name}-publish", "ingress", ["put"], writes),
+    ]
 
 
 def access_control_policy(drones: tuple[str, ...] | list[str]) -> dict[str, Any]:
     """zenoh's `access_control` config object for `drones` and the edge services."""
     rules: list[dict[str, Any]] = [
-        {
-            "id": "edge-all",
-            "permission": "allow",
-            "flows": ["ingress", "egress"],
-            "messages": ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
-                         "liveliness_token", "liveliness_query", "declare_liveliness_subscriber"],
-            "key_exprs": [f"{ROOT}/**"],
-        },
-        {
-            "id": "drone-learns-subscribers",
-            "permission": "allow",
-            "flows": ["egress"],
-            "messages": ["declare_subscriber"],
-            "key_exprs": [f"{ROOT}/**"],
-        },
-    ]  # fmt: skip
-    subjects: list[dict[str, Any]] = [{"id": EDGE_SUBJECT, "cert_common_names": [EDGE_SUBJECT]}]
-    policies: list[dict[str, Any]] = [
-        {"id": "edge", "rules": ["edge-all"], "subjects": [EDGE_SUBJECT]},
+        _rule("learn-subscribers", "egress", ["declare_subscriber"], [f"{ROOT}/**"]),
     ]
-    for uav in drones:
-        check_uav_id(uav)
-        own_down = [f"{ROOT}/{uav}/down/**", f"{ROOT}/{uav}/ref"]
-        rules += [
-            {
-                "id": f"{uav}-publish-up",
-                "permission": "allow",
-                "flows": ["ingress"],
-                "messages": ["put"],
-                "key_exprs": [f"{ROOT}/{uav}/up/**"],
-            },
-            {
-                "id": f"{uav}-subscribe-down",
-                "permission": "allow",
-                "flows": ["ingress"],
-                "messages": ["declare_subscriber"],
-                "key_exprs": own_down,
-            },
-            {
-                "id": f"{uav}-receive-down",
-                "permission": "allow",
-                "flows": ["egress"],
-                "messages": ["put"],
-                "key_exprs": own_down,
-            },
-        ]
-        subjects.append({"id": f"drone-{uav}", "cert_common_names": [uav]})
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+
+    def grant(subject: str, common_name: str, own_rules: list[dict[str, Any]]) -> None:
+        rules.extend(own_rules)
+        subjects.append({"id": subject, "cert_common_names": [common_name]})
         policies.append(
             {
-                "id": f"drone-{uav}",
-                "rules": [f"{uav}-publish-up", f"{uav}-subscribe-down", f"{uav}-receive-down",
-                          "drone-learns-subscribers"],
-                "subjects": [f"drone-{uav}"],
+                "id": subject,
+                "rules": [r["id"] for r in own_rules] + ["learn-subscribers"],
+                "subjects": [subject],
             }
-        )  # fmt: skip
+        )
+
+    for service, role in EDGE_ROLES.items():
+        cn = edge_common_name(service)
+        grant(cn, cn, _reader_and_writer(cn, role.reads, role.writes))
+    for uav in drones:
+        check_uav_id(uav)
+        if reserved_name(uav):
+            raise ValueError(f"{uav!r} is an edge identity, not a drone id")
+        own_down = [f"{ROOT}/{uav}/down/**", f"{ROOT}/{uav}/ref"]
+        grant(f"drone-{uav}", uav, _reader_and_writer(uav, own_down, [f"{ROOT}/{uav}/up/**"]))
     return {
         "enabled": True,
         "default_permission": "deny",

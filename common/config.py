@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
 
+from dynqos.common.acl import reserved_name
 from dynqos.common.errors import ConfigError, KeyExprError
 from dynqos.common.keys import UAV_ID_PATTERN, check_uav_id
 
@@ -60,12 +61,16 @@ class ZenohConfig:
     bulk_sndbuf_bytes: int = 65536
     connect_timeout_s: float = 5.0
     # Production: mutual TLS on both flows, and on the router an access-control policy by certificate
-    # common name (drone id; "edge" for the edge services). See docs/deploy.md and `dynqos certs`.
+    # common name (drone id; edge-mpc, edge-planner, edge-detector, edge-qos for the edge services).
+    # See docs/security.md and `dynqos certs`.
     tls: bool = False
     tls_ca: str = ""  # the CA that signed every certificate (PEM)
-    tls_cert: str = ""  # this process's certificate (PEM); CN = drone id, "edge" or "router"
+    tls_cert: str = ""  # this process's certificate (PEM); CN = drone id, edge-<service> or "router"
     tls_key: str = ""  # its private key (PEM)
-    acl_drones: tuple[str, ...] = ()  # router: drone ids allowed in; non-empty turns access control on
+    acl_drones: tuple[str, ...] = ()  # router: the drone ids let in (each to its own keys only)
+    # router with tls: "on" refuses to start without acl_drones (fail closed); "off" runs TLS with no
+    # access control at all (every certificate from the CA may do anything), and says so loudly.
+    acl: str = "on"
 
     def __post_init__(self) -> None:
         _require(bool(self.edge_host.strip()), "edge_host", "must not be empty")
@@ -86,10 +91,14 @@ class ZenohConfig:
                 _require(bool(getattr(self, name)), name, "must name a PEM file when tls = true")
         for uav in self.acl_drones:
             _require(UAV_ID_PATTERN.fullmatch(uav) is not None, "acl_drones", f"{uav!r} is not a drone id")
-        _require(
-            "edge" not in self.acl_drones, "acl_drones", "'edge' is the edge services' name, not a drone"
-        )
+            _require(not reserved_name(uav), "acl_drones", f"{uav!r} names an edge identity, not a drone")
         _require(not self.acl_drones or self.tls, "acl_drones", "access control needs tls = true")
+        _require(self.acl in ("on", "off"), "acl", f'must be "on" or "off", got {self.acl!r}')
+        _require(
+            not (self.acl == "off" and self.acl_drones),
+            "acl",
+            'is "off" but acl_drones lists drones: say which you mean',
+        )
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

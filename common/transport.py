@@ -16,6 +16,7 @@ never block.
 from __future__ import annotations
 
 import enum
+import ipaddress
 import json
 import logging
 import threading
@@ -134,9 +135,49 @@ def session_settings(
     }
     if cfg.tls:
         settings.update(_tls_settings(cfg, role, check_files))
-    if role is Role.ROUTER and cfg.acl_drones:
-        settings["access_control"] = access_control_policy(cfg.acl_drones)
+    if role is Role.ROUTER:
+        policy = router_access_control(cfg)
+        if policy is not None:
+            settings["access_control"] = policy
     return settings
+
+
+def router_access_control(cfg: ZenohConfig) -> dict[str, Any] | None:
+    """The router's access-control policy, failing closed: TLS without a policy is refused unless
+    `acl = "off"` says so, and every setup that lets anyone in is logged as a warning naming the risk."""
+    if cfg.tls and cfg.acl_drones:
+        return access_control_policy(cfg.acl_drones)
+    if cfg.tls and cfg.acl == "on":
+        raise ConfigError(
+            "zenoh.acl_drones",
+            "is empty with tls = true: the router would let every certificate from the CA command every "
+            'drone and read all traffic. List the drones, or set zenoh.acl = "off" to run without '
+            "access control on purpose",
+        )
+    if cfg.tls:
+        log.warning(
+            'router: TLS WITHOUT ACCESS CONTROL (zenoh.acl = "off"): any certificate signed by %s may '
+            "publish to and read every drone's keys",
+            cfg.tls_ca,
+        )
+    elif not _loopback(cfg.router_listen_host):
+        log.warning(
+            "router: PLAIN TCP ON %s WITHOUT AUTHENTICATION: anyone who reaches ports %d/%d can command "
+            "every drone and read all traffic; use tls = true with acl_drones outside a trusted network",
+            cfg.router_listen_host,
+            cfg.default_port,
+            cfg.priority_port,
+        )
+    return None
+
+
+def _loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False  # a name other than localhost: it may resolve to anything
 
 
 def nested(settings: dict[str, Any]) -> dict[str, Any]:

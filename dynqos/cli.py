@@ -25,6 +25,14 @@ log = logging.getLogger("dynqos")
 Handler = Callable[[argparse.Namespace, Config], int]
 
 EXIT_USAGE = 2
+# Optional dependencies by the extra that brings them (pyproject.toml): a drone has none of them.
+EXTRA_OF_MODULE = {
+    "osqp": "edge",
+    "scipy": "edge",
+    "aiohttp": "edge",
+    "matplotlib": "demo",
+    "jsonschema": "demo",
+}
 MAX_INSTANCE = 254  # MAVLink system ids are 1..255
 
 
@@ -208,31 +216,21 @@ def _cmd_edge(args: argparse.Namespace, config: Config) -> int:
         run_router(config, ready=lambda: _ready_line("router"), health_file=_health_path(args))
         return 0
     if name == "qos":
-        from dynqos.edge.qos_agent import preflight
+        from dynqos.edge.qos_agent import QosAgent, preflight
 
         preflight(config)  # the operator settings, before any network is opened
-    bus = open_bus(config.zenoh, Role.EDGE)
-    try:
-        worker: Any
-        if name == "qos":
-            from dynqos.edge.qos_agent import QosAgent
-
+        bus = open_bus(config.zenoh, Role.EDGE)
+        try:
             agent = QosAgent(config, bus)
             agent.service.health_file = _health_path(args)
             agent.run(ready=lambda: _ready_line("qos"))
-            return 0
-        if name == "mpc":
-            from dynqos.edge.mpc_service import MpcService
-
-            worker = MpcService(config, bus)
-        elif name == "planner":
-            from dynqos.edge.planner_service import PlannerService
-
-            worker = PlannerService(config, bus)
-        else:
-            from dynqos.edge.detector_service import DetectorService
-
-            worker = DetectorService(config, bus)
+        finally:
+            bus.close()
+        return 0
+    worker_class = _edge_worker(name)  # imported first: a missing extra is said before any network
+    bus = open_bus(config.zenoh, Role.EDGE)
+    try:
+        worker = worker_class(config, bus)
         lifecycle = worker.service  # signals, health file and stop event of this process
         lifecycle.install_signal_handlers()
         lifecycle.health_file = _health_path(args)
@@ -242,6 +240,20 @@ def _cmd_edge(args: argparse.Namespace, config: Config) -> int:
     finally:
         bus.close()
     return 0
+
+
+def _edge_worker(name: str) -> Any:
+    if name == "mpc":
+        from dynqos.edge.mpc_service import MpcService
+
+        return MpcService
+    if name == "planner":
+        from dynqos.edge.planner_service import PlannerService
+
+        return PlannerService
+    from dynqos.edge.detector_service import DetectorService
+
+    return DetectorService
 
 
 def _health_path(args: argparse.Namespace) -> Path | None:
@@ -271,11 +283,14 @@ def _cmd_certs(args: argparse.Namespace, config: Config) -> int:
     if not args.drones:
         raise DynqosError("give at least one --drone ID")
     try:
-        issued = make_dev_pki(Path(args.out), args.drones, args.router_hosts, days=args.days)
+        issued = make_dev_pki(
+            Path(args.out), args.drones, args.router_hosts, days=args.days, ca_days=args.ca_days,
+            force=args.force,
+        )  # fmt: skip
     except KeyExprError as exc:
         raise DynqosError(f"--drone: {exc}") from None
     for name, pair in issued.items():
-        print(f"{name}: {pair.cert} {pair.key}")
+        print(f"{name}: {pair.cert} {pair.key}{' (kept)' if pair.kept else ''}")
     print(f"ca: {Path(args.out) / 'ca.pem'}")
     return 0
 
@@ -646,11 +661,14 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
         "certs",
         parents=[_common_options(1, settings=False)],
         help="make a development CA and mTLS certificates for the router, the edge and each drone",
-        description="Writes into --out: ca.pem and ca-key.pem (kept and reused if present), router.pem "
-        "(server and client auth; names: localhost, 127.0.0.1 and each --router-host), edge.pem (CN edge, "
-        "shared by the edge services) and <id>.pem per --drone (CN = drone id, matched by the router's "
-        "access control), each with its <name>-key.pem (mode 0600). For production use your own PKI "
-        "with the same common names.",
+        description="Writes into --out (made 0700): ca.pem and ca-key.pem (kept and reused if present), "
+        "router.pem (server and client auth; names: localhost, 127.0.0.1 and each --router-host), one "
+        "identity per edge service (edge-mpc, edge-planner, edge-detector, edge-qos: each may touch only "
+        "its own keys) and <id>.pem per --drone (CN = drone id, matched by the router's access control), "
+        "each with its <name>-key.pem (mode 0600, written through a new file, never through a link). "
+        "Pairs that exist and are still valid are kept unless --force, so adding a drone re-issues "
+        "nothing else. No certificate outlives the CA. For production use your own PKI with the same "
+        "common names; rotation and revocation: docs/security.md.",
     )
     certs.add_argument("--out", metavar="DIR", required=True, help="folder for the PEM files")
     certs.add_argument(
@@ -664,7 +682,15 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
         dest="router_hosts",
         help="a DNS name or IP the drones dial the router by (repeatable), e.g. dynqos-router.dynqos.svc",
     )
-    certs.add_argument("--days", type=int, default=365, metavar="N", help="validity (default 365 days)")
+    certs.add_argument(
+        "--days", type=int, default=365, metavar="N", help="validity of new certificates (default 365 days)"
+    )
+    certs.add_argument(
+        "--ca-days", type=int, default=1825, metavar="N", help="validity of a new CA (default 1825 days)"
+    )
+    certs.add_argument(
+        "--force", action="store_true", help="issue every certificate again, even those still valid"
+    )
     certs.set_defaults(handler=_cmd_certs)
 
     version = commands.add_parser(
@@ -714,16 +740,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     except DynqosError as exc:
         print(f"dynqos: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except ModuleNotFoundError as exc:  # a role installed without the extra this command needs
+        top = (exc.name or "").split(".")[0]
+        if top not in EXTRA_OF_MODULE:
+            return _internal_error(exc)
+        extra = EXTRA_OF_MODULE[top]
+        print(
+            f"dynqos: error: '{args.command}' needs {top}, which comes with the {extra} extra: "
+            f"pip install 'dynqos[{extra}]'",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
     except KeyboardInterrupt:
         print("dynqos: interrupted", file=sys.stderr)
         return 130
-    except Exception as exc:  # a bug, not bad input: say so in one line, the traceback at debug level
-        log.debug("internal error", exc_info=True)
-        print(
-            f"dynqos: internal error: {type(exc).__name__}: {exc} (run with --log-level debug)",
-            file=sys.stderr,
-        )
-        return 1
+    except Exception as exc:
+        return _internal_error(exc)
+
+
+def _internal_error(exc: Exception) -> int:
+    """A bug, not bad input: say so in one line, the traceback at debug level."""
+    log.debug("internal error", exc_info=exc)
+    print(
+        f"dynqos: internal error: {type(exc).__name__}: {exc} (run with --log-level debug)", file=sys.stderr
+    )
+    return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

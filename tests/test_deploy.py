@@ -8,6 +8,7 @@ import re
 import shutil
 import subprocess
 import sys
+from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -90,6 +91,10 @@ def _configs(docs: list[dict[str, Any]], tmp_path: Path) -> dict[str, Path]:
     return paths
 
 
+SERVICES = {"dynqos-router": "router", "dynqos-mpc": "mpc", "dynqos-planner": "planner",
+            "dynqos-detector": "detector", "dynqos-qos": "qos"}  # fmt: skip
+
+
 def test_production_overlay_turns_on_mtls_access_control_and_mpc_shards(tmp_path: Path) -> None:
     docs = _kustomize(DEPLOY / "k8s" / "overlays" / "production")
     configs = _configs(docs, tmp_path)
@@ -98,17 +103,95 @@ def test_production_overlay_turns_on_mtls_access_control_and_mpc_shards(tmp_path
     assert router.tls
     assert edge.tls
     assert router.acl_drones
-    assert Path(edge.tls_cert).name == "edge.pem"
-    assert Path(router.tls_cert).name == "router.pem"
+    assert router.acl == "on"
     workloads = {d["metadata"]["name"]: d for d in docs if d["kind"] in ("Deployment", "StatefulSet")}
-    for workload in workloads.values():
-        mounts = workload["spec"]["template"]["spec"]["containers"][0]["volumeMounts"]
+    for name, workload in workloads.items():
+        pod = workload["spec"]["template"]["spec"]
+        mounts = pod["containers"][0]["volumeMounts"]
         assert {"name": "certs", "mountPath": "/etc/dynqos/certs", "readOnly": True} in mounts
+        (certs,) = [v for v in pod["volumes"] if v["name"] == "certs"]
+        assert certs["secret"]["secretName"] == f"dynqos-{SERVICES[name]}-tls"  # its own identity only
+    for cfg in (router, edge):  # the same paths in every pod: each mounts its own Secret there
+        assert (cfg.tls_ca, cfg.tls_cert, cfg.tls_key) == tuple(
+            f"/etc/dynqos/certs/{f}" for f in ("ca.pem", "cert.pem", "key.pem")
+        )
     mpc = workloads["dynqos-mpc"]
-    env = {e["name"]: e for e in mpc["spec"]["template"]["spec"]["containers"][0]["env"]}
+    container = mpc["spec"]["template"]["spec"]["containers"][0]
+    env = {e["name"]: e for e in container["env"]}
     assert int(env["MPC_SHARDS"]["value"]) == mpc["spec"]["replicas"] == 2
+    resources = container["resources"]
+    assert resources["requests"] == resources["limits"]  # the Guaranteed QoS class: never CFS-throttled
+    assert str(resources["limits"]["cpu"]).isdigit()  # whole CPUs (the static CPU manager pins them)
     (service,) = [d for d in docs if d["kind"] == "Service" and d["metadata"]["name"] == "dynqos-router"]
     assert {p["port"] for p in service["spec"]["ports"]} == {7447, 7448}
+
+
+def test_production_network_policies_let_in_only_the_flows_and_let_edge_services_reach_only_the_router() -> (
+    None
+):
+    docs = _kustomize(DEPLOY / "k8s" / "overlays" / "production")
+    policies = {d["metadata"]["name"]: d["spec"] for d in docs if d["kind"] == "NetworkPolicy"}
+    deny = policies["dynqos-default-deny"]
+    assert deny["podSelector"] == {}
+    assert set(deny["policyTypes"]) == {"Ingress", "Egress"}
+    assert "ingress" not in deny  # nothing allowed by it
+    assert "egress" not in deny
+    ingress = [p for p in policies.values() if "Ingress" in p["policyTypes"] and p.get("ingress")]
+    assert len(ingress) == 1  # only the router is reachable, only on its two flow ports
+    assert ingress[0]["podSelector"] == {"matchLabels": {"app.kubernetes.io/name": "dynqos-router"}}
+    assert [(p["port"], p["protocol"]) for rule in ingress[0]["ingress"] for p in rule["ports"]] == [
+        (7447, "TCP"),
+        (7448, "TCP"),
+    ]
+    edge = policies["dynqos-edge-to-router"]
+    assert set(edge["podSelector"]["matchExpressions"][0]["values"]) == set(SERVICES) - {"dynqos-router"}
+    to_router, to_dns = edge["egress"]
+    assert to_router["to"] == [{"podSelector": {"matchLabels": {"app.kubernetes.io/name": "dynqos-router"}}}]
+    assert {p["port"] for p in to_dns["ports"]} == {53}
+    other_egress = [n for n, p in policies.items() if p.get("egress") and n != "dynqos-edge-to-router"]
+    assert other_egress == ["dynqos-qos-to-operator"]  # the QoD API; no other service reaches out
+    assert [p["port"] for p in policies["dynqos-qos-to-operator"]["egress"][0]["ports"]] == [443]
+    (pdb,) = [d for d in docs if d["kind"] == "PodDisruptionBudget"]
+    assert pdb["spec"]["selector"] == {"matchLabels": {"app.kubernetes.io/name": "dynqos-router"}}
+    assert pdb["spec"]["minAvailable"] == 1
+
+
+def test_the_zenohd_overlay_runs_the_official_router_with_the_generated_config() -> None:
+    import zenoh
+
+    docs = _kustomize(DEPLOY / "k8s" / "overlays" / "production-zenohd")
+    _validate(docs)
+    (router,) = [d for d in docs if d["kind"] == "Deployment" and d["metadata"]["name"] == "dynqos-router"]
+    container = router["spec"]["template"]["spec"]["containers"][0]
+    image, tag = container["image"].rsplit(":", 1)
+    assert image == "eclipse/zenoh"
+    assert tag == version("eclipse-zenoh")  # the router speaks the drones' zenoh
+    assert container["args"] == ["-c", "/etc/zenoh/router.json5"]
+    assert "exec" not in container["livenessProbe"]  # zenohd writes no dynqos health file
+    (zenohd_config,) = [d for d in docs if d["kind"] == "ConfigMap" and "zenohd" in d["metadata"]["name"]]
+    text = zenohd_config["data"]["router.json5"]
+    assert text == (DEPLOY / "zenoh" / "router-production.json5").read_text()
+    zenoh.Config.from_json5(text)  # zenoh's own parser and schema accept it
+    assert '"default_permission": "deny"' in text
+    assert '"edge-detector"' in text
+
+
+def test_the_image_is_named_in_one_place_with_the_package_version() -> None:
+    from dynqos import __version__
+
+    kustomization = yaml.safe_load((DEPLOY / "k8s" / "base" / "kustomization.yaml").read_text())
+    (image,) = kustomization["images"]
+    assert image["name"] == "dynqos-edge"
+    assert image["newTag"] == __version__
+    dockerfile = (DEPLOY / "container" / "Dockerfile").read_text()
+    assert f"ARG VERSION={__version__}" in dockerfile
+    assert f"-t {image['newName']}:{__version__} ." in dockerfile  # the build command it documents
+    for path in (DEPLOY / "k8s" / "base").glob("*.yaml"):
+        for doc in yaml.safe_load_all(path.read_text()):
+            for container in (
+                (doc or {}).get("spec", {}).get("template", {}).get("spec", {}).get("containers", [])
+            ):
+                assert container["image"] == "dynqos-edge", path  # replaced by kustomize's images: only
 
 
 def test_base_configs_load(tmp_path: Path) -> None:
@@ -184,13 +267,56 @@ def test_dockerfile_lints_copies_what_the_context_holds_and_its_entrypoint_runs(
     assert "--health-file" in out.stdout
 
 
+def _build_stage_copies(text: str) -> list[tuple[str, str]]:
+    """(source, destination) of every COPY in the Dockerfile's first (build) stage."""
+    build = text.split("\nFROM ", 2)[1]
+    copies = []
+    for line in re.findall(r"^COPY (?!--from)(.+)$", build, re.M):
+        *sources, destination = line.split()
+        copies += [(src, destination) for src in sources]
+    return copies
+
+
+@pytest.mark.timeout(300)
+def test_the_wheel_builds_from_exactly_what_the_dockerfile_copies(tmp_path: Path) -> None:
+    """What the image's build stage does, without a container runtime: the Dockerfile's COPY lines into
+    an empty folder, then `pip wheel` there. A package directory the Dockerfile forgets fails here."""
+    import zipfile
+
+    text = (DEPLOY / "container" / "Dockerfile").read_text()
+    assert re.search(r'^RUN pip wheel --wheel-dir /wheels "\.\[edge\]"$', text, re.M)
+    context = tmp_path / "src"
+    context.mkdir()
+    for source, destination in _build_stage_copies(text):
+        assert _dockerignore_allows(source.rstrip("/")), f".dockerignore leaves {source} out of the context"
+        target = context / destination.rstrip("/") if destination not in ("./", ".") else context / source
+        if (ROOT / source).is_dir():
+            shutil.copytree(ROOT / source, target, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        else:
+            shutil.copy2(ROOT / source, target)
+    pip_wheel = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q"]
+    out = subprocess.run(
+        [*pip_wheel, "-w", str(tmp_path), "."], cwd=context, capture_output=True, text=True, timeout=240
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    (wheel,) = tmp_path.glob("dynqos-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    for module in (
+        "dynqos/cli.py",
+        "dynqos/bench/suite.py",
+        "dynqos/edge/mpc_service.py",
+        "dynqos/scenarios/baseline.toml",
+    ):
+        assert module in names, module
+
+
 def test_zenoh_configs_in_deploy_are_in_sync_and_parse(tmp_path: Path) -> None:
     """deploy/zenoh/*.json5 are what `dynqos config zenoh` prints for the deploy configs (for zenohd)."""
     import zenoh
 
     script = (DEPLOY / "zenoh" / "generate.sh").read_text()
     runs = re.findall(r'"\$DYNQOS" config zenoh (\S+) --role (\w+) >(\S+)', script)
-    assert len(runs) == 4
+    assert len(runs) == 5
     dynqos = str(Path(sys.executable).parent / "dynqos")
     for source, role, target in runs:
         out = subprocess.run(

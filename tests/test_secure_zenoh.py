@@ -1,15 +1,20 @@
 """The production zenoh setup on 127.0.0.1: mutual TLS with `dynqos certs` certificates and the
-router's access control by certificate common name (deploy/, docs/deploy.md).
+router's access control by certificate common name (deploy/, docs/security.md).
 
 The router runs as a real `dynqos edge router` process from a config file like the production one;
-the drone and edge sessions are opened here with the same transport code the daemons use.
-Negative checks need no sleeps: after the forbidden messages, an allowed sentinel goes out on the
-same session, priority and link, so once the sentinel has arrived anything forbidden would have too.
+drone and edge sessions are opened here with the same transport code the daemons use, each with its
+own certificate. Every denial is asserted by what a legitimate observer did or did not receive, and
+needs no sleep: after the forbidden messages an allowed sentinel goes out from the same session at the
+same priority, and the router handles one session's messages in order and queues them to a receiver
+in order, so once the sentinel has arrived anything forbidden would have arrived before it.
+Where no sentinel can exist (queries, liveliness), the same exchange on a router without access
+control is the control that shows the test would see a leak.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 import queue
 import subprocess
 from collections.abc import Iterator
@@ -17,23 +22,29 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
 
-from dynqos.common.certs import make_dev_pki
+from dynqos.common.certs import DevCa, make_dev_pki, write_atomically
 from dynqos.common.config import ZenohConfig, load_config
 from dynqos.common.errors import ConfigError, TransportError
 from dynqos.common.transport import Role, open_session
 from tests.conftest import free_tcp_port
 from tests.procs import DYNQOS, DynqosProcess
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
 Seen = queue.Queue[tuple[str, bytes]]
+REMOTE = zenoh.Locality.REMOTE  # never to a subscriber of the sending session itself
+PRODUCTION_ROUTER = Path(__file__).resolve().parents[1] / "deploy/k8s/overlays/production/router.toml"
 
 
 @dataclasses.dataclass
 class Pki:
     folder: Path
     cfg: ZenohConfig  # ports and CA; certificate fields set per session with `as_`
+    sessions: list[zenoh.Session] = dataclasses.field(default_factory=list)
 
     def as_(self, name: str) -> ZenohConfig:
         return dataclasses.replace(
@@ -42,15 +53,15 @@ class Pki:
             tls_key=str(self.folder / f"{name}-key.pem"),
         )
 
+    def open(self, name: str, role: Role | None = None) -> zenoh.Session:
+        """A session with `name`'s certificate: a drone peer, or a client for edge-* names."""
+        role = role or (Role.EDGE if name.startswith("edge-") else Role.DRONE)
+        session = open_session(self.as_(name), role)
+        self.sessions.append(session)
+        return session
 
-PRODUCTION_ROUTER = Path(__file__).resolve().parents[1] / "deploy/k8s/overlays/production/router.toml"
 
-
-@pytest.fixture
-def secure_router(tmp_path: Path) -> Iterator[Pki]:
-    """The production router config (deploy/), moved to 127.0.0.1, free ports and fresh certificates."""
-    pki = tmp_path / "pki"
-    make_dev_pki(pki, ["uav1", "uav2"], [])
+def _start_router(tmp_path: Path, pki: Path, *extra: str) -> tuple[DynqosProcess, ZenohConfig]:
     overrides = [
         "zenoh.router_listen_host=127.0.0.1",
         f"zenoh.default_port={free_tcp_port()}",
@@ -58,15 +69,40 @@ def secure_router(tmp_path: Path) -> Iterator[Pki]:
         f'zenoh.tls_ca="{pki}/ca.pem"',
         f'zenoh.tls_cert="{pki}/router.pem"',
         f'zenoh.tls_key="{pki}/router-key.pem"',
+        *extra,
     ]
     config = load_config(PRODUCTION_ROUTER, overrides)
-    assert config.zenoh.acl_drones == ("uav1", "uav2")
     args = ["edge", "router", *(arg for o in overrides for arg in ("--set", o))]
     router = DynqosProcess(args, PRODUCTION_ROUTER)
+    return router, dataclasses.replace(
+        config.zenoh, acl_drones=(), edge_host="127.0.0.1", connect_timeout_s=3
+    )
+
+
+def _pki_fixture(tmp_path: Path, *router_settings: str) -> Iterator[Pki]:
+    folder = tmp_path / "pki"
+    make_dev_pki(folder, ["uav1", "uav2", "uav3"], [])  # uav3: signed by the CA, not in the ACL
+    router, cfg = _start_router(tmp_path, folder, *router_settings)
+    pki = Pki(folder, cfg)
     try:
-        yield Pki(pki, dataclasses.replace(config.zenoh, acl_drones=(), edge_host="127.0.0.1"))
+        yield pki
     finally:
+        for session in reversed(pki.sessions):
+            session.close()  # type: ignore[no-untyped-call]
         router.stop()
+
+
+@pytest.fixture
+def secure_router(tmp_path: Path) -> Iterator[Pki]:
+    """The production router config (deploy/), on 127.0.0.1, free ports, fresh certificates."""
+    assert load_config(PRODUCTION_ROUTER).zenoh.acl_drones == ("uav1", "uav2")
+    yield from _pki_fixture(tmp_path)
+
+
+@pytest.fixture
+def open_router(tmp_path: Path) -> Iterator[Pki]:
+    """The same router with access control off on purpose: the control for leaks with no sentinel."""
+    yield from _pki_fixture(tmp_path, "zenoh.acl_drones=[]", 'zenoh.acl="off"')
 
 
 def _collect(session: zenoh.Session, key: str, seen: Seen) -> zenoh.Subscriber[None]:
@@ -84,50 +120,255 @@ def _wait_for(seen: Seen, sentinel: tuple[str, bytes]) -> list[tuple[str, bytes]
 
 
 def _wait_matched(session: zenoh.Session, key: str) -> zenoh.Publisher:
-    publisher = session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE)
+    """A publisher on `key` once a subscriber for it is known (so the sentinel cannot be dropped)."""
+    publisher = session.declare_publisher(key, allowed_destination=REMOTE)
     listener = publisher.declare_matching_listener(zenoh.handlers.FifoChannel(4))
     if not publisher.matching_status.matching:
-        status = listener.recv()  # blocks until a subscriber for `key` is known
+        status = listener.recv()
         assert status.matching
     return publisher
 
 
 def test_a_drone_reaches_only_its_own_keys(secure_router: Pki) -> None:
-    edge = open_session(secure_router.as_("edge"), Role.EDGE)
-    uav1 = open_session(secure_router.as_("uav1"), Role.DRONE)
-    try:
-        at_edge: Seen = queue.Queue()
-        at_uav1: Seen = queue.Queue()
-        subs = [_collect(edge, "dynqos/**", at_edge)]
-        subs.append(_collect(uav1, "dynqos/uav1/down/**", at_uav1))
-        subs.append(_collect(uav1, "dynqos/uav2/down/**", at_uav1))  # declared, but refused by the router
+    mpc, uav1, uav2 = (secure_router.open(n) for n in ("edge-mpc", "uav1", "uav2"))
+    at_mpc: Seen = queue.Queue()
+    at_uav1: Seen = queue.Queue()
+    at_uav2: Seen = queue.Queue()
+    _collect(mpc, "dynqos/*/up/*/state", at_mpc)
+    _collect(uav1, "dynqos/uav1/down/**", at_uav1)
+    _collect(uav1, "dynqos/uav2/down/**", at_uav1)  # declared, but refused by the router
+    _collect(uav2, "dynqos/uav2/down/**", at_uav2)
 
-        # uav1 publishes: its own state passes; uav2's keys and any down key do not.
-        state = _wait_matched(uav1, "dynqos/uav1/up/priority/state")
-        remote = zenoh.Locality.REMOTE  # not to uav1's own subscribers in this same session
-        uav1.put("dynqos/uav2/up/priority/state", b"uav1 pretending to be uav2", allowed_destination=remote)
-        uav1.put("dynqos/uav1/down/cmd", b"uav1 forging its own command", allowed_destination=remote)
-        uav1.put("dynqos/uav2/down/cmd", b"uav1 commanding uav2", allowed_destination=remote)
-        state.put(b"uav1 state")
-        got = _wait_for(at_edge, ("dynqos/uav1/up/priority/state", b"uav1 state"))
-        assert got == [("dynqos/uav1/up/priority/state", b"uav1 state")]
+    # uav1 publishes: its own state passes; uav2's keys and any down key do not.
+    state = _wait_matched(uav1, "dynqos/uav1/up/priority/state")
+    uav1.put("dynqos/uav2/up/priority/state", b"uav1 pretending to be uav2", allowed_destination=REMOTE)
+    uav1.put("dynqos/uav1/down/cmd", b"uav1 forging its own command", allowed_destination=REMOTE)
+    uav1.put("dynqos/uav2/down/cmd", b"uav1 commanding uav2", allowed_destination=REMOTE)
+    state.put(b"uav1 state")
+    assert _wait_for(at_mpc, ("dynqos/uav1/up/priority/state", b"uav1 state")) == [
+        ("dynqos/uav1/up/priority/state", b"uav1 state")
+    ]
 
-        # The edge commands both drones: uav1 receives its own commands only.
-        command = _wait_matched(edge, "dynqos/uav1/down/cmd")
-        edge.put("dynqos/uav2/down/cmd", b"for uav2", allowed_destination=remote)
-        command.put(b"for uav1")
-        got = _wait_for(at_uav1, ("dynqos/uav1/down/cmd", b"for uav1"))
-        assert got == [("dynqos/uav1/down/cmd", b"for uav1")]
-        assert at_edge.qsize() == 0  # nothing forbidden reached the edge meanwhile either
-        for sub in subs:
-            sub.undeclare()
-    finally:
-        uav1.close()  # type: ignore[no-untyped-call]
-        edge.close()  # type: ignore[no-untyped-call]
+    # The MPC commands both drones: each receives its own command only, uav2 none of uav1's forgeries.
+    to_uav2 = _wait_matched(mpc, "dynqos/uav2/down/cmd")
+    to_uav2.put(b"for uav2")
+    assert _wait_for(at_uav2, ("dynqos/uav2/down/cmd", b"for uav2")) == [
+        ("dynqos/uav2/down/cmd", b"for uav2")
+    ]
+    to_uav1 = _wait_matched(mpc, "dynqos/uav1/down/cmd")
+    to_uav1.put(b"for uav1")
+    assert _wait_for(at_uav1, ("dynqos/uav1/down/cmd", b"for uav1")) == [
+        ("dynqos/uav1/down/cmd", b"for uav1")
+    ]
+    assert at_mpc.qsize() == 0
 
 
-def test_a_session_without_a_certificate_cannot_connect(secure_router: Pki, tmp_path: Path) -> None:
+@pytest.mark.parametrize("wide", ["dynqos/**", "**"])
+def test_a_wide_subscription_gets_nothing_beyond_the_drones_own_keys(secure_router: Pki, wide: str) -> None:
+    mpc, uav1, uav2 = (secure_router.open(n) for n in ("edge-mpc", "uav1", "uav2"))
+    at_mpc: Seen = queue.Queue()
+    at_uav1: Seen = queue.Queue()
+    _collect(mpc, "dynqos/*/up/*/state", at_mpc)
+    _collect(uav1, wide, at_uav1)
+    _collect(uav1, "dynqos/uav1/down/**", queue.Queue())  # the legitimate one, so the sentinel can arrive
+    _collect(uav2, "dynqos/uav2/down/**", queue.Queue())  # so uav2's command is routed somewhere
+
+    uav2_state = _wait_matched(uav2, "dynqos/uav2/up/priority/state")
+    uav2_state.put(b"uav2 state")
+    assert _wait_for(at_mpc, ("dynqos/uav2/up/priority/state", b"uav2 state"))[-1][1] == b"uav2 state"
+    _wait_matched(mpc, "dynqos/uav2/down/cmd").put(b"for uav2")
+    _wait_matched(mpc, "dynqos/uav1/down/cmd").put(b"for uav1")
+    # The wide subscriber sees uav1's own command (zenoh hands a received sample to every matching
+    # subscriber of the session), and nothing of uav2's before it.
+    assert _wait_for(at_uav1, ("dynqos/uav1/down/cmd", b"for uav1")) == [
+        ("dynqos/uav1/down/cmd", b"for uav1")
+    ]
+
+
+# Each edge service: what it must not publish, and an output it may publish (the sentinel).
+DOWN = "dynqos/uav1/down"
+WRITES = {
+    "edge-mpc": (["dynqos/uav1/ref", f"{DOWN}/qos", f"{DOWN}/detections"], f"{DOWN}/cmd"),
+    "edge-planner": ([f"{DOWN}/cmd", f"{DOWN}/ack/camera"], "dynqos/uav1/ref"),
+    "edge-detector": ([f"{DOWN}/cmd", "dynqos/uav1/ref", f"{DOWN}/qos"], f"{DOWN}/ack/camera"),
+    "edge-qos": ([f"{DOWN}/cmd", f"{DOWN}/detections"], f"{DOWN}/qos/decision"),
+}
+
+
+@pytest.mark.parametrize("service", list(WRITES))
+def test_an_edge_service_publishes_only_its_own_outputs(secure_router: Pki, service: str) -> None:
+    forbidden, allowed = WRITES[service]
+    uav1 = secure_router.open("uav1")
+    at_uav1: Seen = queue.Queue()
+    _collect(uav1, "dynqos/uav1/down/**", at_uav1)
+    _collect(uav1, "dynqos/uav1/ref", at_uav1)
+    edge = secure_router.open(service)
+    sentinel = _wait_matched(edge, allowed)
+    for key in forbidden:
+        edge.put(key, f"{service} forging {key}".encode(), allowed_destination=REMOTE)
+    sentinel.put(b"allowed")
+    assert _wait_for(at_uav1, (allowed, b"allowed")) == [(allowed, b"allowed")]
+
+
+# Each edge service: an input it must not read, and one it may read (the sentinel), both from uav1.
+READS = {
+    "edge-mpc": ("dynqos/uav1/up/priority/camera/rgb", "dynqos/uav1/up/priority/state"),
+    "edge-planner": ("dynqos/uav1/up/priority/qos", "dynqos/uav1/up/priority/state"),
+    "edge-detector": ("dynqos/uav1/up/priority/state", "dynqos/uav1/up/priority/camera/rgb"),
+    "edge-qos": ("dynqos/uav1/up/priority/camera/depth", "dynqos/uav1/up/priority/qos"),
+}
+
+
+@pytest.mark.parametrize("service", list(READS))
+def test_an_edge_service_reads_only_its_own_inputs(secure_router: Pki, service: str) -> None:
+    forbidden, allowed = READS[service]
+    edge = secure_router.open(service)
+    at_edge: Seen = queue.Queue()
+    _collect(edge, forbidden, at_edge)  # another service's input, asked for exactly: refused
+    _collect(edge, "dynqos/uav1/up/**", at_edge)  # wider than its role: refused as a whole
+    _collect(edge, allowed, at_edge)  # its own input: the sentinel
+    mpc = secure_router.open("edge-mpc") if service != "edge-mpc" else None
+    if mpc is not None:  # someone who may read the forbidden key, so that it is routed at all
+        _collect(mpc, "dynqos/*/up/*/state", queue.Queue())
+    uav1 = secure_router.open("uav1")
+    sentinel = _wait_matched(uav1, allowed)
+    uav1.put(forbidden, b"not for this service", allowed_destination=REMOTE)
+    sentinel.put(b"allowed")
+    assert _wait_for(at_edge, (allowed, b"allowed")) == [(allowed, b"allowed")]  # once, from its own
+
+
+def test_a_drone_certificate_used_as_an_edge_client_is_still_only_that_drone(secure_router: Pki) -> None:
+    mpc, uav2 = secure_router.open("edge-mpc"), secure_router.open("uav2")
+    as_client = secure_router.open("uav1", Role.EDGE)  # one link, client mode: the edge's way in
+    at_mpc: Seen = queue.Queue()
+    at_uav2: Seen = queue.Queue()
+    at_client: Seen = queue.Queue()
+    _collect(mpc, "dynqos/*/up/*/state", at_mpc)
+    _collect(uav2, "dynqos/uav2/down/**", at_uav2)
+    _collect(as_client, "dynqos/*/up/*/state", at_client)  # the MPC's subscription: refused
+    _collect(as_client, "dynqos/uav1/down/**", queue.Queue())
+
+    own = _wait_matched(as_client, "dynqos/uav1/up/default/state")
+    as_client.put("dynqos/uav2/down/cmd", b"commanding uav2", allowed_destination=REMOTE)
+    own.put(b"uav1 state")
+    assert _wait_for(at_mpc, ("dynqos/uav1/up/default/state", b"uav1 state"))[-1][1] == b"uav1 state"
+    _wait_matched(mpc, "dynqos/uav2/down/cmd").put(b"for uav2")
+    assert _wait_for(at_uav2, ("dynqos/uav2/down/cmd", b"for uav2")) == [
+        ("dynqos/uav2/down/cmd", b"for uav2")
+    ]
+    _wait_matched(uav2, "dynqos/uav2/up/default/state").put(b"uav2 state")
+    _wait_for(at_mpc, ("dynqos/uav2/up/default/state", b"uav2 state"))
+    _wait_matched(mpc, "dynqos/uav1/down/cmd").put(b"for uav1")  # reaches the client: it is uav1
+    assert at_client.qsize() == 0  # neither state reached the drone posing as the MPC
+
+
+def test_a_certificate_signed_by_the_ca_but_not_in_the_acl_gets_nothing_through(secure_router: Pki) -> None:
+    mpc, uav1 = secure_router.open("edge-mpc"), secure_router.open("uav1")
+    at_mpc: Seen = queue.Queue()
+    at_uav1: Seen = queue.Queue()
+    _collect(mpc, "dynqos/*/up/*/state", at_mpc)
+    _collect(uav1, "dynqos/uav1/down/**", at_uav1)
+    uav3 = secure_router.open("uav3")  # TLS accepts it: the ACL is the revocation list
+    uav3.put("dynqos/uav3/up/priority/state", b"uav3 state", allowed_destination=REMOTE)
+    uav3.put("dynqos/uav1/down/cmd", b"uav3 commanding uav1", allowed_destination=REMOTE)
+    _wait_matched(uav1, "dynqos/uav1/up/priority/state").put(b"uav1 state")
+    assert _wait_for(at_mpc, ("dynqos/uav1/up/priority/state", b"uav1 state")) == [
+        ("dynqos/uav1/up/priority/state", b"uav1 state")
+    ]
+    _wait_matched(mpc, "dynqos/uav1/down/cmd").put(b"for uav1")
+    assert _wait_for(at_uav1, ("dynqos/uav1/down/cmd", b"for uav1")) == [
+        ("dynqos/uav1/down/cmd", b"for uav1")
+    ]
+
+
+def _query_and_liveliness(pki: Pki) -> tuple[list[str], list[str]]:
+    """uav1 queries a queryable the MPC declared, and the MPC asks which liveliness tokens uav1 holds:
+    what each got back."""
+    mpc, uav1 = pki.open("edge-mpc"), pki.open("uav1")
+    key = "dynqos/uav1/up/priority/state"
+    queryable = mpc.declare_queryable(key, lambda q: q.reply(key, b"x"))
+    token = uav1.liveliness().declare_token("dynqos/uav1/up/alive")
+    replies = [str(r.ok.key_expr) for r in uav1.get("dynqos/**", timeout=2.0) if r.ok is not None]
+    alive = [str(r.ok.key_expr) for r in mpc.liveliness().get("dynqos/**", timeout=2.0) if r.ok is not None]
+    token.undeclare()
+    queryable.undeclare()
+    return replies, alive
+
+
+def test_queries_and_liveliness_are_denied(secure_router: Pki) -> None:
+    assert _query_and_liveliness(secure_router) == ([], [])
+
+
+def test_queries_and_liveliness_pass_a_router_without_access_control(open_router: Pki) -> None:
+    """The control for the test above: the same exchange does get through when nothing denies it."""
+    replies, alive = _query_and_liveliness(open_router)
+    assert replies == ["dynqos/uav1/up/priority/state"]
+    assert alive == ["dynqos/uav1/up/alive"]
+
+
+def _leaf(
+    ca_cert: x509.Certificate,
+    ca_key: ec.EllipticCurvePrivateKey,
+    cn: str,
+    start: dt.datetime,
+    end: dt.datetime,
+) -> tuple[bytes, bytes]:
+    key = ec.generate_private_key(ec.SECP256R1())
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(x509.NameOID.COMMON_NAME, cn)]))
+        .issuer_name(ca_cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(end)
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(x509.ExtendedKeyUsage([x509.ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+        .add_extension(x509.SubjectAlternativeName([x509.DNSName(cn)]), critical=False)
+        .sign(ca_key, hashes.SHA256())
+    )
+    pem = serialization.Encoding.PEM
+    return cert.public_bytes(pem), key.private_bytes(
+        pem, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
+
+
+@pytest.mark.parametrize("kind", ["expired", "not-yet-valid", "signed-by-a-drone", "other-ca"])
+def test_a_bad_certificate_cannot_connect(secure_router: Pki, kind: str, tmp_path: Path) -> None:
+    now = dt.datetime.now(dt.timezone.utc)
+    ca = DevCa(secure_router.folder)
+    if kind == "signed-by-a-drone":  # uav1's own key and certificate posing as a CA
+        signer = x509.load_pem_x509_certificate((secure_router.folder / "uav1.pem").read_bytes())
+        signer_key = serialization.load_pem_private_key(
+            (secure_router.folder / "uav1-key.pem").read_bytes(), None
+        )
+        assert isinstance(signer_key, ec.EllipticCurvePrivateKey)
+        cert, key = _leaf(signer, signer_key, "uav2", now - dt.timedelta(hours=1), now + dt.timedelta(days=1))
+    elif kind == "other-ca":
+        other = make_dev_pki(tmp_path / "other", ["uav1"], [])["uav1"]
+        cert, key = other.cert.read_bytes(), other.key.read_bytes()
+    else:
+        start, end = {
+            "expired": (now - dt.timedelta(days=10), now - dt.timedelta(days=1)),
+            "not-yet-valid": (now + dt.timedelta(days=1), now + dt.timedelta(days=10)),
+        }[kind]
+        cert, key = _leaf(ca.cert, ca.key, "uav1", start, end)
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    write_atomically(bad / "uav1.pem", cert, 0o644)
+    write_atomically(bad / "uav1-key.pem", key, 0o600)
+    cfg = dataclasses.replace(
+        secure_router.cfg, tls_cert=str(bad / "uav1.pem"), tls_key=str(bad / "uav1-key.pem")
+    )
+    with pytest.raises(TransportError, match="cannot open zenoh"):
+        open_session(cfg, Role.DRONE)
+
+
+def test_plain_tcp_and_no_certificate_cannot_connect(secure_router: Pki) -> None:
     cfg = secure_router.cfg
+    plain = dataclasses.replace(cfg, tls=False, tls_ca="", tls_cert="", tls_key="")
+    with pytest.raises(TransportError, match="cannot open zenoh"):
+        open_session(plain, Role.DRONE)  # tcp/ to the TLS port
     zcfg = zenoh.Config()
     for key, value in (
         ("mode", '"client"'),
@@ -139,13 +380,59 @@ def test_a_session_without_a_certificate_cannot_connect(secure_router: Pki, tmp_
         zcfg.insert_json5(key, value)
     with pytest.raises(zenoh.ZError):
         zenoh.open(zcfg)
-    # A certificate from another CA fails the same way, through our own error path.
-    other = make_dev_pki(tmp_path / "other", ["uav1"], [])
-    rogue = dataclasses.replace(
-        cfg, tls_cert=str(other["uav1"].cert), tls_key=str(other["uav1"].key), connect_timeout_s=3
+
+
+def _router_config(tmp_path: Path, body: str) -> Path:
+    pki = tmp_path / "pki"
+    make_dev_pki(pki, ["uav1"], [])
+    path = tmp_path / "router.toml"
+    path.write_text(
+        f'[zenoh]\nrouter_listen_host = "127.0.0.1"\ndefault_port = {free_tcp_port()}\n'
+        f"priority_port = {free_tcp_port()}\ntls = true\n"
+        f'tls_ca = "{pki}/ca.pem"\ntls_cert = "{pki}/router.pem"\ntls_key = "{pki}/router-key.pem"\n{body}'
     )
-    with pytest.raises(TransportError, match="cannot open zenoh"):
-        open_session(rogue, Role.DRONE)
+    return path
+
+
+def test_a_tls_router_without_an_acl_refuses_to_start(tmp_path: Path) -> None:
+    config = _router_config(tmp_path, "")
+    proc = subprocess.run(
+        [DYNQOS, "edge", "router", "--config", str(config)], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 2
+    assert proc.stdout == ""  # never said ready
+    assert "zenoh.acl_drones: is empty with tls = true" in proc.stderr
+    for role in ("router",):  # the zenohd config it would generate fails the same way
+        out = subprocess.run(
+            [DYNQOS, "config", "zenoh", str(config), "--role", role],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert out.returncode == 2
+        assert "acl_drones" in out.stderr
+
+
+def test_a_tls_router_with_acl_off_starts_and_says_so_loudly(tmp_path: Path) -> None:
+    router = DynqosProcess(["edge", "router"], _router_config(tmp_path, 'acl = "off"\n'))
+    err = router.stop()
+    assert "TLS WITHOUT ACCESS CONTROL" in err
+
+
+def test_plain_tcp_on_a_non_loopback_address_is_a_loud_warning(caplog: pytest.LogCaptureFixture) -> None:
+    from dynqos.common.transport import router_access_control
+
+    for host, loud in (
+        ("0.0.0.0", True),
+        ("::", True),
+        ("router.example", True),
+        ("127.0.0.1", False),
+        ("::1", False),
+        ("localhost", False),
+    ):
+        caplog.clear()
+        assert router_access_control(ZenohConfig(router_listen_host=host)) is None
+        assert ("PLAIN TCP" in caplog.text) is loud, host
 
 
 def test_tls_config_errors_name_the_key(tmp_path: Path) -> None:
@@ -153,8 +440,16 @@ def test_tls_config_errors_name_the_key(tmp_path: Path) -> None:
         ZenohConfig(tls=True, tls_ca="ca.pem")
     with pytest.raises(ConfigError, match="acl_drones"):
         ZenohConfig(acl_drones=("uav1",))  # access control without TLS has no identity to match
+    tls = {"tls": True, "tls_ca": "a", "tls_cert": "b", "tls_key": "c"}
     with pytest.raises(ConfigError, match="acl_drones"):
-        ZenohConfig(tls=True, tls_ca="a", tls_cert="b", tls_key="c", acl_drones=("bad id",))
+        ZenohConfig(**tls, acl_drones=("bad id",))  # type: ignore[arg-type]
+    for reserved in ("edge", "router", "edge-mpc"):
+        with pytest.raises(ConfigError, match="edge identity"):
+            ZenohConfig(**tls, acl_drones=(reserved,))  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="acl"):
+        ZenohConfig(**tls, acl="maybe")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="say which you mean"):
+        ZenohConfig(**tls, acl="off", acl_drones=("uav1",))  # type: ignore[arg-type]
     config = tmp_path / "c.toml"
     config.write_text(
         f'[zenoh]\ntls = true\ntls_ca = "{tmp_path}/missing.pem"\ntls_cert = "x"\ntls_key = "y"\n'
@@ -165,34 +460,3 @@ def test_tls_config_errors_name_the_key(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert "tls_ca" in proc.stderr
     assert "missing.pem" in proc.stderr
-
-
-def test_certs_command_makes_a_ca_and_per_drone_certificates(tmp_path: Path) -> None:
-    from cryptography import x509
-    from cryptography.x509.oid import NameOID
-
-    out = tmp_path / "pki"
-    proc = subprocess.run(
-        [DYNQOS, "certs", "--out", str(out), "--drone", "uav7", "--router-host", "router.example"],
-        capture_output=True,
-        text=True,
-        timeout=30,
-    )
-    assert proc.returncode == 0, proc.stderr
-    cert = x509.load_pem_x509_certificate((out / "uav7.pem").read_bytes())
-    assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == "uav7"
-    router = x509.load_pem_x509_certificate((out / "router.pem").read_bytes())
-    names = router.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
-    assert "router.example" in names.get_values_for_type(x509.DNSName)
-    assert (out / "uav7-key.pem").stat().st_mode & 0o077 == 0  # private keys readable by the owner only
-    ca_before = (out / "ca.pem").read_bytes()
-    again = subprocess.run(
-        [DYNQOS, "certs", "--out", str(out), "--drone", "uav8"], capture_output=True, timeout=30
-    )
-    assert again.returncode == 0
-    assert (out / "ca.pem").read_bytes() == ca_before  # the CA is kept: earlier certificates stay valid
-    bad = subprocess.run(
-        [DYNQOS, "certs", "--out", str(out), "--drone", "edge"], capture_output=True, text=True, timeout=30
-    )
-    assert bad.returncode == 2
-    assert bad.stderr.count("\n") == 1

@@ -8,3 +8,4 @@ DYNQOS=${DYNQOS:-dynqos}
 "$DYNQOS" config zenoh deploy/k8s/overlays/production/router.toml --role router >deploy/zenoh/router-production.json5
 "$DYNQOS" config zenoh deploy/k8s/overlays/production/edge.toml --role edge >deploy/zenoh/edge-production.json5
 "$DYNQOS" config zenoh deploy/systemd/onboard.toml --role drone >deploy/zenoh/drone-production.json5
+"$DYNQOS" config zenoh deploy/k8s/overlays/production/router.toml --role router >deploy/k8s/overlays/production-zenohd/router.json5
