@@ -48,12 +48,20 @@ class Received:
 
 
 class SubscriptionStats:
-    """Counters of one subscription; written by the delivering thread, read by anyone."""
+    """Counters of one subscription; written by the delivering thread, read by anyone (the health line,
+    the metrics)."""
 
-    def __init__(self) -> None:
+    def __init__(self, key_expr: str = "") -> None:
+        self.key_expr = key_expr
         self.received = 0
         self.rejected = 0
+        self.rejected_by_cause: dict[str, int] = {}  # undecodable, unexpected_type, wrong_drone
         self.last_error: str | None = None
+
+    def reject(self, cause: str, error: str) -> None:
+        self.rejected += 1
+        self.rejected_by_cause[cause] = self.rejected_by_cause.get(cause, 0) + 1
+        self.last_error = error
 
 
 class Publisher(Protocol):
@@ -71,6 +79,8 @@ class Publisher(Protocol):
 
 class Bus(Protocol):
     """A session seen through the few operations dynqos needs."""
+
+    subscriptions: list[SubscriptionStats]  # one per subscribe(), for the metrics
 
     def publisher(
         self, key: str, priority: Priority, *, drop_when_congested: bool = False, express: bool = False
@@ -100,15 +110,17 @@ def delivery(
     differs from the one in its key (a drone speaking for another)."""
 
     def deliver(key: str, payload: bytes, arrival_ns: int) -> None:
+        cause = "undecodable"
         try:
             message = decoder(payload)
+            cause = "unexpected_type"
             if expect and not isinstance(message, expect):
                 raise DecodeError("t", f"a {message.TYPE} is not expected here")
+            cause = "wrong_drone"
             if expect and key.split("/", 2)[1] != message.uav:
                 raise DecodeError("uav", f"drone {message.uav!r} on another drone's key")
         except DecodeError as exc:
-            stats.rejected += 1
-            stats.last_error = str(exc)
+            stats.reject(cause, str(exc))
             if stats.rejected == 1 or stats.rejected % 1000 == 0:
                 log.warning("rejected message on %s (%d so far): %s", key, stats.rejected, exc)
             return
@@ -164,6 +176,7 @@ class MemoryBus:
         self._clock = clock or MonotonicClock()
         self._delays = [(key_matcher(expr), ns) for expr, ns in delays]
         self._subscribers: list[tuple[re.Pattern[str], Callable[[str, bytes, int], None]]] = []
+        self.subscriptions: list[SubscriptionStats] = []
         self._in_flight: deque[tuple[int, str, bytes]] = deque()
         self._lock = threading.Lock()
         self.published: dict[str, int] = {}  # key -> messages put (delivered or not)
@@ -181,9 +194,10 @@ class MemoryBus:
         expect: tuple[type[Message], ...] = (),
         decoder: Callable[[bytes], Message] = decode,
     ) -> SubscriptionStats:
-        stats = SubscriptionStats()
+        stats = SubscriptionStats(key_expr)
         with self._lock:
             self._subscribers.append((key_matcher(key_expr), delivery(queue, stats, expect, decoder)))
+            self.subscriptions.append(stats)
         return stats
 
     def deliver(self, key: str, data: bytes) -> None:

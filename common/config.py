@@ -716,6 +716,20 @@ class QosConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class MetricsConfig:
+    """Prometheus metrics and a health endpoint of a long-running process (docs/observability.md)."""
+
+    port: int = 0  # /metrics and /healthz on this TCP port; 0 = off (the default, the drone's too)
+    host: str = "127.0.0.1"  # where they listen; 0.0.0.0 in a pod, so that Prometheus can scrape it
+    stale_after_s: float = 30.0  # /healthz answers 503 when the last health line is older than this
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.port <= 65535, "port", "must be 0 (off) or a TCP port in 1..65535")
+        _require(bool(self.host.strip()), "host", "must not be empty")
+        _require(1.0 <= self.stale_after_s <= 3600, "stale_after_s", "must be in 1..3600 s")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class Config:
     drone: DroneConfig = field(default_factory=DroneConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
@@ -728,6 +742,7 @@ class Config:
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     onboard: OnboardConfig = field(default_factory=OnboardConfig)
     qos: QosConfig = field(default_factory=QosConfig)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
 
     def __post_init__(self) -> None:
         bearers = {b.name for b in self.cell.bearer_list(self.zenoh, self.drone.id)}

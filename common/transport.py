@@ -271,6 +271,7 @@ class ZenohBus:
         self._session = session
         self._clock = clock or MonotonicClock()
         self._subscribers: list[Any] = []
+        self.subscriptions: list[SubscriptionStats] = []
         self._lock = threading.Lock()
 
     @property
@@ -295,7 +296,7 @@ class ZenohBus:
         decoder: Callable[[bytes], Message] = decode,
     ) -> SubscriptionStats:
         """Decode every sample on key_expr into `queue`; bad payloads are counted, never raised."""
-        stats = SubscriptionStats()
+        stats = SubscriptionStats(key_expr)
         clock = self._clock
         deliver = delivery(queue, stats, expect, decoder)
 
@@ -305,6 +306,7 @@ class ZenohBus:
         subscriber = self._session.declare_subscriber(key_expr, on_sample)
         with self._lock:
             self._subscribers.append(subscriber)
+            self.subscriptions.append(stats)
         return stats
 
     def links(self) -> list[LinkInfo]:

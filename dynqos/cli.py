@@ -134,12 +134,19 @@ def _cmd_sim_cell(args: argparse.Namespace, config: Config) -> int:
     secret = read_secret(camara.client_secret_file) if config.cell.qod_auth else ""
     if config.cell.qod_auth and not (camara.client_id and secret):
         raise DynqosError("[cell] qod_auth = true needs [qos.camara] client_id and client_secret_file")
-    asyncio.run(
-        run_cell(
-            config.cell, bearers, out_dir=out_dir, duration_s=args.duration, ready=print_ready,
-            qod_devices=devices, qod_client=(camara.client_id, secret),
-        )
-    )  # fmt: skip
+    from dynqos.common.metrics import ProcessMetrics
+
+    metrics = ProcessMetrics("cell", _with_metrics_options(args, config).metrics)
+    metrics.start()
+    try:
+        asyncio.run(
+            run_cell(
+                config.cell, bearers, out_dir=out_dir, duration_s=args.duration, ready=print_ready,
+                qod_devices=devices, qod_client=(camara.client_id, secret), metrics=metrics,
+            )
+        )  # fmt: skip
+    finally:
+        metrics.stop()
     return 0
 
 
@@ -207,53 +214,83 @@ def _ready_line(name: str) -> None:
 
 
 def _cmd_edge(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.common.metrics import ProcessMetrics
     from dynqos.common.transport import Role, open_bus
 
     name = args.edge_command
+    config = _with_metrics_options(args, config)
+    metrics = ProcessMetrics(name, config.metrics)
     if name == "router":
         from dynqos.edge.router import run_router
 
-        run_router(config, ready=lambda: _ready_line("router"), health_file=_health_path(args))
+        metrics.start()
+        try:
+            run_router(
+                config, ready=lambda: _ready_line("router"), health_file=_health_path(args), metrics=metrics
+            )
+        finally:
+            metrics.stop()
         return 0
+    worker_class, register = _edge_worker(name)  # imported first: a missing extra is said before any network
     if name == "qos":
-        from dynqos.edge.qos_agent import QosAgent, preflight
+        from dynqos.edge.qos_agent import preflight
 
         preflight(config)  # the operator settings, before any network is opened
-        bus = open_bus(config.zenoh, Role.EDGE)
-        try:
-            agent = QosAgent(config, bus)
-            agent.service.health_file = _health_path(args)
-            agent.run(ready=lambda: _ready_line("qos"))
-        finally:
-            bus.close()
-        return 0
-    worker_class = _edge_worker(name)  # imported first: a missing extra is said before any network
     bus = open_bus(config.zenoh, Role.EDGE)
     try:
         worker = worker_class(config, bus)
         lifecycle = worker.service  # signals, health file and stop event of this process
-        lifecycle.install_signal_handlers()
         lifecycle.health_file = _health_path(args)
+        lifecycle.beat = metrics.health.beat
+        register(worker, metrics)
+        metrics.start()
+        if name == "qos":
+            worker.run(ready=lambda: _ready_line("qos"))
+            return 0
+        lifecycle.install_signal_handlers()
         lifecycle.write_health("ready")
         _ready_line(name)
         worker.run()
     finally:
+        metrics.stop()
         bus.close()
     return 0
 
 
-def _edge_worker(name: str) -> Any:
+def _with_metrics_options(args: argparse.Namespace, config: Config) -> Config:
+    """--metrics-port and --metrics-host over [metrics] port and host."""
+    import dataclasses
+
+    from dynqos.common.config import MetricsConfig
+
+    port = config.metrics.port if args.metrics_port is None else args.metrics_port
+    host = args.metrics_host or config.metrics.host
+    try:
+        metrics = MetricsConfig(port=port, host=host, stale_after_s=config.metrics.stale_after_s)
+    except DynqosError as exc:
+        raise DynqosError(f"--metrics-port/--metrics-host: {exc}") from None
+    return dataclasses.replace(config, metrics=metrics)
+
+
+def _edge_worker(name: str) -> tuple[Any, Any]:
+    """The service's class and the function that registers its metrics."""
+    from dynqos.edge import metrics
+
     if name == "mpc":
         from dynqos.edge.mpc_service import MpcService
 
-        return MpcService
+        return MpcService, metrics.mpc
     if name == "planner":
         from dynqos.edge.planner_service import PlannerService
 
-        return PlannerService
+        return PlannerService, metrics.planner
+    if name == "qos":
+        from dynqos.edge.qos_agent import QosAgent
+
+        return QosAgent, metrics.qos
     from dynqos.edge.detector_service import DetectorService
 
-    return DetectorService
+    return DetectorService, metrics.detector
 
 
 def _health_path(args: argparse.Namespace) -> Path | None:
@@ -298,9 +335,12 @@ def _cmd_certs(args: argparse.Namespace, config: Config) -> int:
 def _cmd_onboard(args: argparse.Namespace, config: Config) -> int:
     import signal
 
+    from dynqos.common.metrics import ProcessMetrics
     from dynqos.onboard.daemon import OnboardDaemon
 
+    config = _with_metrics_options(args, config)
     daemon = OnboardDaemon(config, takeoff=True if args.takeoff else None)
+    metrics = ProcessMetrics("onboard", config.metrics)
 
     def stop(signum: int, _frame: object) -> None:
         log.info("onboard: %s received, stopping", signal.Signals(signum).name)
@@ -310,9 +350,12 @@ def _cmd_onboard(args: argparse.Namespace, config: Config) -> int:
     signal.signal(signal.SIGINT, stop)
     try:
         daemon.open()
+        daemon.expose(metrics)
+        metrics.start()
         _ready_line("onboard")
         daemon.run()
     finally:
+        metrics.stop()
         daemon.close()
     return 0
 
@@ -334,7 +377,7 @@ def _cmd_demo(args: argparse.Namespace, config: Config) -> int:
     profiles = [load_profile(name) for name in (args.profile or [DEFAULT_PROFILE])]
     result = run_demo(
         names, out, duration_s=args.duration, scale=args.scale, seed=args.seed, scenarios=scenarios,
-        profiles=profiles, repeat=args.repeat,
+        profiles=profiles, repeat=args.repeat, metrics_port=args.metrics_port,
     )  # fmt: skip
     print(f"report: {out / 'report.md'}")
     for s in result["scenarios"]:
@@ -395,6 +438,21 @@ def _how_it_connects(service: str) -> str:
             "it takes only mutual-TLS sessions and applies the access control of [zenoh] acl_drones."
         )
     return "Connects to the router at [zenoh] edge_host:default_port as a client."
+
+
+def _metrics_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--metrics-port",
+        type=int,
+        metavar="PORT",
+        help="serve Prometheus metrics on http://HOST:PORT/metrics and a probe on /healthz "
+        "([metrics] port; default 0 = off)",
+    )
+    parser.add_argument(
+        "--metrics-host",
+        metavar="HOST",
+        help="address the metrics listen on ([metrics] host; default 127.0.0.1)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: one per option)
@@ -460,6 +518,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
         "--duration", type=float, metavar="S", help="stop after S seconds (default: run until stopped)"
     )
     cell.add_argument("--out", metavar="DIR", help="write per-interval records to DIR/cell.csv")
+    _metrics_options(cell)
     cell.set_defaults(handler=_cmd_sim_cell)
 
     vehicle = sim_sub.add_parser(
@@ -541,6 +600,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
             metavar="FILE",
             help="also write each health line to FILE (for `dynqos health FILE`, e.g. a Kubernetes probe)",
         )
+        _metrics_options(sub)
         sub.set_defaults(handler=_cmd_edge)
 
     onboard = commands.add_parser(
@@ -556,6 +616,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
         ),
     )
     onboard.add_argument("--takeoff", action="store_true", help="arm, take off and start offloading")
+    _metrics_options(onboard)
     onboard.set_defaults(handler=_cmd_onboard)
 
     for name, text in (
@@ -584,6 +645,14 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
                 "bg-dynqos-hover, bg-dynqos-refused, capacity-drop, faults, soak",
             )
         sub.add_argument("--out", metavar="DIR", help="run folder (default: runs/<date-time>)")
+        sub.add_argument(
+            "--metrics-port",
+            type=int,
+            default=0,
+            metavar="BASE",
+            help="each service's Prometheus /metrics on BASE, BASE+1, ... while it flies; the map is in "
+            "<scenario>/logs/metrics.json (default 0: off)",
+        )
         sub.add_argument("--duration", type=float, metavar="S", help="recorded flight time per scenario")
         sub.add_argument("--scale", type=float, metavar="F", help="divide every rate by F (default 10)")
         sub.add_argument(
@@ -660,7 +729,7 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
     certs = commands.add_parser(
         "certs",
         parents=[_common_options(1, settings=False)],
-        help="make a development CA and mTLS certificates for the router, the edge and each drone",
+        help="make a development CA and mTLS certificates: the router, each edge service, each drone",
         description="Writes into --out (made 0700): ca.pem and ca-key.pem (kept and reused if present), "
         "router.pem (server and client auth; names: localhost, 127.0.0.1 and each --router-host), one "
         "identity per edge service (edge-mpc, edge-planner, edge-detector, edge-qos: each may touch only "

@@ -39,6 +39,7 @@ def run_demo(
     scenarios: list[Scenario] | None = None,
     profiles: list[Profile] | None = None,
     repeat: int = 1,
+    metrics_port: int = 0,
 ) -> dict[str, Any]:
     """Every scenario under every profile, each `repeat` times with seeds seed, seed + 1, ...; then
     summary.json over all of them and report.md."""
@@ -47,7 +48,7 @@ def run_demo(
     chosen = scenarios if scenarios is not None else [builtin_scenario(n) for n in names]
     runs = [
         profile.apply(scenario)
-        for scenario in _overridden(chosen, duration_s, scale, seed)
+        for scenario in _overridden(chosen, duration_s, scale, seed, metrics_port)
         for profile in profiles or [load_profile(DEFAULT_PROFILE)]
     ]
     try:
@@ -88,9 +89,13 @@ def run_demo(
 
 
 def _overridden(
-    chosen: list[Scenario], duration_s: float | None, scale: float | None, seed: int | None
+    chosen: list[Scenario],
+    duration_s: float | None,
+    scale: float | None,
+    seed: int | None,
+    metrics_port: int = 0,
 ) -> list[Scenario]:
-    overrides: dict[str, Any] = {}
+    overrides: dict[str, Any] = {"metrics_port": metrics_port} if metrics_port else {}
     if duration_s is not None:
         overrides["duration_s"] = duration_s
     if scale is not None:

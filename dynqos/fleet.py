@@ -58,7 +58,7 @@ def run_fleet(
     write_config(shared_path, scenario, shared)
     for uav, config in drones.items():
         write_config(paths[uav], scenario, config)
-    procs = Processes(shared_path, logs)
+    procs = Processes(shared_path, logs, scenario.metrics_port)
     rec = Recording()  # what the fleet shares: the cell, the load, memory and CPU
     recs = {uav: Recording() for uav in drones}
     decisions: list[QosDecision] = []

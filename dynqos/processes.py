@@ -79,9 +79,11 @@ def child_environment(environ: Mapping[str, str]) -> dict[str, str]:
 class Processes:
     """The scenario's processes, started in order, stopped in reverse, each by its own pid."""
 
-    def __init__(self, config: Path, logs: Path) -> None:
+    def __init__(self, config: Path, logs: Path, metrics_base: int = 0) -> None:
         self.config = config
         self.logs = logs
+        self.metrics_base = metrics_base  # each service's /metrics on base, base + 1, ... (0: off)
+        self.metrics_ports: dict[str, int] = {}
         self.procs: dict[str, subprocess.Popen[str]] = {}
         self.info: dict[str, dict[str, Any]] = {}
         self.started: dict[str, tuple[list[str], list[str] | None, Path | None]] = {}
@@ -100,6 +102,7 @@ class Processes:
         FILE is the scenario's config, or `config` (a fleet's drone has its own)."""
         err = (self.logs / f"{name}.log").open("a" if name in self.started else "w")  # a restart appends
         self.started[name] = (args, program, config)
+        args = args + self._metrics_option(name, args)
         proc = subprocess.Popen(
             [*(program or [self.exe]), *args, "--config", str(config or self.config)],
             stdout=subprocess.PIPE,
@@ -119,6 +122,15 @@ class Processes:
         info: dict[str, Any] = json.loads(line)
         self.info[name] = info
         return info
+
+    def _metrics_option(self, name: str, args: list[str]) -> list[str]:
+        """`--metrics-port P` for a long-running service when metrics are on; the map of ports is kept in
+        logs/metrics.json for whoever scrapes them (docs/observability.md)."""
+        if not self.metrics_base or not (args[0] in ("edge", "onboard") or args[:2] == ["sim", "cell"]):
+            return []
+        port = self.metrics_ports.setdefault(name, self.metrics_base + len(self.metrics_ports))
+        (self.logs / "metrics.json").write_text(json.dumps(self.metrics_ports, indent=1) + "\n")
+        return ["--metrics-port", str(port)]
 
     def tail(self, name: str, lines: int = 3) -> str:
         path = self.logs / f"{name}.log"

@@ -53,7 +53,7 @@ def run_scenario(
     )
     config_path = folder / "dynqos.toml"
     write_config(config_path, scenario, config)
-    procs = Processes(config_path, logs)
+    procs = Processes(config_path, logs, scenario.metrics_port)
     rec = Recording()
 
     def fly() -> None:

@@ -90,6 +90,7 @@ class Scenario:
     uav_mbps: float = 47.0  # what the drone's camera is sized to offer (before scale)
     scale: float = 10.0
     seed: int = 0
+    metrics_port: int = 0  # each process's Prometheus /metrics on this port and the next ones (0: off)
     settle_s: float = 4.0  # excluded from the baseline statistics after offloading starts
     camera_fps: float = 15.0
     # The camera's bytes are paced at this rate (before scale; 0: each image in one burst): above what
@@ -144,13 +145,23 @@ class Scenario:
         for i, fault in enumerate(self.faults):
             if fault.at_s + fault.duration_s > self.duration_s:
                 raise ConfigError(f"faults[{i}].at_s", "the fault must end before the run does")
+        self._check_run()
+        self._check_fleet()
+
+    def _check_run(self) -> None:
         if self.qod_max_sessions < -1:
             raise ConfigError("qod_max_sessions", "must be -1 (no limit) or >= 0")
         if not 0.5 <= self.memory_sample_s <= 600:
             raise ConfigError("memory_sample_s", "must be in 0.5..600 s")
+        if self.metrics_port and not 1024 <= self.metrics_port <= 65000:
+            raise ConfigError(
+                "metrics_port", "must be 0 (off) or a port in 1024..65000 (each process takes the next)"
+            )
         self._check_fleet()
 
     def _check_fleet(self) -> None:
+        if self.qos_policy == "arbiter" and self.qos_backend != "camara":
+            raise ConfigError("qos_policy", 'the arbiter needs qos_backend = "camara"')
         ids = [d.id for d in self.drones]
         if len(set(ids)) != len(ids):
             raise ConfigError("drones", "drone ids must be unique")
@@ -158,8 +169,6 @@ class Scenario:
             raise ConfigError("drones", f"at most {MAX_FLEET} drones on one machine")
         if self.drones and self.faults:
             raise ConfigError("faults", "a fleet scenario injects no faults (yet)")
-        if self.qos_policy == "arbiter" and self.qos_backend != "camara":
-            raise ConfigError("qos_policy", 'the arbiter needs qos_backend = "camara"')
         if not 0.1 <= self.bg_weight <= 100:
             raise ConfigError("bg_weight", "must be in 0.1..100")
         if self.world:

@@ -12,6 +12,8 @@ import threading
 import time
 from dataclasses import replace
 
+from prometheus_client import Histogram
+
 from dynqos.common import keys
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.config import Config
@@ -47,6 +49,7 @@ class DetectorService:
         self.counters = {"frames": 0, "acks": 0, "detections": 0, "dropped": 0, "bad_frames": 0, "circles": 0}
         self.detect_ms: list[float] = []
         self.service = Service("detector", self.cfg.health_interval_s)
+        self.detect_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
 
     def _publisher(self, table: dict[str, Publisher], uav: str, kind: Downlink, prio: Priority) -> Publisher:
         pub = table.get(uav)
@@ -110,6 +113,8 @@ class DetectorService:
             return True
         circles = locate(find_circles(image, self.cfg), depth, frame.intrinsics)
         self.detect_ms.append((time.perf_counter() - start) * 1000)
+        if self.detect_seconds is not None:
+            self.detect_seconds.observe(self.detect_ms[-1] / 1000)
         del self.detect_ms[:-500]
         detections = Detections(
             uav=uav, seq=frame.seq, frame_seq=frame.seq, stamp_ns=frame.stamp_ns,

@@ -12,6 +12,7 @@ import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
+from prometheus_client import Histogram
 
 from dynqos.common import keys
 from dynqos.common.clock import Clock, MonotonicClock
@@ -57,6 +58,7 @@ class MpcService:
             keys.downlink_all_drones(Downlink.REFERENCE), self.queue, expect=(Reference,)
         )
         self.service = Service("mpc", config.mpc.health_interval_s)
+        self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
 
     def _mine(self, uav: str) -> bool:
         cfg = self.config.mpc
@@ -118,6 +120,8 @@ class MpcService:
             self.counters.stale += 1
             return 0
         self.counters.solve_ms.append(ctrl.problem.last_solve_s * 1000)
+        if self.solve_seconds is not None:
+            self.solve_seconds.observe(ctrl.problem.last_solve_s)
         if len(self.counters.solve_ms) > 2000:
             del self.counters.solve_ms[:1000]
         command = Command(

@@ -10,17 +10,30 @@ import logging
 from pathlib import Path
 
 from dynqos.common.config import Config
+from dynqos.common.metrics import ProcessMetrics, gauge
 from dynqos.common.transport import Role, open_session, router_endpoints
 from dynqos.edge.service import Service
 
 log = logging.getLogger(__name__)
 
 
-def run_router(config: Config, ready: object = None, health_file: Path | None = None) -> None:
+def run_router(
+    config: Config,
+    ready: object = None,
+    health_file: Path | None = None,
+    metrics: ProcessMetrics | None = None,
+) -> None:
     service = Service("router", 5.0)
     service.health_file = health_file
     service.install_signal_handlers()
     session = open_session(config.zenoh, Role.ROUTER)
+    if metrics is not None:
+        service.beat = metrics.health.beat
+        metrics.add(
+            lambda: [
+                gauge("dynqos_router_links", "Transport links open to the router", len(session.info.links()))
+            ]
+        )
     try:
         log.info("router: listening on %s", ", ".join(router_endpoints(config.zenoh)))
         service.write_health("ready")

@@ -29,9 +29,12 @@ class Service:
         self.health_interval_s = health_interval_s
         self._next_health = time.monotonic() + health_interval_s
         self.health_file: Path | None = None
+        self.beat: Callable[[str], None] | None = None  # /healthz's record of the line (common/metrics.py)
 
     def write_health(self, line: str) -> None:
         """Replace the health file (if any) with this line and the wall time, atomically."""
+        if self.beat is not None:
+            self.beat(line)
         if self.health_file is None:
             return
         record = {"service": self.name, "time_unix": time.time(), "pid": os.getpid(), "health": line}

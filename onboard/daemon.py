@@ -13,13 +13,15 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus, Priority, Received, SubscriptionStats
 from dynqos.common.clock import Clock, MonotonicClock, to_ns
 from dynqos.common.config import Config
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import CameraAck, Command, Detections, QosGrant, Reference
+from dynqos.common.messages import CameraAck, Command, Detections, QosGrant, Reference, SupervisorStatus
+from dynqos.common.metrics import ProcessMetrics
 from dynqos.common.modes import Flow
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Role, default_flow_endpoint, open_bus, priority_flow_endpoint
@@ -28,6 +30,7 @@ from dynqos.onboard.camera_stream import CameraStream, FlowPublishers
 from dynqos.onboard.core import SETPOINT_PERIOD_NS, OnboardCore, TickInput, TickOutput, hold_at
 from dynqos.onboard.fc import AccelSetpoint, FcState
 from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD, PX4_SUB_LOITER, FcLink
+from dynqos.onboard.metrics import DroneMetrics
 from dynqos.onboard.systemd import SystemdNotifier
 from dynqos.sim.world import default_world, load_world
 
@@ -60,6 +63,8 @@ class OnboardDaemon:
         self.offboard = threading.Event()  # set by the take-off thread once the FC flies offboard
         self.link: FcLink | None = None
         self.bus: Bus | None = None
+        self.metrics: DroneMetrics | None = None  # Prometheus, when on (`expose`)
+        self.beat: Callable[[str], None] | None = None  # /healthz's record of the health line
         self.camera: CameraStream | None = None
         self.publishers: dict[Stream, FlowPublishers] = {}
         self.commands: BoundedQueue[Received] = BoundedQueue(256)
@@ -220,6 +225,8 @@ class OnboardDaemon:
             link.send_position(out.setpoint.pos_m, out.setpoint.yaw_rad)
         for item in out.publish:
             self.publishers[item.stream].pick(item.flow).put(item.message)
+            if self.metrics is not None and isinstance(item.message, SupervisorStatus):
+                self.metrics.observe(item.message)
         if self.camera is not None:
             self.camera.control.flow, self.camera.control.rate_factor = (
                 out.camera_flow,
@@ -246,8 +253,11 @@ class OnboardDaemon:
             now = self.clock.now_ns()
             if now >= next_health:
                 next_health = now + health_ns
-                log.info("onboard health: %s", self.health())
-                self.notifier.notify(f"STATUS={self.health()}")
+                line = self.health()
+                log.info("onboard health: %s", line)
+                self.notifier.notify(f"STATUS={line}")
+                if self.beat is not None:
+                    self.beat(line)
             self.notifier.feed_watchdog(now)
             next_tick += SETPOINT_PERIOD_NS
             delay_ns = next_tick - self.clock.now_ns()
@@ -270,6 +280,11 @@ class OnboardDaemon:
                     "onboard: stopping: hold position (%s)", link.set_mode(PX4_MAIN_AUTO, PX4_SUB_LOITER)
                 )
         log.info("onboard: stopped; %s", self.health())
+
+    def expose(self, metrics: ProcessMetrics) -> None:
+        """Feed `metrics` from each published status and the health line (after `open`)."""
+        self.metrics = DroneMetrics(self.uav, metrics, self.core.tracker.counters, self.bus)
+        self.beat = metrics.health.beat
 
     def health(self) -> str:
         commands = self.downlink_stats.get(Downlink.COMMAND)

@@ -17,13 +17,16 @@ import signal
 import socket
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+
 from dynqos.common.config import BearerConfig, CellConfig, CellEventConfig
 from dynqos.common.errors import ConfigError
+from dynqos.common.metrics import ProcessMetrics, counter, gauge
 from dynqos.sim.control_api import ControlApi, Tap
 from dynqos.sim.delayline import DelayLine
 from dynqos.sim.qod import Notification, Operator
@@ -268,6 +271,7 @@ class CellEmulator:
         self.notify: Callable[[list[Notification]], None] = lambda notes: None
         self.ticks = 0
         self.late_ticks = 0
+        self.beat: Callable[[str], None] | None = None  # /healthz (common/metrics.py), once per record
         self._csv_file: TextIO | None = None
         self._csv: Any = None
         self.last_interval: dict[str, dict[str, float]] = {}
@@ -505,6 +509,8 @@ class CellEmulator:
         if self._csv is not None and self._csv_file is not None:
             self._csv.writerows(rows)
             self._csv_file.flush()
+        if self.beat is not None:
+            self.beat(f"ticks={self.ticks} late_ticks={self.late_ticks} capacity_mbps={capacity}")
 
     def counters(self) -> dict[str, Any]:
         now = _now_ns()
@@ -581,6 +587,7 @@ async def run_cell(
     qod_client: tuple[str, str] = ("", ""),
     tap: Tap | None = None,
     stop: asyncio.Event | None = None,
+    metrics: ProcessMetrics | None = None,
 ) -> dict[str, Any]:
     """Run the emulator until stopped (SIGINT/SIGTERM, `stop` set) or `duration_s`; returns the final
     counters. `qod_devices`: drone id -> CAMARA device, the UEs the operator knows ([cell] qod = true);
@@ -588,6 +595,9 @@ async def run_cell(
     sees every control-API exchange (method, path, request JSON, status, response JSON)."""
     emulator = CellEmulator(cell, bearers, out_dir)
     await emulator.start()
+    if metrics is not None:
+        emulator.beat = metrics.health.beat
+        metrics.add(lambda: cell_families(emulator))
     control: ControlApi | None = None
     control_port = None
     if cell.qod:
@@ -629,18 +639,46 @@ async def run_cell(
         else:
             await emulator.stopped.wait()
     finally:
-        counters = emulator.counters()
-        if emulator.operator is not None:
-            counters["qod"] = {
-                **vars(emulator.operator.counters),
-                "sessions": emulator.operator.open_sessions(),
-            }
-            if out_dir is not None:  # what the operator was left with, once every client has stopped
-                (out_dir / "qod.json").write_text(json.dumps(counters["qod"], indent=1) + "\n")
+        counters = _final_counters(emulator, out_dir)
         if control is not None:
             await control.stop()
         await emulator.stop()
     return counters
+
+
+def _final_counters(emulator: CellEmulator, out_dir: Path | None) -> dict[str, Any]:
+    counters = emulator.counters()
+    if emulator.operator is not None:
+        counters["qod"] = {**vars(emulator.operator.counters), "sessions": emulator.operator.open_sessions()}
+        if out_dir is not None:  # what the operator was left with, once every client has stopped
+            (out_dir / "qod.json").write_text(json.dumps(counters["qod"], indent=1) + "\n")
+    return counters
+
+
+def cell_families(emulator: CellEmulator) -> Iterator[Metric]:
+    """The cell's per-bearer throughput counters and queue state, for Prometheus (real bytes moved: at
+    `--scale F` multiply rates by `dynqos_cell_scale` for the emulated cell's figures)."""
+    moved = CounterMetricFamily("dynqos_cell_bytes", "Bytes per bearer and kind", labels=["bearer", "kind"])
+    delay = GaugeMetricFamily("dynqos_cell_queue_delay_seconds", "UE buffer delay now", labels=["bearer"])
+    buffered = GaugeMetricFamily(
+        "dynqos_cell_buffer_bytes", "Bytes waiting in the UE buffer", labels=["bearer"]
+    )
+    now = _now_ns()
+    for bearer in emulator.bearers:
+        for kind, value in bearer.totals.items():
+            moved.add_metric([bearer.name, kind.removesuffix("_bytes")], value)
+        delay.add_metric([bearer.name], bearer.queue_delay_ms(now) / 1000)
+        buffered.add_metric([bearer.name], bearer.buffered)
+    for user in emulator.background.values():
+        moved.add_metric([f"bg:{user.name}", "offered"], user.offered_bits / 8)
+        moved.add_metric([f"bg:{user.name}", "delivered"], user.delivered_bits / 8)
+    yield moved
+    yield delay
+    yield buffered
+    yield gauge("dynqos_cell_scale", "Every rate of the emulated cell is divided by this", emulator.scale)
+    yield gauge("dynqos_cell_capacity_bits_per_second", "Uplink capacity now (emulated, unscaled)",
+                emulator.current_capacity_mbps(now) * 1e6 * emulator.scale)  # fmt: skip
+    yield counter("dynqos_cell_late_ticks", "Scheduler ticks that ran late", emulator.late_ticks)
 
 
 def print_ready(info: dict[str, Any]) -> None:

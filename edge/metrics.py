@@ -1,0 +1,90 @@
+"""What each edge service exposes to Prometheus (docs/observability.md): the counters of its health
+line, read at scrape time, and the histograms its work feeds."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+from prometheus_client.core import Metric
+
+from dynqos.common.metrics import (
+    SOLVE_BUCKETS,
+    ProcessMetrics,
+    bus_families,
+    counter,
+    gauge,
+    labelled_counter,
+)
+
+if TYPE_CHECKING:  # the services import this module, not the other way round
+    from dynqos.edge.detector_service import DetectorService
+    from dynqos.edge.mpc_service import MpcService
+    from dynqos.edge.planner_service import PlannerService
+    from dynqos.edge.qos_agent import QosAgent
+
+
+def mpc(service: MpcService, m: ProcessMetrics) -> None:
+    service.solve_seconds = m.histogram(
+        "dynqos_mpc_solve_seconds", "OSQP solve time per command", SOLVE_BUCKETS
+    )
+
+    def families() -> Iterator[Metric]:
+        c = service.counters
+        yield gauge("dynqos_mpc_drones", "Drones this MPC serves (its shard)", len(service.controllers))
+        yield counter("dynqos_mpc_states", "States taken in for this shard", c.states)
+        yield counter("dynqos_mpc_commands", "Commands published", c.commands)
+        yield counter("dynqos_mpc_stale_states", "States skipped for a newer one", c.stale)
+        yield counter("dynqos_mpc_solve_failures", "Solves that failed (no command sent)", c.solve_failures)
+        yield counter(
+            "dynqos_mpc_queue_drops", "Messages dropped by the full input queue", service.queue.dropped
+        )
+        yield from bus_families(service.bus)
+
+    m.add(families)
+
+
+def planner(service: PlannerService, m: ProcessMetrics) -> None:
+    def families() -> Iterator[Metric]:
+        yield gauge("dynqos_planner_drones", "Drones with a mission", len(service.started_ns))
+        yield counter("dynqos_planner_references", "References published", service.sent)
+        yield from bus_families(service.bus)
+
+    m.add(families)
+
+
+def detector(service: DetectorService, m: ProcessMetrics) -> None:
+    service.detect_seconds = m.histogram(
+        "dynqos_detector_detect_seconds", "Circle detection time per image", (*SOLVE_BUCKETS, 0.2, 0.5)
+    )
+
+    def families() -> Iterator[Metric]:
+        yield labelled_counter(
+            "dynqos_detector_events", "Frames, acks, detections, drops and bad frames", "event",
+            dict(service.counters),
+        )  # fmt: skip
+        yield counter(
+            "dynqos_detector_incomplete_frames", "Images missing a part", service.assembler.incomplete
+        )
+        yield from bus_families(service.bus)
+
+    m.add(families)
+
+
+def qos(agent: QosAgent, m: ProcessMetrics) -> None:
+    def families() -> Iterator[Metric]:
+        sessions = sum(g.session is not None for g in agent.drones.values())
+        holders = len(agent.arbiter.holders) if agent.arbiter is not None else sessions
+        yield gauge("dynqos_qos_drones", "Drones that asked the agent", len(agent.drones))
+        yield gauge("dynqos_qos_sessions", "Quality-on-Demand sessions held", sessions)
+        yield gauge("dynqos_qos_holders", "Drones granted the priority flow", holders)
+        yield labelled_counter(
+            "dynqos_qos_decisions", "Arbiter decisions by action", "action",
+            {action.value: n for action, n in agent.decisions.items()},
+        )  # fmt: skip
+        yield counter("dynqos_qos_errors", "Operator API errors", agent.errors)
+        calls = agent.client.calls if agent.client is not None else 0
+        yield counter("dynqos_qos_api_calls", "Operator API calls", calls)
+        yield from bus_families(agent.bus)
+
+    m.add(families)
