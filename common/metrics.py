@@ -20,7 +20,7 @@ from importlib import metadata
 from typing import Any
 from wsgiref.simple_server import WSGIRequestHandler, WSGIServer, make_server
 
-from prometheus_client import CollectorRegistry, Gauge, Histogram, make_wsgi_app
+from prometheus_client import CollectorRegistry, Gauge, Histogram, disable_created_metrics, make_wsgi_app
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
@@ -118,6 +118,7 @@ class ProcessMetrics:
     def __init__(self, service: str, cfg: MetricsConfig) -> None:
         self.service = service
         self.cfg = cfg
+        disable_created_metrics()  # type: ignore[no-untyped-call]  # no `_created` series: nobody reads them
         self.registry = CollectorRegistry(auto_describe=True)
         self.health = HealthBeat(cfg.stale_after_s)
         doc = "The dynqos version and service of this process"

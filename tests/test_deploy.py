@@ -136,12 +136,18 @@ def test_production_network_policies_let_in_only_the_flows_and_let_edge_services
     assert set(deny["policyTypes"]) == {"Ingress", "Egress"}
     assert "ingress" not in deny  # nothing allowed by it
     assert "egress" not in deny
-    ingress = [p for p in policies.values() if "Ingress" in p["policyTypes"] and p.get("ingress")]
-    assert len(ingress) == 1  # only the router is reachable, only on its two flow ports
-    assert ingress[0]["podSelector"] == {"matchLabels": {"app.kubernetes.io/name": "dynqos-router"}}
-    assert [(p["port"], p["protocol"]) for rule in ingress[0]["ingress"] for p in rule["ports"]] == [
+    ingress = {n: p for n, p in policies.items() if "Ingress" in p["policyTypes"] and p.get("ingress")}
+    assert set(ingress) == {"dynqos-router-flows", "dynqos-metrics"}
+    flows = ingress["dynqos-router-flows"]  # only the router is reachable from anywhere, on its flow ports
+    assert flows["podSelector"] == {"matchLabels": {"app.kubernetes.io/name": "dynqos-router"}}
+    assert [(p["port"], p["protocol"]) for rule in flows["ingress"] for p in rule["ports"]] == [
         (7447, "TCP"),
         (7448, "TCP"),
+    ]
+    (scrape,) = ingress["dynqos-metrics"]["ingress"]  # the metrics port, only from the monitoring namespace
+    assert scrape["ports"] == [{"port": 9464, "protocol": "TCP"}]
+    assert [f["namespaceSelector"] for f in scrape["from"]] == [
+        {"matchLabels": {"kubernetes.io/metadata.name": "monitoring"}}
     ]
     edge = policies["dynqos-edge-to-router"]
     assert set(edge["podSelector"]["matchExpressions"][0]["values"]) == set(SERVICES) - {"dynqos-router"}
@@ -192,6 +198,48 @@ def test_the_image_is_named_in_one_place_with_the_package_version() -> None:
                 (doc or {}).get("spec", {}).get("template", {}).get("spec", {}).get("containers", [])
             ):
                 assert container["image"] == "dynqos-edge", path  # replaced by kustomize's images: only
+
+
+@pytest.mark.parametrize("folder", ["base", "overlays/production"])
+def test_every_service_is_probed_and_scraped_on_its_metrics_port(folder: str, tmp_path: Path) -> None:
+    docs = _kustomize(DEPLOY / "k8s" / folder)
+    for name in ("router.toml", "edge.toml"):
+        metrics = load_config(_configs(docs, tmp_path)[name]).metrics
+        assert (metrics.port, metrics.host) == (9464, "0.0.0.0")  # reachable from the kubelet and Prometheus
+    for workload in (d for d in docs if d["kind"] in ("Deployment", "StatefulSet")):
+        template = workload["spec"]["template"]
+        assert template["metadata"]["annotations"] == {
+            "prometheus.io/scrape": "true", "prometheus.io/port": "9464", "prometheus.io/path": "/metrics",
+        }  # fmt: skip
+        (container,) = template["spec"]["containers"]
+        assert {"name": "metrics", "containerPort": 9464} in container["ports"]
+        for probe in ("readinessProbe", "livenessProbe"):
+            assert container[probe]["httpGet"] == {"path": "/healthz", "port": "metrics"}, workload[
+                "metadata"
+            ]
+
+
+def _documented_metrics() -> set[str]:
+    """The metric names in docs/observability.md's tables (first column, in backticks)."""
+    text = (ROOT / "docs" / "observability.md").read_text()
+    return set(re.findall(r"^\| `(dynqos_[a-z_]+)`", text, re.M))
+
+
+def test_the_grafana_dashboard_uses_only_documented_metrics() -> None:
+    import json
+
+    dashboard = json.loads((DEPLOY / "grafana" / "dynqos-dashboard.json").read_text())
+    exprs = [t["expr"] for p in dashboard["panels"] for t in p.get("targets", [])]
+    assert len(exprs) > 15
+    used = {
+        re.sub(r"_(bucket|count|sum)$", "", name) for e in exprs for name in re.findall(r"dynqos_[a-z_]+", e)
+    }
+    documented = _documented_metrics()
+    assert used - documented == set()
+    variables = {v["name"]: v for v in dashboard["templating"]["list"]}
+    assert "dynqos_cc_rtt_seconds_count, uav" in variables["uav"]["query"]
+    titles = {p["title"] for p in dashboard["panels"]}
+    assert {"C&C round trip", "Supervisor state", "MPC solve time", "Throughput per bearer"} <= titles
 
 
 def test_base_configs_load(tmp_path: Path) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import queue
+import re
 import socket
 import subprocess
 import time
@@ -216,11 +217,26 @@ def test_every_service_of_a_flight_is_scraped_while_it_flies(tmp_path: Path) -> 
             subscriber.undeclare()
             session.close()  # type: ignore[no-untyped-call]
         _check_the_edge_and_the_cell(ports)
+        exposed = set().union(*(_families(port) for port in ports.values()))
+        documented = {re.sub(r"_total$", "", name) for name in _documented_metrics()}
+        assert documented - exposed == set()  # docs/observability.md lists only what is served
+        assert exposed - documented - {"dynqos_build_info"} == set()  # and everything that is
     finally:
         if run.poll() is None:
             run.send_signal(2)  # the run's own SIGINT path: stops every process it started
         _, err = run.communicate(timeout=90)
     assert run.returncode in (0, 1), err[-2000:]
+
+
+def _families(port: int) -> set[str]:
+    """Family names as prometheus-client's parser gives them (counters without `_total`)."""
+    _, text = _get(f"http://127.0.0.1:{port}/metrics")
+    return {family.name for family in text_string_to_metric_families(text)}
+
+
+def _documented_metrics() -> set[str]:
+    text = (Path(__file__).resolve().parents[1] / "docs" / "observability.md").read_text()
+    return set(re.findall(r"^\| `(dynqos_[a-z_]+)`", text, re.M))
 
 
 def _port_taken(port: int) -> bool:
