@@ -360,6 +360,47 @@ def _cmd_onboard(args: argparse.Namespace, config: Config) -> int:
     return 0
 
 
+def _cmd_observe(args: argparse.Namespace, config: Config) -> int:
+    """`dynqos view` and `dynqos record`: one observer, a Foxglove server and/or an MCAP sink."""
+    import signal
+
+    from dynqos.observe import Observer, open_recording, start_viewer
+    from dynqos.sim.world import default_world, load_world
+
+    world = load_world(args.world) if args.world else default_world()
+    observer = Observer(config, world, uav=args.uav, camera=not args.no_camera)
+    record = Path(args.out) if args.command == "record" else (Path(args.record) if args.record else None)
+    writer = open_recording(observer, record, scenario=args.scenario) if record else None
+    server = start_viewer(observer, args.host, args.port) if args.command == "view" else None
+
+    def stop(signum: int, _frame: object) -> None:
+        log.info("%s: %s received, stopping", args.command, signal.Signals(signum).name)
+        observer.stop.set()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    try:
+        observer.open()
+        info: dict[str, Any] = {"ready": True, "service": args.command, "keys": observer.keys}
+        if server is not None:
+            info["port"] = server.port
+            log.info(
+                "view: Foxglove WebSocket on ws://%s:%d (open it in the Foxglove app)", args.host, server.port
+            )
+        if record is not None:
+            info["out"] = str(record)
+        print(json.dumps(info), flush=True)
+        observer.run()
+    finally:
+        observer.close()
+        if writer is not None:
+            writer.close()  # the MCAP's summary and footer: a complete file
+        if server is not None:
+            server.stop()
+        log.info("%s: stopped; %s", args.command, observer.summary())
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace, config: Config) -> int:
     from pathlib import Path
 
@@ -761,6 +802,36 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
         "--force", action="store_true", help="issue every certificate again, even those still valid"
     )
     certs.set_defaults(handler=_cmd_certs)
+
+    for name, text in (
+        (
+            "view",
+            "serve the drones live to the Foxglove app over its WebSocket protocol (docs/observability.md)",
+        ),
+        ("record", "record the drones to an MCAP file that Foxglove and the mcap tools open"),
+    ):
+        observe = commands.add_parser(
+            name,
+            parents=[_common_options(1)],
+            help=text,
+            description=text[0].upper() + text[1:] + ": poses, the reference path, the world's obstacles and "
+            "the risk zone as a 3D scene, the RGB camera with its detections, the supervisor's status, the "
+            "QoS grants and decisions, and the supervisor's transitions as log lines. Connects to the router "
+            "at [zenoh] edge_host as an edge client. Stops on SIGTERM or Ctrl-C, closing the file whole.",
+        )
+        observe.add_argument("--uav", metavar="ID", help="only this drone (default: every drone)")
+        observe.add_argument("--world", metavar="FILE", help="the world to draw (default: the simulator's)")
+        observe.add_argument("--no-camera", action="store_true", help="leave the camera images out")
+        observe.add_argument("--scenario", default="", help=argparse.SUPPRESS)  # for the demo's metadata
+        if name == "view":
+            observe.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765)")
+            observe.add_argument(
+                "--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)"
+            )
+            observe.add_argument("--record", metavar="FILE.mcap", help="also record to this MCAP file")
+        else:
+            observe.add_argument("--out", metavar="FILE.mcap", required=True, help="the MCAP file to write")
+        observe.set_defaults(handler=_cmd_observe)
 
     version = commands.add_parser(
         "version", help="print the version", parents=[_common_options(1, settings=False)]

@@ -23,7 +23,15 @@ from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Received, Role, open_bus
 from dynqos.faults import FaultInjector
 from dynqos.fleet_report import summarise_fleet, write_fleet
-from dynqos.flight import QUEUE_ITEMS, Streams, fly, fly_and_stop, post_json, wait_for_offload
+from dynqos.flight import (
+    QUEUE_ITEMS,
+    Streams,
+    fly,
+    fly_and_stop,
+    post_json,
+    start_mcap_recorder,
+    wait_for_offload,
+)
 from dynqos.processes import Processes, free_port, free_udp_block
 from dynqos.recording import Recording
 from dynqos.scenario import Scenario, fleet_configs, with_cell, write_config
@@ -70,6 +78,7 @@ def run_fleet(
         for uav, config in drones.items():
             write_config(paths[uav], scenario, with_cell(config, cell))
         procs.start("qos", ["edge", "qos"])
+        start_mcap_recorder(procs, scenario, folder)
         for i, uav in enumerate(drones):
             args = ["sim", "vehicle", "--instance", str(i), "--duration", "3600"]
             procs.start(f"vehicle-{uav}", args, config=paths[uav])

@@ -26,7 +26,7 @@ from dynqos.common.transport import Bus, Received
 from dynqos.faults import FaultInjector, FaultWindow
 from dynqos.processes import Processes, rss_kb
 from dynqos.recording import Recording
-from dynqos.scenario import UAV, Scenario
+from dynqos.scenario import UAV, Scenario, world_path
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +34,19 @@ RECORD_PERIOD_S = 0.1  # the recorder's sampling period
 CELL_POLL_S = 0.5  # how often the cell's counters are read
 OFFLOAD_TIMEOUT_S = 60.0  # from the daemon's start to its first offboard state
 QUEUE_ITEMS = 200_000  # per recorded stream: 30 min of states at 50 Hz, with room
+
+
+MCAP_NAME = "flight.mcap"
+RECORDER_NICE = 10  # the MCAP recorder runs below the control path: it may lag, the loop may not
+
+
+def start_mcap_recorder(procs: Processes, scenario: Scenario, folder: Path) -> None:
+    """`dynqos record` into <folder>/flight.mcap for the whole flight (docs/observability.md). Without
+    the camera images: a run's folder stays a few megabytes (`dynqos record` by hand keeps them)."""
+    args = ["record", "--out", str(folder / MCAP_NAME), "--scenario", scenario.name, "--no-camera"]
+    if scenario.world:
+        args += ["--world", world_path(scenario.world)]
+    procs.start("record", args, program=["nice", "-n", str(RECORDER_NICE), procs.exe])
 
 
 def get_json(port: int, path: str) -> dict[str, Any]:

@@ -19,7 +19,7 @@ from typing import Any
 from dynqos.common.config import Config, ZenohConfig
 from dynqos.common.transport import Role, open_bus
 from dynqos.faults import FaultInjector
-from dynqos.flight import Streams, fly, fly_and_stop, post_json, wait_for_offload
+from dynqos.flight import Streams, fly, fly_and_stop, post_json, start_mcap_recorder, wait_for_offload
 from dynqos.processes import Processes, free_port
 from dynqos.recording import Recording
 from dynqos.report import summarise, write_scenario
@@ -79,6 +79,7 @@ def _start_edge_and_cell(
     cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
     write_config(config_path, scenario, with_cell(config, cell, sink_port=free_port()))
     procs.start("qos", ["edge", "qos"])
+    start_mcap_recorder(procs, scenario, folder)
     procs.start("vehicle", ["sim", "vehicle", "--duration", "3600"])
     procs.start("planner", ["edge", "planner"])
     procs.start("mpc", ["edge", "mpc"])

@@ -38,6 +38,25 @@ KEYS = {
 STATS = {"mean", "p50", "p95", "p99", "max"}
 
 
+def _check_the_flight_log(path: Path, scenario: str, summary: dict[str, object]) -> None:
+    """The demo's MCAP opens with the mcap reader like any recording: closed, schemas, metadata."""
+    reader_module = pytest.importorskip("mcap.reader")
+    with path.open("rb") as stream:
+        reader = reader_module.make_reader(stream)
+        assert reader.get_summary() is not None
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+        counts: dict[str, int] = {}
+        for schema, channel, _ in reader.iter_messages():
+            assert schema is not None
+            assert schema.data
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    assert metadata["dynqos"]["scenario"] == scenario
+    assert "[supervisor]" in metadata["dynqos.config"]["toml"]
+    assert counts["/uav1/pose"] > 15 * 10  # a state per MPC period (20 Hz) over a flight of over 10 s
+    assert counts["/uav1/status"] > 10
+    assert "/uav1/camera/rgb" not in counts  # the demo records without images (a small run folder)
+
+
 @pytest.mark.slow
 @pytest.mark.integration
 @pytest.mark.timeout(600)
@@ -79,8 +98,10 @@ def test_short_demo_writes_the_contract(tmp_path: Path) -> None:
             "latency.csv",
             "cell.csv",
             "logs",
+            "flight.mcap",
         ):
             assert (out / name / artefact).exists(), artefact
+        _check_the_flight_log(out / name / "flight.mcap", name, summary)
         assert summary["setpoint_gap_max_ms"] < 100
         # the QoD path: the emulated operator is left with no session once every process has stopped
         assert summary["qos_network"]["backend"] == "camara"

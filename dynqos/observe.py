@@ -1,0 +1,154 @@
+"""`dynqos view` and `dynqos record`: subscribe to the dynqos keys as an edge client and feed them,
+through `telemetry`, to the Foxglove app over its WebSocket protocol and/or to an MCAP file, with the
+official foxglove-sdk (its server and its MCAP sink: one channel layer for both).
+
+zenoh delivers on its own threads into one bounded queue (the newest kept when it overflows, the drops
+counted); one worker converts and logs in arrival order, so each channel's log times only grow. Time
+base: wall-clock nanoseconds taken once at start and advanced by the monotonic clock, so a clock step
+cannot make a recording go backwards.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import foxglove
+
+from dynqos import __version__
+from dynqos.common import keys
+from dynqos.common.config import Config, to_toml
+from dynqos.common.errors import DynqosError
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.messages import CameraFrame
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Received, Role, ZenohBus, open_bus
+from dynqos.edge.assembler import FrameAssembler
+from dynqos.sim.world import World
+from dynqos.telemetry import Out, Telemetry, frames, json_schema_for, world_scene
+
+log = logging.getLogger(__name__)
+
+QUEUE_MESSAGES = 4096
+STATIC_EVERY_S = 2.0  # /tf and /world again, for a viewer that connects late
+
+
+def subscriptions(uav: str | None, camera: bool) -> list[str]:
+    """The keys to watch: every drone's, or one drone's."""
+    ups = [Stream.STATE, Stream.STATUS] + ([Stream.CAMERA_RGB] if camera else [])
+    downs = [Downlink.REFERENCE, Downlink.DETECTIONS, Downlink.QOS_GRANT, Downlink.QOS_DECISION]
+    if uav is None:
+        return [keys.uplink_all_drones(s) for s in ups] + [keys.downlink_all_drones(d) for d in downs]
+    return [keys.uplink_any_flow(uav, s) for s in ups] + [keys.downlink(uav, d) for d in downs]
+
+
+@dataclass
+class Counts:
+    received: int = 0
+    logged: dict[str, int] = field(default_factory=dict)  # per topic
+
+
+class Observer:
+    """The zenoh side and the channel layer; sinks (server, MCAP) are attached to `context`."""
+
+    def __init__(self, config: Config, world: World, *, uav: str | None = None, camera: bool = True) -> None:
+        self.config = config
+        self.world = world
+        self.context = foxglove.Context()
+        self.telemetry = Telemetry()
+        self.assembler = FrameAssembler()
+        self.queue: BoundedQueue[Received] = BoundedQueue(QUEUE_MESSAGES)
+        self.channels: dict[str, Any] = {}
+        self.counts = Counts()
+        self.stop = threading.Event()
+        self.keys = subscriptions(uav, camera)
+        self.bus: ZenohBus | None = None
+        self._wall0 = time.time_ns()
+        self._mono0 = time.monotonic_ns()
+
+    def now_ns(self) -> int:
+        return self._wall0 + time.monotonic_ns() - self._mono0
+
+    def open(self) -> None:
+        self.bus = open_bus(self.config.zenoh, Role.EDGE)
+        for key in self.keys:
+            self.bus.subscribe(key, self.queue)
+
+    def run(self) -> None:
+        """Convert and log until `stop`; then what is already queued, so a clean stop loses nothing."""
+        next_static = 0.0
+        while not self.stop.is_set():
+            if time.monotonic() >= next_static:
+                next_static = time.monotonic() + STATIC_EVERY_S
+                self.log_all([frames(self.now_ns()), world_scene(self.world, self.now_ns())])
+            item = self.queue.get(0.2)
+            if item is not None:
+                self.take(item)
+        for item in self.queue.drain():
+            self.take(item)
+
+    def take(self, item: Received) -> None:
+        self.counts.received += 1
+        message = item.message
+        if isinstance(message, CameraFrame):
+            whole = self.assembler.add(message)
+            if whole is None:
+                return
+            message = whole
+        self.log_all(self.telemetry.convert(message, self.now_ns()))
+
+    def log_all(self, outs: list[Out]) -> None:
+        now = self.now_ns()
+        for topic, payload in outs:
+            self._channel(topic, payload).log(payload, log_time=now)
+            self.counts.logged[topic] = self.counts.logged.get(topic, 0) + 1
+
+    def _channel(self, topic: str, payload: Any) -> Any:
+        channel = self.channels.get(topic)
+        if channel is None:
+            if isinstance(payload, dict):
+                channel = foxglove.Channel(topic, schema=json_schema_for(topic), message_encoding="json",
+                                           context=self.context)  # fmt: skip
+            else:
+                typed = getattr(foxglove.channels, type(payload).__name__ + "Channel")
+                channel = typed(topic, context=self.context)
+            self.channels[topic] = channel
+        return channel
+
+    def close(self) -> None:
+        if self.bus is not None:
+            self.bus.close()
+            self.bus = None
+
+    def summary(self) -> str:
+        topics = " ".join(f"{t}={n}" for t, n in sorted(self.counts.logged.items()))
+        return f"received={self.counts.received} dropped={self.queue.dropped} {topics}"
+
+
+def open_recording(observer: Observer, path: Path, scenario: str = "") -> Any:
+    """An MCAP sink on the observer's channels, with the metadata that makes the file self-describing."""
+    if path.suffix != ".mcap":
+        raise DynqosError(f"--out {path}: an MCAP file name ends in .mcap")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        writer = foxglove.open_mcap(str(path), allow_overwrite=True, context=observer.context)
+    except OSError as exc:
+        raise DynqosError(f"cannot write {path}: {exc.strerror or exc}") from None
+    writer.write_metadata(
+        "dynqos",
+        {"version": __version__, "scenario": scenario, "keys": " ".join(observer.keys),
+         "started_unix_ns": str(observer.now_ns())},
+    )  # fmt: skip
+    writer.write_metadata("dynqos.config", {"toml": to_toml(observer.config)})
+    return writer
+
+
+def start_viewer(observer: Observer, host: str, port: int) -> Any:
+    try:
+        return foxglove.start_server(name="dynqos", host=host, port=port, context=observer.context)
+    except RuntimeError as exc:  # the SDK's "FoxgloveError: Failed to bind port: ..."
+        raise DynqosError(f"cannot serve the Foxglove WebSocket on {host}:{port}: {exc}") from None
