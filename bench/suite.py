@@ -12,8 +12,10 @@ import contextlib
 import importlib
 import json
 import statistics
+import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +51,13 @@ HEADLINES: dict[str, Headline] = {
         "mpc_p50_ms": r["mpc_in_process"]["p50_ms"],
         "ratio_p50": r["ratio_p50"],
     },
+    "observability": lambda r: {
+        "overhead_p50": r["overhead_p50"]["watched"],
+        "metrics_overhead_p50": r["overhead_p50"]["metrics"],
+        "viewer_overhead_p50": r["overhead_p50"]["viewer"],
+        "bare_p50_ms": r["bare"]["p50_ms"],
+        "watched_p50_ms": r["watched"]["p50_ms"],
+    },
     "fleet_zenoh": lambda r: {
         "drones_one_process": r["one_process"]["max_drones_at_20hz"],
         "drones_two_processes": r["two_processes"]["max_drones_at_20hz"],
@@ -78,6 +87,31 @@ def spread(values: list[float | None]) -> dict[str, float | None]:
     return {"median": statistics.median(present), "min": min(present), "max": max(present)}
 
 
+HEARTBEAT_S = 30.0  # a benchmark that runs longer says so this often
+
+
+@contextlib.contextmanager
+def _still_running(what: str) -> Iterator[None]:
+    """Print `what` is still running every HEARTBEAT_S (to the real stdout: the benchmark's own output
+    goes to its log file), so minutes of silence never look like a hang."""
+    stdout = sys.stdout
+    done = threading.Event()
+    started = time.monotonic()
+
+    def beat() -> None:
+        while not done.wait(HEARTBEAT_S):
+            stdout.write(f"bench: {what}: still running ({time.monotonic() - started:.0f} s)\n")
+            stdout.flush()
+
+    thread = threading.Thread(target=beat, name="bench-heartbeat", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join(timeout=1)
+
+
 def run_suite(names: list[str], *, smoke: bool, repeat: int, out: Path) -> dict[str, Any]:
     unknown = [n for n in names if n not in HEADLINES]
     if unknown:
@@ -93,14 +127,16 @@ def run_suite(names: list[str], *, smoke: bool, repeat: int, out: Path) -> dict[
     suite["benchmarks"] = {}
     tables = [f"# dynqos bench ({suite['date']}, {suite['machine']}{', smoke' if smoke else ''})", ""]
     started = time.monotonic()
-    for name in chosen:
+    for number, name in enumerate(chosen, start=1):
         module = importlib.import_module(f"dynqos.bench.{name}")
         runs, seconds = [], []
         for index in range(repeat):
             json_path = out / f"{name}.{index}.json"
             log_path = out / f"{name}.{index}.log"
             t0 = time.monotonic()
-            with log_path.open("w") as log, contextlib.redirect_stdout(log):
+            what = f"{name} ({number}/{len(chosen)}{f', run {index + 1}/{repeat}' if repeat > 1 else ''})"
+            print(f"bench: {what}: running, its output in {log_path}", flush=True)
+            with _still_running(what), log_path.open("w") as log, contextlib.redirect_stdout(log):
                 module.main([*(["--quick"] if smoke else []), "--out", str(json_path)])
             seconds.append(time.monotonic() - t0)
             runs.append(json.loads(json_path.read_text()))

@@ -364,9 +364,10 @@ def _cmd_observe(args: argparse.Namespace, config: Config) -> int:
     """`dynqos view` and `dynqos record`: one observer, a Foxglove server and/or an MCAP sink."""
     import signal
 
-    from dynqos.observe import Observer, open_recording, start_viewer
+    from dynqos.observe import OBSERVER_NICE, Observer, open_recording, start_viewer
     from dynqos.sim.world import default_world, load_world
 
+    os.nice(OBSERVER_NICE)  # below the control path on a shared machine: watching must not slow the loop
     world = load_world(args.world) if args.world else default_world()
     observer = Observer(config, world, uav=args.uav, camera=not args.no_camera)
     record = Path(args.out) if args.command == "record" else (Path(args.record) if args.record else None)

@@ -31,13 +31,13 @@ from dynqos.scenario import UAV, Scenario, world_path
 log = logging.getLogger(__name__)
 
 RECORD_PERIOD_S = 0.1  # the recorder's sampling period
+PROGRESS_EVERY_S = 10.0  # a progress log line this often when stderr is not a terminal
 CELL_POLL_S = 0.5  # how often the cell's counters are read
 OFFLOAD_TIMEOUT_S = 60.0  # from the daemon's start to its first offboard state
 QUEUE_ITEMS = 200_000  # per recorded stream: 30 min of states at 50 Hz, with room
 
 
 MCAP_NAME = "flight.mcap"
-RECORDER_NICE = 10  # the MCAP recorder runs below the control path: it may lag, the loop may not
 
 
 def start_mcap_recorder(procs: Processes, scenario: Scenario, folder: Path) -> None:
@@ -46,7 +46,7 @@ def start_mcap_recorder(procs: Processes, scenario: Scenario, folder: Path) -> N
     args = ["record", "--out", str(folder / MCAP_NAME), "--scenario", scenario.name, "--no-camera"]
     if scenario.world:
         args += ["--world", world_path(scenario.world)]
-    procs.start("record", args, program=["nice", "-n", str(RECORDER_NICE), procs.exe])
+    procs.start("record", args)  # it runs niced by itself
 
 
 def get_json(port: int, path: str) -> dict[str, Any]:
@@ -205,3 +205,5 @@ def _progress(scenario: Scenario, elapsed: float, rec: Recording) -> None:
     if sys.stderr.isatty():
         sys.stderr.write(line)
         sys.stderr.flush()
+    elif int(elapsed // PROGRESS_EVERY_S) != int((elapsed - RECORD_PERIOD_S) // PROGRESS_EVERY_S):
+        log.info("%s", line.replace(f"[{bar}] ", "").strip())  # not a terminal: a log line now and then

@@ -2,10 +2,12 @@
 through `telemetry`, to the Foxglove app over its WebSocket protocol and/or to an MCAP file, with the
 official foxglove-sdk (its server and its MCAP sink: one channel layer for both).
 
-zenoh delivers on its own threads into one bounded queue (the newest kept when it overflows, the drops
-counted); one worker converts and logs in arrival order, so each channel's log times only grow. Time
-base: wall-clock nanoseconds taken once at start and advanced by the monotonic clock, so a clock step
-cannot make a recording go backwards.
+An observer must not slow the loop it watches (docs/observability.md, the `observability` benchmark):
+zenoh's callback only copies the payload into one bounded queue (the newest kept when it overflows,
+the drops counted); one worker wakes every BATCH_S, decodes, converts and logs what arrived, in arrival
+order, so each channel's log times only grow; and the process runs niced below the control path.
+Time base: wall-clock nanoseconds taken once at start and advanced by the monotonic clock, so a clock
+step cannot make a recording go backwards.
 """
 
 from __future__ import annotations
@@ -18,15 +20,16 @@ from pathlib import Path
 from typing import Any
 
 import foxglove
+import zenoh
 
 from dynqos import __version__
 from dynqos.common import keys
 from dynqos.common.config import Config, to_toml
-from dynqos.common.errors import DynqosError
+from dynqos.common.errors import DecodeError, DynqosError
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import CameraFrame
+from dynqos.common.messages import CameraFrame, decode
 from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Received, Role, ZenohBus, open_bus
+from dynqos.common.transport import Role, ZenohBus, open_bus
 from dynqos.edge.assembler import FrameAssembler
 from dynqos.sim.world import World
 from dynqos.telemetry import Out, Telemetry, frames, json_schema_for, world_scene
@@ -34,6 +37,10 @@ from dynqos.telemetry import Out, Telemetry, frames, json_schema_for, world_scen
 log = logging.getLogger(__name__)
 
 QUEUE_MESSAGES = 4096
+BATCH_S = 0.05  # the worker's wake-up period: a display's 20 Hz, away from each state's arrival
+OBSERVER_NICE = 10
+LINGER_S = 0.2  # on stop: quiet this long means nothing is in flight any more
+LINGER_MAX_S = 2.0
 STATIC_EVERY_S = 2.0  # /tf and /world again, for a viewer that connects late
 
 
@@ -49,6 +56,7 @@ def subscriptions(uav: str | None, camera: bool) -> list[str]:
 @dataclass
 class Counts:
     received: int = 0
+    rejected: int = 0
     logged: dict[str, int] = field(default_factory=dict)  # per topic
 
 
@@ -61,7 +69,7 @@ class Observer:
         self.context = foxglove.Context()
         self.telemetry = Telemetry()
         self.assembler = FrameAssembler()
-        self.queue: BoundedQueue[Received] = BoundedQueue(QUEUE_MESSAGES)
+        self.queue: BoundedQueue[tuple[str, bytes]] = BoundedQueue(QUEUE_MESSAGES)
         self.channels: dict[str, Any] = {}
         self.counts = Counts()
         self.stop = threading.Event()
@@ -76,24 +84,41 @@ class Observer:
     def open(self) -> None:
         self.bus = open_bus(self.config.zenoh, Role.EDGE)
         for key in self.keys:
-            self.bus.subscribe(key, self.queue)
+            self.bus.session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        self.queue.put((str(sample.key_expr), sample.payload.to_bytes()))
 
     def run(self) -> None:
         """Convert and log until `stop`; then what is already queued, so a clean stop loses nothing."""
         next_static = 0.0
-        while not self.stop.is_set():
+        while not self.stop.wait(BATCH_S):
             if time.monotonic() >= next_static:
                 next_static = time.monotonic() + STATIC_EVERY_S
                 self.log_all([frames(self.now_ns()), world_scene(self.world, self.now_ns())])
-            item = self.queue.get(0.2)
-            if item is not None:
-                self.take(item)
-        for item in self.queue.drain():
-            self.take(item)
+            for key, payload in self.queue.drain():
+                self.take(key, payload)
+        self._flush()
 
-    def take(self, item: Received) -> None:
+    def _flush(self) -> None:
+        """On stop, what is still in flight: take samples until none has come for LINGER_S (at most
+        LINGER_MAX_S), so that a recording stopped right after the drone keeps its last messages."""
+        deadline = time.monotonic() + LINGER_MAX_S
+        while time.monotonic() < deadline:
+            item = self.queue.get(LINGER_S)
+            if item is None:
+                return
+            self.take(*item)
+
+    def take(self, key: str, payload: bytes) -> None:
+        try:
+            message = decode(payload)
+        except DecodeError as exc:
+            self.counts.rejected += 1
+            if self.counts.rejected == 1:
+                log.warning("%s: undecodable message on %s: %s", "observer", key, exc)
+            return
         self.counts.received += 1
-        message = item.message
         if isinstance(message, CameraFrame):
             whole = self.assembler.add(message)
             if whole is None:
@@ -126,7 +151,8 @@ class Observer:
 
     def summary(self) -> str:
         topics = " ".join(f"{t}={n}" for t, n in sorted(self.counts.logged.items()))
-        return f"received={self.counts.received} dropped={self.queue.dropped} {topics}"
+        c = self.counts
+        return f"received={c.received} rejected={c.rejected} dropped={self.queue.dropped} {topics}"
 
 
 def open_recording(observer: Observer, path: Path, scenario: str = "") -> Any:

@@ -153,6 +153,21 @@ class Processes:
         if proc.stdout is not None:
             proc.stdout.close()
 
+    def stop(self, name: str) -> int | None:
+        """SIGTERM our own child by its pid and wait for it (a clean stop, not a fault)."""
+        self.down.add(name)
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+        if proc.stdout is not None:
+            proc.stdout.close()
+        return proc.returncode
+
     def restart(self, name: str) -> None:
         args, program, config = self.started[name]
         self.start(name, args, program=program, config=config)

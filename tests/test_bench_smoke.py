@@ -38,10 +38,15 @@ def _result(smoke: tuple[dict[str, Any], str], name: str) -> dict[str, Any]:
 def test_every_benchmark_ran_and_gave_a_verdict(smoke: tuple[dict[str, Any], str]) -> None:
     results, stdout = smoke
     assert list(results["benchmarks"]) == list(NAMES)
-    for name in NAMES:
-        line = next(line for line in stdout.splitlines() if line.startswith(f"{name}: "))
+    lines = stdout.splitlines()
+    for number, name in enumerate(NAMES, start=1):
+        line = next(line for line in lines if line.startswith(f"{name}: "))
         assert "meets target" in line or "misses target" in line
         assert results["benchmarks"][name]["headline"]
+        said = f"bench: {name} ({number}/{len(NAMES)}): running, its output in "
+        assert lines.index(next(x for x in lines if x.startswith(said))) < lines.index(
+            line
+        )  # before, not after
 
 
 def test_supervisor_and_mpc_figures(smoke: tuple[dict[str, Any], str]) -> None:

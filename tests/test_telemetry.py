@@ -134,3 +134,27 @@ def test_the_world_and_the_frames() -> None:
     (transform,) = decode(transforms)["transforms"]
     assert (transform["parentFrameId"], transform["childFrameId"]) == ("world", "ned")
     assert transform["rotation"] == {"x": 1.0}  # half a turn about x: NED's z down becomes up
+
+
+def test_the_shipped_foxglove_layout_is_current_and_reads_only_what_is_published() -> None:
+    import json
+    import re
+    from pathlib import Path
+
+    from dynqos.layout import layout_json
+
+    shipped = (Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json").read_text()
+    assert shipped == layout_json(), "docs/foxglove-layout.json is stale: python -m dynqos.layout > it"
+    text = json.dumps(json.loads(shipped))
+    telemetry = Telemetry()
+    published = {"/tf", "/world", "/log"}
+    for message in (_state(), _status("q1"), _status("q3", cause="x")):
+        published |= {t for t, _ in telemetry.convert(message, NOW)}
+    published |= {"/uav1/camera/rgb", "/uav1/camera/annotations"}  # from the image tests above
+    topics = set(re.findall(r'"(/[a-z0-9/_]+?)(?:\.[a-z_]+)?"', text))
+    assert topics <= published, topics - published
+    fields = set(re.findall(r'"/uav1/status\.([a-z_]+)"', text))
+    assert fields
+    assert fields <= set(JSON_SCHEMAS["status"]["properties"])
+    panels = set(re.findall(r'"panelType": "(\w+)"', text))
+    assert {"ThreeDee", "Image", "Plot", "StateTransitions", "Log"} <= panels
