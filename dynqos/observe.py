@@ -39,8 +39,8 @@ log = logging.getLogger(__name__)
 QUEUE_MESSAGES = 4096
 BATCH_S = 0.05  # the worker's wake-up period: a display's 20 Hz, away from each state's arrival
 OBSERVER_NICE = 10
-LINGER_S = 0.2  # on stop: quiet this long means nothing is in flight any more
-LINGER_MAX_S = 2.0
+LINGER_S = 0.5  # on stop: quiet this long means nothing is in flight any more
+LINGER_MAX_S = 3.0
 STATIC_EVERY_S = 2.0  # /tf and /world again, for a viewer that connects late
 
 
@@ -75,6 +75,7 @@ class Observer:
         self.stop = threading.Event()
         self.keys = subscriptions(uav, camera)
         self.bus: ZenohBus | None = None
+        self.subscribers: list[Any] = []  # held for the session's lifetime
         self._wall0 = time.time_ns()
         self._mono0 = time.monotonic_ns()
 
@@ -83,8 +84,7 @@ class Observer:
 
     def open(self) -> None:
         self.bus = open_bus(self.config.zenoh, Role.EDGE)
-        for key in self.keys:
-            self.bus.session.declare_subscriber(key, self._on_sample)
+        self.subscribers = [self.bus.session.declare_subscriber(key, self._on_sample) for key in self.keys]
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         self.queue.put((str(sample.key_expr), sample.payload.to_bytes()))

@@ -43,6 +43,7 @@ RISK_ZONE_RADIUS_M = 1.0
 REFERENCE_POINTS = 60  # the reference path drawn: at most this many of the horizon's samples
 
 _STATUS_FIELDS = {
+    "seq": "integer",
     "stamp_ns": "integer",
     "state": "string",
     "prev_state": "string",
