@@ -177,7 +177,7 @@ def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_soak_ten_minutes_with_the_load_toggling(tmp_path: Path) -> None:
-    """Issue 11's soak: 600 s, or DYNQOS_SOAK_S seconds (CI flies 300, five load periods, to keep the whole
+    """Issue 11's soak: 600 s, or DYNQOS_SOAK_S seconds (CI flies 240, four load periods, to keep the whole
     suite well inside 30 minutes on two cores)."""
     soak = builtin_scenario("soak")
     seconds = float(os.environ.get("DYNQOS_SOAK_S", soak.duration_s))
