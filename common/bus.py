@@ -68,7 +68,8 @@ class Publisher(Protocol):
     """Publishes messages on one key with a priority fixed at declaration (zenoh's rule)."""
 
     key: str
-    sent: int
+    sent: int  # messages put
+    sent_bytes: int  # their encoded bytes, as handed to the session (zenoh's own framing not counted)
 
     def put(self, message: Message) -> None: ...
 
@@ -149,6 +150,7 @@ class MemoryPublisher:
         self._bus = bus
         self.key = key
         self.sent = 0
+        self.sent_bytes = 0
 
     def put(self, message: Message) -> None:
         self.put_bytes(encode(message))
@@ -156,6 +158,7 @@ class MemoryPublisher:
     def put_bytes(self, data: bytes) -> None:
         self._bus.deliver(self.key, data)
         self.sent += 1
+        self.sent_bytes += len(data)
 
     def close(self) -> None:
         pass

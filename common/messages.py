@@ -270,6 +270,7 @@ class SupervisorStatus(Message):
         "control_changed_ns": f.integer(),
         "command_age_ms": f.optional(_latency_ms),
         "camera_bytes": f.integer(),
+        "uplink_bytes": f.integer(),
         "qos_grant": f.member(Grant),
         "qos_agent": f.boolean,
         "rtt_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
@@ -304,6 +305,7 @@ class SupervisorStatus(Message):
     control_changed_ns: int = 0  # when control_source last changed (onboard clock; 0: never)
     command_age_ms: float | None = None  # age of the last valid command at that change (None: none yet)
     camera_bytes: int = 0  # camera bytes handed to zenoh since the daemon started, before any drop
+    uplink_bytes: int = 0  # every uplink message's bytes handed to zenoh since then (camera included)
     qos_grant: Grant = Grant.NONE  # what the network grants the priority flow (the agent's last word)
     qos_agent: bool = False  # a QoS agent answered recently (False: links only, no network request)
 

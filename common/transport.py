@@ -234,6 +234,7 @@ class ZenohPublisher:
         self._inner = inner
         self.key = key
         self.sent = 0
+        self.sent_bytes = 0
 
     def put(self, message: Message) -> None:
         self.put_bytes(encode(message))
@@ -241,6 +242,7 @@ class ZenohPublisher:
     def put_bytes(self, data: bytes) -> None:
         self._inner.put(data)
         self.sent += 1
+        self.sent_bytes += len(data)
 
     def wait_matched(self, timeout_s: float) -> bool:
         """Wait until at least one subscriber matches this key (False on timeout).

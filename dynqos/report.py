@@ -109,15 +109,18 @@ def _cell_rates(rec: Recording, start_ns: int, end_ns: int, scale: float) -> dic
 def _app_offered_mbps(
     statuses: list[SupervisorStatus], start_ns: int, end_ns: int, scale: float
 ) -> float | None:
-    """What the drone's application handed to zenoh in [start, end], at full scale: its camera bytes
-    (from the status's running count), before zenoh, the kernel or the cell could drop or hold any."""
+    """What the drone's application handed to zenoh in [start, end], at full scale: every uplink message
+    (camera, state, status, QoS request; from the status's running count), before zenoh, the kernel or
+    the cell could drop or hold any. Statuses of a drone that does not count them give its camera bytes."""
     inside = [s for s in statuses if start_ns <= s.stamp_ns <= end_ns]
     if len(inside) < 2 or inside[-1].stamp_ns <= inside[0].stamp_ns:
         return None
     first, last = inside[0], inside[-1]
-    return (
-        (last.camera_bytes - first.camera_bytes) * 8 / ((last.stamp_ns - first.stamp_ns) / 1e9) / 1e6 * scale
-    )
+    if last.uplink_bytes:
+        counted = last.uplink_bytes - first.uplink_bytes
+    else:
+        counted = last.camera_bytes - first.camera_bytes
+    return counted * 8 / ((last.stamp_ns - first.stamp_ns) / 1e9) / 1e6 * scale
 
 
 def _samples(statuses: list[SupervisorStatus], every: str, last: str) -> list[tuple[int, float]]:

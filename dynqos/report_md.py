@@ -67,7 +67,8 @@ def _single_scenarios(out: Path, summaries: list[dict[str, Any]], repeated: bool
         "",
         "## Beside the paper's Table II",
         "",
-        "UAV: what the drone's application offered (its camera bytes handed to zenoh), what the cell "
+        "UAV: what the drone's application offered (every uplink message handed to zenoh: camera, state, "
+        "status), what the cell "
         "admitted into the drone's bearers and what it delivered. BG: the load configured, what the "
         "background got. Over the loaded span (after settling when there is no load).",
         "",

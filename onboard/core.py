@@ -80,6 +80,7 @@ class TickInput:
     frames_sent: Sequence[FrameSent] = ()
     spaciousness_m: float | None = None
     offboard: bool = False
+    uplink_bytes: int | None = None  # every byte the drone's publishers put so far (None: unknown)
 
 
 @dataclass(frozen=True, slots=True)
@@ -130,6 +131,7 @@ class Counters:
     edge_ticks: int = 0
     frames: int = 0
     camera_bytes: int = 0  # encoded image bytes handed to the bus (headers not counted)
+    uplink_bytes: int = 0  # every encoded message on the uplink (camera, state, status, QoS request)
     switches_to_fallback: int = 0
     detections: int = 0
 
@@ -229,6 +231,8 @@ class OnboardCore:
             self.camera_monitor.frame_sent(frame.seq, frame.kind, frame.stamp_ns)
             self.counters.camera_bytes += frame.nbytes
             self.counters.frames += frame.kind == "rgb"
+        if inp.uplink_bytes is not None:
+            self.counters.uplink_bytes = max(self.counters.uplink_bytes, inp.uplink_bytes)
         if inp.spaciousness_m is not None:
             self._space = inp.spaciousness_m
         for item in inp.downlink:
@@ -459,6 +463,7 @@ class OnboardCore:
             camera_latency_samples_ms=cams,
             fallbacks=self.counters.switches_to_fallback,
             camera_bytes=self.counters.camera_bytes,
+            uplink_bytes=self.counters.uplink_bytes,
             control_changed_ns=self.control_changed_ns,
             command_age_ms=self.command_age_ms,
             qos_grant=self.reported_grant(now),

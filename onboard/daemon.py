@@ -215,6 +215,7 @@ class OnboardDaemon:
                 frames_sent=frames,
                 spaciousness_m=space[-1] if space else None,
                 offboard=self.offboard.is_set(),
+                uplink_bytes=self.uplink_bytes(),
             )
         )
         for event in out.events:
@@ -233,6 +234,11 @@ class OnboardDaemon:
                 out.camera_rate_factor,
             )
         return out
+
+    def uplink_bytes(self) -> int:
+        """Every byte the drone's publishers handed to zenoh so far, on both flows (the camera thread's
+        counts are read without a lock: an int read is atomic, and a tick late is fine for a rate)."""
+        return sum(p.default.sent_bytes + p.priority.sent_bytes for p in self.publishers.values())
 
     def run(self) -> None:
         """The control loop, until stop is set; then hold (or land) and close."""

@@ -108,6 +108,11 @@ class DroneMetrics:
         counters = (
             ("dynqos_fallbacks", "Hand-overs to the fallback PID", s.fallbacks),
             ("dynqos_camera_sent_bytes", "Camera bytes handed to zenoh, before any drop", s.camera_bytes),
+            (
+                "dynqos_uplink_sent_bytes",
+                "Every uplink message's bytes handed to zenoh, before any drop",
+                s.uplink_bytes,
+            ),
         )
         for name, doc, total in counters:
             counter = CounterMetricFamily(name, doc, labels=["uav"])

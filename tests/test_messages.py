@@ -137,6 +137,7 @@ statuses = st.builds(
     control_changed_ns=u63,
     command_age_ms=st.none() | reals(0, 1e7),
     camera_bytes=u63,
+    uplink_bytes=u63,
     qos_grant=st.sampled_from(Grant),
     qos_agent=st.booleans(),
 )

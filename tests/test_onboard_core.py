@@ -282,6 +282,16 @@ def test_camera_acks_become_latency_samples_in_the_status() -> None:
     assert rig.core.counters.camera_bytes == 1000
 
 
+def test_the_status_carries_the_shells_running_count_of_uplink_bytes() -> None:
+    rig = Rig.make("dynamic")
+    rig.run(0.3)
+    assert {s.uplink_bytes for s in rig.statuses()} == {0}  # the shell has not said yet
+    for count in (5000, 7000, 6000):  # a count read a tick late never moves the total back
+        rig.core.tick(TickInput(now_ns=rig.now + 1, fc=rig.fc, uplink_bytes=count))
+    rig.run(0.5)
+    assert rig.statuses()[-1].uplink_bytes == 7000
+
+
 def test_fallback_holds_or_continues_the_mission_from_the_last_reference() -> None:
     positions = [(float(k), 0.0, -1.5) for k in range(5)]
     reference = Reference(uav="uav1", seq=1, stamp_ns=0, dt_s=0.05, pos_m=positions,

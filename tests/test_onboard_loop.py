@@ -6,6 +6,7 @@ import math
 import re
 import signal
 import socket
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,7 +17,16 @@ import pytest
 from dynqos.common import keys
 from dynqos.common.config import ZenohConfig
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import CameraFrame, Command, Reference, State, SupervisorStatus, encode
+from dynqos.common.messages import (
+    CameraFrame,
+    Command,
+    Message,
+    Reference,
+    State,
+    SupervisorStatus,
+    decode,
+    encode,
+)
 from dynqos.common.modes import ControlSource, Flow
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, open_bus
@@ -332,3 +342,53 @@ def test_fc_silence_in_every_qos_mode_holds_position_and_resumes_at_the_edge(
     assert max(gaps) < 100, gaps  # the setpoint stream never paused: PX4 would leave offboard
     assert "no state from the flight controller" in log
     assert "the flight controller's state is back" in log
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("qos", ["default", "priority", "dynamic"])
+def test_the_status_counts_every_uplink_byte_the_drone_hands_to_zenoh(tmp_path: Path, qos: str) -> None:
+    """`uav_offered_mbps` rests on the status's `uplink_bytes`: every message the drone puts (state,
+    status, QoS request, camera), not the camera's bytes alone. With the camera off, a count of camera
+    bytes would read 0; the count must match what a subscriber to all of the drone's uplink receives."""
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    config = loop_config(tmp_path, zcfg, extra="")
+    config.write_text(config.read_text().replace("camera_fps = 5\n", 'camera = "none"\n'))
+    got: list[tuple[int, object]] = []  # (encoded size, message) in arrival order
+    lock = threading.Lock()
+    enough = threading.Event()
+
+    def sized(data: bytes) -> Message:
+        message = decode(data)
+        with lock:
+            got.append((len(data), message))
+            if sum(isinstance(m, SupervisorStatus) for _, m in got) >= 16:
+                enough.set()
+        return message
+
+    router = DynqosProcess(["edge", "router"], config)
+    vehicle = DynqosProcess(["sim", "vehicle", "--duration", "120"], config)
+    bus = open_bus(zcfg, Role.EDGE)
+    bus.subscribe("dynqos/uav1/up/**", BoundedQueue(100_000), decoder=sized)
+    onboard = DynqosProcess(["onboard", "--set", f"onboard.qos={qos}"], config)  # no takeoff: states only
+    try:
+        assert enough.wait(60), "the drone sent fewer than 16 statuses in 60 s"
+    finally:
+        log = onboard.stop()
+        bus.close()
+        vehicle.stop()
+        router.stop()
+    with lock:
+        rows = list(got)
+    marks = [k for k, (_, m) in enumerate(rows) if isinstance(m, SupervisorStatus)]
+    first, last = marks[2], marks[-1]  # past the start, where the sessions were still matching
+    a, b = rows[first][1], rows[last][1]
+    assert isinstance(a, SupervisorStatus)
+    assert isinstance(b, SupervisorStatus)
+    counted = b.uplink_bytes - a.uplink_bytes
+    received = sum(size for size, _ in rows[first:last])  # from status a (sent after its count) to b
+    assert b.camera_bytes == 0, log[-2000:]
+    assert counted > 0, log[-2000:]
+    print(f"{qos}: counted {counted} B, received {received} B between two statuses")
+    assert counted == pytest.approx(received, rel=0.1)
+    if qos != "dynamic":
+        assert {m.flow for _, m in rows if isinstance(m, SupervisorStatus)} == {Flow(qos)}
