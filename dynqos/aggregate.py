@@ -5,6 +5,9 @@ Every number of the runs' summaries (RTT means and percentiles, rates, tracking 
 states, the switch time...) is aggregated by its path in the summary, e.g. `rtt_ms.loaded.mean`:
 mean, and the Student-t interval of the mean (n - 1 degrees of freedom). One run gives a zero-width
 interval. Runs where a figure is missing (None, e.g. no switch) are left out of that figure's `n`.
+Injected faults and network changes are aggregated by their place in the scenario's list (the same in
+every run): `faults.0.rtt_ms_during.mean`; their flags become the fraction of runs where they held
+(`faults.0.fallback_fraction`).
 """
 
 from __future__ import annotations
@@ -29,6 +32,13 @@ def _numbers(summary: dict[str, Any], prefix: str = "") -> Iterator[tuple[str, f
             yield path, float(value)
         elif isinstance(value, dict):
             yield from _numbers(value, f"{path}.")
+        elif key == "faults" and not prefix and isinstance(value, list):
+            for index, fault in enumerate(value):
+                if isinstance(fault, dict):
+                    yield from _numbers(fault, f"{path}.{index}.")
+                    for flag in ("fallback", "recovered"):
+                        if isinstance(fault.get(flag), bool):
+                            yield f"{path}.{index}.{flag}_fraction", float(fault[flag])
 
 
 def interval(values: list[float]) -> dict[str, float | int]:

@@ -441,15 +441,17 @@ def _cmd_sensitivity(args: argparse.Namespace, config: Config) -> int:
     from pathlib import Path
 
     from dynqos.demo import default_out_dir
-    from dynqos.sensitivity import run_sensitivity
+    from dynqos.sensitivity import MAX_REPEAT, run_sensitivity
 
     if not 5 <= args.duration <= 3600:
         raise DynqosError(f"--duration must be in 5..3600 s, got {args.duration}")
+    if not 1 <= args.repeat <= MAX_REPEAT:
+        raise DynqosError(f"--repeat must be in 1..{MAX_REPEAT}, got {args.repeat}")
     out = Path(args.out) if args.out else default_out_dir()
     out.mkdir(parents=True, exist_ok=True)
     result = run_sensitivity(
         out, weights=_floats(args.weights, "--weights"), loads_mbps=_floats(args.loads, "--loads"),
-        duration_s=args.duration, seed=args.seed,
+        duration_s=args.duration, seed=args.seed, repeat=args.repeat,
     )  # fmt: skip
     print(f"report: {out / 'sensitivity.md'}")
     return 0 if result["ok"] else 1
@@ -730,6 +732,11 @@ def build_parser() -> argparse.ArgumentParser:  # noqa: PLR0915 (declarations: o
     sensitivity.add_argument("--loads", default="40,80,120", metavar="M,M,...", help="background Mbit/s")
     sensitivity.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds per point")
     sensitivity.add_argument("--seed", type=int, default=0, metavar="N", help="seed of every point")
+    sensitivity.add_argument(
+        "--repeat", type=int, default=1, metavar="N",
+        help="fly each point N times with seeds S, S+1, ... (S: --seed); figures become mean [95%% interval] "
+        "and the plot draws the intervals (default 1)",
+    )  # fmt: skip
     sensitivity.add_argument("--out", metavar="DIR", help="output folder (default: runs/<date-time>)")
     sensitivity.set_defaults(handler=_cmd_sensitivity)
 

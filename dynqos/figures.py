@@ -33,8 +33,11 @@ def figure(summary: dict[str, Any], path: str, digits: int = 1) -> str:
         value = lookup(summary, path)
         return fmt(value if isinstance(value, (int, float)) else None, digits)
     agg = summary["aggregate"].get(path)
-    if agg is None:
-        return "-"
+    return "-" if agg is None else interval_text(agg, digits)
+
+
+def interval_text(agg: dict[str, Any], digits: int = 1) -> str:
+    """An aggregated figure ({mean, ci95_low, ci95_high, n}) as "mean [low, high]" (one run: the mean)."""
     if agg["n"] < 2:
         return fmt(agg["mean"], digits)
     return f"{agg['mean']:.{digits}f} [{agg['ci95_low']:.{digits}f}, {agg['ci95_high']:.{digits}f}]"

@@ -9,7 +9,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-from dynqos.figures import figure, fmt, lookup, mean_of
+from dynqos.aggregate import interval
+from dynqos.figures import figure, fmt, interval_text, lookup, mean_of
 from dynqos.fleet_report import fleet_comparison, fleet_section
 from dynqos.report import rmse
 from dynqos.scenario import run_id
@@ -202,6 +203,30 @@ def _fault_lines(s: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _repeated_fault_lines(s: dict[str, Any]) -> list[str]:
+    """`_fault_lines` over repeated runs: each figure as mean [95% interval], each flag as k of N runs.
+    A state a run never entered while the fault lasted counts as 0 s there."""
+    runs = s["runs"]
+    lines = []
+    for index, f in enumerate(runs[0].get("faults", [])):
+        p = f"faults.{index}."
+        during = [run["faults"][index].get("states_s_during") or {} for run in runs]
+        states = ", ".join(
+            f"{k} {interval_text(interval([float(d.get(k, 0.0)) for d in during]))}"
+            for k in sorted({k for d in during for k in d})
+        )
+        slowed = sum(run["faults"][index].get("camera_slowed_after_s") is not None for run in runs)
+        fallback = sum(bool(run["faults"][index].get("fallback")) for run in runs)
+        lines.append(
+            f"- {f['kind']} at {f['at_s']:g} s for {f['duration_s']:g} s: RTT while it lasted mean "
+            f"{figure(s, p + 'rtt_ms_during.mean')}, p95 {figure(s, p + 'rtt_ms_during.p95')} ms; "
+            f"states (s) {states or '-'}; camera slowed in {slowed} of {len(runs)} runs"
+            + (f", {figure(s, p + 'camera_slowed_after_s', 2)} s after it began" if slowed else "")
+            + f"; fallback in {fallback} of {len(runs)} runs"
+        )
+    return lines
+
+
 def _repeated_section(s: dict[str, Any]) -> list[str]:
     run_id = _run_id(s)
     seeds = [run.get("seed") for run in s["runs"]]
@@ -221,6 +246,7 @@ def _repeated_section(s: dict[str, Any]) -> list[str]:
         f"- camera frames/s acknowledged before the load: {figure(s, 'camera_fps.baseline')}",
         f"- network QoS: grant AVAILABLE {figure(s, 'qos_network.decision_to_available_s', 2)} s and RTT "
         f"back within 1.2x {figure(s, 'qos_network.decision_to_rtt_back_s', 2)} s after the decision",
+        *_repeated_fault_lines(s),
         f"- ok: {s['ok']} {s['failure']}",
         "",
     ]

@@ -167,3 +167,25 @@ def test_both_profiles_repeated_run_side_by_side(tmp_path: Path) -> None:
     report = (out / "report.md").read_text()
     assert "| baseline | paper | 2 |" in report
     assert "The paper's parameters at the paper's baseline" in report
+
+
+def test_repeated_faults_are_aggregated_by_their_place_and_reported_with_intervals(tmp_path: Path) -> None:
+    def fault(rtt: float, states: dict[str, float], slowed: float | None, fallback: bool) -> dict[str, Any]:
+        return {"kind": "capacity", "at_s": 15.0, "duration_s": 15.0, "fallback": fallback, "recovered": True,
+                "rtt_ms_during": {"mean": rtt, "p95": 2 * rtt}, "states_s_during": states,
+                "camera_slowed_after_s": slowed, "log": [], "notes": []}  # fmt: skip
+
+    runs = [
+        _summary(0, 18.0) | {"faults": [fault(140.0, {"q3": 3.0, "q6": 12.0}, 3.2, False)]},
+        _summary(1, 19.0) | {"faults": [fault(160.0, {"q3": 3.0, "qA": 10.0}, None, True)]},
+    ]
+    repeated = repeated_summary(runs)
+    agg = repeated["aggregate"]
+    assert agg["faults.0.rtt_ms_during.mean"]["mean"] == pytest.approx(150.0)
+    assert agg["faults.0.fallback_fraction"]["mean"] == pytest.approx(0.5)
+    assert agg["faults.0.camera_slowed_after_s"]["n"] == 1  # the run where it never slowed is left out
+    write_report(tmp_path, [repeated])
+    report = (tmp_path / "report.md").read_text()
+    assert "capacity at 15 s for 15 s: RTT while it lasted mean 150.0 [" in report
+    assert "q6 6.0 [" in report  # a state one run never entered counts 0 s there, not a missing run
+    assert "camera slowed in 1 of 2 runs, 3.20 s after it began; fallback in 1 of 2 runs" in report

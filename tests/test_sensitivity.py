@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from dynqos.scenario import builtin_scenario
-from dynqos.sensitivity import _plot, markdown
+from dynqos.sensitivity import _plot, _repeated_point, markdown
 from tests.procs import DYNQOS
 
 
@@ -32,6 +32,23 @@ def test_the_table_and_plot_show_every_point(tmp_path: Path) -> None:
     assert (tmp_path / "sensitivity.png").stat().st_size > 1000
 
 
+def test_repeated_points_report_the_mean_and_interval_of_each_figure(tmp_path: Path) -> None:
+    runs = [_point(2, 80, rtt, 47.0) | {"seed": k} for k, rtt in enumerate((30.0, 34.0, 32.0))]
+    point = _repeated_point(runs)
+    assert point["rtt_loaded_mean_ms"] == pytest.approx(32.0)
+    half = 4.302652729911275 * 2.0 / 3**0.5  # t(0.975, 2) * s / sqrt(n)
+    agg = point["ci95"]["rtt_loaded_mean_ms"]
+    assert (agg["ci95_low"], agg["ci95_high"]) == pytest.approx((32.0 - half, 32.0 + half))
+    assert point["seeds"] == [0, 1, 2]
+    assert point["runs"] == runs
+    text = markdown({"scenario": "bg-staticqos", "duration_s": 20.0, "seed": 0, "repeat": 3, "scale": 10.0,
+                     "points": [point]})  # fmt: skip
+    assert "3 runs per point (seeds 0-2)" in text
+    assert f"| 19.0 [19.0, 19.0] / 32.0 [{32.0 - half:.1f}, {32.0 + half:.1f}] |" in text
+    _plot(tmp_path, [point])
+    assert (tmp_path / "sensitivity.png").stat().st_size > 1000
+
+
 def test_the_scenario_carries_its_priority_weight_into_the_cell() -> None:
     from dataclasses import replace
 
@@ -46,7 +63,11 @@ def test_the_scenario_carries_its_priority_weight_into_the_cell() -> None:
 
 @pytest.mark.parametrize(
     ("args", "message"),
-    [(["--weights", "1,x"], "--weights takes numbers"), (["--loads", "0"], "--loads takes positive")],
+    [
+        (["--weights", "1,x"], "--weights takes numbers"),
+        (["--loads", "0"], "--loads takes positive"),
+        (["--repeat", "0"], "--repeat must be in 1..20"),
+    ],
 )
 def test_bad_sweeps_are_one_line_errors(tmp_path: Path, args: list[str], message: str) -> None:
     result = subprocess.run([DYNQOS, "sensitivity", "--out", str(tmp_path), *args],
