@@ -180,6 +180,7 @@ def _plot(out: Path, points: list[dict[str, Any]]) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
     fig, (rtt_ax, rate_ax) = plt.subplots(1, 2, figsize=(10, 4))
     for load in sorted({p["bg_mbps"] for p in points}):
@@ -192,6 +193,7 @@ def _plot(out: Path, points: list[dict[str, Any]]) -> None:
     rate_ax.set(xscale="log", xlabel="priority weight", ylabel="drone delivered (Mbit/s)")
     for ax in (rtt_ax, rate_ax):
         ax.set_xticks([p["priority_weight"] for p in points], [f"{p['priority_weight']:g}" for p in points])
+        ax.xaxis.set_minor_formatter(NullFormatter())  # the weights are the ticks; no "3x10^0" between
         ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "sensitivity.png", dpi=100)
