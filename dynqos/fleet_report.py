@@ -67,6 +67,23 @@ def _drone(
     )
     admitted, delivered = single["uav_admitted_mbps"], single["uav_delivered_mbps"]
     out["delivered_share"] = delivered / admitted if admitted and delivered is not None else None
+    out["cell_queue_ms"] = _queue_delays(rec, uav)
+    return out
+
+
+def _queue_delays(rec: Recording, uav: str) -> dict[str, float | None]:
+    """The mean queue delay of each of the drone's bearers in the cell while the load lasted (the cell's
+    own figure, sampled by the flight loop): what the network did to the drone, whatever the CPU did to
+    its processes. None where there is no sample."""
+    start = rec.bg_on_ns if rec.bg_on_ns is not None else rec.t0_ns
+    out: dict[str, float | None] = {}
+    for flow in ("default", "priority"):
+        values = [
+            float(c["bearers"][name]["queue_delay_ms"])
+            for c in rec.cell
+            if c["now_ns"] >= start and (name := f"{uav}-{flow}") in c["bearers"]
+        ]
+        out[flow] = sum(values) / len(values) if values else None
     return out
 
 

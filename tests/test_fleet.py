@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 
 from dynqos.common.config import ZenohConfig, load_config
+from dynqos.fleet_report import _queue_delays
+from dynqos.recording import Recording
 from dynqos.scenario import builtin_scenario, fleet_configs, with_cell, write_config
 from tests.procs import DYNQOS
 
@@ -23,7 +25,23 @@ DRONE_KEYS = {
     "setpoint_gap_max_ms",
     "risk_zone",
     "priority_time_s",
+    "cell_queue_ms",
 }
+
+
+def test_a_drones_queue_delay_is_its_own_bearers_mean_while_the_load_lasted() -> None:
+    def sample(t_s: float, default_ms: float, priority_ms: float) -> dict[str, object]:
+        bearers = {
+            "uav1-default": {"queue_delay_ms": default_ms},
+            "uav1-priority": {"queue_delay_ms": priority_ms},
+            "uav2-default": {"queue_delay_ms": 900.0},
+        }
+        return {"now_ns": round(t_s * 1e9), "bearers": bearers}
+
+    rec = Recording(t0_ns=0, bg_on_ns=10_000_000_000)
+    rec.cell = [sample(5, 500.0, 500.0), sample(10, 40.0, 1.0), sample(11, 60.0, 3.0)]  # before the load: out
+    assert _queue_delays(rec, "uav1") == {"default": 50.0, "priority": 2.0}
+    assert _queue_delays(rec, "uav3") == {"default": None, "priority": None}
 
 
 @pytest.mark.parametrize("name", ["fleet-noqos", "fleet-allprio", "fleet-arbiter"])
@@ -96,11 +114,13 @@ def test_a_short_arbitrated_fleet_flight_keeps_the_high_risk_drones_loop(tmp_pat
     for uav, drone in high.items():
         rtt = drone["rtt_ms"]
         # the arbiter kept their loop: near their own baseline, and well below the denied drones'
-        assert rtt["loaded"]["mean"] <= 1.5 * rtt["baseline"]["mean"], (uav, rtt)
+        base, loaded = rtt["baseline"]["mean"], rtt["loaded"]["mean"]
+        why = (uav, base, loaded, drone["cell_queue_ms"], drone["camera_fps"])  # CPU stall or cell queue
+        assert loaded <= 1.5 * base, why
         # Below the denied drones' (0.8x in the stored runs, docs/fleet.md). Not a margin: when the two
         # cores are the bottleneck every drone's RTT is CPU-bound (a CI run on 2026-11-23 had baselines of
         # 29 ms, twice the usual, and the denied drones at 31 ms), and the cell's queues no longer decide.
-        assert rtt["loaded"]["mean"] < denied_rtt, (uav, rtt, denied_rtt)
+        assert loaded < denied_rtt, (*why, denied_rtt)
         assert drone["uav_delivered_mbps"] >= 0.95 * drone["uav_admitted_mbps"], uav
         assert drone["granted_time_s"] > 0.5 * summary["duration_s"], uav
     for uav, drone in low.items():
