@@ -73,8 +73,8 @@ def _drone(
 
 def _queue_delays(rec: Recording, uav: str) -> dict[str, float | None]:
     """The mean queue delay of each of the drone's bearers in the cell while the load lasted (the cell's
-    own figure, sampled by the flight loop): what the network did to the drone, whatever the CPU did to
-    its processes. None where there is no sample."""
+    own figure, sampled by the flight loop): the network's part of the drone's latency, though a sender
+    that stalls on a busy CPU and then bursts queues there too. None where there is no sample."""
     start = rec.bg_on_ns if rec.bg_on_ns is not None else rec.t0_ns
     out: dict[str, float | None] = {}
     for flow in ("default", "priority"):

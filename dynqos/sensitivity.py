@@ -23,7 +23,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from dynqos.aggregate import interval
+from dynqos.aggregate import aggregate
 from dynqos.common.errors import ConfigError
 from dynqos.figures import fmt, interval_text
 from dynqos.runner import run_scenario
@@ -116,12 +116,9 @@ def _repeated_point(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """One point over its runs: each figure's mean at the point's top (what the table and plot read),
     its mean and 95% interval in `ci95`, and every run."""
     point: dict[str, Any] = {k: runs[0][k] for k in ("priority_weight", "bg_mbps", "share_of_full_cell")}
-    point["ci95"] = {}
-    for name in FIGURES:
-        values = [float(run[name]) for run in runs if run[name] is not None]
-        agg = interval(values) if values else None
-        point[name] = None if agg is None else agg["mean"]
-        point["ci95"][name] = agg
+    figures = aggregate(runs)  # runs without a figure (None) are left out of its interval
+    point["ci95"] = {name: figures.get(name) for name in FIGURES}
+    point |= {name: agg["mean"] if agg else None for name, agg in point["ci95"].items()}
     point["seeds"] = [run["seed"] for run in runs]
     point["runs"] = runs
     point["ok"] = all(run["ok"] for run in runs)

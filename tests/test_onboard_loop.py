@@ -354,29 +354,38 @@ def test_the_status_counts_every_uplink_byte_the_drone_hands_to_zenoh(tmp_path: 
     config = loop_config(tmp_path, zcfg, extra="")
     config.write_text(config.read_text().replace("camera_fps = 5\n", 'camera = "none"\n'))
     got: list[tuple[int, object]] = []  # (encoded size, message) in arrival order
+    statuses = 0
     lock = threading.Lock()
     enough = threading.Event()
 
     def sized(data: bytes) -> Message:
+        nonlocal statuses
         message = decode(data)
         with lock:
             got.append((len(data), message))
-            if sum(isinstance(m, SupervisorStatus) for _, m in got) >= 16:
+            statuses += isinstance(message, SupervisorStatus)
+            if statuses >= 16:
                 enough.set()
         return message
 
-    router = DynqosProcess(["edge", "router"], config)
-    vehicle = DynqosProcess(["sim", "vehicle", "--duration", "120"], config)
-    bus = open_bus(zcfg, Role.EDGE)
-    bus.subscribe("dynqos/uav1/up/**", BoundedQueue(100_000), decoder=sized)
-    onboard = DynqosProcess(["onboard", "--set", f"onboard.qos={qos}"], config)  # no takeoff: states only
+    procs: list[DynqosProcess] = []
+    bus = None
+    log = ""
     try:
+        procs.append(DynqosProcess(["edge", "router"], config))
+        procs.append(DynqosProcess(["sim", "vehicle", "--duration", "120"], config))
+        bus = open_bus(zcfg, Role.EDGE)
+        bus.subscribe("dynqos/uav1/up/**", BoundedQueue(100_000), decoder=sized)
+        onboard = DynqosProcess(["onboard", "--set", f"onboard.qos={qos}"], config)  # no takeoff: states only
+        procs.append(onboard)
         assert enough.wait(60), "the drone sent fewer than 16 statuses in 60 s"
     finally:
-        log = onboard.stop()
-        bus.close()
-        vehicle.stop()
-        router.stop()
+        if len(procs) == 3:
+            log = procs.pop().stop()
+        if bus is not None:
+            bus.close()
+        for proc in reversed(procs):
+            proc.stop()
     with lock:
         rows = list(got)
     marks = [k for k, (_, m) in enumerate(rows) if isinstance(m, SupervisorStatus)]
