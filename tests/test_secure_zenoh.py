@@ -17,6 +17,8 @@ import dataclasses
 import datetime as dt
 import queue
 import subprocess
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -281,17 +283,36 @@ def test_a_certificate_signed_by_the_ca_but_not_in_the_acl_gets_nothing_through(
     ]
 
 
+DECLARATION_WAIT_S = 5.0
+
+
 def _query_and_liveliness(pki: Pki) -> tuple[list[str], list[str]]:
     """uav1 queries a queryable the MPC declared, and the MPC asks which liveliness tokens uav1 holds:
     what each got back."""
     mpc, uav1 = pki.open("edge-mpc"), pki.open("uav1")
     key = "dynqos/uav1/up/priority/state"
     queryable = mpc.declare_queryable(key, lambda q: q.reply(key, b"x"))
+    # A query must not race the declaration it should meet. The querier's own matching listener never fires
+    # through a router in zenoh 1.10 (eclipse-zenoh/zenoh#2204), so the barrier is a publisher's: the MPC
+    # declares a state subscriber after its queryable, and once uav1 sees that subscriber (the ACL allows
+    # it in both routers) the queryable's declaration, sent earlier on the same link, has passed the router
+    # too. The liveliness side waits for the token to reach the MPC; where the router denies it, the
+    # bounded wait runs out.
+    state_reader_seen, token_seen = threading.Event(), threading.Event()
+    publisher = uav1.declare_publisher(key)
+    listener = publisher.declare_matching_listener(
+        lambda status: state_reader_seen.set() if status.matching else None
+    )
+    state_reader = mpc.declare_subscriber(key, lambda sample: None)
+    watcher = mpc.liveliness().declare_subscriber("dynqos/**", lambda sample: token_seen.set())
     token = uav1.liveliness().declare_token("dynqos/uav1/up/alive")
+    deadline = time.monotonic() + DECLARATION_WAIT_S
+    for seen in (state_reader_seen, token_seen):
+        seen.wait(max(0.0, deadline - time.monotonic()))
     replies = [str(r.ok.key_expr) for r in uav1.get("dynqos/**", timeout=2.0) if r.ok is not None]
     alive = [str(r.ok.key_expr) for r in mpc.liveliness().get("dynqos/**", timeout=2.0) if r.ok is not None]
-    token.undeclare()
-    queryable.undeclare()
+    for declared in (token, watcher, state_reader, listener, publisher, queryable):
+        declared.undeclare()
     return replies, alive
 
 
