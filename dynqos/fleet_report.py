@@ -116,6 +116,7 @@ def summarise_fleet(
         "setpoint_gaps_within_100ms": bool(gaps) and max(gaps) <= GAP_LIMIT_MS,
     }
     qod = rec.qod or {}
+    memory = rec.memory_kb.items()  # name -> (t_s, VmRSS kB, RssAnon kB)
     arbiter = None
     if scenario.qos_policy == "arbiter":
         arbiter = {"grants": counts["grant"], "denials": counts["deny"], "revocations": counts["revoke"],
@@ -145,7 +146,8 @@ def summarise_fleet(
         | {"open_at_end": len(qod.get("sessions", []))},
         "checks": checks,
         "cpu_s": rec.cpu_s,
-        "memory_mb": {name: max(v for _, v in samples) / 1024 for name, samples in rec.memory_kb.items()},
+        "memory_mb": {name: max(s[1] for s in samples) / 1024 for name, samples in memory},
+        "anon_memory_mb": {name: max(s[2] for s in samples) / 1024 for name, samples in memory},
         "ok": ok,
         "failure": failure,
     }

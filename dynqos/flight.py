@@ -24,7 +24,7 @@ from dynqos.common.messages import Reference, State, SupervisorStatus
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Received
 from dynqos.faults import FaultInjector, FaultWindow
-from dynqos.processes import Processes, rss_kb
+from dynqos.processes import Processes, resident_memory
 from dynqos.recording import Recording
 from dynqos.scenario import UAV, Scenario, world_path
 
@@ -171,8 +171,8 @@ def fly(
 
 def _sample_memory(procs: Processes, rec: Recording, elapsed: float) -> None:
     for name, proc in procs.procs.items():
-        if name not in procs.down and (rss := rss_kb(proc.pid)) is not None:
-            rec.memory_kb.setdefault(name, []).append((elapsed, rss))
+        if name not in procs.down and (memory := resident_memory(proc.pid)) is not None:
+            rec.memory_kb.setdefault(name, []).append((elapsed, memory.rss_kb, memory.anon_kb))
 
 
 def _record_tick(

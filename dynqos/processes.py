@@ -13,6 +13,7 @@ import socket
 import subprocess
 import sys
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -58,14 +59,28 @@ def free_udp_block(count: int) -> int:
     raise DynqosError(f"no {count} consecutive free UDP ports on 127.0.0.1")
 
 
-def rss_kb(pid: int) -> int | None:
+@dataclass(frozen=True)
+class ResidentMemory:
+    """A process's resident memory in kB. `rss_kb` (VmRSS) also counts the pages of the shared libraries
+    it has mapped, which vary with how fresh the installation is; `anon_kb` (RssAnon) is the memory the
+    process itself allocated, where a leak would show."""
+
+    rss_kb: int
+    anon_kb: int
+
+
+def resident_memory(pid: int) -> ResidentMemory | None:
+    fields: dict[str, int] = {}
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
-    except (OSError, ValueError):
+            name, _, value = line.partition(":")
+            if name in ("VmRSS", "RssAnon"):
+                fields[name] = int(value.split()[0])
+    except (OSError, ValueError, IndexError):
         return None
-    return None
+    if "VmRSS" not in fields:
+        return None
+    return ResidentMemory(rss_kb=fields["VmRSS"], anon_kb=fields.get("RssAnon", fields["VmRSS"]))
 
 
 def child_environment(environ: Mapping[str, str]) -> dict[str, str]:

@@ -21,6 +21,7 @@ class Recording:
     bg_on_ns: int | None = None
     offload_ns: int | None = None
     faults: list[FaultWindow] = field(default_factory=list)
-    memory_kb: dict[str, list[tuple[float, int]]] = field(default_factory=dict)  # name -> (t_s, RSS kB)
+    # name -> (t_s, VmRSS kB, RssAnon kB): resident memory with and without the mapped libraries' pages
+    memory_kb: dict[str, list[tuple[float, int, int]]] = field(default_factory=dict)
     qod: dict[str, Any] | None = None  # the emulated operator's QoD counters and sessions left at the end
     cpu_s: dict[str, float] = field(default_factory=dict)  # process name -> CPU seconds, read at the end

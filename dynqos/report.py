@@ -212,19 +212,23 @@ def summarise(
             outcome(w, log_times(onboard_log), statuses, nxt.start_ns if nxt else None)
             for w, nxt in itertools.zip_longest(rec.faults, rec.faults[1:])
         ],
-        "memory_mb": {
-            name: {
-                "first": samples[0][1] / 1024,
-                "after_1min": next((kb / 1024 for t, kb in samples if t >= 60), None),
-                "max": max(v for _, v in samples) / 1024,
-                "last": samples[-1][1] / 1024,
-            }
-            for name, samples in rec.memory_kb.items()
-        },
+        "memory_mb": {name: memory_figures(samples) for name, samples in rec.memory_kb.items()},
         "cpu_s": rec.cpu_s,  # each process's CPU seconds over its whole life (start-up included)
         "ok": ok,
         "failure": failure,
     }
+
+
+def memory_figures(samples: list[tuple[float, int, int]]) -> dict[str, float | None]:
+    """One process's resident memory over the flight: VmRSS (`first` ... `last`) and, beside it, the
+    anonymous part (`anon_*`), which a leak would move and a freshly installed library's pages do not."""
+    figures: dict[str, float | None] = {}
+    for prefix, column in (("", 1), ("anon_", 2)):
+        figures[f"{prefix}first"] = samples[0][column] / 1024
+        figures[f"{prefix}after_1min"] = next((s[column] / 1024 for s in samples if s[0] >= 60), None)
+        figures[f"{prefix}max"] = max(s[column] for s in samples) / 1024
+        figures[f"{prefix}last"] = samples[-1][column] / 1024
+    return figures
 
 
 def _first_qos_switch(statuses: list[SupervisorStatus], bg_ns: int | None) -> tuple[float | None, str | None]:
