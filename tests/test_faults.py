@@ -188,7 +188,8 @@ def test_soak_ten_minutes_with_the_load_toggling(tmp_path: Path) -> None:
         # Bounded memory: after a minute of warm-up no process grows by more than 20 MB (+10%), neither in
         # what it has resident nor in what it allocated itself (where a leak would show).
         for prefix in ("", "anon_"):
-            settled = mb[f"{prefix}after_1min"] or mb[f"{prefix}first"]
+            after_1min = mb[f"{prefix}after_1min"]
+            settled = after_1min if after_1min is not None else mb[f"{prefix}first"]
             assert mb[f"{prefix}max"] - settled < 20 + 0.1 * settled, (name, prefix, mb)
     onsets = len(soak.faults)
     to_priority = [t for t in result["transitions"] if t["to"] in ("q2", "q3", "q4", "q5", "q6")]

@@ -18,7 +18,6 @@ import datetime as dt
 import queue
 import subprocess
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -298,20 +297,15 @@ def _query_and_liveliness(pki: Pki) -> tuple[list[str], list[str]]:
     # it in both routers) the queryable's declaration, sent earlier on the same link, has passed the router
     # too. The liveliness side waits for the token to reach the MPC; where the router denies it, the
     # bounded wait runs out.
-    state_reader_seen, token_seen = threading.Event(), threading.Event()
-    publisher = uav1.declare_publisher(key)
-    listener = publisher.declare_matching_listener(
-        lambda status: state_reader_seen.set() if status.matching else None
-    )
     state_reader = mpc.declare_subscriber(key, lambda sample: None)
+    publisher = _wait_matched(uav1, key)
+    token_seen = threading.Event()
     watcher = mpc.liveliness().declare_subscriber("dynqos/**", lambda sample: token_seen.set())
     token = uav1.liveliness().declare_token("dynqos/uav1/up/alive")
-    deadline = time.monotonic() + DECLARATION_WAIT_S
-    for seen in (state_reader_seen, token_seen):
-        seen.wait(max(0.0, deadline - time.monotonic()))
+    token_seen.wait(DECLARATION_WAIT_S)
     replies = [str(r.ok.key_expr) for r in uav1.get("dynqos/**", timeout=2.0) if r.ok is not None]
     alive = [str(r.ok.key_expr) for r in mpc.liveliness().get("dynqos/**", timeout=2.0) if r.ok is not None]
-    for declared in (token, watcher, state_reader, listener, publisher, queryable):
+    for declared in (token, watcher, publisher, state_reader, queryable):
         declared.undeclare()
     return replies, alive
 
