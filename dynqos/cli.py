@@ -125,7 +125,7 @@ def _cmd_sim_cell(args: argparse.Namespace, config: Config) -> int:
 
     if args.duration is not None and args.duration <= 0:
         raise DynqosError(f"--duration must be > 0, got {args.duration}")
-    from dynqos.edge.qod_client import read_secret
+    from dynqos.common.camara import read_secret
 
     bearers = config.cell.bearer_list(config.zenoh, config.drone.id)
     out_dir = Path(args.out) if args.out else None

@@ -17,14 +17,12 @@ import random
 import time
 from dataclasses import dataclass
 from datetime import datetime
-from pathlib import Path
 from typing import Any
 
 import aiohttp
 
+from dynqos.common.camara import QOS_STATUS, ports_named, read_secret
 from dynqos.common.config import CamaraConfig
-from dynqos.common.errors import ConfigError
-from dynqos.sim.qod_schema import ports_named
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +61,7 @@ class SessionInfo:
         if not isinstance(body, dict) or not isinstance(body.get("sessionId"), str):
             raise QodError(502, "BAD_RESPONSE", f"not a SessionInfo: {str(body)[:200]}")
         status = body.get("qosStatus")
-        if status not in ("REQUESTED", "AVAILABLE", "UNAVAILABLE"):
+        if status not in QOS_STATUS:
             raise QodError(502, "BAD_RESPONSE", f"unknown qosStatus {status!r}")
         expires = None
         if isinstance(body.get("expiresAt"), str):
@@ -78,18 +76,6 @@ class SessionInfo:
 
     def server_ports(self) -> list[int]:
         return sorted(ports_named(self.raw.get("applicationServerPorts")))
-
-
-def read_secret(path: str) -> str:
-    if not path:
-        return ""
-    try:
-        secret = Path(path).read_text(encoding="utf-8").strip()
-    except OSError as exc:
-        raise ConfigError("qos.camara.client_secret_file", f"cannot read {path} ({exc.strerror})") from None
-    if not secret:
-        raise ConfigError("qos.camara.client_secret_file", f"{path} is empty")
-    return secret
 
 
 class QodClient:

@@ -34,6 +34,7 @@ from aiohttp import web
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus, Priority, Publisher, Received
+from dynqos.common.camara import read_secret
 from dynqos.common.clock import NS_PER_S, Clock, MonotonicClock, to_ns
 from dynqos.common.config import Config
 from dynqos.common.errors import ConfigError
@@ -42,7 +43,7 @@ from dynqos.common.messages import QosDecision, QosGrant, QosRequest
 from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
 from dynqos.edge.arbiter import Action, Arbiter, Decision, Need
-from dynqos.edge.qod_client import QodClient, QodError, SessionInfo, read_secret
+from dynqos.edge.qod_client import QodClient, QodError, SessionInfo
 from dynqos.edge.qos_grants import DroneGrant, Op, QodStatus, Session
 from dynqos.edge.service import Service
 

@@ -19,15 +19,9 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Any
 
+from dynqos.common.camara import EVENT_TYPE, ports_named
 from dynqos.common.config import CellConfig
-from dynqos.sim.qod_schema import (
-    CREATE_SESSION,
-    EVENT_TYPE,
-    EXTEND_SESSION,
-    RETRIEVE_SESSIONS,
-    ports_named,
-    problem,
-)
+from dynqos.sim.qod_schema import CREATE_SESSION, EXTEND_SESSION, RETRIEVE_SESSIONS, problem
 
 ENDED_KEPT_S = (
     360.0  # an ended session not deleted is dropped this long after it ended (the spec's "at earliest")

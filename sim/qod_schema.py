@@ -12,9 +12,7 @@ from typing import Any
 
 import jsonschema
 
-QOS_STATUS = ["REQUESTED", "AVAILABLE", "UNAVAILABLE"]
-STATUS_INFO = ["DURATION_EXPIRED", "NETWORK_TERMINATED", "DELETE_REQUESTED"]
-EVENT_TYPE = "org.camaraproject.quality-on-demand.v1.qos-status-changed"
+from dynqos.common.camara import EVENT_TYPE, QOS_STATUS, STATUS_INFO
 
 _IPV4 = r"^(25[0-5]|2[0-4][0-9]|1?[0-9]?[0-9])(\.(25[0-5]|2[0-4][0-9]|1?[0-9]?[0-9])){3}$"
 _IPV4_OR_CIDR = _IPV4[:-1] + r"(/([0-9]|[12][0-9]|3[0-2]))?$"
@@ -105,8 +103,8 @@ SESSION_INFO: dict[str, Any] = {
         "duration": {"type": "integer", "minimum": 1},
         "startedAt": {"type": "string", "pattern": _DATE_TIME},
         "expiresAt": {"type": "string", "pattern": _DATE_TIME},
-        "qosStatus": {"enum": QOS_STATUS},
-        "statusInfo": {"enum": STATUS_INFO},
+        "qosStatus": {"enum": list(QOS_STATUS)},
+        "statusInfo": {"enum": list(STATUS_INFO)},
     },
     # startedAt and expiresAt are not returned while REQUESTED
     "if": {"properties": {"qosStatus": {"const": "REQUESTED"}}},
@@ -140,20 +138,11 @@ QOS_STATUS_CHANGED: dict[str, Any] = {
             "properties": {
                 "sessionId": {"type": "string", "pattern": _UUID},
                 "qosStatus": {"enum": ["AVAILABLE", "UNAVAILABLE"]},
-                "statusInfo": {"enum": STATUS_INFO},
+                "statusInfo": {"enum": list(STATUS_INFO)},
             },
         },
     },
 }
-
-
-def ports_named(spec: dict[str, Any] | None) -> set[int]:
-    """The ports a PortsSpec names (its `ports` and every port of its `ranges`); empty when absent."""
-    spec = spec or {}
-    out = set(spec.get("ports") or [])
-    for r in spec.get("ranges") or []:
-        out.update(range(int(r["from"]), int(r["to"]) + 1))
-    return out
 
 
 def problem(schema: dict[str, Any], value: Any) -> str | None:

@@ -21,10 +21,11 @@ class DynqosProcess:
         config: Path,
         ready_timeout_s: float = 30.0,
         env: dict[str, str] | None = None,
+        executable: str | Path = DYNQOS,
     ) -> None:
         self.args = args
         self.proc = subprocess.Popen(
-            [DYNQOS, *args, "--config", str(config)],
+            [str(executable), *args, "--config", str(config)],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

@@ -1,18 +1,32 @@
-"""Each role installs only what it runs: the drone's `dynqos[onboard]` has no solver and no plotting.
+"""Each role installs only what it runs, and what it installs starts every process of that role.
 
-Slow: it builds the wheel and installs it with its dependencies into a fresh virtual environment (from
-the package index, or pip's cache after the project's own install).
+`dynqos[onboard]` has no solver and no plotting and runs the onboard daemon; `dynqos[edge]` runs the
+router, the MPC, the planner, the detector and the QoS agent with the `camara` backend (the client of
+the operator's API, without the emulated operator's schema validator). Each process is started from the
+fresh environment until /healthz serves its first periodic health line.
+
+Slow: it builds the wheel once and installs it with its dependencies into fresh virtual environments
+(from the package index, or pip's cache after the project's own install).
 """
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from tests.conftest import free_tcp_port
+from tests.procs import DYNQOS, DynqosProcess
+
 ROOT = Path(__file__).resolve().parents[1]
+HEALTH_WAIT_S = 45.0  # the first periodic line comes after health_interval_s; the rest is start-up
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
@@ -24,33 +38,118 @@ def _run(*cmd: str | Path, timeout: float = 600) -> subprocess.CompletedProcess[
     )
 
 
-def test_the_onboard_extra_runs_the_drone_without_matplotlib_scipy_or_osqp(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("wheel")
     built = _run(
-        sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", tmp_path, ROOT
+        sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", out, ROOT
     )
     assert built.returncode == 0, built.stderr
-    (wheel,) = tmp_path.glob("dynqos-*.whl")
-    venv = tmp_path / "venv"
+    (found,) = out.glob("dynqos-*.whl")
+    return found
+
+
+def _venv_with(wheel: Path, extra: str, folder: Path) -> Path:
+    """A fresh virtual environment with `dynqos[extra]`; its bin folder."""
+    venv = folder / f"venv-{extra}"
     assert _run(sys.executable, "-m", "venv", venv).returncode == 0
     python = venv / "bin" / "python"
-    installed = _run(python, "-m", "pip", "install", "-q", "--disable-pip-version-check", f"{wheel}[onboard]")
+    installed = _run(python, "-m", "pip", "install", "-q", "--disable-pip-version-check", f"{wheel}[{extra}]")
     assert installed.returncode == 0, installed.stderr[-3000:]
+    return venv / "bin"
 
-    solvers = ("matplotlib", "scipy", "osqp", "aiohttp")
-    missing = _run(
-        python, "-c", f"import importlib.util as u; print([m for m in {solvers} if u.find_spec(m)])"
+
+def _absent(python: Path, modules: tuple[str, ...]) -> str:
+    found = _run(python, "-c", f"import importlib.util as u; print([m for m in {modules} if u.find_spec(m)])")
+    return found.stdout.strip() + found.stderr
+
+
+def _healthy_line(port: int, deadline: float) -> str:
+    """/healthz's body once it serves a periodic health line (not the start-up "ready"), or the last
+    answer when the deadline passes."""
+    last = "no answer"
+    while time.monotonic() < deadline:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=2) as reply:
+                last = reply.read().decode()
+            if not last.rstrip().endswith(": ready"):
+                return last
+        except (urllib.error.URLError, OSError) as exc:
+            last = str(exc)
+        time.sleep(0.2)  # polling an HTTP endpoint for a state: there is no event to wait on
+    raise AssertionError(f"no health line on :{port} within {HEALTH_WAIT_S} s: {last}")
+
+
+@contextlib.contextmanager
+def _started(roles: list[list[str]], config: Path, bin_dir: Path | None = None) -> Iterator[dict[str, int]]:
+    """Each role of `roles` from `bin_dir`'s dynqos (the test's own without it), with a metrics port;
+    every process stopped by its pid after."""
+    procs: list[DynqosProcess] = []
+    ports: dict[str, int] = {}
+    executable = bin_dir / "dynqos" if bin_dir else DYNQOS
+    try:
+        for args in roles:
+            port = free_tcp_port()
+            procs.append(DynqosProcess([*args, "--metrics-port", str(port)], config, executable=executable))
+            ports[" ".join(args)] = port
+        yield ports
+    finally:
+        errors = [proc.stop() for proc in reversed(procs)]
+        assert all("Traceback" not in err for err in errors), "\n".join(errors)[-3000:]
+
+
+def _config(path: Path, extra: str = "") -> Path:
+    path.write_text(
+        f"[zenoh]\ndefault_port = {free_tcp_port()}\npriority_port = {free_tcp_port()}\n"
+        "[mpc]\nhealth_interval_s = 0.5\n[planner]\nhealth_interval_s = 0.5\n"
+        "[detector]\nhealth_interval_s = 0.5\n[onboard]\nhealth_interval_s = 0.5\n" + extra
     )
-    assert missing.stdout.strip() == "[]", missing.stdout + missing.stderr
-    dynqos = venv / "bin" / "dynqos"
+    return path
+
+
+def test_the_onboard_extra_runs_the_drone_without_matplotlib_scipy_or_osqp(
+    wheel: Path, tmp_path: Path
+) -> None:
+    bin_dir = _venv_with(wheel, "onboard", tmp_path)
+    python = bin_dir / "python"
+    assert _absent(python, ("matplotlib", "scipy", "osqp", "aiohttp", "jsonschema")) == "[]"
+    dynqos = bin_dir / "dynqos"
     helped = _run(dynqos, "onboard", "--help", timeout=60)
     assert helped.returncode == 0, helped.stderr
     assert "--takeoff" in helped.stdout
-    # The drone's modules import in full (the daemon, the MAVLink link, the camera, the supervisor).
-    imported = _run(python, "-c", "import dynqos.onboard.daemon, dynqos.sim.vehicle; print('ok')", timeout=60)
-    assert imported.stdout.strip() == "ok", imported.stderr
     # An edge service on a drone's install says which extra it needs, in one line, before any network.
     edge = _run(dynqos, "edge", "mpc", "--set", "zenoh.connect_timeout_s=0.5", timeout=60)
     assert edge.returncode == 2
     assert edge.stderr.strip() == (
         "dynqos: error: 'edge' needs osqp, which comes with the edge extra: pip install 'dynqos[edge]'"
     )
+    # The daemon from the drone's install, against a router and a simulated vehicle from the test's own.
+    config = _config(tmp_path / "onboard.toml")
+    with _started([["edge", "router"]], config) as edge_ports:
+        vehicle = DynqosProcess(["sim", "vehicle"], config)
+        try:
+            with _started([["onboard"]], config, bin_dir) as ports:
+                line = _healthy_line(ports["onboard"], time.monotonic() + HEALTH_WAIT_S)
+                assert "onboard" in line, line
+            assert _healthy_line(edge_ports["edge router"], time.monotonic() + HEALTH_WAIT_S)
+        finally:
+            vehicle.stop()
+
+
+def test_the_edge_extra_starts_every_edge_service_the_qos_agent_with_camara_included(
+    wheel: Path, tmp_path: Path
+) -> None:
+    bin_dir = _venv_with(wheel, "edge", tmp_path)
+    assert _absent(bin_dir / "python", ("matplotlib", "jsonschema")) == "[]"
+    operator = free_tcp_port()  # nothing listens: the agent needs the API only once a drone asks
+    config = _config(
+        tmp_path / "edge.toml",
+        f'[qos]\nbackend = "camara"\nhealth_interval_s = 0.5\n'
+        f'[qos.camara]\napi_root = "http://127.0.0.1:{operator}/quality-on-demand/v1"\n',
+    )
+    roles = [["edge", name] for name in ("router", "mpc", "planner", "detector", "qos")]
+    with _started(roles, config, bin_dir) as ports:
+        deadline = time.monotonic() + HEALTH_WAIT_S
+        lines = {role: _healthy_line(port, deadline) for role, port in ports.items()}
+    assert lines["edge qos"].startswith("qos: drones=0 sessions=0"), lines
+    assert set(lines) == {" ".join(r) for r in roles}
