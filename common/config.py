@@ -632,6 +632,8 @@ class CamaraConfig:
     qos_profile: str = "QOS_E"
     duration_s: int = 600  # requested per session; extended while priority is still wanted
     extend_before_s: float = 30.0  # extend when the session has less than this left
+    # A session the operator capped (an extend did not move its end) is replaced this long before it ends
+    renew_before_s: float = 2.0
     application_server: str = ""  # the edge address the network sees ("" = [zenoh] edge_host)
     sink: str = ""  # notifications URL given to the operator ("" = polling only)
     sink_listen: str = ""  # host:port the agent serves that URL on ("" = no listener)
@@ -648,6 +650,7 @@ class CamaraConfig:
                  is not None, "qos_profile", "must be 3..256 of A-Z a-z 0-9 _ . -")  # fmt: skip
         _require(1 <= self.duration_s <= 10**7, "duration_s", "must be in 1..10000000 s")
         _require(0 <= self.extend_before_s < self.duration_s, "extend_before_s", "must be in 0..duration_s")
+        _require(0 <= self.renew_before_s < self.duration_s, "renew_before_s", "must be in 0..duration_s")
         _require(0.01 <= self.poll_interval_s <= 60, "poll_interval_s", "must be in 0.01..60 s")
         _require(0.05 <= self.timeout_s <= 60, "timeout_s", "must be in 0.05..60 s")
         _require(0.1 <= self.retry_after_denied_s <= 3600, "retry_after_denied_s", "must be in 0.1..3600 s")

@@ -298,6 +298,14 @@ class QosAgent:
         assert client is not None
         device = self.camara.devices.get(grant.uav)
         try:
+            if op is Op.RENEW:  # one session per device (409 otherwise): the capped one goes first
+                assert grant.session is not None
+                old = grant.session.session_id
+                with contextlib.suppress(QodError):  # gone already (404) or failing: the create says
+                    await client.delete(old)
+                grant.deleted(self.clock.now_ns())
+                log.info("qos agent: %s session %s deleted at its maximum duration; renewing", grant.uav, old)
+                op = Op.CREATE
             if op is Op.CREATE:
                 if device is None:
                     self._once(grant.uav, 0, "NO_DEVICE", f"no [qos.camara.devices] entry for {grant.uav}")
@@ -316,7 +324,14 @@ class QosAgent:
             elif op is Op.EXTEND:
                 assert grant.session is not None
                 info = await client.extend(grant.session.session_id, self.camara.duration_s)
-                log.info("qos agent: %s session %s extended", grant.uav, info.session_id)
+                if grant.extended(self._session(info), self.clock.now_ns()):
+                    log.info(
+                        "qos agent: %s session %s is at the operator's maximum duration: replaced "
+                        "%.1f s before it ends", grant.uav, info.session_id, self.camara.renew_before_s,
+                    )  # fmt: skip
+                else:
+                    log.info("qos agent: %s session %s extended", grant.uav, info.session_id)
+                return
             else:
                 assert grant.session is not None
                 info = await client.get(grant.session.session_id)

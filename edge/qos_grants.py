@@ -8,6 +8,10 @@ back; `grant` is what the drone is told. Rules a user relies on live here, each 
 - a release waits until the drone has been out of priority for the hold-down time, so a flapping link
   does not churn sessions;
 - a session is extended before it expires while priority is still wanted;
+- an operator may cap a session at its profile's maximum duration (an extend then answers 200 with the
+  same `expiresAt`): a session whose expiry an extend did not move is not extended again, but replaced
+  shortly before it ends (delete, then create: CAMARA answers 409 to a second session for one device);
+  a session that ends by DURATION_EXPIRED is asked for again at once, not after a back-off;
 - a session the network ended (UNAVAILABLE) is deleted at once (the API wants its resources released
   before another is created) and asked for again after a back-off while still wanted;
 - a refusal (400/403/404/422) or an API that keeps failing (429, 5xx, timeouts) is a grant of
@@ -27,12 +31,16 @@ from dynqos.common.modes import Grant
 
 MAX_BACKOFF_FACTOR = 8
 RETRY_DELETE_NS = NS_PER_S  # a failed delete (or extend) is tried again after this
+# An extend that moved the session's end by less than this did not extend it (the operator capped it).
+# expiresAt comes on the operator's wall clock and is read against ours: a second absorbs the skew.
+CAPPED_TOLERANCE_NS = NS_PER_S
 
 
 class Op(enum.Enum):
     CREATE = "create"
     POLL = "poll"
     EXTEND = "extend"
+    RENEW = "renew"  # replace a capped session: delete it, create its successor
     DELETE = "delete"
 
 
@@ -65,6 +73,8 @@ class DroneGrant:
         self._poll_ns = to_ns(config.camara.poll_interval_s)
         self._watch_ns = max(self._poll_ns, NS_PER_S)
         self._extend_ns = to_ns(config.camara.extend_before_s)
+        self._renew_ns = to_ns(config.camara.renew_before_s)
+        self.capped = ""  # the session whose end an extend could not move: replaced, not extended
         self._retry_ns = to_ns(config.camara.retry_after_denied_s)
         self.wanted = False
         self.heard_ns = now_ns
@@ -139,8 +149,12 @@ class DroneGrant:
             return Op.DELETE if now_ns >= self._next_delete_ns else None
         if now_ns >= self._next_read_ns or (s.expires_ns is not None and now_ns >= s.expires_ns):
             return Op.POLL
-        near_end = s.expires_ns is not None and s.expires_ns - now_ns <= self._extend_ns
-        if wants and s.status is QodStatus.AVAILABLE and near_end and now_ns >= self._next_extend_ns:
+        if not wants or s.status is not QodStatus.AVAILABLE or s.expires_ns is None:
+            return None
+        left = s.expires_ns - now_ns
+        if s.session_id == self.capped:
+            return Op.RENEW if left <= self._renew_ns and now_ns >= self._next_delete_ns else None
+        if left <= self._extend_ns and now_ns >= self._next_extend_ns:
             return Op.EXTEND
         return None
 
@@ -159,7 +173,8 @@ class DroneGrant:
         else:
             candidates += [self._next_read_ns, self._next_delete_ns, self._next_extend_ns]
             if self.session.expires_ns is not None:
-                candidates += [self.session.expires_ns - self._extend_ns, self.session.expires_ns]
+                lead = self._renew_ns if self.session.session_id == self.capped else self._extend_ns
+                candidates += [self.session.expires_ns - lead, self.session.expires_ns]
         future = [c for c in candidates if c > now_ns]
         return min(future) if future else now_ns + self._watch_ns
 
@@ -187,11 +202,29 @@ class DroneGrant:
         self._next_read_ns = now_ns + (self._watch_ns if settled else self._poll_ns)
         if session.status is QodStatus.AVAILABLE:
             self.refused, self.reason, self._failures = False, "", 0
+        elif session.status is QodStatus.UNAVAILABLE and session.status_info == "DURATION_EXPIRED":
+            self.reason = "the session reached its duration"  # deleted, then asked for again at once
         elif session.status is QodStatus.UNAVAILABLE:
             self.refused = True
             self.reason = f"the network ended the session ({session.status_info or 'no reason given'})"
             if before is None or before.status is not QodStatus.UNAVAILABLE:
                 self._back_off(now_ns)
+
+    def extended(self, session: Session, now_ns: int) -> bool:
+        """The answer to an extend; True when the operator capped the session (its end did not move), so
+        that it is replaced before it ends instead of extended again."""
+        before = self.session
+        capped = (
+            before is not None
+            and before.session_id == session.session_id
+            and before.expires_ns is not None
+            and session.expires_ns is not None
+            and session.expires_ns < before.expires_ns + CAPPED_TOLERANCE_NS
+        )
+        if capped:
+            self.capped = session.session_id
+        self.observed(session, now_ns)
+        return capped
 
     def read_now(self) -> None:
         """News of the session (a notification): read it at the next chance."""
@@ -200,6 +233,7 @@ class DroneGrant:
     def deleted(self, now_ns: int) -> None:
         """The session is gone (deleted by us, or 404: not there any more)."""
         self.session = None
+        self.capped = ""
         self._next_delete_ns = 0
         if not self.wants(now_ns):
             self.refused, self.reason = False, ""
@@ -217,6 +251,8 @@ class DroneGrant:
             self._next_delete_ns = now_ns + RETRY_DELETE_NS
         elif op is Op.EXTEND:
             self._next_extend_ns = now_ns + RETRY_DELETE_NS
+        elif op is Op.RENEW:  # the delete failed: the session stays, and ends on its own if it must
+            self._next_delete_ns = now_ns + RETRY_DELETE_NS
         else:
             self._next_read_ns = now_ns + self._watch_ns
 

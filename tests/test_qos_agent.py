@@ -319,3 +319,33 @@ def test_camara_a_create_in_flight_at_sigterm_is_waited_for_and_its_session_dele
         for proc in reversed(procs):
             proc.stop()
         operator.close()
+
+
+@pytest.mark.parametrize(
+    "rig", [("camara", "qod_max_duration_s = 6\n", "renew_before_s = 1\n")], indirect=True, ids=["capped"]
+)
+def test_camara_an_operator_that_caps_sessions_gets_renewals_not_an_extend_storm(
+    rig: Rig, drone: Drone
+) -> None:
+    """Sessions of 4 s, extended 2 s before their end, capped by the operator at 6 s: each session is
+    extended once as asked (4 -> 6 s), once more without effect (the cap: recognised), then replaced 1 s
+    before it ends. The drone keeps priority across the renewals."""
+    drone.until(True, Grant.AVAILABLE)
+    start = time.monotonic()
+    since, state, available_s = start, Grant.AVAILABLE, 0.0
+    while time.monotonic() - start < 15.0:
+        drone.ask(True)
+        item = drone.grants.get(0.2)
+        while item is not None:
+            assert isinstance(item.message, QosGrant)
+            now = time.monotonic()
+            available_s += (now - since) if state is Grant.AVAILABLE else 0.0
+            since, state = now, item.message.grant
+            item = drone.grants.get_nowait()
+    available_s += (time.monotonic() - since) if state is Grant.AVAILABLE else 0.0
+    counters = rig.counters()["qod"]
+    assert counters["created"] >= 3, counters  # 15 s of 5 s sessions
+    assert counters["extended"] <= 2 * counters["created"], counters
+    assert available_s >= 0.9 * (time.monotonic() - start), available_s
+    drone.until(False, Grant.NONE, also=lambda: rig.sessions() == [])
+    assert "replaced 1.0 s before it ends" in rig.procs["agent"].stop()

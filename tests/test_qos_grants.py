@@ -3,6 +3,7 @@ drone is told."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import pytest
@@ -188,3 +189,101 @@ def test_a_drone_in_its_hold_down_is_lingering_until_its_session_is_gone() -> No
     assert next_op(g, 6 * S) is Op.DELETE  # the hold-down (5 s) is over
     g.deleted(6 * S)
     assert not g.lingering(6 * S)
+
+
+class CappingOperator:
+    """A spec-legal operator in miniature: every session is capped at `max_s` from its start (the QoS
+    profile's maxDuration), an extend past it answers 200 with an unchanged end, a session past its end
+    is UNAVAILABLE (DURATION_EXPIRED), and a device holds one session at a time."""
+
+    def __init__(self, max_s: float) -> None:
+        self.max_ns = int(max_s * S)
+        self.sessions: dict[str, int] = {}  # id -> end
+        self.calls = {op: 0 for op in Op}
+        self.made = 0
+
+    def answer(self, op: Op, g: DroneGrant, now_ns: int) -> None:
+        self.calls[op] += 1
+        if op in (Op.DELETE, Op.RENEW):
+            assert g.session is not None
+            self.sessions.pop(g.session.session_id, None)
+            g.deleted(now_ns)
+            if op is Op.DELETE:
+                return
+            self.calls[Op.CREATE] += 1  # the shell goes on to create the successor
+        if op in (Op.CREATE, Op.RENEW):
+            assert not self.sessions, "a second session for one device: the operator answers 409"
+            self.made += 1
+            sid = f"s{self.made}"
+            self.sessions[sid] = now_ns + self.max_ns
+            g.observed(available(self.sessions[sid], sid), now_ns)
+            return
+        assert g.session is not None
+        end = self.sessions[g.session.session_id]
+        if op is Op.EXTEND:
+            g.extended(available(end, g.session.session_id), now_ns)  # capped: the end does not move
+        elif now_ns >= end:
+            g.observed(Session(g.session.session_id, QodStatus.UNAVAILABLE, "DURATION_EXPIRED", end), now_ns)
+        else:
+            g.observed(available(end, g.session.session_id), now_ns)
+
+
+@pytest.mark.parametrize("renew_before_s", [0.0, 2.0])
+def test_an_operator_that_caps_durations_gets_one_extend_per_session_not_a_storm(
+    renew_before_s: float,
+) -> None:
+    """60 s of wanting priority from an operator capping sessions at 20 s, each call taking 10 ms: before
+    this was recognised, every capped extend was due again at once (about 2000 calls in 20 s)."""
+    config = replace(CAMARA, camara=replace(CAMARA.camara, renew_before_s=renew_before_s))
+    g = DroneGrant("uav1", config, 0)
+    operator = CappingOperator(max_s=20)
+    round_trip_ns, tick_ns = S // 100, S // 100
+    now, available_ns = 0, 0
+    while now < 60 * S:
+        g.request(True, now // S, now)
+        op = g.next_op(now)
+        if op is not None:
+            operator.answer(op, g, now)
+            now += round_trip_ns
+            continue
+        if g.grant(now) is Grant.AVAILABLE:
+            available_ns += tick_ns
+        now += tick_ns
+    sessions = operator.made
+    assert sessions == math.ceil(60 / (20 - renew_before_s))  # each replaced renew_before_s before its end
+    assert operator.calls[Op.EXTEND] <= sessions, operator.calls
+    assert sum(operator.calls.values()) < 1000, operator.calls  # reads each second, a few calls per renewal
+    assert available_ns >= 0.95 * 60 * S, available_ns / S
+
+
+def test_an_extend_that_moves_the_end_is_not_a_cap_and_a_capped_session_is_renewed_before_it_ends() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.observed(available(60 * S), 0)
+    g.request(True, 2, 50 * S)
+    assert next_op(g, 50 * S) is Op.EXTEND
+    assert not g.extended(available(110 * S), 50 * S)  # moved: extended as asked
+    g.request(True, 3, 100 * S)
+    assert next_op(g, 100 * S) is Op.EXTEND
+    assert g.extended(available(int(110.5 * S)), 100 * S)  # moved by under a second: capped
+    g.request(True, 4, 105 * S)
+    assert next_op(g, 105 * S) is None  # no second extend of a capped session
+    assert g.next_deadline_ns(105 * S) <= 108 * S  # it wakes to renew (renew_before_s = 2)
+    g.request(True, 5, int(108.5 * S))
+    assert next_op(g, int(108.5 * S)) is Op.RENEW
+    g.failed(Op.RENEW, "delete: 503", int(108.5 * S))
+    assert next_op(g, int(108.6 * S)) is None  # a failed renewal waits before it is tried again
+    g.deleted(109 * S)
+    assert g.capped == ""
+    assert g.next_op(109 * S) is Op.CREATE  # the successor, at once
+
+
+def test_a_session_that_reached_its_duration_is_asked_for_again_without_a_back_off() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.observed(available(20 * S), 0)
+    g.request(True, 2, 20 * S)
+    g.observed(Session("s1", QodStatus.UNAVAILABLE, "DURATION_EXPIRED", 20 * S), 20 * S)
+    assert next_op(g, 20 * S) is Op.DELETE
+    g.deleted(20 * S)
+    assert next_op(g, 20 * S) is Op.CREATE
