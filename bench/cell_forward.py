@@ -1,7 +1,7 @@
 """Benchmark: the CPU the cell emulator costs to forward real traffic, beside a bare asyncio relay.
 
 Both run as their own process on 127.0.0.1 and forward the same paced load from a sender to a sink;
-CPU time is read from /proc/<pid>/stat over the measured span. Target (issue 7): under 50% of one
+CPU time is read from /proc/<pid>/stat over the measured span. Target: under 50% of one
 core at 100 Mbit/s.
 
 Run: dynqos bench cell_forward (suite settings), or with its own options:
@@ -21,7 +21,7 @@ from typing import Any
 
 from dynqos.bench.loadgen import Sink, send_paced
 from dynqos.bench.report import bench_parser, emit, judged, provenance
-from dynqos.processes import Processes
+from dynqos.experiment.processes import Processes
 
 BARE_RELAY = r"""
 import asyncio, sys

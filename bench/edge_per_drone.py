@@ -33,7 +33,7 @@ from dynqos.common.modes import ControlSource, SupervisorState
 from dynqos.common.modes import Flow as FlowMode
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Publisher, Received, Role, open_bus
-from dynqos.processes import Processes, cpu_s
+from dynqos.experiment.processes import Processes, cpu_s
 
 PERIOD_S = 0.05  # the State period: a tick; the camera sends in 3 ticks of 4 (15 fps), the status in 1 of 4
 EDGE = ("router", "mpc", "planner", "detector", "qos")
@@ -49,11 +49,12 @@ class Frames:
 
 def _frames(count: int) -> Frames:
     """RGB-D frames as fleet-arbiter's first drone sees them: its world, mission, camera size and parts."""
-    from dynqos.camera_sizing import flight_views
-    from dynqos.onboard.camera import SimCamera, encode_depth, encode_rgb
+    from dynqos.experiment.camera_sizing import flight_views
+    from dynqos.experiment.scenario import builtin_scenario, fleet_configs
+    from dynqos.onboard.camera import encode_depth, encode_rgb
     from dynqos.onboard.pacing import split
-    from dynqos.scenario import builtin_scenario, fleet_configs
-    from dynqos.sim.world import load_world
+    from dynqos.sim.vehicle.camera import SimCamera
+    from dynqos.sim.vehicle.world import load_world
 
     scenario = builtin_scenario("fleet-arbiter")
     _, drones = fleet_configs(scenario, zenoh=ZenohConfig(), fc_base=14540, gcs_port=14550)

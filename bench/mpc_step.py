@@ -27,9 +27,9 @@ import numpy as np
 from dynqos.bench.report import bench_parser, emit, judged, provenance
 from dynqos.common.config import ControlConfig, MpcConfig
 from dynqos.common.messages import Reference, State
-from dynqos.edge.missions import Mission
-from dynqos.edge.mpc import DroneController
-from dynqos.edge.mpc_problem import MpcProblem
+from dynqos.edge.mpc.controller import DroneController
+from dynqos.edge.mpc.problem import MpcProblem
+from dynqos.edge.planner.missions import Mission
 
 DT_NS = 50_000_000
 MISSION = Mission(kind="circle", lead_in_s=0.0)

@@ -33,7 +33,7 @@ from dynqos.bench.rig import router_rig
 from dynqos.common import keys
 from dynqos.common.keys import Stream
 from dynqos.common.transport import Role, open_bus
-from dynqos.processes import Processes, free_port
+from dynqos.experiment.processes import Processes, free_port
 
 MODES = ("bare", "metrics", "subscriber", "viewer", "watched")  # watched: metrics and viewer at once
 ROUNDS = 4  # each mode once per round, the order rotated each round: drift in the machine hits all

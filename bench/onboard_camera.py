@@ -1,7 +1,7 @@
 """Benchmark: the onboard camera pipeline at 640x480 RGB-D: grab (the sim camera renders), encode
 (JPEG q90 + zstd16 depth) and publish over a real zenoh link to a router, with the bitrate it produces.
 
-CPU is process time per frame (all threads, zenoh's included) for each stage. Target (issue 5): encode +
+CPU is process time per frame (all threads, zenoh's included) for each stage. Target: encode +
 publish under 25% of one core at 30 fps; bitrate near the paper's ~47 Mbit/s.
 
 Run: dynqos bench onboard_camera (suite settings), or with its own options:
@@ -23,8 +23,9 @@ from dynqos.common.keys import Flow, Stream
 from dynqos.common.messages import CameraFrame
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, open_bus
-from dynqos.onboard.camera import SimCamera, encode_depth, encode_rgb
-from dynqos.sim.world import default_world
+from dynqos.onboard.camera import encode_depth, encode_rgb
+from dynqos.sim.vehicle.camera import SimCamera
+from dynqos.sim.vehicle.world import default_world
 
 
 def _port() -> int:
@@ -32,6 +33,17 @@ def _port() -> int:
         sock.bind(("127.0.0.1", 0))
         port: int = sock.getsockname()[1]
         return port
+
+
+def _circling(t: float) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
+    """The pose of a drone circling the arena's centre at 2 m, 1.5 m up, facing along its path, at `t`."""
+    yaw = 0.5 * t + math.pi / 2
+    return (2 * math.cos(0.5 * t), 2 * math.sin(0.5 * t), -1.5), (
+        math.cos(yaw / 2),
+        0.0,
+        0.0,
+        math.sin(yaw / 2),
+    )
 
 
 def run(frames: int) -> dict[str, Any]:
@@ -52,14 +64,8 @@ def run(frames: int) -> dict[str, Any]:
         sent_bytes = 0
         wall0 = time.perf_counter()
         for i in range(frames):
-            t = i / 30
-            yaw = 0.5 * t + math.pi / 2
-            pose = (
-                (2 * math.cos(0.5 * t), 2 * math.sin(0.5 * t), -1.5),
-                (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)),
-            )
             c0 = time.process_time()
-            raw = camera.grab(pose)
+            raw = camera.grab(_circling(i / 30))
             assert raw is not None
             assert raw.depth_m is not None
             c1 = time.process_time()
@@ -72,17 +78,10 @@ def run(frames: int) -> dict[str, Any]:
             ):
                 pub.put(
                     CameraFrame(
-                        uav="uav1",
-                        seq=i,
-                        stamp_ns=stamp,
-                        kind=kind,
-                        encoding=encoding,
-                        width=640,
-                        height=480,
-                        intrinsics=raw.intrinsics,
-                        payload=payload,
+                        uav="uav1", seq=i, stamp_ns=stamp, kind=kind, encoding=encoding, width=640,
+                        height=480, intrinsics=raw.intrinsics, payload=payload,
                     )
-                )
+                )  # fmt: skip
             c3 = time.process_time()
             grab_cpu, encode_cpu, publish_cpu = (
                 grab_cpu + c1 - c0,

@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from dynqos.common.config import ZenohConfig
-from dynqos.processes import Processes, free_port
+from dynqos.experiment.processes import Processes, free_port
 
 
 @contextlib.contextmanager

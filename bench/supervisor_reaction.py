@@ -25,8 +25,8 @@ from typing import Any
 
 from dynqos.bench.report import bench_parser, emit, judged, provenance
 from dynqos.bench.suite import spread
-from dynqos.runner import run_scenario
-from dynqos.scenario import builtin_scenario
+from dynqos.experiment.runner import run_scenario
+from dynqos.experiment.scenario import builtin_scenario
 
 WINDOW_S = 1.0
 BOUND = 1.2

@@ -2,7 +2,7 @@
 
 Run: dynqos bench supervisor_step (suite settings), or with its own options:
   python -m dynqos.bench.supervisor_step [--steps N] [--quick] [--out FILE]
-Target (issue 6): median step under 50 microseconds.
+Target: median step under 50 microseconds.
 """
 
 from __future__ import annotations

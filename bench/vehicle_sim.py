@@ -4,7 +4,7 @@
   circle from offboard position setpoints at 50 Hz;
 - camera: 640 x 480 RGB-D frames rendered from the default world along that circle (160 x 120 ray cast,
   upsampled, sensor noise), alone and with JPEG (quality 90) + PNG 16-bit depth encoding; CPU from
-  process time. Floor: encoding an already rendered frame. Target (issue 3): 30 fps within 25% of a core.
+  process time. Floor: encoding an already rendered frame. Target: 30 fps within 25% of a core.
 
 Run: dynqos bench vehicle_sim (suite settings), or with its own options:
   python -m dynqos.bench.vehicle_sim [--seconds 30] [--frames 300] [--quick] [--out FILE]
@@ -21,11 +21,11 @@ import cv2
 import numpy as np
 
 from dynqos.bench.report import bench_parser, emit, judged, provenance
-from dynqos.sim.dynamics import quat_to_rot
-from dynqos.sim.px4 import MAIN_OFFBOARD, Setpoint
-from dynqos.sim.render import Renderer
-from dynqos.sim.vehicle_model import VehicleModel
-from dynqos.sim.world import default_world
+from dynqos.sim.vehicle.dynamics import quat_to_rot
+from dynqos.sim.vehicle.model import VehicleModel
+from dynqos.sim.vehicle.px4 import MAIN_OFFBOARD, Setpoint
+from dynqos.sim.vehicle.render import Renderer
+from dynqos.sim.vehicle.world import default_world
 
 
 def circle(t: float) -> Setpoint:

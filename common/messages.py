@@ -327,7 +327,7 @@ class QosRequest(Message):
 
     stamp_ns: int
     want: bool
-    # The drone's need, for an arbiter that cannot grant everyone (edge/arbiter.py): its supervisor's
+    # The drone's need, for an arbiter that cannot grant everyone (edge/qos/arbiter.py): its supervisor's
     # risk level, P_lat minus th_lat (0 while there is no latency evidence), and what it sends upward.
     risk: str = "NA"
     latency_excess: float = 0.0

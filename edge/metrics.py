@@ -18,10 +18,10 @@ from dynqos.common.metrics import (
 )
 
 if TYPE_CHECKING:  # the services import this module, not the other way round
-    from dynqos.edge.detector_service import DetectorService
-    from dynqos.edge.mpc_service import MpcService
-    from dynqos.edge.planner_service import PlannerService
-    from dynqos.edge.qos_agent import QosAgent
+    from dynqos.edge.detector.service import DetectorService
+    from dynqos.edge.mpc.service import MpcService
+    from dynqos.edge.planner.service import PlannerService
+    from dynqos.edge.qos.agent import QosAgent
 
 
 def mpc(service: MpcService, m: ProcessMetrics) -> None:
@@ -73,7 +73,7 @@ def detector(service: DetectorService, m: ProcessMetrics) -> None:
 
 def qos(agent: QosAgent, m: ProcessMetrics) -> None:
     def families() -> Iterator[Metric]:
-        sessions = sum(g.session is not None for g in agent.drones.values())
+        sessions = sum(r.grant.session is not None for r in agent.drones.values())
         holders = len(agent.arbiter.holders) if agent.arbiter is not None else sessions
         yield gauge("dynqos_qos_drones", "Drones that asked the agent", len(agent.drones))
         yield gauge("dynqos_qos_sessions", "Quality-on-Demand sessions held", sessions)

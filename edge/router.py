@@ -10,38 +10,35 @@ import logging
 from pathlib import Path
 
 from dynqos.common.config import Config
-from dynqos.common.metrics import ProcessMetrics, gauge
+from dynqos.common.lifecycle import ready_line, serving_metrics
+from dynqos.common.metrics import gauge
 from dynqos.common.transport import Role, open_session, router_endpoints
 from dynqos.edge.service import Service
 
 log = logging.getLogger(__name__)
 
 
-def run_router(
-    config: Config,
-    ready: object = None,
-    health_file: Path | None = None,
-    metrics: ProcessMetrics | None = None,
-) -> None:
+def run(config: Config, *, health_file: Path | None = None) -> int:
+    """Serve until SIGTERM: its metrics, its health file, one ready line, the session closed after."""
     service = Service("router", 5.0)
     service.health_file = health_file
     service.install_signal_handlers()
-    session = open_session(config.zenoh, Role.ROUTER)
-    if metrics is not None:
+    with serving_metrics("router", config) as metrics:
+        session = open_session(config.zenoh, Role.ROUTER)
         service.beat = metrics.health.beat
         metrics.add(
             lambda: [
                 gauge("dynqos_router_links", "Transport links open to the router", len(session.info.links()))
             ]
         )
-    try:
-        log.info("router: listening on %s", ", ".join(router_endpoints(config.zenoh)))
-        service.write_health("ready")
-        if callable(ready):
-            ready()
-        while not service.stop.is_set():
-            service.maybe_health(lambda: f"links={len(session.info.links())}")
-            service.stop.wait(0.5)
-    finally:
-        session.close()  # type: ignore[no-untyped-call]
-        log.info("router: stopped")
+        try:
+            log.info("router: listening on %s", ", ".join(router_endpoints(config.zenoh)))
+            service.write_health("ready")
+            ready_line("router")
+            while not service.stop.is_set():
+                service.maybe_health(lambda: f"links={len(session.info.links())}")
+                service.stop.wait(0.5)
+        finally:
+            session.close()  # type: ignore[no-untyped-call]
+            log.info("router: stopped")
+    return 0

@@ -10,14 +10,18 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import FrameType
+from typing import Any, Protocol
 
+from dynqos.common.bus import Bus
+from dynqos.common.config import Config
 from dynqos.common.errors import DynqosError
+from dynqos.common.lifecycle import ready_line, serving_metrics, stop_on_signals
+from dynqos.common.metrics import ProcessMetrics
+from dynqos.common.transport import Role, open_bus
 
 log = logging.getLogger(__name__)
 
@@ -46,12 +50,7 @@ class Service:
             raise DynqosError(f"cannot write health file {self.health_file}: {exc.strerror}") from None
 
     def install_signal_handlers(self) -> None:
-        def handler(signum: int, _frame: FrameType | None) -> None:
-            log.info("%s: %s received, stopping", self.name, signal.Signals(signum).name)
-            self.stop.set()
-
-        signal.signal(signal.SIGTERM, handler)
-        signal.signal(signal.SIGINT, handler)
+        stop_on_signals(self.name, self.stop.set)
 
     def maybe_health(self, line: Callable[[], str]) -> None:
         now = time.monotonic()
@@ -75,3 +74,32 @@ def check_health(path: Path, max_age_s: float, now_unix: float | None = None) ->
     if age > max_age_s:
         raise DynqosError(f"{line}: last health {age:.1f} s ago (max {max_age_s:g} s): hung or stopped")
     return line
+
+
+class Worker(Protocol):
+    service: Service
+
+    def run(self) -> Any: ...
+
+
+def serve(
+    name: str,
+    config: Config,
+    make: Callable[[Config, Bus], Worker],
+    register: Callable[[Any, ProcessMetrics], None],
+    *,
+    health_file: Path | None = None,
+) -> int:
+    """Run one edge worker (MPC, planner, detector) until SIGTERM: its metrics served, its zenoh session
+    open as an edge client, its health file written, one ready line; everything closed on the way out."""
+    with serving_metrics(name, config) as metrics, open_bus(config.zenoh, Role.EDGE) as bus:
+        worker = make(config, bus)
+        lifecycle = worker.service
+        lifecycle.health_file = health_file
+        lifecycle.beat = metrics.health.beat
+        register(worker, metrics)
+        lifecycle.install_signal_handlers()
+        lifecycle.write_health("ready")
+        ready_line(name)
+        worker.run()
+    return 0

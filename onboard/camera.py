@@ -1,56 +1,22 @@
-"""Camera sources and encoders for the onboard daemon.
+"""The drone's own camera sources and the encoders for the onboard daemon.
 
-Sources: `sim` renders RGB-D from the world and the drone's current pose with sim/'s renderer;
-`files` replays a folder of RGB-D frames (color_N.png + depth_N.pgm, 16-bit millimetres, like
-shared/data/rgbd); `device` grabs RGB from an OpenCV capture device (no depth). Encoders: JPEG for RGB,
-zstd16 (byte shuffle + zstd, lossless) for depth.
+Sources (common/camera.py's `CameraSource`): `files` replays a folder of RGB-D frames (color_N.png +
+depth_N.pgm, 16-bit millimetres); `device` grabs RGB from an OpenCV capture device (no depth). The
+simulator's rendered camera (`sim`) is sim/vehicle/camera.py, handed to the daemon by whoever starts it.
+Encoders: JPEG for RGB, zstd16 (byte shuffle + zstd, lossless) for depth.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from dynqos.common.camera import Pose, RawFrame
 from dynqos.common.depthcodec import encode_zstd16
 from dynqos.common.errors import ConfigError
-from dynqos.sim.dynamics import quat_to_rot
-from dynqos.sim.render import Intrinsics, Renderer
-from dynqos.sim.world import World
-
-Pose = tuple[tuple[float, float, float], tuple[float, float, float, float]]
-
-
-@dataclass(frozen=True, slots=True)
-class RawFrame:
-    rgb: NDArray[np.uint8]  # H x W x 3, RGB
-    depth_m: NDArray[np.float32] | None  # H x W metres, 0 = no reading
-    intrinsics: tuple[float, float, float, float]
-
-
-class CameraSource(Protocol):
-    def grab(self, pose: Pose | None) -> RawFrame | None: ...
-
-
-class SimCamera:
-    def __init__(self, world: World, width: int, height: int, seed: int = 0) -> None:
-        intrinsics = Intrinsics(width=width, height=height, fx=525.0 * width / 640, fy=525.0 * height / 480,
-                                cx=(width - 1) / 2, cy=(height - 1) / 2)  # fmt: skip
-        # Rays are cast at 160 x 120 at most and the image resized; a smaller image (a fleet's scaled
-        # camera) casts no more rays than it has pixels.
-        render_size = (min(160, width), min(120, height))
-        self.renderer = Renderer(world, intrinsics, render_size=render_size, seed=seed)
-
-    def grab(self, pose: Pose | None) -> RawFrame | None:
-        if pose is None:
-            return None
-        pos, quat = pose
-        rgb, depth = self.renderer.render(np.array(pos), quat_to_rot(np.array(quat)))
-        return RawFrame(rgb, depth.astype(np.float32), self.renderer.intrinsics.as_tuple())
 
 
 class FilesCamera:

@@ -14,16 +14,17 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from dynqos.common.bus import Publisher
+from dynqos.common.camera import CameraSource, RawFrame
 from dynqos.common.clock import Clock
 from dynqos.common.config import OnboardConfig
 from dynqos.common.messages import CameraFrame
 from dynqos.common.modes import Flow
 from dynqos.common.queues import BoundedQueue
-from dynqos.onboard.camera import CameraSource, RateController, RawFrame, encode_depth, encode_rgb
-from dynqos.onboard.core import FrameSent
+from dynqos.onboard.camera import RateController, encode_depth, encode_rgb
 from dynqos.onboard.fc import FcState
 from dynqos.onboard.pacing import FRAME_HEADER_BYTES, Pacer, split
 from dynqos.onboard.risk import Spaciousness
+from dynqos.onboard.tick import FrameSent
 
 log = logging.getLogger(__name__)
 

@@ -24,12 +24,11 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from dynqos.common.bus import Received
 from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.config import Config
 from dynqos.common.geometry import yaw_of
@@ -40,7 +39,6 @@ from dynqos.common.messages import (
     CameraAck,
     Command,
     Detections,
-    Message,
     QosGrant,
     QosRequest,
     Reference,
@@ -54,55 +52,11 @@ from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint, Setpoint
 from dynqos.onboard.monitors import CameraLatencyMonitor
 from dynqos.onboard.pid import CascadedPid
 from dynqos.onboard.supervisor import Decision, Inputs, Supervisor, decision_fields
+from dynqos.onboard.tick import LogEvent, Outgoing, TickInput, TickOutput
 
-SETPOINT_HZ = 50
-SETPOINT_PERIOD_NS = NS_PER_S // SETPOINT_HZ
+# The setpoint period at [control] setpoint_hz's default; the daemon ticks at `setpoint_period_ns(config)`.
+SETPOINT_PERIOD_NS = NS_PER_S // 50
 STALE_STATE_NS = 500_000_000  # no position from the FC for this long: it is lost, stop using its state
-
-
-@dataclass(frozen=True, slots=True)
-class FrameSent:
-    """One image (both its parts if paced) handed to the bus by the camera pipeline."""
-
-    seq: int
-    kind: str
-    stamp_ns: int
-    nbytes: int  # encoded image bytes, message headers not counted
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class TickInput:
-    """What the shell read since the last tick. `offboard` turns True once the FC flies offboard."""
-
-    now_ns: int
-    fc: FcState | None
-    downlink: Sequence[Received] = ()
-    frames_sent: Sequence[FrameSent] = ()
-    spaciousness_m: float | None = None
-    offboard: bool = False
-    uplink_bytes: int | None = None  # every byte the drone's publishers put so far (None: unknown)
-
-
-@dataclass(frozen=True, slots=True)
-class Outgoing:
-    stream: Stream
-    flow: Flow
-    message: Message
-
-
-@dataclass(frozen=True, slots=True)
-class LogEvent:
-    level: int  # a `logging` level
-    text: str
-
-
-@dataclass(frozen=True, slots=True)
-class TickOutput:
-    setpoint: Setpoint | None  # what the FC gets this tick; None before offboard or with no FC state
-    publish: tuple[Outgoing, ...]
-    camera_flow: Flow
-    camera_rate_factor: float
-    events: tuple[LogEvent, ...]
 
 
 class LatencySamples:
@@ -401,9 +355,8 @@ class OnboardCore:
                 self.pid.reset(self._last_accel)  # bumpless
                 self._switch(ControlSource.FALLBACK, now)
             target, target_vel, yaw = self._fallback_target(now)
-            accel = self.pid.step(
-                np.array(fc.pos_m), np.array(fc.vel_mps), target, 1 / SETPOINT_HZ, target_vel
-            )
+            dt_s = 1 / self.config.control.setpoint_hz
+            accel = self.pid.step(np.array(fc.pos_m), np.array(fc.vel_mps), target, dt_s, target_vel)
             self.counters.fallback_ticks += 1
         self._last_accel = accel
         return AccelSetpoint(_triple(accel), yaw)
@@ -501,3 +454,8 @@ def hold_at(fc: FcState) -> PositionSetpoint:
 
 def _triple(v: np.ndarray) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def setpoint_period_ns(config: Config) -> int:
+    """The period of the setpoint stream to the FC, the daemon's tick: [control] setpoint_hz."""
+    return round(NS_PER_S / config.control.setpoint_hz)

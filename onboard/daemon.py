@@ -12,27 +12,30 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Callable
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus, Priority, Received, SubscriptionStats
+from dynqos.common.camera import CameraSource
 from dynqos.common.clock import Clock, MonotonicClock, to_ns
 from dynqos.common.config import Config
+from dynqos.common.errors import ConfigError
 from dynqos.common.keys import Downlink, Stream
+from dynqos.common.lifecycle import ready_line, serving_metrics, stop_on_signals
 from dynqos.common.messages import CameraAck, Command, Detections, QosGrant, Reference, SupervisorStatus
 from dynqos.common.metrics import ProcessMetrics
 from dynqos.common.modes import Flow
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Role, default_flow_endpoint, open_bus, priority_flow_endpoint
-from dynqos.onboard.camera import CameraSource, DeviceCamera, FilesCamera, SimCamera
+from dynqos.onboard.camera import DeviceCamera, FilesCamera
 from dynqos.onboard.camera_stream import CameraStream, FlowPublishers
-from dynqos.onboard.core import SETPOINT_PERIOD_NS, OnboardCore, TickInput, TickOutput, hold_at
+from dynqos.onboard.core import OnboardCore, hold_at, setpoint_period_ns
 from dynqos.onboard.fc import AccelSetpoint, FcState
 from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD, PX4_SUB_LOITER, FcLink
 from dynqos.onboard.metrics import DroneMetrics
 from dynqos.onboard.systemd import SystemdNotifier
-from dynqos.sim.world import default_world, load_world
+from dynqos.onboard.takeoff import Do, ExitAction, TakeoffSequencer, on_exit
+from dynqos.onboard.tick import TickInput, TickOutput
 
 log = logging.getLogger(__name__)
 
@@ -51,8 +54,18 @@ STREAMS = {
 class OnboardDaemon:
     """The shell: I/O around `OnboardCore`. It holds no state of the flight beyond what it must pass on."""
 
-    def __init__(self, config: Config, *, clock: Clock | None = None, takeoff: bool | None = None) -> None:
+    def __init__(
+        self,
+        config: Config,
+        *,
+        clock: Clock | None = None,
+        takeoff: bool | None = None,
+        camera: CameraSource | None = None,
+    ) -> None:
+        """`camera`: the source `[onboard] camera = "sim"` needs (sim/vehicle/camera.py), handed in by the
+        starter; the drone's own sources (`files`, `device`) are built here from the config."""
         self.config = config
+        self.sim_camera = camera
         self.cfg = config.onboard
         self.uav = config.drone.id
         self.clock = clock or MonotonicClock()
@@ -145,8 +158,11 @@ class OnboardDaemon:
         if cfg.camera == "none" or cfg.camera_fps == 0:
             return None
         if cfg.camera == "sim":
-            world = load_world(cfg.world_file) if cfg.world_file else default_world()
-            return SimCamera(world, cfg.camera_width, cfg.camera_height, seed=self.config.supervisor.seed)
+            if self.sim_camera is None:
+                raise ConfigError(
+                    "onboard.camera", '"sim" renders from the simulator, which this start did not hand over'
+                )
+            return self.sim_camera
         if cfg.camera == "files":
             return FilesCamera(cfg.files_dir, cfg.files_intrinsics)
         return DeviceCamera(cfg.device_index, cfg.camera_width, cfg.camera_height, cfg.files_intrinsics)
@@ -157,36 +173,32 @@ class OnboardDaemon:
     # ---- take-off (a procedure with waits, on its own thread) -------------------------------------------
 
     def take_off(self) -> bool:
-        """Arm, take off, enter offboard. Returns False (and logs why) if any step is refused."""
+        """Arm, take off, enter offboard (onboard/takeoff.py decides each step). Returns False (and logs
+        why) if any step is refused or the daemon stops first."""
         link = self.link
         assert link is not None
-        if not link.wait_ready(self.cfg.fc_timeout_s):
-            log.error(
-                "onboard: no heartbeat and position from the flight controller at %s", self.cfg.mavlink_url
-            )
-            return False
-        for step, result in (("arm", link.arm), ("take off", lambda: link.takeoff(self.cfg.takeoff_alt_m))):
-            if result() != 0:
-                log.error("onboard: the flight controller refused to %s", step)
+        sequence = TakeoffSequencer(self.cfg.takeoff_alt_m, self.cfg.fc_timeout_s, self.clock.now_ns())
+        commands: dict[Do, Callable[[], int | None]] = {
+            Do.ARM: link.arm,
+            Do.TAKE_OFF: lambda: link.takeoff(self.cfg.takeoff_alt_m),
+            Do.OFFBOARD: lambda: link.set_mode(PX4_MAIN_OFFBOARD),
+        }
+        while not self.stop.is_set():
+            step = sequence.next(self.clock.now_ns(), link.state, link.last_heartbeat_ns is not None)
+            if step.do in commands:
+                sequence.answered(commands[step.do]())
+            elif step.do is Do.HOLD_SETPOINT and step.hold is not None:
+                hold = hold_at(step.hold)
+                link.send_position(hold.pos_m, hold.yaw_rad)
+            elif step.do is Do.FAILED:
+                log.error("onboard: %s (%s)", step.reason, self.cfg.mavlink_url)
                 return False
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and not self.stop.is_set():
-            s = link.state
-            if s is not None and -s.pos_m[2] >= self.cfg.takeoff_alt_m - 0.15:
-                break
-            self.stop.wait(0.05)  # polling the vehicle's climb, bounded by 30 s
-        s = link.state
-        assert s is not None
-        hold = hold_at(s)
-        for _ in range(10):  # PX4 wants a setpoint stream before offboard
-            link.send_position(hold.pos_m, hold.yaw_rad)
-            self.stop.wait(0.02)  # the setpoint stream's own rate
-        if link.set_mode(PX4_MAIN_OFFBOARD) != 0:
-            log.error("onboard: the flight controller refused offboard mode")
-            return False
-        self.offboard.set()
-        log.info("onboard: airborne at %.1f m in offboard mode; offloading", -s.pos_m[2])
-        return True
+            elif step.do is Do.DONE and step.hold is not None:
+                self.offboard.set()
+                log.info("onboard: airborne at %.1f m in offboard mode; offloading", -step.hold.pos_m[2])
+                return True
+            self.stop.wait(step.wait_s)  # the sequence's own pace: polling the climb, the setpoint rate
+        return False
 
     def _take_off_or_log(self) -> None:
         if not self.take_off():
@@ -252,6 +264,7 @@ class OnboardDaemon:
             )
         self.notifier.notify("READY=1")
         health_ns = to_ns(self.cfg.health_interval_s)
+        period_ns = setpoint_period_ns(self.config)
         next_tick = self.clock.now_ns()
         next_health = next_tick + health_ns
         while not self.stop.is_set():
@@ -265,11 +278,11 @@ class OnboardDaemon:
                 if self.beat is not None:
                     self.beat(line)
             self.notifier.feed_watchdog(now)
-            next_tick += SETPOINT_PERIOD_NS
+            next_tick += period_ns
             delay_ns = next_tick - self.clock.now_ns()
             if delay_ns < -100_000_000:  # fell behind by more than 0.1 s: start afresh, no burst
                 next_tick = self.clock.now_ns()
-            self.stop.wait(max(0, delay_ns) / 1e9)  # the 50 Hz setpoint rate
+            self.stop.wait(max(0, delay_ns) / 1e9)  # the setpoint rate ([control] setpoint_hz)
         self.notifier.notify("STOPPING=1")
         if self.camera is not None:
             self.camera.join(timeout_s=5)
@@ -278,13 +291,11 @@ class OnboardDaemon:
     def _on_exit(self) -> None:
         link = self.link
         assert link is not None
-        if self.core.offloading:
-            if self.cfg.on_exit == "land":
-                log.info("onboard: stopping: landing (%s)", link.land())
-            else:
-                log.info(
-                    "onboard: stopping: hold position (%s)", link.set_mode(PX4_MAIN_AUTO, PX4_SUB_LOITER)
-                )
+        action = on_exit(self.core.offloading, self.cfg.on_exit)
+        if action is ExitAction.LAND:
+            log.info("onboard: stopping: landing (%s)", link.land())
+        elif action is ExitAction.HOLD:
+            log.info("onboard: stopping: hold position (%s)", link.set_mode(PX4_MAIN_AUTO, PX4_SUB_LOITER))
         log.info("onboard: stopped; %s", self.health())
 
     def expose(self, metrics: ProcessMetrics) -> None:
@@ -304,3 +315,19 @@ class OnboardDaemon:
             self.bus.close()
         if self.link is not None:
             self.link.close()
+
+
+def run(config: Config, *, takeoff: bool | None = None, camera: CameraSource | None = None) -> int:
+    """`dynqos onboard` until SIGTERM, then hold (or land): the FC link and both flows opened, metrics
+    served, one ready line. `camera`: the simulator's camera when `[onboard] camera = "sim"`."""
+    daemon = OnboardDaemon(config, takeoff=takeoff, camera=camera)
+    stop_on_signals("onboard", daemon.stop.set)
+    with serving_metrics("onboard", config) as metrics:
+        try:
+            daemon.open()
+            daemon.expose(metrics)
+            ready_line("onboard")
+            daemon.run()
+        finally:
+            daemon.close()
+    return 0

@@ -176,6 +176,18 @@ def _fast_mean(window: SlidingWindow, n: int, outstanding_ms: float | None) -> f
     return math.fsum(recent) / n
 
 
+@dataclass(frozen=True, slots=True)
+class _Firing:
+    """What the signals say this step, read once for every row of Table I."""
+
+    risk: Risk  # NA (no depth yet) is read as MR
+    hl: bool
+    react: bool  # HL has held for persist_s: the first reaction from q1
+    escalate: bool  # HL has held for escalate_s: the next step up
+    recover: bool  # LL has held for the recovery time
+    persists: str  # the cause an escalation gives
+
+
 class Supervisor:
     """The PFSM. `step` once per tick with the inputs gathered since the previous tick."""
 
@@ -291,57 +303,72 @@ class Supervisor:
             if self._rate == cfg.min_rate_factor:
                 self._min_rate_since_ns = now_ns
 
-    def _choose(self, signals: Signals, now_ns: int) -> tuple[State, str] | None:  # noqa: C901 (Table I)
-        cfg = self.config
-        state = self.state
+    def _choose(self, signals: Signals, now_ns: int) -> tuple[State, str] | None:
+        """Table I: the move the signals call for from the current state (None: stay)."""
         if signals.watchdog:
-            return (QA, WATCHDOG_CAUSE) if state is not QA else None
-        if now_ns - self._entered_ns < self._ns(cfg.dwell_s):
+            return (QA, WATCHDOG_CAUSE) if self.state is not QA else None
+        if now_ns - self._entered_ns < self._ns(self.config.dwell_s):
             return None
+        f = self._firing(signals, now_ns)
+        state = self.state
+        if state is Q1:
+            return self._from_q1(signals, f)
+        if state in (Q2, Q3):
+            return self._from_priority(signals, f, now_ns)
+        if state in RATE_ADAPTATION_STATES:
+            return self._from_rate_adaptation(signals, f, now_ns)
+        return (Q1, "link is back and LL holds") if f.recover else None  # qA
+
+    def _firing(self, signals: Signals, now_ns: int) -> _Firing:
+        cfg = self.config
         hl, ll = signals.latency is Latency.HL, signals.latency is Latency.LL
         p_lat = signals.p_lat
         p_ll = None if p_lat is None else 1.0 - p_lat
-        risk = Risk.MR if signals.risk is Risk.NA else signals.risk
-        persist_ns = self._ns(cfg.persist_s)
-        escalate_ns = self._ns(cfg.escalate_s)
         # From q1 the first reaction is quick; escalating further waits until the latency window has
         # flushed the samples from before the last switch (N2 x T_mpc = 2.5 s by default).
-        react = self._fires(self._held(self._hl_since_ns, now_ns, persist_ns), hl, p_lat)
-        escalate = self._fires(self._held(self._hl_since_ns, now_ns, escalate_ns), hl, p_lat)
+        react = self._fires(self._held(self._hl_since_ns, now_ns, self._ns(cfg.persist_s)), hl, p_lat)
+        escalate = self._fires(self._held(self._hl_since_ns, now_ns, self._ns(cfg.escalate_s)), hl, p_lat)
         persists = "HL persists on the priority flow"
-        if signals.priority_denied and state in (Q2, Q3):
+        if signals.priority_denied and self.state in (Q2, Q3):
             escalate = react  # waiting for priority to help is waiting for nothing
             persists = "HL on the priority flow the network refused"
-        recover = self._fires(self._held(self._ll_since_ns, now_ns, self._recover_ns), ll, p_ll)
+        return _Firing(
+            risk=Risk.MR if signals.risk is Risk.NA else signals.risk,
+            hl=hl,
+            react=react,
+            escalate=escalate,
+            recover=self._fires(self._held(self._ll_since_ns, now_ns, self._recover_ns), ll, p_ll),
+            persists=persists,
+        )
 
-        if state is Q1:
-            if risk is Risk.HR and self._fires(True, True, signals.p_cs):
-                return Q2, "HR: proactive priority"
-            if react:
-                return (Q4, "LR and HL") if risk is Risk.LR else (Q3, f"{risk.value} and HL")
-        elif state is Q2:
-            if escalate:
-                return Q5, f"{persists} (HR)"
-            if risk is not Risk.HR and recover:
-                return self._probe(signals, now_ns, "LL holds and risk is no longer HR")
-        elif state is Q3:
-            if escalate:
-                return (Q5, f"{persists} (HR)") if risk is Risk.HR else (Q6, persists)
-            if risk is not Risk.HR and recover:
-                return self._probe(signals, now_ns, "LL holds")
-        elif state in RATE_ADAPTATION_STATES:
-            at_min = self._rate <= cfg.min_rate_factor and self._min_rate_since_ns is not None
-            since = None
-            if at_min and self._hl_since_ns is not None:
-                since = max(self._hl_since_ns, self._min_rate_since_ns or 0)
-            if at_min and self._fires(self._held(since, now_ns, escalate_ns), hl, p_lat):
-                return QA, "HL persists at the minimum camera rate"
-            if state is Q4 and risk is not Risk.LR and self._fires(hl, hl, p_lat):
-                return Q6, f"{risk.value} and HL: priority flow"
-            if recover:
-                return (Q1, "LL holds") if state is Q4 else self._probe(signals, now_ns, "LL holds")
-        elif state is QA and recover:
-            return Q1, "link is back and LL holds"
+    def _from_q1(self, signals: Signals, f: _Firing) -> tuple[State, str] | None:
+        if f.risk is Risk.HR and self._fires(True, True, signals.p_cs):
+            return Q2, "HR: proactive priority"
+        if f.react:
+            return (Q4, "LR and HL") if f.risk is Risk.LR else (Q3, f"{f.risk.value} and HL")
+        return None
+
+    def _from_priority(self, signals: Signals, f: _Firing, now_ns: int) -> tuple[State, str] | None:
+        """q2 (HR: proactive priority) and q3 (MR or HR with HL: priority flow)."""
+        if f.escalate:
+            return (Q5, f"{f.persists} (HR)") if self.state is Q2 or f.risk is Risk.HR else (Q6, f.persists)
+        if f.risk is not Risk.HR and f.recover:
+            cause = "LL holds and risk is no longer HR" if self.state is Q2 else "LL holds"
+            return self._probe(signals, now_ns, cause)
+        return None
+
+    def _from_rate_adaptation(self, signals: Signals, f: _Firing, now_ns: int) -> tuple[State, str] | None:
+        cfg = self.config
+        at_min = self._rate <= cfg.min_rate_factor and self._min_rate_since_ns is not None
+        since = None
+        if at_min and self._hl_since_ns is not None:
+            since = max(self._hl_since_ns, self._min_rate_since_ns or 0)
+        if at_min and self._fires(self._held(since, now_ns, self._ns(cfg.escalate_s)), f.hl, signals.p_lat):
+            return QA, "HL persists at the minimum camera rate"
+        if self.state is Q4 and f.risk is not Risk.LR and self._fires(f.hl, f.hl, signals.p_lat):
+            return Q6, f"{f.risk.value} and HL: priority flow"
+        if f.recover:
+            return (Q1, "LL holds") if self.state is Q4 else self._probe(signals, now_ns, "LL holds")
         return None
 
     def _probe(self, signals: Signals, now_ns: int, cause: str) -> tuple[State, str] | None:

@@ -20,12 +20,13 @@ from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import Command, Reference
 from dynqos.common.modes import ControlSource, Flow
 from dynqos.common.queues import BoundedQueue
-from dynqos.edge.missions import Mission
-from dynqos.edge.mpc_service import MpcService
-from dynqos.onboard.core import SETPOINT_PERIOD_NS, OnboardCore, TickInput
+from dynqos.edge.mpc.service import MpcService
+from dynqos.edge.planner.missions import Mission
+from dynqos.onboard.core import SETPOINT_PERIOD_NS, OnboardCore
 from dynqos.onboard.fc import AccelSetpoint, FcState
-from dynqos.sim.px4 import MAIN_OFFBOARD, Setpoint
-from dynqos.sim.vehicle_model import STEP_NS, VehicleModel
+from dynqos.onboard.tick import TickInput
+from dynqos.sim.vehicle.model import STEP_NS, VehicleModel
+from dynqos.sim.vehicle.px4 import MAIN_OFFBOARD, Setpoint
 
 UAV = "uav1"
 REFERENCE_NS = 100_000_000

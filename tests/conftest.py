@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
-from dynqos.processes import free_port
+from dynqos.experiment.processes import free_port
 
 settings.register_profile("default", max_examples=200, deadline=None)
 settings.register_profile(

@@ -1,4 +1,4 @@
-"""The arbiter (edge/arbiter.py) on a fake clock: examples of each rule, then properties over random
+"""The arbiter (edge/qos/arbiter.py) on a fake clock: examples of each rule, then properties over random
 sequences of needs (budget never exceeded, a higher risk never waits behind a lower one that holds
 unless a drone that needs more waits too, no starvation, the same inputs give the same decisions)."""
 
@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from dynqos.common.clock import NS_PER_S
 from dynqos.common.config import ArbiterConfig
-from dynqos.edge.arbiter import Action, Arbiter, Decision, Need
+from dynqos.edge.qos.arbiter import Action, Arbiter, Decision, Need
 
 S = NS_PER_S
 HR, MR, LR = Need(risk="HR"), Need(risk="MR"), Need(risk="LR")

@@ -8,10 +8,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from dynqos.sim.delayline import DelayLine
-from dynqos.sim.scheduler import CapacityBucket, VirtualUser, weighted_fair_share
-from dynqos.sim.traces import PACKET_BITS, Trace, TraceError
-from dynqos.sim.uebuffer import UeBuffer
+from dynqos.sim.network.delayline import DelayLine
+from dynqos.sim.network.scheduler import CapacityBucket, VirtualUser, weighted_fair_share
+from dynqos.sim.network.traces import PACKET_BITS, Trace, TraceError
+from dynqos.sim.network.uebuffer import UeBuffer
 
 TTI = 1_000_000
 

@@ -18,8 +18,8 @@ from typing import Any
 import pytest
 
 from dynqos.common.config import CellConfig
-from dynqos.runner import run_scenario
-from dynqos.scenario import builtin_scenario
+from dynqos.experiment.runner import run_scenario
+from dynqos.experiment.scenario import builtin_scenario
 
 FAIR_SHARE_MBPS = CellConfig().uplink_mbps / 2  # the drone and one background user, equal weights
 DURATION_S = 18.0

@@ -1,5 +1,5 @@
 """Every `dynqos` command, fed a missing file, a bad value, an unknown key or an endpoint it cannot
-reach, ends with one clear line on stderr and exit code 2: never a traceback (issue 11)."""
+reach, ends with one clear line on stderr and exit code 2: never a traceback."""
 
 from __future__ import annotations
 

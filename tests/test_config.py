@@ -159,7 +159,7 @@ def test_console_script_help_and_version() -> None:
 
 
 def test_per_drone_missions_and_the_arbiter_round_trip_and_reach_the_planner(tmp_path: Path) -> None:
-    from dynqos.edge.planner_service import mission_from_config
+    from dynqos.edge.planner.service import mission_from_config
 
     path = write(
         tmp_path,

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from dynqos.common.config import ZenohConfig, load_config
-from dynqos.scenario import builtin_scenario, scenario_config, with_cell, write_config
+from dynqos.experiment.scenario import builtin_scenario, scenario_config, with_cell, write_config
 from tests.procs import DYNQOS
 
 KEYS = {

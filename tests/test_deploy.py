@@ -350,9 +350,10 @@ def test_the_wheel_builds_from_exactly_what_the_dockerfile_copies(tmp_path: Path
     (wheel,) = tmp_path.glob("dynqos-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
     for module in (
-        "dynqos/cli.py",
+        "dynqos/cli/main.py",
         "dynqos/bench/suite.py",
-        "dynqos/edge/mpc_service.py",
+        "dynqos/edge/mpc/service.py",
+        "dynqos/edge/qos/agent.py",
         "dynqos/scenarios/baseline.toml",
     ):
         assert module in names, module

@@ -13,10 +13,10 @@ from dynqos.common.config import DetectorConfig
 from dynqos.common.depthcodec import encode_zstd16
 from dynqos.common.errors import DecodeError
 from dynqos.common.messages import CameraFrame
-from dynqos.edge.detector import decode_depth, decode_rgb, find_circles, locate
-from dynqos.sim.dynamics import quat_to_rot
-from dynqos.sim.render import Renderer
-from dynqos.sim.world import default_world
+from dynqos.edge.detector.circles import decode_depth, decode_rgb, find_circles, locate
+from dynqos.sim.vehicle.dynamics import quat_to_rot
+from dynqos.sim.vehicle.render import Renderer
+from dynqos.sim.vehicle.world import default_world
 
 CFG = DetectorConfig()
 

@@ -20,9 +20,9 @@ from dynqos.common.messages import CameraAck, CameraFrame, Command, Detections, 
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Received, Role, open_bus
 from dynqos.onboard.pacing import split
-from dynqos.sim.dynamics import quat_to_rot
-from dynqos.sim.render import Renderer
-from dynqos.sim.world import default_world
+from dynqos.sim.vehicle.dynamics import quat_to_rot
+from dynqos.sim.vehicle.render import Renderer
+from dynqos.sim.vehicle.world import default_world
 from tests.conftest import free_tcp_port
 from tests.procs import DynqosProcess
 
@@ -110,7 +110,7 @@ def test_mpc_serves_two_drones_at_once(edge: tuple[Path, ZenohConfig, list[Dynqo
 def test_mpc_replicas_share_the_fleet_by_drone_id(
     edge: tuple[Path, ZenohConfig, list[DynqosProcess]],
 ) -> None:
-    from dynqos.edge.mpc_service import shard_of
+    from dynqos.edge.mpc.service import shard_of
 
     config, zcfg, procs = edge
     procs.append(DynqosProcess(["edge", "planner"], config))

@@ -1,4 +1,4 @@
-"""Faults in a loopback flight (issue 11): what each does to the drone, measured from its log and
+"""Faults in a loopback flight: what each does to the drone, measured from its log and
 status stream. The pure parts are tested here quickly; the flights are marked slow (CI runs them)."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import pytest
 
 from dynqos.common.errors import ConfigError
 from dynqos.common.messages import SupervisorStatus
-from dynqos.faults import Fault, FaultInjector, FaultWindow, log_times, outcome, time_in_states
-from dynqos.runner import run_scenario
-from dynqos.scenario import Scenario, builtin_scenario
+from dynqos.experiment.faults import Fault, FaultInjector, FaultWindow, log_times, outcome, time_in_states
+from dynqos.experiment.runner import run_scenario
+from dynqos.experiment.scenario import Scenario, builtin_scenario
 
 T_WD_MS = 150.0
 TICK_MS = 20.0
@@ -177,7 +177,7 @@ def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_soak_ten_minutes_with_the_load_toggling(tmp_path: Path) -> None:
-    """Issue 11's soak: 600 s, or DYNQOS_SOAK_S seconds (CI flies 240, four load periods, to keep the whole
+    """The soak: 600 s, or DYNQOS_SOAK_S seconds (CI flies 240, four load periods, to keep the whole
     suite well inside 30 minutes on two cores)."""
     soak = builtin_scenario("soak")
     seconds = float(os.environ.get("DYNQOS_SOAK_S", soak.duration_s))

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from dynqos.common.config import ZenohConfig, load_config
-from dynqos.fleet_report import _queue_delays
-from dynqos.recording import Recording
-from dynqos.scenario import builtin_scenario, fleet_configs, with_cell, write_config
+from dynqos.experiment.recording import Recording
+from dynqos.experiment.scenario import builtin_scenario, fleet_configs, with_cell, write_config
+from dynqos.reports.fleet import _queue_delays
 from tests.procs import DYNQOS
 
 DRONE_KEYS = {

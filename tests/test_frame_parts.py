@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from dynqos.common.errors import DecodeError, MessageError
 from dynqos.common.messages import CameraFrame, decode, encode
-from dynqos.edge.assembler import FrameAssembler
+from dynqos.edge.detector.assembler import FrameAssembler
 from dynqos.onboard.pacing import Pacer, split
 
 MS = 1_000_000

@@ -1,4 +1,4 @@
-"""Bad input on every subscribed key, over real zenoh, to the real services (issue 11).
+"""Bad input on every subscribed key, over real zenoh, to the real services.
 
 Random bytes, truncated messages, wrong schema versions, messages of the wrong type, a message for
 another drone on a drone's key, and oversized payloads go to the MPC, planner, detector and onboard

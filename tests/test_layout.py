@@ -1,5 +1,21 @@
-"""The module graph stays a graph a reader can follow: no import cycles (function-level imports
-included), common/ imports no component, and the benchmarks use the runner, not the demo."""
+"""The module graph keeps the architecture's layers, so a reader can follow it and each role installs
+and starts on its own (docs/architecture.md draws them):
+
+    common  <-  onboard | edge | sim  <-  experiment, reports, observers, bench  <-  cli
+
+- `common` imports no component; `onboard`, `edge` and `sim` import none of each other (what two
+  components share lives in `common`; the simulator is handed to the drone by whoever starts both);
+- the components import nothing of the experiment, reports, observers, bench or CLI, and those import
+  no CLI;
+- the pure modules (the logic the I/O shells call, tested on an injected clock) import no I/O: none of
+  zenoh, pymavlink, cv2, aiohttp, asyncio, threading or time, and nothing that brings in the first five;
+- no module imports itself back, function-level imports included.
+
+An AST walk over the source folders rather than import-linter: setuptools' `package-dir` maps `common/`,
+`onboard/`, ... into `dynqos.*`, which import-linter's graph builder (grimp) cannot follow from the
+source tree, and the rule on third-party I/O libraries needs each module's own imports, which this walk
+has at hand. Each rule is checked to fail on a graph with one forbidden import put back.
+"""
 
 from __future__ import annotations
 
@@ -15,31 +31,134 @@ PACKAGES = {
     "dynqos.sim": "sim",
     "dynqos.bench": "bench",
 }
+COMPONENTS = ("dynqos.onboard", "dynqos.edge", "dynqos.sim")
+ABOVE = ("dynqos.experiment", "dynqos.reports", "dynqos.observers", "dynqos.bench")
+CLI = "dynqos.cli"
+PURE = (
+    "dynqos.onboard.supervisor",
+    "dynqos.onboard.core",
+    "dynqos.onboard.pid",
+    "dynqos.onboard.takeoff",
+    "dynqos.edge.mpc.problem",
+    "dynqos.edge.qos.arbiter",
+    "dynqos.edge.qos.grants",
+    "dynqos.sim.network.scheduler",
+    "dynqos.sim.network.cell_core",
+    "dynqos.sim.vehicle.dynamics",
+)
+IO = ("zenoh", "pymavlink", "cv2", "aiohttp", "asyncio")  # not even through another module
+IO_DIRECT = (*IO, "threading", "time")  # not in the pure module itself
+
+Graph = dict[str, set[str]]
 
 
 def _modules() -> dict[str, Path]:
     found = {}
+    mapped = {ROOT / folder for folder in PACKAGES.values()}
     for package, folder in PACKAGES.items():
-        for path in (ROOT / folder).glob("*.py"):
-            found[package if path.stem == "__init__" else f"{package}.{path.stem}"] = path
+        base = ROOT / folder
+        for path in base.rglob("*.py"):
+            inner = path.relative_to(base).with_suffix("").parts
+            if any(p.parent in mapped and p.parent != base for p in path.parents if p != path):
+                continue  # a mapped folder inside another (never so far): counted under its own name
+            parts = inner[:-1] if inner[-1] == "__init__" else inner
+            found[".".join((package, *parts))] = path
     return found
 
 
-def import_graph() -> dict[str, set[str]]:
+def _runtime_nodes(tree: ast.AST) -> list[ast.AST]:
+    """Every node but those under `if TYPE_CHECKING:` (imports for annotations only, never run)."""
+    out: list[ast.AST] = []
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        out.append(node)
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            todo.extend(node.orelse)
+            continue
+        todo.extend(ast.iter_child_nodes(node))
+    return out
+
+
+def _imports(path: Path, modules: set[str]) -> tuple[set[str], set[str]]:
+    """Everything a module imports (dotted names; for `from m import x` the module m.x when it is one,
+    else m), and the top-level names of those imports."""
+    names: set[str] = set()
+    for node in _runtime_nodes(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for alias in node.names:
+                inner = f"{node.module}.{alias.name}"
+                names.add(inner if inner in modules else node.module)
+        elif isinstance(node, ast.Import):
+            names |= {alias.name for alias in node.names}
+    return names, {n.split(".")[0] for n in names}
+
+
+def graphs() -> tuple[Graph, Graph]:
+    """The dynqos import graph and each module's third-party (and standard-library) top-level imports."""
     modules = _modules()
-    graph: dict[str, set[str]] = {name: set() for name in modules}
+    graph: Graph = {}
+    external: Graph = {}
     for name, path in modules.items():
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            targets: list[str] = []
-            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                targets = [node.module, *(f"{node.module}.{alias.name}" for alias in node.names)]
-            elif isinstance(node, ast.Import):
-                targets = [alias.name for alias in node.names]
-            graph[name].update(t for t in targets if t in modules and t != name)
-    return graph
+        names, tops = _imports(path, set(modules))
+        graph[name] = {n for n in names if n in modules and n != name}
+        external[name] = tops - {"dynqos"}
+    return graph, external
 
 
-def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+def import_graph() -> Graph:
+    return graphs()[0]
+
+
+def _in(module: str, packages: tuple[str, ...] | str) -> bool:
+    packages = (packages,) if isinstance(packages, str) else packages
+    return any(module == p or module.startswith(p + ".") for p in packages)
+
+
+def _component(module: str) -> str | None:
+    return next((c for c in COMPONENTS if _in(module, c)), None)
+
+
+def layer_breaches(graph: Graph) -> set[tuple[str, str]]:
+    """Every import that points up the layers or across between components."""
+    out = set()
+    for module, targets in graph.items():
+        for target in targets:
+            if _in(module, "dynqos.common") and not _in(target, "dynqos.common"):
+                out.add((module, target))
+            elif _component(module) and not (_in(target, "dynqos.common") or _in(target, "dynqos._version")):
+                if _component(target) != _component(module):
+                    out.add((module, target))
+            elif _in(module, ABOVE) and _in(target, CLI):
+                out.add((module, target))
+    return out
+
+
+def _closure(graph: Graph, start: str) -> set[str]:
+    seen, todo = {start}, [start]
+    while todo:
+        for target in graph.get(todo.pop(), ()):
+            if target not in seen:
+                seen.add(target)
+                todo.append(target)
+    return seen
+
+
+def impure(graph: Graph, external: Graph, pure: tuple[str, ...] = PURE) -> dict[str, set[str]]:
+    """What I/O each pure module imports, itself (IO_DIRECT) or through any module it imports (IO)."""
+    out = {}
+    for module in pure:
+        if module not in graph:
+            continue
+        found = external[module] & set(IO_DIRECT)
+        for reached in _closure(graph, module) - {module}:
+            found |= {f"{lib} (through {reached})" for lib in external[reached] & set(IO)}
+        if found:
+            out[module] = found
+    return out
+
+
+def cycles(graph: Graph) -> list[list[str]]:
     """Strongly connected components of more than one module (Tarjan)."""
     index: dict[str, int] = {}
     low: dict[str, int] = {}
@@ -71,26 +190,113 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
+# ---- the checks on the tree -------------------------------------------------------------------------------
+
+
+def test_the_walk_finds_every_module_under_its_import_name() -> None:
+    graph = import_graph()
+    assert len(graph) > 100
+    for name in ("dynqos.cli", "dynqos.edge.qos.agent", "dynqos.sim.vehicle.mavlink", "dynqos.common.keys"):
+        assert name in graph
+
+
+def test_no_module_imports_itself_back() -> None:
+    assert cycles(import_graph()) == []
+
+
+def test_the_layers_hold() -> None:
+    assert layer_breaches(import_graph()) == set()
+
+
+def test_pure_modules_import_no_io() -> None:
+    graph, external = graphs()
+    assert {m for m in PURE if m in graph} >= {"dynqos.onboard.supervisor", "dynqos.edge.qos.grants"}
+    assert impure(graph, external) == {}
+
+
+def test_the_benchmarks_use_the_runner_not_the_demo() -> None:
+    graph = import_graph()
+    demo = "dynqos.experiment.demo"
+    assert {m for m, targets in graph.items() if _in(m, "dynqos.bench") and demo in targets} == set()
+
+
+# ---- each rule fails when one forbidden import is put back ----------------------------------------------
+
+
 def test_the_cycle_finder_finds_a_cycle() -> None:
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
-def test_no_module_imports_itself_back() -> None:
+def test_each_forbidden_direction_is_caught() -> None:
     graph = import_graph()
-    assert len(graph) > 50  # the walk found the package
-    assert cycles(graph) == []
+    for module, target in [
+        ("dynqos.edge.qos.client", "dynqos.sim.network.operator_schema"),  # edge -> sim (the old defect)
+        ("dynqos.onboard.camera", "dynqos.sim.vehicle.render"),  # onboard -> sim
+        ("dynqos.sim.network.cell", "dynqos.edge.qos.grants"),  # sim -> edge
+        ("dynqos.common.config", "dynqos.onboard.pid"),  # common -> a component
+        ("dynqos.onboard.daemon", "dynqos.experiment.scenario"),  # a component -> the experiment
+        ("dynqos.reports.summary", "dynqos.cli"),  # reports -> the CLI
+    ]:
+        mutated = {m: set(t) for m, t in graph.items()}
+        mutated[module].add(target)
+        assert layer_breaches(mutated) == {(module, target)}
 
 
-def test_common_imports_no_component_and_bench_not_the_demo() -> None:
-    graph = import_graph()
-    leaks = {
-        (m, t)
-        for m, targets in graph.items()
-        if m.startswith("dynqos.common")
-        for t in targets
-        if not t.startswith("dynqos.common")
+def test_io_in_a_pure_module_is_caught_directly_and_through_another() -> None:
+    graph, external = graphs()
+    direct = {m: set(t) for m, t in external.items()}
+    direct["dynqos.onboard.supervisor"].add("time")
+    assert impure(graph, direct) == {"dynqos.onboard.supervisor": {"time"}}
+    through = {m: set(t) for m, t in graph.items()}
+    through["dynqos.edge.qos.grants"].add("dynqos.common.transport")  # opens zenoh sessions
+    assert impure(through, external) == {
+        "dynqos.edge.qos.grants": {"zenoh (through dynqos.common.transport)"}
     }
-    assert leaks == set()
-    assert {
-        m for m, targets in graph.items() if m.startswith("dynqos.bench") and "dynqos.demo" in targets
-    } == set()
+
+
+# ---- sizes a reader takes in at once ---------------------------------------------------------------------
+
+MAX_MODULE_LINES = 500
+MAX_FUNCTION_LINES = 80
+MAX_CLI_MODULE_LINES = 250
+
+
+def _sources() -> list[Path]:
+    return sorted(p for folder in PACKAGES.values() for p in (ROOT / folder).rglob("*.py"))
+
+
+def oversized(paths: list[Path], root: Path = ROOT) -> list[str]:
+    """Modules and functions past their limits, and any `noqa` that silences a length or complexity
+    rule instead of a shorter function."""
+    found = []
+    for path in paths:
+        text = path.read_text(encoding="utf-8")
+        name = str(path.relative_to(root))
+        lines = text.count("\n")
+        limit = MAX_CLI_MODULE_LINES if name.startswith("dynqos/cli/") else MAX_MODULE_LINES
+        if lines > limit:
+            found.append(f"{name}: {lines} lines (at most {limit})")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = (node.end_lineno or node.lineno) - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    found.append(f"{name}:{node.lineno} {node.name}: {length} lines")
+        for number, line in enumerate(text.splitlines(), 1):
+            if "noqa" in line and any(rule in line for rule in ("C901", "PLR0915", "E501")):
+                found.append(f"{name}:{number}: a noqa for length or complexity")
+    return found
+
+
+def test_no_module_or_function_is_longer_than_a_reader_takes_in() -> None:
+    assert oversized(_sources()) == []
+
+
+def test_the_size_check_finds_a_long_module_a_long_function_and_a_silenced_rule(tmp_path: Path) -> None:
+    long_module = tmp_path / "long.py"
+    long_module.write_text("x = 1\n" * (MAX_MODULE_LINES + 1))
+    long_function = tmp_path / "function.py"
+    long_function.write_text("def f() -> None:\n" + "    pass\n" * MAX_FUNCTION_LINES)
+    silenced = tmp_path / "silenced.py"
+    silenced.write_text("def g() -> None:  # noqa: C901\n    pass\n")
+    found = oversized([long_module, long_function, silenced], root=tmp_path)
+    assert [line.split(":")[0] for line in found] == ["long.py", "function.py", "silenced.py"]

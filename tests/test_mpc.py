@@ -11,9 +11,9 @@ from dynqos.common.config import ControlConfig, MpcConfig
 from dynqos.common.messages import Reference, State
 from dynqos.common.modes import ControlSource
 from dynqos.common.reference import ReferenceTrack
-from dynqos.edge.missions import Mission, load_waypoints
-from dynqos.edge.mpc import DroneController
-from dynqos.edge.mpc_problem import MpcProblem, SolveError, discretise
+from dynqos.edge.mpc.controller import DroneController
+from dynqos.edge.mpc.problem import MpcProblem, SolveError, discretise
+from dynqos.edge.planner.missions import Mission, load_waypoints
 from tests.closedloop import fly_circle
 
 

@@ -24,15 +24,9 @@ from dynqos.common.messages import (
     encode,
 )
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
-from dynqos.onboard.core import (
-    SETPOINT_PERIOD_NS,
-    STALE_STATE_NS,
-    FrameSent,
-    OnboardCore,
-    TickInput,
-    TickOutput,
-)
+from dynqos.onboard.core import SETPOINT_PERIOD_NS, STALE_STATE_NS, OnboardCore
 from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint
+from dynqos.onboard.tick import FrameSent, TickInput, TickOutput
 
 MS = 1_000_000
 QOS_MODES = ["dynamic", "default", "priority"]
@@ -161,7 +155,7 @@ def test_the_edge_flies_while_commands_come_and_the_watchdog_hands_over_in_time(
 
 @pytest.mark.parametrize("qos", QOS_MODES)
 def test_fc_silence_holds_position_keeps_the_stream_and_resumes(qos: str) -> None:
-    """The crash of wave 1: with a fixed flow, FC silence made a status the decoder refused."""
+    """The crash of an early version: with a fixed flow, FC silence made a status the decoder refused."""
     rig = Rig.make(qos)
     rig.run_until(ControlSource.EDGE, 4.0)
     rig.run(1.0)

@@ -30,9 +30,9 @@ from dynqos.common.messages import (
 from dynqos.common.modes import ControlSource, Flow
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, open_bus
-from dynqos.edge.assembler import FrameAssembler
-from dynqos.edge.detector import decode_depth
-from dynqos.report import reference_errors
+from dynqos.edge.detector.assembler import FrameAssembler
+from dynqos.edge.detector.circles import decode_depth
+from dynqos.reports.measures import reference_errors
 from tests.conftest import free_tcp_port
 from tests.procs import DynqosProcess
 from tests.test_vehicle_mavlink import free_udp_port
@@ -288,7 +288,7 @@ def test_onboard_speaks_sd_notify_ready_watchdog_and_stopping(tmp_path: Path) ->
 def test_fc_silence_in_every_qos_mode_holds_position_and_resumes_at_the_edge(
     loop: tuple[Path, ZenohConfig, dict[str, DynqosProcess]], qos: str
 ) -> None:
-    """Wave 1 crashed here with a fixed flow: the FC's silence became a status the decoder refused.
+    """An early version crashed here with a fixed flow: the FC's silence became a status the decoder refused.
 
     The vehicle (our own child) is paused by its pid for 2 s mid-flight: the daemon must keep running,
     report the hold in its status, keep the setpoint stream alive and hand control back to the edge."""

@@ -14,8 +14,8 @@ from dynqos.onboard.commands import CommandTracker
 from dynqos.onboard.monitors import CameraLatencyMonitor
 from dynqos.onboard.pid import CascadedPid
 from dynqos.onboard.risk import Spaciousness
-from dynqos.sim.px4 import MAIN_OFFBOARD, Setpoint
-from dynqos.sim.vehicle_model import VehicleModel
+from dynqos.sim.vehicle.model import VehicleModel
+from dynqos.sim.vehicle.px4 import MAIN_OFFBOARD, Setpoint
 
 MS = 1_000_000
 
@@ -177,3 +177,11 @@ def test_nan_and_infinite_setpoints_are_refused_by_the_decoder() -> None:
         body["accel_mps2"] = [[bad, 0.0, 0.0]]
         with pytest.raises(DecodeError, match=r"accel_mps2\[0\]"):
             decode(msgpack.packb(body, use_bin_type=True))
+
+
+def test_the_daemon_ticks_at_the_configured_setpoint_rate() -> None:
+    from dynqos.common.config import Config, ControlConfig
+    from dynqos.onboard.core import SETPOINT_PERIOD_NS, setpoint_period_ns
+
+    assert setpoint_period_ns(Config()) == SETPOINT_PERIOD_NS == 20_000_000
+    assert setpoint_period_ns(Config(control=ControlConfig(setpoint_hz=25.0))) == 40_000_000

@@ -36,9 +36,11 @@ def test_built_wheel_imports_every_component(tmp_path: Path) -> None:
     with zipfile.ZipFile(wheel) as archive:
         names = set(archive.namelist())
         archive.extractall(site)
-    for module in ("dynqos/cli.py", "dynqos/common/messages.py", "dynqos/onboard/__init__.py",
+    for module in ("dynqos/cli/main.py", "dynqos/common/messages.py", "dynqos/edge/qos/agent.py",
+                   "dynqos/sim/vehicle/mavlink.py", "dynqos/sim/network/cell.py",
+                   "dynqos/reports/summary.py", "dynqos/onboard/__init__.py",
                    "dynqos/edge/__init__.py", "dynqos/sim/__init__.py", "dynqos/py.typed",
-                   "dynqos/bench/suite.py", "dynqos/bench/zenoh_echo.py", "dynqos/faults.py",
+                   "dynqos/bench/suite.py", "dynqos/bench/zenoh_echo.py", "dynqos/experiment/faults.py",
                    "dynqos/scenarios/faults.toml", "dynqos/scenarios/soak.toml",
                    "dynqos/scenarios/bg-dynqos-hover.toml", "dynqos/profiles/paper.toml",
                    "dynqos/profiles/dynqos.toml", "dynqos/profiles/no-rate-adaptation.toml",
@@ -47,8 +49,8 @@ def test_built_wheel_imports_every_component(tmp_path: Path) -> None:
     code = (
         "import sys; sys.path.insert(0, sys.argv[1]);"
         "import dynqos.common.messages as m, dynqos.cli, dynqos.onboard, dynqos.edge, dynqos.sim;"
-        "import dynqos.bench.suite, dynqos.common.certs, dynqos.faults, dynqos.profile;"
-        "assert dynqos.profile.load_profile('paper').supervisor['cc_fast_window'] == 0;"
+        "import dynqos.bench.suite, dynqos.common.certs, dynqos.experiment.faults, dynqos.experiment.profile;"
+        "assert dynqos.experiment.profile.load_profile('paper').supervisor['cc_fast_window'] == 0;"
         "assert m.__file__.startswith(sys.argv[1]), m.__file__; print('ok')"
     )
     result = subprocess.run(

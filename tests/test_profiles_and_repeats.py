@@ -10,13 +10,13 @@ from typing import Any
 
 import pytest
 
-from dynqos.aggregate import aggregate, interval, repeated_summary
 from dynqos.common.config import SupervisorConfig, ZenohConfig
 from dynqos.common.errors import ConfigError
-from dynqos.figures import figure
-from dynqos.profile import DEFAULT_PROFILE, load_profile
-from dynqos.report_md import write_report
-from dynqos.scenario import builtin_scenario, scenario_config
+from dynqos.experiment.profile import DEFAULT_PROFILE, load_profile
+from dynqos.experiment.scenario import builtin_scenario, scenario_config
+from dynqos.reports.aggregate import aggregate, interval, repeated_summary
+from dynqos.reports.figures import figure
+from dynqos.reports.markdown import write_report
 from tests.procs import DYNQOS
 
 

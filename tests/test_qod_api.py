@@ -1,7 +1,8 @@
-"""The CAMARA QoD client (edge/qod_client.py) against the emulated operator (sim/qod.py, served by the
-cell's control API) over real HTTP on 127.0.0.1. Every request the client sends and every answer the
-emulator returns is checked against the schemas written from the spec (sim/qod_schema.py); what an
-operator may do that the emulator does not (throttle, fail, hang) comes from a scripted server."""
+"""The CAMARA QoD client (edge/qos/client.py) against the emulated operator (sim/network/operator.py,
+served by the cell's control API) over real HTTP on 127.0.0.1. Every request the client sends and every
+answer the emulator returns is checked against the schemas written from the spec
+(sim/network/operator_schema.py); what an operator may do that the emulator does not (throttle, fail,
+hang) comes from a scripted server."""
 
 from __future__ import annotations
 
@@ -19,9 +20,9 @@ import pytest
 from aiohttp import web
 
 from dynqos.common.config import CamaraConfig, CellConfig, ZenohConfig
-from dynqos.edge.qod_client import QodClient, QodError
-from dynqos.sim import qod_schema as schema
-from dynqos.sim.cell import run_cell
+from dynqos.edge.qos.client import QodClient, QodError
+from dynqos.sim.network import operator_schema as schema
+from dynqos.sim.network.service import run_cell
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
@@ -40,15 +41,21 @@ def session_body(**changes: Any) -> dict[str, Any]:
     return body | changes
 
 
-def check(  # noqa: C901 (one case per route)
-    method: str, path: str, sent: Any, status: int, answer: Any, *, requests: bool = True
-) -> None:
+# Which schemas an exchange must fit: (method, how the route is matched, the request's, the answer's and
+# the status the answer schema applies to)
+ROUTES: list[tuple[str, Callable[[str], bool], str | None, str | None, int]] = [
+    ("POST", lambda r: r == "/sessions", "CREATE_SESSION", "SESSION_INFO", 201),
+    ("POST", lambda r: r.endswith("/extend"), "EXTEND_SESSION", "SESSION_INFO", 200),
+    ("POST", lambda r: r == "/retrieve-sessions", "RETRIEVE_SESSIONS", "RETRIEVE_SESSIONS_OUTPUT", 200),
+    ("GET", lambda r: True, None, "SESSION_INFO", 200),
+]
+
+
+def check(method: str, path: str, sent: Any, status: int, answer: Any, *, requests: bool = True) -> None:
     """One exchange against the spec's schemas (`requests`: the request too); raises AssertionError naming
     the violation."""
 
     def fits(name: str, value: Any) -> None:
-        if name in ("CREATE_SESSION", "EXTEND_SESSION", "RETRIEVE_SESSIONS") and not requests:
-            return
         problem = schema.problem(getattr(schema, name), value)
         assert problem is None, f"{method} {path} -> {status}: {name}: {problem}\n{json.dumps(value)[:600]}"
 
@@ -58,23 +65,17 @@ def check(  # noqa: C901 (one case per route)
     if status >= 400:
         fits("ERROR_INFO", answer)
         assert answer["status"] == status
-    if method == "POST" and route == "/sessions":
-        fits("CREATE_SESSION", sent)
-        if status == 201:
-            fits("SESSION_INFO", answer)
-    elif method == "POST" and route.endswith("/extend"):
-        fits("EXTEND_SESSION", sent)
-        if status == 200:
-            fits("SESSION_INFO", answer)
-    elif method == "POST" and route == "/retrieve-sessions":
-        fits("RETRIEVE_SESSIONS", sent)
-        if status == 200:
-            fits("RETRIEVE_SESSIONS_OUTPUT", answer)
-    elif method == "GET" and status == 200:
-        fits("SESSION_INFO", answer)
-    elif method == "DELETE":
+    if method == "DELETE":
         assert status in (204, 404), status
         assert status == 404 or answer is None
+        return
+    for verb, matches, request_schema, answer_schema, ok in ROUTES:
+        if verb == method and matches(route):
+            if request_schema is not None and requests:
+                fits(request_schema, sent)
+            if answer_schema is not None and status == ok:
+                fits(answer_schema, answer)
+            return
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""The QoS agent's per-drone rules (edge/qos_grants.py) on a fake clock: what call is due, what the
+"""The QoS agent's per-drone rules (edge/qos/grants.py) on a fake clock: what call is due, what the
 drone is told."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 from dynqos.common.clock import NS_PER_S
 from dynqos.common.config import CamaraConfig, QosConfig
 from dynqos.common.modes import Grant
-from dynqos.edge.qos_grants import DroneGrant, Op, QodStatus, Session
+from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
 
 S = NS_PER_S
 CAMARA = QosConfig(

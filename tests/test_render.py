@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from dynqos.common.errors import ConfigError
-from dynqos.sim.dynamics import quat_to_rot
-from dynqos.sim.render import DepthNoise, Intrinsics, Renderer
-from dynqos.sim.world import Arena, Box, Hoop, World, default_world, load_world
+from dynqos.sim.vehicle.dynamics import quat_to_rot
+from dynqos.sim.vehicle.render import DepthNoise, Intrinsics, Renderer
+from dynqos.sim.vehicle.world import Arena, Box, Hoop, World, default_world, load_world
 
 
 def yaw_rot(yaw: float) -> np.ndarray:

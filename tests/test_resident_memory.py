@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from dynqos.processes import resident_memory
-from dynqos.report import memory_figures
+from dynqos.experiment.processes import resident_memory
+from dynqos.reports.summary import memory_figures
 
 MB = 1024  # kB
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from dynqos.onboard.risk import Spaciousness
-from dynqos.sim.dynamics import quat_to_rot
-from dynqos.sim.render import Renderer
-from dynqos.sim.world import Arena, World, default_world
+from dynqos.sim.vehicle.dynamics import quat_to_rot
+from dynqos.sim.vehicle.render import Renderer
+from dynqos.sim.vehicle.world import Arena, World, default_world
 
 KINECT = (518.0, 519.0, 325.5, 253.5)
 

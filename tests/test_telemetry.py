@@ -1,4 +1,4 @@
-"""dynqos messages as Foxglove channels (dynqos/telemetry.py): each conversion decoded back with the
+"""dynqos messages as Foxglove channels (dynqos/observers/telemetry.py): each conversion decoded back with the
 schema the channel advertises (protobuf for Foxglove's well-known schemas, JSON schema for dynqos's
 own), so a wrong field or frame is seen as a wrong value."""
 
@@ -18,8 +18,8 @@ from dynqos.common.messages import (
     State,
     SupervisorStatus,
 )
-from dynqos.sim.world import default_world
-from dynqos.telemetry import JSON_SCHEMAS, Telemetry, frames, json_schema_for, world_scene
+from dynqos.observers.telemetry import JSON_SCHEMAS, Telemetry, frames, json_schema_for, world_scene
+from dynqos.sim.vehicle.world import default_world
 
 pb = pytest.importorskip("google.protobuf")
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
@@ -141,10 +141,12 @@ def test_the_shipped_foxglove_layout_is_current_and_reads_only_what_is_published
     import re
     from pathlib import Path
 
-    from dynqos.layout import layout_json
+    from dynqos.observers.layout import layout_json
 
     shipped = (Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json").read_text()
-    assert shipped == layout_json(), "docs/foxglove-layout.json is stale: python -m dynqos.layout > it"
+    assert shipped == layout_json(), (
+        "docs/foxglove-layout.json is stale: python -m dynqos.observers.layout > it"
+    )
     text = json.dumps(json.loads(shipped))
     telemetry = Telemetry()
     published = {"/tf", "/world", "/log"}

@@ -18,8 +18,8 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from dynqos.common.geometry import yaw_of
+from dynqos.experiment.processes import free_port
 from dynqos.onboard.fclink import IGNORE_YAW, POSITION_AND_YAW_MASK, FcLink
-from dynqos.processes import free_port
 from tests.procs import DYNQOS, DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from dynqos.common.config import VehicleSimConfig
-from dynqos.sim.dynamics import QuadState, quat_to_rot, rot_to_quat, yaw_of
-from dynqos.sim.px4 import MAIN_AUTO, MAIN_OFFBOARD, SUB_AUTO_LOITER, Mode, Result, Setpoint
-from dynqos.sim.vehicle_model import VehicleModel
+from dynqos.sim.vehicle.dynamics import QuadState, quat_to_rot, rot_to_quat, yaw_of
+from dynqos.sim.vehicle.model import VehicleModel
+from dynqos.sim.vehicle.px4 import MAIN_AUTO, MAIN_OFFBOARD, SUB_AUTO_LOITER, Mode, Result, Setpoint
 
 SETPOINT_S = 0.02
 
@@ -161,7 +161,7 @@ def test_rotation_helpers_round_trip() -> None:
 
 
 def test_world_collision_names_what_a_sphere_touches() -> None:
-    from dynqos.sim.world import Box, Cylinder, Hoop, World, collision
+    from dynqos.sim.vehicle.world import Box, Cylinder, Hoop, World, collision
 
     world = World(
         boxes=(Box(min_m=(1.0, 1.0, -1.0), max_m=(2.0, 2.0, 0.0)),),

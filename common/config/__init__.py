@@ -1,0 +1,65 @@
+"""Configuration: TOML files loaded into frozen, typed dataclasses, one section per table.
+
+The sections live by concern (`network.py`: drone, zenoh, cell, vehicle, metrics; `control.py`:
+supervisor, control, MPC, planner, detector, onboard; `qos.py`: the QoS agent, its operator and its
+arbiter); `loader.py` holds the whole `Config`, the TOML loader with its overrides and the writer.
+Everything is imported from here: `from dynqos.common.config import Config, load_config`.
+"""
+
+from dynqos.common.config.control import (
+    ControlConfig,
+    DetectorConfig,
+    DroneMissionConfig,
+    MpcConfig,
+    OnboardConfig,
+    PlannerConfig,
+    SupervisorConfig,
+)
+from dynqos.common.config.loader import (
+    Config,
+    build,
+    environment_overrides,
+    load_config,
+    to_dict,
+    to_toml,
+)
+from dynqos.common.config.network import (
+    BackgroundConfig,
+    BearerConfig,
+    CellConfig,
+    CellEventConfig,
+    DroneConfig,
+    MetricsConfig,
+    VehicleSimConfig,
+    ZenohConfig,
+)
+from dynqos.common.config.qos import ArbiterConfig, CamaraConfig, DeviceConfig, DeviceIpv4Config, QosConfig
+
+__all__ = [
+    "ArbiterConfig",
+    "BackgroundConfig",
+    "BearerConfig",
+    "CamaraConfig",
+    "CellConfig",
+    "CellEventConfig",
+    "Config",
+    "ControlConfig",
+    "DetectorConfig",
+    "DeviceConfig",
+    "DeviceIpv4Config",
+    "DroneConfig",
+    "DroneMissionConfig",
+    "MetricsConfig",
+    "MpcConfig",
+    "OnboardConfig",
+    "PlannerConfig",
+    "QosConfig",
+    "SupervisorConfig",
+    "VehicleSimConfig",
+    "ZenohConfig",
+    "build",
+    "environment_overrides",
+    "load_config",
+    "to_dict",
+    "to_toml",
+]

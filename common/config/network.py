@@ -1,0 +1,278 @@
+"""Config sections of the network and the stand-ins: [drone], [zenoh], [cell] (bearers, background users,
+timeline events), [vehicle] and [metrics]."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+from dynqos.common.acl import reserved_name
+from dynqos.common.config.validate import _host_port, _require
+from dynqos.common.errors import ConfigError, KeyExprError
+from dynqos.common.keys import UAV_ID_PATTERN, check_uav_id
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DroneConfig:
+    id: str = "uav1"
+
+    def __post_init__(self) -> None:
+        try:
+            check_uav_id(self.id)
+        except KeyExprError as exc:
+            raise ConfigError("id", str(exc)) from None
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ZenohConfig:
+    """How sessions reach the edge router. The two flows are two links to two router ports."""
+
+    edge_host: str = "127.0.0.1"
+    default_port: int = 7447
+    priority_port: int = 7448
+    router_listen_host: str = "127.0.0.1"
+    max_links: int = 4
+    shared_memory: bool = False
+    priority_dscp: int = 0xB8
+    bulk_sndbuf_bytes: int = 65536
+    connect_timeout_s: float = 5.0
+    # Production: mutual TLS on both flows, and on the router an access-control policy by certificate
+    # common name (drone id; edge-mpc, edge-planner, edge-detector, edge-qos for the edge services).
+    # See docs/security.md and `dynqos certs`.
+    tls: bool = False
+    tls_ca: str = ""  # the CA that signed every certificate (PEM)
+    tls_cert: str = ""  # this process's certificate (PEM); CN = drone id, edge-<service> or "router"
+    tls_key: str = ""  # its private key (PEM)
+    acl_drones: tuple[str, ...] = ()  # router: the drone ids let in (each to its own keys only)
+    # router with tls: "on" refuses to start without acl_drones (fail closed); "off" runs TLS with no
+    # access control at all (every certificate from the CA may do anything), and says so loudly.
+    acl: str = "on"
+
+    def __post_init__(self) -> None:
+        _require(bool(self.edge_host.strip()), "edge_host", "must not be empty")
+        _require(bool(self.router_listen_host.strip()), "router_listen_host", "must not be empty")
+        for name in ("default_port", "priority_port"):
+            _require(1 <= getattr(self, name) <= 65535, name, "must be a TCP port in 1..65535")
+        _require(self.default_port != self.priority_port, "priority_port", "must differ from default_port")
+        _require(2 <= self.max_links <= 64, "max_links", "must be in 2..64 (two flows need two links)")
+        _require(0 <= self.priority_dscp <= 0xFF, "priority_dscp", "must be a TOS byte in 0..255")
+        _require(
+            self.bulk_sndbuf_bytes == 0 or 4096 <= self.bulk_sndbuf_bytes <= 64 * 1024 * 1024,
+            "bulk_sndbuf_bytes",
+            "must be 0 (kernel default) or 4096..67108864",
+        )
+        _require(0.1 <= self.connect_timeout_s <= 600, "connect_timeout_s", "must be in 0.1..600 s")
+        if self.tls:
+            for name in ("tls_ca", "tls_cert", "tls_key"):
+                _require(bool(getattr(self, name)), name, "must name a PEM file when tls = true")
+        for uav in self.acl_drones:
+            _require(UAV_ID_PATTERN.fullmatch(uav) is not None, "acl_drones", f"{uav!r} is not a drone id")
+            _require(not reserved_name(uav), "acl_drones", f"{uav!r} names an edge identity, not a drone")
+        _require(not self.acl_drones or self.tls, "acl_drones", "access control needs tls = true")
+        _require(self.acl in ("on", "off"), "acl", f'must be "on" or "off", got {self.acl!r}')
+        _require(
+            not (self.acl == "off" and self.acl_drones),
+            "acl",
+            'is "off" but acl_drones lists drones: say which you mean',
+        )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BearerConfig:
+    """One bearer (QoS flow) of the emulated cell: a TCP listener forwarding to an edge router port."""
+
+    name: str
+    target: str
+    listen_port: int = 0  # 0: any free port, reported on the emulator's ready line
+    weight: float = 1.0
+    ue_buffer_bytes: int = 0  # 0: the cell's ue_buffer_bytes
+    # The drone whose UE this bearer belongs to ("" = none). With [cell] qod = true a bearer of a drone
+    # has its `weight` only while a QoD session for that drone's device and this bearer's target port
+    # is AVAILABLE, and weight 1 otherwise (docs/qos.md).
+    ue: str = ""
+
+    def __post_init__(self) -> None:
+        _require(not self.ue or UAV_ID_PATTERN.fullmatch(self.ue) is not None, "ue", "must be a drone id")
+        _require(bool(self.name) and self.name.replace("-", "").replace("_", "").isalnum(), "name",
+                 "must be letters, digits, - or _")  # fmt: skip
+        _host_port(self.target, "target")
+        _require(0 <= self.listen_port <= 65535, "listen_port", "must be 0..65535")
+        _require(0 < self.weight <= 1000 and math.isfinite(self.weight), "weight", "must be in (0, 1000]")
+        _require(0 <= self.ue_buffer_bytes <= 1 << 30, "ue_buffer_bytes", "must be 0..1 GiB")
+
+    @property
+    def target_host_port(self) -> tuple[str, int]:
+        return _host_port(self.target, "target")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BackgroundConfig:
+    """A virtual background user: it takes capacity at its offered rate; no bytes move."""
+
+    name: str
+    weight: float = 1.0
+    offered_mbps: float = 0.0
+
+    def __post_init__(self) -> None:
+        _require(bool(self.name), "name", "must not be empty")
+        _require(0 < self.weight <= 1000, "weight", "must be in (0, 1000]")
+        _require(0 <= self.offered_mbps <= 1e5, "offered_mbps", "must be in 0..100000")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CellEventConfig:
+    """A timeline event; which fields it needs depends on `kind` (see docs/cell.md)."""
+
+    at_s: float
+    kind: Literal["background", "capacity", "trace", "coverage_loss", "downlink_loss", "weight", "qod_end"]
+    user: str = ""  # background: which background user
+    bearer: str = ""  # weight: which bearer; coverage_loss with drop_connections: "" = all
+    offered_mbps: float = -1.0  # background
+    uplink_mbps: float = -1.0  # capacity
+    file: str = ""  # trace: a Mahimahi uplink trace; "" ends trace-driven capacity
+    mean_mbps: float = 0.0  # trace: rescale to this mean (0: as recorded)
+    duration_s: float = 0.0  # coverage_loss, downlink_loss
+    drop_connections: bool = False  # coverage_loss: also reset the TCP connections
+    weight: float = 0.0  # weight
+    uav: str = ""  # qod_end: whose QoD sessions the network ends ("" = every drone's)
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.at_s <= 86400, "at_s", "must be in 0..86400 s")
+        if self.kind == "background":
+            _require(bool(self.user), "user", "a background event names its background user")
+            _require(
+                0 <= self.offered_mbps <= 1e5, "offered_mbps", "a background event needs offered_mbps >= 0"
+            )
+        elif self.kind == "capacity":
+            _require(0 <= self.uplink_mbps <= 1e5, "uplink_mbps", "a capacity event needs uplink_mbps >= 0")
+        elif self.kind in ("coverage_loss", "downlink_loss"):
+            _require(0 < self.duration_s <= 3600, "duration_s", f"a {self.kind} event needs duration_s > 0")
+        elif self.kind == "weight":
+            _require(bool(self.bearer), "bearer", "a weight event names its bearer")
+            _require(0 < self.weight <= 1000, "weight", "a weight event needs a weight in (0, 1000]")
+        if self.kind == "trace":
+            _require(self.mean_mbps >= 0, "mean_mbps", "must be >= 0")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CellConfig:
+    """The emulated 5G cell (docs/cell.md). `scale` divides every rate."""
+
+    uplink_mbps: float = 81.3
+    downlink_mbps: float = 1400.0
+    tti_ms: float = 1.0
+    base_delay_up_ms: float = 10.0
+    base_delay_down_ms: float = 10.0
+    jitter_ms: float = 0.5
+    scale: float = 1.0
+    ue_buffer_bytes: int = 1_000_000
+    listen_host: str = "127.0.0.1"
+    default_listen_port: int = 17447
+    priority_listen_port: int = 17448
+    priority_weight: float = 4.0
+    record_interval_s: float = 0.1
+    control_port: int = -1  # -1: no control API; 0: any free port
+    # The cell as an operator (docs/qos.md): with qod = true a drone's priority bearer gets its weight only
+    # while a CAMARA Quality-on-Demand session grants it (the control port serves the QoD API); false is a
+    # network with a static policy for the priority port (the `links` backend's assumption).
+    qod: bool = False
+    qod_max_sessions: int = -1  # sessions AVAILABLE at once (-1: no limit; 0: the operator grants none)
+    qod_setup_s: float = 0.05  # REQUESTED -> AVAILABLE (or UNAVAILABLE when refused) after this long
+    qod_max_duration_s: int = 86400  # a session's duration (with extensions) is capped here
+    qod_profiles: tuple[str, ...] = ("QOS_E", "QOS_S", "QOS_M", "QOS_L")  # what the operator offers
+    qod_auth: bool = False  # require OAuth2 client-credential tokens ([qos.camara] client_id/secret file)
+    qod_token_ttl_s: float = 3600.0
+    trace: str = ""
+    trace_mean_mbps: float = 0.0
+    seed: int = 0
+    bearers: tuple[BearerConfig, ...] = ()  # empty: the drone's two flows (see bearer_list)
+    background: tuple[BackgroundConfig, ...] = (BackgroundConfig(name="bg"),)
+    events: tuple[CellEventConfig, ...] = ()
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.uplink_mbps <= 1e5, "uplink_mbps", "must be in 0..100000")
+        _require(0 < self.downlink_mbps <= 1e6, "downlink_mbps", "must be in (0, 1000000]")
+        _require(0.1 <= self.tti_ms <= 100, "tti_ms", "must be in 0.1..100 ms")
+        for name in ("base_delay_up_ms", "base_delay_down_ms", "jitter_ms"):
+            _require(0 <= getattr(self, name) <= 10_000, name, "must be in 0..10000 ms")
+        _require(0 < self.scale <= 1e4, "scale", "must be in (0, 10000]")
+        _require(1500 <= self.ue_buffer_bytes <= 1 << 30, "ue_buffer_bytes", "must be 1500..1 GiB")
+        _require(bool(self.listen_host), "listen_host", "must not be empty")
+        for name in ("default_listen_port", "priority_listen_port"):
+            _require(0 <= getattr(self, name) <= 65535, name, "must be 0..65535")
+        _require(0 < self.priority_weight <= 1000, "priority_weight", "must be in (0, 1000]")
+        _require(0.01 <= self.record_interval_s <= 60, "record_interval_s", "must be in 0.01..60 s")
+        _require(-1 <= self.control_port <= 65535, "control_port", "must be -1 (off), 0 (any) or a port")
+        _require(self.trace_mean_mbps >= 0, "trace_mean_mbps", "must be >= 0")
+        _require(self.qod_max_sessions >= -1, "qod_max_sessions", "must be -1 (no limit) or >= 0")
+        _require(0 <= self.qod_setup_s <= 60, "qod_setup_s", "must be in 0..60 s")
+        _require(1 <= self.qod_max_duration_s <= 10**7, "qod_max_duration_s", "must be in 1..10000000 s")
+        _require(1 <= self.qod_token_ttl_s <= 86400, "qod_token_ttl_s", "must be in 1..86400 s")
+        names = [b.name for b in self.bearers]
+        _require(len(set(names)) == len(names), "bearers", "bearer names must be unique")
+        users = [b.name for b in self.background]
+        _require(len(set(users)) == len(users), "background", "background user names must be unique")
+        for i, event in enumerate(self.events):
+            if event.kind == "background" and event.user not in users:
+                raise ConfigError(
+                    f"events[{i}].user", f"unknown background user {event.user!r} (known: {users})"
+                )
+
+    def bearer_list(self, zenoh: ZenohConfig, uav: str) -> tuple[BearerConfig, ...]:
+        """The configured bearers, or the drone's default and priority flows to the edge router."""
+        if self.bearers:
+            return self.bearers
+        host = zenoh.edge_host
+        return (
+            BearerConfig(name=f"{uav}-default", target=f"{host}:{zenoh.default_port}",
+                         listen_port=self.default_listen_port, weight=1.0, ue=uav),
+            BearerConfig(name=f"{uav}-priority", target=f"{host}:{zenoh.priority_port}",
+                         listen_port=self.priority_listen_port, weight=self.priority_weight, ue=uav),
+        )  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class VehicleSimConfig:
+    """`dynqos sim vehicle`: the simulated quadrotor's MAVLink links (PX4 SITL's ports) and world."""
+
+    host: str = "127.0.0.1"
+    offboard_bind_port: int = 14580
+    offboard_remote_port: int = 14540
+    gcs_bind_port: int = 18570
+    gcs_remote_port: int = 14550
+    speed: float = 1.0
+    wind_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gust_std_mps: float = 0.0
+    gust_tau_s: float = 2.0  # the gusts' correlation time
+    seed: int = 0
+    takeoff_alt_m: float = 2.5
+    offboard_loss_s: float = 1.0
+    lockstep: bool = False  # advance 20 ms per answer from the offboard peer instead of real time
+    world_file: str = ""  # TOML/JSON world for contact checks; "" = the default arena
+    start_m: tuple[float, float] = (0.0, 0.0)  # where it stands before take-off (north, east), local NED
+
+    def __post_init__(self) -> None:
+        for name in ("offboard_bind_port", "offboard_remote_port", "gcs_bind_port", "gcs_remote_port"):
+            _require(0 <= getattr(self, name) <= 65535, name, "must be 0..65535 (0: any free port)")
+        _require(0.01 <= self.speed <= 100, "speed", "must be in 0.01..100 (x real time)")
+        _require(all(abs(w) <= 30 for w in self.wind_mps), "wind_mps", "components must be within 30 m/s")
+        _require(0 <= self.gust_std_mps <= 10, "gust_std_mps", "must be in 0..10 m/s")
+        _require(0.05 <= self.gust_tau_s <= 600, "gust_tau_s", "must be in 0.05..600 s")
+        _require(0.5 <= self.takeoff_alt_m <= 100, "takeoff_alt_m", "must be in 0.5..100 m")
+        _require(0.1 <= self.offboard_loss_s <= 60, "offboard_loss_s", "must be in 0.1..60 s (COM_OF_LOSS_T)")
+        _require(all(abs(c) <= 1e4 for c in self.start_m), "start_m", "must be within 10 km of the origin")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MetricsConfig:
+    """Prometheus metrics and a health endpoint of a long-running process (docs/observability.md)."""
+
+    port: int = 0  # /metrics and /healthz on this TCP port; 0 = off (the default, the drone's too)
+    host: str = "127.0.0.1"  # where they listen; 0.0.0.0 in a pod, so that Prometheus can scrape it
+    stale_after_s: float = 30.0  # /healthz answers 503 when the last health line is older than this
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.port <= 65535, "port", "must be 0 (off) or a TCP port in 1..65535")
+        _require(bool(self.host.strip()), "host", "must not be empty")
+        _require(1.0 <= self.stale_after_s <= 3600, "stale_after_s", "must be in 1..3600 s")

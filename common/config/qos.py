@@ -1,0 +1,175 @@
+"""Config sections of the QoS agent: [qos], [qos.camara] with the drones' device identities, and
+[qos.arbiter]."""
+
+from __future__ import annotations
+
+import ipaddress
+import re
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+from dynqos.common.config.validate import _host_port, _require
+from dynqos.common.errors import ConfigError
+from dynqos.common.keys import UAV_ID_PATTERN
+
+_PHONE_NUMBER = re.compile(r"\+[1-9][0-9]{4,14}")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DeviceIpv4Config:
+    """CAMARA DeviceIpv4Addr: the public address, with the private address or the public port."""
+
+    publicAddress: str = ""
+    privateAddress: str = ""
+    publicPort: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("publicAddress", "privateAddress"):
+            value = getattr(self, name)
+            if value:
+                try:
+                    ipaddress.IPv4Address(value)
+                except ValueError:
+                    raise ConfigError(name, f"{value!r} is not an IPv4 address") from None
+        _require(0 <= self.publicPort <= 65535, "publicPort", "must be a port in 1..65535 (0: not given)")
+        if self.privateAddress or self.publicPort:
+            _require(
+                bool(self.publicAddress), "publicAddress", "is required with privateAddress or publicPort"
+            )
+        if self.publicAddress:
+            _require(bool(self.privateAddress or self.publicPort), "publicAddress",
+                     "needs privateAddress or publicPort as well (CAMARA DeviceIpv4Addr)")  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DeviceConfig:
+    """A drone's identity on the operator's network: a CAMARA `device` object (at least one identifier)."""
+
+    phoneNumber: str = ""
+    networkAccessIdentifier: str = ""
+    ipv4Address: DeviceIpv4Config = field(default_factory=DeviceIpv4Config)
+    ipv6Address: str = ""
+
+    def __post_init__(self) -> None:
+        if self.phoneNumber:
+            _require(_PHONE_NUMBER.fullmatch(self.phoneNumber) is not None, "phoneNumber",
+                     f"{self.phoneNumber!r} is not E.164 with a leading + (e.g. +46700000001)")  # fmt: skip
+        if self.ipv6Address:
+            try:
+                ipaddress.IPv6Address(self.ipv6Address)
+            except ValueError:
+                raise ConfigError("ipv6Address", f"{self.ipv6Address!r} is not an IPv6 address") from None
+        ids = "phoneNumber, ipv4Address, ipv6Address, networkAccessIdentifier"
+        _require(bool(self.as_api()), "device", f"needs at least one of {ids}")
+
+    def as_api(self) -> dict[str, Any]:
+        """The CAMARA `device` object: only the identifiers given."""
+        out: dict[str, Any] = {}
+        if self.phoneNumber:
+            out["phoneNumber"] = self.phoneNumber
+        if self.networkAccessIdentifier:
+            out["networkAccessIdentifier"] = self.networkAccessIdentifier
+        ipv4 = {k: v for k, v in asdict(self.ipv4Address).items() if v}
+        if ipv4:
+            out["ipv4Address"] = ipv4
+        if self.ipv6Address:
+            out["ipv6Address"] = self.ipv6Address
+        return out
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CamaraConfig:
+    """[qos.camara]: a CAMARA Quality-on-Demand API (v1.1.0) the agent asks for QoS sessions."""
+
+    api_root: str = ""  # e.g. https://api.operator.example/quality-on-demand/v1
+    token_url: str = ""  # OAuth2 token endpoint for client credentials ("" = no token)
+    client_id: str = ""
+    client_secret_file: str = ""  # a file holding the client secret (never the secret itself)
+    qos_profile: str = "QOS_E"
+    duration_s: int = 600  # requested per session; extended while priority is still wanted
+    extend_before_s: float = 30.0  # extend when the session has less than this left
+    # A session the operator capped (an extend did not move its end) is replaced this long before it ends
+    renew_before_s: float = 2.0
+    application_server: str = ""  # the edge address the network sees ("" = [zenoh] edge_host)
+    sink: str = ""  # notifications URL given to the operator ("" = polling only)
+    sink_listen: str = ""  # host:port the agent serves that URL on ("" = no listener)
+    poll_interval_s: float = 0.2  # how often a REQUESTED session is read until it settles
+    timeout_s: float = 2.0  # every HTTP call ends within this
+    retry_after_denied_s: float = 10.0  # a denied drone asks again after this (doubling, up to 8x)
+    devices: dict[str, DeviceConfig] = field(default_factory=dict)  # drone id -> its device
+
+    def __post_init__(self) -> None:
+        for name in ("api_root", "token_url", "sink"):
+            url = getattr(self, name)
+            _require(not url or url.startswith(("http://", "https://")), name, "must be an http(s) URL")
+        _require(len(self.qos_profile) >= 3 and re.fullmatch(r"[A-Za-z0-9_.-]{3,256}", self.qos_profile)
+                 is not None, "qos_profile", "must be 3..256 of A-Z a-z 0-9 _ . -")  # fmt: skip
+        _require(1 <= self.duration_s <= 10**7, "duration_s", "must be in 1..10000000 s")
+        _require(0 <= self.extend_before_s < self.duration_s, "extend_before_s", "must be in 0..duration_s")
+        _require(0 <= self.renew_before_s < self.duration_s, "renew_before_s", "must be in 0..duration_s")
+        _require(0.01 <= self.poll_interval_s <= 60, "poll_interval_s", "must be in 0.01..60 s")
+        _require(0.05 <= self.timeout_s <= 60, "timeout_s", "must be in 0.05..60 s")
+        _require(0.1 <= self.retry_after_denied_s <= 3600, "retry_after_denied_s", "must be in 0.1..3600 s")
+        if self.sink_listen:
+            _host_port(self.sink_listen, "sink_listen")
+        if self.token_url:
+            _require(bool(self.client_id), "client_id", "is required with token_url")
+            _require(bool(self.client_secret_file), "client_secret_file", "is required with token_url")
+        for uav in self.devices:
+            _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"devices.{uav}", "is not a drone id")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ArbiterConfig:
+    """[qos.arbiter]: the budget and the timers of `policy = "arbiter"` (edge/qos/arbiter.py,
+    docs/fleet.md)."""
+
+    max_grants: int = -1  # at most this many drones hold priority at once (-1: no limit by count)
+    max_share: float = 1.0  # ...and together offer at most this share of uplink_mbps (1: no limit)
+    uplink_mbps: float = 0.0  # the cell's uplink the share is of (what the operator contracts)
+    min_hold_s: float = 3.0  # a grant is revoked for higher latency alone only after this long
+    rotate_after_s: float = 30.0  # drones of equal need take turns this often
+
+    def __post_init__(self) -> None:
+        _require(-1 <= self.max_grants <= 10_000, "max_grants", "must be -1 (no limit) or 0..10000")
+        _require(0 < self.max_share <= 1, "max_share", "must be in (0, 1]")
+        _require(0 <= self.uplink_mbps <= 1e6, "uplink_mbps", "must be in 0..1000000 Mbit/s")
+        _require(self.max_share == 1 or self.uplink_mbps > 0, "uplink_mbps",
+                 "is required (> 0) when max_share is below 1")  # fmt: skip
+        _require(0 <= self.min_hold_s <= 3600, "min_hold_s", "must be in 0..3600 s")
+        _require(0.1 <= self.rotate_after_s <= 3600, "rotate_after_s", "must be in 0.1..3600 s")
+        _require(self.rotate_after_s >= self.min_hold_s, "rotate_after_s", "must be at least min_hold_s")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class QosConfig:
+    """[qos]: how the network is asked for the priority flow (`dynqos edge qos`, docs/qos.md)."""
+
+    backend: Literal["links", "camara"] = "links"
+    hold_down_s: float = 5.0  # release a session only after the drone left priority this long
+    request_interval_s: float = 1.0  # the drone repeats its request this often
+    drone_timeout_s: float = 5.0  # the agent treats a drone it has not heard from this long as gone
+    agent_timeout_s: float = 3.0  # the drone reports "no agent" after this long without a grant
+    grant_interval_s: float = 1.0  # the agent repeats each drone's grant this often
+    health_interval_s: float = 5.0
+    # Who gets priority: every drone that asks, or (arbiter) the neediest within [qos.arbiter]'s budget.
+    policy: Literal["grant-all", "arbiter"] = "grant-all"
+    camara: CamaraConfig = field(default_factory=CamaraConfig)
+    arbiter: ArbiterConfig = field(default_factory=ArbiterConfig)
+
+    def __post_init__(self) -> None:
+        for name in ("hold_down_s", "request_interval_s", "drone_timeout_s", "agent_timeout_s",
+                     "grant_interval_s", "health_interval_s"):  # fmt: skip
+            _require(0 <= getattr(self, name) <= 3600, name, "must be in 0..3600 s")
+        _require(self.request_interval_s >= 0.05, "request_interval_s", "must be >= 0.05 s")
+        _require(self.grant_interval_s >= 0.05, "grant_interval_s", "must be >= 0.05 s")
+        _require(self.drone_timeout_s > self.request_interval_s, "drone_timeout_s",
+                 "must exceed request_interval_s")  # fmt: skip
+        _require(self.agent_timeout_s > self.grant_interval_s, "agent_timeout_s",
+                 "must exceed grant_interval_s")  # fmt: skip
+        if self.backend == "camara":
+            _require(bool(self.camara.api_root), "camara.api_root", 'is required with backend = "camara"')
+        # With links the network prioritises whoever uses the priority port: a revoked grant could not
+        # be taken back, so the arbiter's budget would be a wish.
+        _require(self.policy != "arbiter" or self.backend == "camara", "policy",
+                 'the arbiter needs backend = "camara" (a network that enforces its grants)')  # fmt: skip

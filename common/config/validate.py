@@ -1,0 +1,17 @@
+"""The checks every config section runs on its values: one ConfigError naming the key and the reason."""
+
+from __future__ import annotations
+
+from dynqos.common.errors import ConfigError
+
+
+def _require(condition: bool, key: str, reason: str) -> None:
+    if not condition:
+        raise ConfigError(key, reason)
+
+
+def _host_port(text: str, key: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    _require(bool(sep and host), key, f"{text!r} is not host:port")
+    _require(port.isdigit() and 1 <= int(port) <= 65535, key, f"{text!r}: port must be 1..65535")
+    return host.strip("[]"), int(port)

@@ -1,0 +1,98 @@
+"""`dynqos edge SERVICE` and `dynqos onboard`: the two halves of the loop, each from its own `run`."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+from dynqos.cli.options import (
+    Commands,
+    common_options,
+    described,
+    metrics_options,
+    path_or_none,
+    with_metrics,
+)
+from dynqos.common.config import Config
+
+SERVICES = {  # name -> (its module, what it does)
+    "router": (
+        "dynqos.edge.router",
+        "the zenoh router, listening on the default-flow (7447) and priority-flow (7448) ports",
+    ),
+    "mpc": (
+        "dynqos.edge.mpc.service",
+        "the MPC position controller: one OSQP controller per drone, answering each State with a Command",
+    ),
+    "planner": (
+        "dynqos.edge.planner.service",
+        "the mission planner: publishes each drone's reference trajectory ([planner] config)",
+    ),
+    "detector": (
+        "dynqos.edge.detector.service",
+        "the circle detector: acks every camera frame, detects circles in RGB, locates them with depth",
+    ),
+    "qos": (
+        "dynqos.edge.qos.agent",
+        "the QoS agent: turns the drones' requests for priority into what the network needs ([qos] "
+        "backend: links, or camara for CAMARA Quality-on-Demand sessions; docs/qos.md)",
+    ),
+}
+ROUTER = (
+    "Listens on [zenoh] router_listen_host (loopback by default), one port per flow; with tls = true it "
+    "takes only mutual-TLS sessions and applies the access control of [zenoh] acl_drones."
+)
+CLIENT = "Connects to the router at [zenoh] edge_host:default_port as a client."
+ONBOARD = (
+    "Connects to the flight controller ([onboard] mavlink_url, default udpin:127.0.0.1:14540 like PX4 "
+    "SITL's offboard link) and to the edge router on two flows, streams state and camera, flies the "
+    "edge's commands or the fallback PID, and runs the QoS supervisor. It never arms by itself: --takeoff "
+    "arms, takes off to [onboard] takeoff_alt_m and starts offloading. SIGTERM: hold (or land) and exit."
+)
+
+
+def add(commands: Commands) -> None:
+    edge = commands.add_parser(
+        "edge", help="edge services: router, mpc, planner, detector, qos", parents=[common_options(1)]
+    )
+    services = edge.add_subparsers(dest="edge_command", metavar="SERVICE", required=True)
+    for name, (_, text) in SERVICES.items():
+        how = ROUTER if name == "router" else CLIENT
+        sub = services.add_parser(
+            name, parents=[common_options(2)], help=text,
+            description=described(text, f"{how} Prints one JSON line when ready, a health line every few "
+                                  "seconds, stops on SIGTERM."),
+        )  # fmt: skip
+        sub.add_argument(
+            "--health-file", metavar="FILE",
+            help="also write each health line to FILE (for `dynqos health FILE`, e.g. a Kubernetes probe)",
+        )  # fmt: skip
+        metrics_options(sub)
+        sub.set_defaults(handler=run_edge)
+
+    onboard = commands.add_parser(
+        "onboard", parents=[common_options(1)], description=ONBOARD,
+        help="the drone's daemon: MAVLink to the FC, uplink to the edge, supervisor, fallback PID",
+    )  # fmt: skip
+    onboard.add_argument("--takeoff", action="store_true", help="arm, take off and start offloading")
+    metrics_options(onboard)
+    onboard.set_defaults(handler=run_onboard)
+
+
+def run_edge(args: argparse.Namespace, config: Config) -> int:
+    # The service's module is imported first: a missing extra is said before any network is opened.
+    service = importlib.import_module(SERVICES[args.edge_command][0])
+    code: int = service.run(with_metrics(args, config), health_file=path_or_none(args.health_file))
+    return code
+
+
+def run_onboard(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.onboard import daemon
+
+    config = with_metrics(args, config)
+    camera = None
+    if config.onboard.camera == "sim" and config.onboard.camera_fps > 0:
+        from dynqos.sim.vehicle.camera import SimCamera
+
+        camera = SimCamera.for_drone(config)  # the simulator's camera, handed to the drone
+    return daemon.run(config, takeoff=True if args.takeoff else None, camera=camera)

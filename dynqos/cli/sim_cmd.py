@@ -1,0 +1,88 @@
+"""`dynqos sim cell` and `dynqos sim vehicle`: the stand-ins for the 5G cell and the drone's hardware."""
+
+from __future__ import annotations
+
+import argparse
+
+from dynqos.cli.options import Commands, common_options, metrics_options, path_or_none, with_metrics
+from dynqos.common.config import Config
+from dynqos.sim.vehicle.service import MAX_INSTANCE
+
+CELL = (
+    "A user-space 5G uplink: one TCP listener per bearer (QoS flow) forwarding to an edge router port, a UE "
+    "buffer per bearer, a resource-fair scheduler with relative priority weights every TTI, virtual "
+    "background users, base delay and jitter, and timeline events. Configured by the [cell] table of the "
+    "config file (see docs/cell.md). Prints one JSON line with the bearer ports when ready; stops on "
+    "SIGINT/SIGTERM or after --duration."
+)
+VEHICLE = (
+    "A rigid-body quadrotor with a PX4-like flight controller (arming, takeoff, hold, land, offboard with "
+    "PX4's custom modes and offboard-loss failsafe) speaking MAVLink 2 over UDP: the offboard link binds "
+    "[vehicle] offboard_bind_port (14580) and sends to offboard_remote_port (14540); the ground-station "
+    "link binds 18570 and sends to 14550. Prints one JSON line when ready. Contacts with the world's "
+    "obstacles are logged and counted."
+)
+
+
+def add(commands: Commands) -> None:
+    sim = commands.add_parser(
+        "sim", parents=[common_options(1)],
+        help="simulators: the emulated 5G cell, and a simulated quadrotor with its camera behind a MAVLink "
+        "flight controller",
+    )  # fmt: skip
+    simulators = sim.add_subparsers(dest="sim_command", metavar="SIMULATOR", required=True)
+    cell = simulators.add_parser(
+        "cell", parents=[common_options(2)], description=CELL,
+        help="run the 5G cell emulator between the drone and the edge router",
+    )  # fmt: skip
+    cell.add_argument(
+        "--duration", type=float, metavar="S", help="stop after S seconds (default: until stopped)"
+    )
+    cell.add_argument("--out", metavar="DIR", help="write per-interval records to DIR/cell.csv")
+    metrics_options(cell)
+    cell.set_defaults(handler=run_cell)
+
+    vehicle = simulators.add_parser(
+        "vehicle", parents=[common_options(2)], description=VEHICLE,
+        help="run the simulated quadrotor that speaks MAVLink like PX4 SITL",
+    )  # fmt: skip
+    clock = vehicle.add_mutually_exclusive_group()
+    clock.add_argument(
+        "--realtime", dest="clock", action="store_const", const="realtime",
+        help="pace simulated time to the wall clock x --speed (the default; for the demo and real peers)",
+    )  # fmt: skip
+    clock.add_argument(
+        "--lockstep", dest="clock", action="store_const", const="lockstep",
+        help="advance 20 ms of simulated time each time the peer answers the telemetry with a setpoint: "
+        "as fast as the peer, deterministic with [vehicle] seed (for tests)",
+    )  # fmt: skip
+    vehicle.add_argument(
+        "--world", metavar="FILE", help="world file (TOML or JSON) for contact checks (default: the arena)"
+    )
+    vehicle.add_argument(
+        "--speed", type=float, metavar="X", help="simulated seconds per wall second (default 1)"
+    )
+    vehicle.add_argument("--duration", type=float, metavar="S", help="stop after S simulated seconds")
+    vehicle.add_argument(
+        "--instance", type=int, default=0, metavar="N",
+        help="vehicle N of a fleet, as PX4 SITL numbers them: MAVLink system id N+1, the offboard and "
+        "ground-station ports + N (14580+N -> 14540+N, 18570+N -> 14550: one ground station sees every "
+        f"vehicle); 0..{MAX_INSTANCE} (default 0)",
+    )  # fmt: skip
+    vehicle.set_defaults(handler=run_vehicle)
+
+
+def run_cell(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.sim.network import service
+
+    return service.run(with_metrics(args, config), out_dir=path_or_none(args.out), duration_s=args.duration)
+
+
+def run_vehicle(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.sim.vehicle import service
+
+    lockstep = None if args.clock is None else args.clock == "lockstep"
+    return service.run(
+        config, instance=args.instance, world_file=args.world, lockstep=lockstep, speed=args.speed,
+        duration_s=args.duration,
+    )  # fmt: skip

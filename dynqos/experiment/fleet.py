@@ -1,0 +1,144 @@
+"""Run a fleet scenario end to end on one machine: several drones in one emulated cell (docs/fleet.md).
+
+One router, cell, QoS agent, planner, MPC and detector serve every drone; each drone is a simulated
+vehicle (`dynqos sim vehicle --instance i`, as PX4 SITL numbers a fleet) and an onboard daemon with its
+own config file. The recorder hears every drone as a ground station would, and the QoS agent's
+decisions; the summary holds each drone's figures under `drones` (dynqos/reports/fleet.py).
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from dynqos.common import keys
+from dynqos.common.config import ZenohConfig
+from dynqos.common.keys import Downlink
+from dynqos.common.messages import QosDecision
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Received, Role, open_bus
+from dynqos.experiment.faults import FaultInjector
+from dynqos.experiment.flight import (
+    QUEUE_ITEMS,
+    Streams,
+    fly,
+    fly_and_stop,
+    post_json,
+    wait_for_offload,
+)
+from dynqos.experiment.processes import Processes, free_port, free_udp_block
+from dynqos.experiment.recording import Recording
+from dynqos.experiment.scenario import Scenario, fleet_configs, with_cell, write_config
+from dynqos.reports.fleet import summarise_fleet, write_fleet
+
+log = logging.getLogger(__name__)
+
+DETECTOR_NICE = 10
+
+
+def run_fleet(
+    scenario: Scenario,
+    out: Path,
+    *,
+    folder: Path | None = None,
+    stop: threading.Event | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run one fleet scenario into `folder` (default out/<run id>/) and return its summary."""
+    stop = stop or threading.Event()
+    folder = folder or out / scenario.run_id
+    logs = folder / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    zenoh = ZenohConfig(default_port=free_port(), priority_port=free_port())
+    shared, drones = fleet_configs(
+        scenario,
+        zenoh=zenoh,
+        fc_base=free_udp_block(len(scenario.drones)),
+        gcs_port=free_port(socket.SOCK_DGRAM),
+    )
+    shared_path = folder / "dynqos.toml"
+    paths = {uav: folder / f"{uav}.toml" for uav in drones}
+    write_config(shared_path, scenario, shared)
+    for uav, config in drones.items():
+        write_config(paths[uav], scenario, config)
+    procs = Processes(shared_path, logs, scenario.metrics_port)
+    rec = Recording()  # what the fleet shares: the cell, the load, memory and CPU
+    recs = {uav: Recording() for uav in drones}
+    decisions: list[QosDecision] = []
+
+    def fly() -> None:
+        procs.start("router", ["edge", "router"])
+        cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
+        write_config(shared_path, scenario, with_cell(shared, cell, sink_port=free_port()))
+        for uav, config in drones.items():
+            write_config(paths[uav], scenario, with_cell(config, cell))
+        procs.start("qos", ["edge", "qos"])
+        # No MCAP recorder here: four drones already take this 2-core machine to its limit, and a fifth
+        # subscriber of every state perturbed the fleet's figures in CI (docs/observability.md).
+        for i, uav in enumerate(drones):
+            args = ["sim", "vehicle", "--instance", str(i), "--duration", "3600"]
+            procs.start(f"vehicle-{uav}", args, config=paths[uav])
+        procs.start("planner", ["edge", "planner"])
+        procs.start("mpc", ["edge", "mpc"])
+        # The detector is best effort (it drops the frames it cannot keep up with): on one machine it
+        # runs below the control path, as it would on its own cores at a real edge.
+        procs.start("detector", ["edge", "detector"], program=["nice", "-n", str(DETECTOR_NICE), procs.exe])
+        _record_fleet(scenario, shared.zenoh, procs, paths, cell["control_port"], rec, recs, decisions, stop,
+                      progress, shared.cell.uplink_mbps)  # fmt: skip
+
+    ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
+    onboard_logs = {uav: _read(logs / f"onboard-{uav}.log") for uav in drones}
+    summary = summarise_fleet(scenario, rec, recs, decisions, onboard_logs, ok=ok, failure=failure)
+    write_fleet(folder, scenario, rec, recs, decisions, summary)
+    return summary
+
+
+def _read(path: Path) -> str:
+    return path.read_text(errors="replace") if path.exists() else ""
+
+
+def _record_fleet(
+    scenario: Scenario,
+    zenoh: ZenohConfig,
+    procs: Processes,
+    paths: dict[str, Path],
+    cell_port: int,
+    rec: Recording,
+    recs: dict[str, Recording],
+    decisions: list[QosDecision],
+    stop: threading.Event,
+    progress: bool,
+    uplink_mbps: float,
+) -> None:
+    """Start every drone, wait until all of them offload, then fly the scenario."""
+    bus = open_bus(zenoh, Role.EDGE)
+    try:
+        streams = {uav: Streams.subscribe(bus, uav) for uav in paths}
+        heard: BoundedQueue[Received] = BoundedQueue(QUEUE_ITEMS)
+        bus.subscribe(keys.downlink_all_drones(Downlink.QOS_DECISION), heard, expect=(QosDecision,))
+        # One drone at a time takes off and starts offloading: four take-offs at once on two cores
+        # are a start-up no fleet flies, and their latencies would be the baseline's.
+        for uav, path in paths.items():
+            procs.start(f"onboard-{uav}", ["onboard", "--takeoff"], config=path)
+            recs[uav].offload_ns = wait_for_offload(streams[uav].states, procs, stop, f"onboard-{uav}")
+        # The flight's time zero is when the last drone offloads: from then on every drone is recorded.
+        rec.t0_ns = rec.offload_ns = time.monotonic_ns()
+        injector = FaultInjector(
+            procs, lambda event: post_json(cell_port, "/events", event), bus, uplink_mbps=uplink_mbps
+        )
+        try:
+            fly(scenario, procs, cell_port, injector, rec, stop, progress)
+        finally:
+            injector.close()
+        for uav, s in streams.items():
+            s.drain_into(recs[uav])
+            recs[uav].t0_ns = rec.t0_ns
+            recs[uav].bg_on_ns = rec.bg_on_ns
+            recs[uav].states = [(lat, st) for lat, st in recs[uav].states if st.stamp_ns >= rec.t0_ns]
+        decisions += [i.message for i in heard.drain() if isinstance(i.message, QosDecision)]
+    finally:
+        bus.close()

@@ -1,0 +1,209 @@
+"""What every flight shares, one drone or a fleet: the cell's control API, the recorder's streams, the
+wait for offloading, the flight loop (load, faults, memory, the cell's counters) and stopping every
+process whatever happens. dynqos/experiment/runner.py flies one drone, dynqos/experiment/fleet.py a fleet."""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+import urllib.request
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from dynqos.common import keys
+from dynqos.common.clock import millis
+from dynqos.common.errors import DynqosError
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.messages import Reference, State, SupervisorStatus
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Bus, Received
+from dynqos.experiment.faults import FaultInjector, FaultWindow
+from dynqos.experiment.processes import Processes, resident_memory
+from dynqos.experiment.recording import Recording
+from dynqos.experiment.scenario import UAV, Scenario, world_path
+
+log = logging.getLogger(__name__)
+
+RECORD_PERIOD_S = 0.1  # the recorder's sampling period
+PROGRESS_EVERY_S = 10.0  # a progress log line this often when stderr is not a terminal
+CELL_POLL_S = 0.5  # how often the cell's counters are read
+OFFLOAD_TIMEOUT_S = 60.0  # from the daemon's start to its first offboard state
+QUEUE_ITEMS = 200_000  # per recorded stream: 30 min of states at 50 Hz, with room
+
+
+MCAP_NAME = "flight.mcap"
+
+
+def start_mcap_recorder(procs: Processes, scenario: Scenario, folder: Path) -> None:
+    """`dynqos record` into <folder>/flight.mcap for the whole flight (docs/observability.md). Without
+    the camera images: a run's folder stays a few megabytes (`dynqos record` by hand keeps them)."""
+    args = ["record", "--out", str(folder / MCAP_NAME), "--scenario", scenario.name, "--no-camera"]
+    if scenario.world:
+        args += ["--world", world_path(scenario.world)]
+    procs.start("record", args)  # it runs niced by itself
+
+
+def get_json(port: int, path: str) -> dict[str, Any]:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5) as response:
+        data: dict[str, Any] = json.loads(response.read())
+        return data
+
+
+def post_json(port: int, path: str, body: dict[str, Any]) -> dict[str, Any]:
+    request = urllib.request.Request(
+        f"http://127.0.0.1:{port}{path}",
+        data=json.dumps(body).encode(),
+        method="POST",
+        headers={"Content-Type": "application/json"},
+    )
+    with urllib.request.urlopen(request, timeout=5) as response:
+        data: dict[str, Any] = json.loads(response.read())
+        return data
+
+
+def fly_and_stop(
+    scenario: Scenario,
+    folder: Path,
+    procs: Processes,
+    rec: Recording,
+    fly: Callable[[], None],
+    stop: threading.Event,
+    progress: bool,
+) -> tuple[bool, str]:
+    """Run `fly` (start the rest and record the flight); whatever happens, read each process's CPU, stop
+    them all in reverse order and read the QoD sessions the operator was left with. (ok, failure)."""
+    ok, failure = True, ""
+    try:
+        fly()
+        if stop.is_set():
+            ok, failure = False, "interrupted"
+    except DynqosError as exc:
+        ok, failure = False, str(exc)
+        log.error("scenario %s failed: %s", scenario.name, exc)
+    finally:
+        rec.cpu_s = procs.cpu_seconds()
+        codes = procs.stop_all()
+        if progress:
+            sys.stderr.write("\n")
+    bad = {name: code for name, code in codes.items() if code not in (0, -signal.SIGTERM)}
+    if ok and bad:
+        ok, failure = False, f"processes exited with errors: {bad}"
+    qod_file = folder / "qod.json"  # the operator's sessions once every process stopped (camara backend)
+    rec.qod = json.loads(qod_file.read_text()) if qod_file.exists() else None
+    return ok, failure
+
+
+@dataclass(frozen=True, slots=True)
+class Streams:
+    """What the recorder's own session hears of the drone, as a ground station would."""
+
+    states: BoundedQueue[Received]
+    refs: BoundedQueue[Received]
+    status: BoundedQueue[Received]
+
+    @classmethod
+    def subscribe(cls, bus: Bus, uav: str = UAV) -> Streams:
+        streams = cls(BoundedQueue(QUEUE_ITEMS), BoundedQueue(QUEUE_ITEMS), BoundedQueue(QUEUE_ITEMS))
+        bus.subscribe(keys.uplink_any_flow(uav, Stream.STATE), streams.states, expect=(State,))
+        bus.subscribe(keys.downlink(uav, Downlink.REFERENCE), streams.refs, expect=(Reference,))
+        bus.subscribe(keys.uplink_any_flow(uav, Stream.STATUS), streams.status, expect=(SupervisorStatus,))
+        return streams
+
+    def drain_into(self, rec: Recording) -> None:
+        for item in self.states.drain():
+            if isinstance(item.message, State):
+                rec.states.append((millis(item.arrival_ns - item.message.stamp_ns), item.message))
+        rec.refs = [i.message for i in self.refs.drain() if isinstance(i.message, Reference)]
+        rec.status = [i.message for i in self.status.drain() if isinstance(i.message, SupervisorStatus)]
+
+
+def wait_for_offload(
+    states: BoundedQueue[Received], procs: Processes, stop: threading.Event, name: str = "onboard"
+) -> int:
+    """The stamp of the first state the drone sends in offboard mode: the flight's time zero. The
+    states before it are dropped; those after it stay queued for the recording."""
+    deadline = time.monotonic() + OFFLOAD_TIMEOUT_S
+    while time.monotonic() < deadline and not stop.is_set():
+        item = states.get(0.5)
+        if item is not None and isinstance(item.message, State) and item.message.mode == "offboard":
+            return item.message.stamp_ns
+    raise DynqosError(f"{name}: the drone never started offloading: {procs.tail(name)}")
+
+
+def fly(
+    scenario: Scenario,
+    procs: Processes,
+    cell_port: int,
+    injector: FaultInjector,
+    rec: Recording,
+    stop: threading.Event,
+    progress: bool,
+) -> None:
+    """The recorded flight: faults begin and end on time, memory and the cell's counters are sampled."""
+    next_poll = next_memory = time.monotonic()
+    end = time.monotonic() + scenario.duration_s
+    pending = sorted(scenario.faults, key=lambda fault: fault.at_s)
+    active: list[FaultWindow] = []
+    while time.monotonic() < end and not stop.is_set():
+        elapsed = scenario.duration_s - (end - time.monotonic())
+        while pending and elapsed >= pending[0].at_s:
+            active.append(injector.begin(pending.pop(0)))
+        for window in [w for w in active if elapsed >= w.fault.at_s + w.fault.duration_s]:
+            injector.end(window)
+            active.remove(window)
+        if time.monotonic() >= next_memory:
+            next_memory += scenario.memory_sample_s
+            _sample_memory(procs, rec, elapsed)
+        _record_tick(scenario, rec, procs, cell_port, elapsed, progress)
+        if time.monotonic() >= next_poll:
+            next_poll += CELL_POLL_S
+            counters = get_json(cell_port, "/counters")
+            counters["now_ns"] = time.monotonic_ns()
+            rec.cell.append(counters)
+        stop.wait(RECORD_PERIOD_S)
+
+
+def _sample_memory(procs: Processes, rec: Recording, elapsed: float) -> None:
+    for name, proc in procs.procs.items():
+        if name not in procs.down and (memory := resident_memory(proc.pid)) is not None:
+            rec.memory_kb.setdefault(name, []).append((elapsed, memory.rss_kb, memory.anon_kb))
+
+
+def _record_tick(
+    scenario: Scenario, rec: Recording, procs: Processes, cell_port: int, elapsed: float, progress: bool
+) -> None:
+    """The recorder's duties each tick: start the background load, fail on a dead process."""
+    if scenario.bg_start_s >= 0 and rec.bg_on_ns is None and elapsed >= scenario.bg_start_s:
+        post_json(
+            cell_port, "/events", {"kind": "background", "user": "bg", "offered_mbps": scenario.bg_mbps}
+        )
+        rec.bg_on_ns = time.monotonic_ns()
+    dead = procs.dead()
+    if dead:
+        raise DynqosError(f"{dead[0]} exited during the run: {procs.tail(dead[0])}")
+    if progress:
+        _progress(scenario, elapsed, rec)
+
+
+def _progress(scenario: Scenario, elapsed: float, rec: Recording) -> None:
+    width = 30
+    done = min(width, int(width * elapsed / scenario.duration_s))
+    last = rec.cell[-1] if rec.cell else None
+    bar = "#" * done + "." * (width - done)
+    line = f"\r{scenario.name:<14} [{bar}] {elapsed:5.1f}/{scenario.duration_s:.0f} s"
+    if last:
+        bearers = last["bearers"]
+        delays = max(b["queue_delay_ms"] for b in bearers.values())
+        bg = "on" if rec.bg_on_ns else "off"
+        line += f"  background {bg}, drone queue {delays:6.1f} ms"
+    if sys.stderr.isatty():
+        sys.stderr.write(line)
+        sys.stderr.flush()
+    elif int(elapsed // PROGRESS_EVERY_S) != int((elapsed - RECORD_PERIOD_S) // PROGRESS_EVERY_S):
+        log.info("%s", line.replace(f"[{bar}] ", "").strip())  # not a terminal: a log line now and then

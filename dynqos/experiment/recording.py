@@ -1,0 +1,27 @@
+"""What the scenario runner records of a flight, as a ground station would see it: the drone's states
+with their uplink latency, the references, the supervisor's status, the cell's counters, the fault
+windows and each process's memory. dynqos/reports/summary.py turns it into the run folder."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from dynqos.common.messages import Reference, State, SupervisorStatus
+from dynqos.experiment.faults import FaultWindow
+
+
+@dataclass
+class Recording:
+    t0_ns: int = 0
+    states: list[tuple[float, State]] = field(default_factory=list)  # (uplink latency ms, state)
+    refs: list[Reference] = field(default_factory=list)
+    status: list[SupervisorStatus] = field(default_factory=list)
+    cell: list[dict[str, Any]] = field(default_factory=list)
+    bg_on_ns: int | None = None
+    offload_ns: int | None = None
+    faults: list[FaultWindow] = field(default_factory=list)
+    # name -> (t_s, VmRSS kB, RssAnon kB): resident memory with and without the mapped libraries' pages
+    memory_kb: dict[str, list[tuple[float, int, int]]] = field(default_factory=dict)
+    qod: dict[str, Any] | None = None  # the emulated operator's QoD counters and sessions left at the end
+    cpu_s: dict[str, float] = field(default_factory=dict)  # process name -> CPU seconds, read at the end

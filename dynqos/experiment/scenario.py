@@ -1,0 +1,377 @@
+"""A scenario of the paper's experiment: what it flies, the cell it flies in, and the dynqos config that
+runs it. Scenarios come as TOML files (`dynqos run FILE`, or the built-in ones in dynqos/scenarios/)."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field, replace
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+from dynqos.common.config import (
+    ArbiterConfig,
+    BackgroundConfig,
+    BearerConfig,
+    CamaraConfig,
+    CellConfig,
+    Config,
+    DeviceConfig,
+    DroneConfig,
+    DroneMissionConfig,
+    OnboardConfig,
+    PlannerConfig,
+    QosConfig,
+    SupervisorConfig,
+    VehicleSimConfig,
+    ZenohConfig,
+    build,
+    to_toml,
+)
+from dynqos.common.errors import ConfigError
+from dynqos.common.keys import UAV_ID_PATTERN
+from dynqos.experiment.camera_sizing import camera_size_for, flight_views
+from dynqos.experiment.faults import Fault
+from dynqos.sim.network.cell import socket_buffer_bytes
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+DEFAULT_SCENARIOS = ("baseline", "bg-noqos", "bg-dynqos", "bg-staticqos")
+UAV = "uav1"  # the drone every scenario flies
+UAV_PHONE_NUMBER = "+46700000001"  # its identity on the emulated operator's network (a test range)
+QOD_DURATION_S = 30  # each QoD session is asked for this long, and extended while still wanted
+MAX_FLEET = 16
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FleetDrone:
+    """[[scenario.drones]]: one drone of a fleet, its mission and the risk zone it flies in."""
+
+    id: str
+    risk_zone: Literal["high", "low"]  # what the world puts in front of its camera (docs/fleet.md)
+    center_m: tuple[float, float]
+    mission: Literal["circle", "hover", "figure8"] = "circle"
+    radius_m: float = 2.0
+    period_s: float = 12.0
+    yaw: Literal["tangent", "fixed", "center"] = "center"  # center: the camera faces the circle's centre
+
+    def __post_init__(self) -> None:
+        if UAV_ID_PATTERN.fullmatch(self.id) is None:
+            raise ConfigError("id", "1 to 32 characters from A-Z a-z 0-9 _ -")
+        DroneMissionConfig(mission=self.mission, radius_m=self.radius_m, period_s=self.period_s)
+
+    def mission_config(self) -> DroneMissionConfig:
+        return DroneMissionConfig(
+            mission=self.mission, center_m=self.center_m, radius_m=self.radius_m, period_s=self.period_s,
+            yaw=self.yaw,
+        )  # fmt: skip
+
+    @property
+    def start_m(self) -> tuple[float, float]:
+        """Where it stands before take-off: where its mission starts (never inside what it circles)."""
+        if self.mission == "hover":
+            return self.center_m
+        offset = self.radius_m if self.mission == "circle" else 0.0
+        return (self.center_m[0] + offset, self.center_m[1])
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Scenario:
+    name: str
+    description: str = ""
+    mission: Literal["circle", "hover", "figure8"] = "circle"
+    qos: Literal["dynamic", "default", "priority"] = "dynamic"
+    duration_s: float = 30.0  # flight time recorded after offloading starts
+    bg_start_s: float = 15.0  # seconds into the recorded flight; negative: no background load
+    bg_mbps: float = 80.0
+    uav_mbps: float = 47.0  # what the drone's camera is sized to offer (before scale)
+    scale: float = 10.0
+    seed: int = 0
+    metrics_port: int = 0  # each process's Prometheus /metrics on this port and the next ones (0: off)
+    settle_s: float = 4.0  # excluded from the baseline statistics after offloading starts
+    camera_fps: float = 15.0
+    # The camera's bytes are paced at this rate (before scale; 0: each image in one burst): above what
+    # the drone offers, below what the priority bearer drains under load (81.3 x 4/5 = 65 Mbit/s).
+    camera_pace_mbps: float = 62.0
+    # The size of one paced part: a C&C message queued behind a part waits for it to drain at the drone's
+    # scaled share, so a fleet (a smaller share each) paces smaller parts (docs/fleet.md).
+    camera_part_bytes: int = 4096
+    wind_mps: float = 0.5  # a steady breeze from the north...
+    gust_std_mps: float = 0.5  # ...with gusts, so that control delay shows in the tracking
+    gust_tau_s: float = 0.5  # short gusts: many per window, so windows compare alike (docs/demo.md)
+    priority_weight: float = 4.0  # the priority bearer's scheduling weight against 1 for everyone else
+    # How the network gives the priority flow its weight (docs/qos.md): camara, the emulated cell grants it
+    # only while a QoD session the QoS agent asked for is AVAILABLE (the truer model of the paper's
+    # network); links, by static policy for the priority port, the moment the drone uses it.
+    qos_backend: Literal["links", "camara"] = "camara"
+    qod_max_sessions: int = -1  # the emulated operator's admission limit (0: it grants no session)
+    base_delay_ms: float = 5.0  # one way: with processing and camera head-of-line ~15 ms C&C RTT, below rho2
+    faults: tuple[
+        Fault, ...
+    ] = ()  # injected during the flight (dynqos/experiment/faults.py, docs/reliability.md)
+    memory_sample_s: float = 5.0  # how often each process's resident memory is recorded
+    # The supervisor's settings ([scenario.supervisor]; a profile replaces them,
+    # dynqos/experiment/profile.py); its seed is the scenario's.
+    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+    profile: str = "dynqos"  # the profile applied (dynqos/profiles/), named in the summary
+    # A fleet (docs/fleet.md): several drones in one cell; empty, the one drone uav1 flies `mission`.
+    # uav_mbps is then what each drone offers.
+    drones: tuple[FleetDrone, ...] = ()
+    world: str = ""  # a built-in world (dynqos/worlds/<name>.toml) or a world file; "": the default arena
+    qos_policy: Literal["grant-all", "arbiter"] = "grant-all"  # who of the fleet gets priority
+    arbiter_max_grants: int = -1  # the arbiter's budget: at most this many drones at once (-1: none)
+    bg_weight: float = 1.0  # the background user's scheduling weight (a busy cell: several users' worth)
+
+    @property
+    def run_id(self) -> str:
+        return run_id(self.name, self.profile)
+
+    def __post_init__(self) -> None:
+        if not 5 <= self.duration_s <= 3600:
+            raise ConfigError("duration_s", "must be in 5..3600 s")
+        if self.bg_start_s >= self.duration_s:
+            raise ConfigError("bg_start_s", "must be before the end of the run (or negative for none)")
+        if not 0 <= self.bg_mbps <= 1e5 or not 0.1 <= self.uav_mbps <= 1e5:
+            raise ConfigError("bg_mbps", "rates must be in 0..100000 Mbit/s")
+        if not 0.01 <= self.scale <= 1000:
+            raise ConfigError("scale", "must be in 0.01..1000")
+        if not 0.1 <= self.priority_weight <= 100:
+            raise ConfigError("priority_weight", "must be in 0.1..100")
+        if not 0 <= self.camera_pace_mbps <= 1e5:
+            raise ConfigError("camera_pace_mbps", "must be in 0..100000 Mbit/s (0: no pacing)")
+        if not 512 <= self.camera_part_bytes <= 1 << 20:
+            raise ConfigError("camera_part_bytes", "must be in 512..1048576")
+        for i, fault in enumerate(self.faults):
+            if fault.at_s + fault.duration_s > self.duration_s:
+                raise ConfigError(f"faults[{i}].at_s", "the fault must end before the run does")
+        self._check_run()
+        self._check_fleet()
+
+    def _check_run(self) -> None:
+        if self.qod_max_sessions < -1:
+            raise ConfigError("qod_max_sessions", "must be -1 (no limit) or >= 0")
+        if not 0.5 <= self.memory_sample_s <= 600:
+            raise ConfigError("memory_sample_s", "must be in 0.5..600 s")
+        if self.metrics_port and not 1024 <= self.metrics_port <= 65000:
+            raise ConfigError(
+                "metrics_port", "must be 0 (off) or a port in 1024..65000 (each process takes the next)"
+            )
+        self._check_fleet()
+
+    def _check_fleet(self) -> None:
+        if self.qos_policy == "arbiter" and self.qos_backend != "camara":
+            raise ConfigError("qos_policy", 'the arbiter needs qos_backend = "camara"')
+        ids = [d.id for d in self.drones]
+        if len(set(ids)) != len(ids):
+            raise ConfigError("drones", "drone ids must be unique")
+        if len(self.drones) > MAX_FLEET:
+            raise ConfigError("drones", f"at most {MAX_FLEET} drones on one machine")
+        if self.drones and self.faults:
+            raise ConfigError("faults", "a fleet scenario injects no faults (yet)")
+        if not 0.1 <= self.bg_weight <= 100:
+            raise ConfigError("bg_weight", "must be in 0.1..100")
+        if self.world:
+            world_path(self.world)  # a name or file that is not there is an error now, not mid-run
+
+    @property
+    def fleet(self) -> bool:
+        return bool(self.drones)
+
+    @property
+    def uavs(self) -> list[str]:
+        return [d.id for d in self.drones] or [UAV]
+
+
+def world_path(world: str) -> str:
+    """A built-in world's file (dynqos/worlds/<name>.toml) or the file named, as an absolute path."""
+    builtin = resources.files("dynqos") / "worlds" / f"{world}.toml"
+    if builtin.is_file():
+        return str(Path(str(builtin)).resolve())
+    path = Path(world)
+    if not path.is_file():
+        raise ConfigError("world", f"no built-in world {world!r} and no such file")
+    return str(path.resolve())
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    source = str(path)
+    try:
+        table = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError("", "scenario file not found", source=source) from None
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError("", f"cannot read scenario ({exc})", source=source) from None
+    unknown = set(table) - {"scenario"}
+    if unknown or not isinstance(table.get("scenario"), dict):
+        raise ConfigError(
+            ", ".join(sorted(unknown)) or "scenario",
+            "a scenario file has one [scenario] table",
+            source=source,
+        )
+    try:
+        return build(Scenario, table["scenario"], "scenario")
+    except ConfigError as exc:
+        raise exc.with_source(source) from None
+
+
+def builtin_scenario(name: str) -> Scenario:
+    files = resources.files("dynqos") / "scenarios"
+    path = files / f"{name}.toml"
+    if not path.is_file():
+        known = sorted(p.name.removesuffix(".toml") for p in files.iterdir() if p.name.endswith(".toml"))
+        raise ConfigError("--scenario", f"unknown scenario {name!r} (known: {', '.join(known)})")
+    with resources.as_file(path) as real:
+        return load_scenario(real)
+
+
+def run_id(name: str, profile: str) -> str:
+    """A run folder's name (and a scenario's name in reports): the scenario's, and the profile's unless
+    it is the default one."""
+    return name if profile == "dynqos" else f"{name}@{profile}"
+
+
+def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs_port: int) -> Config:
+    """The dynqos config that flies `scenario` on one machine: every process on 127.0.0.1, the cell's
+    bearers and control API on free ports (the cell reports them on its ready line), the simulator
+    sending to the onboard daemon's `fc_port`, the camera sized to offer the scenario's rate from the
+    views its mission flies (dynqos/experiment/camera_sizing.py)."""
+    config = Config(
+        drone=DroneConfig(id=UAV),
+        # The drone's send buffer on the bulk link is a queue in front of the cell like the UE buffer;
+        # scaled with the rates it holds the same time at any scale (docs/demo.md, "Scaling").
+        zenoh=replace(zenoh, bulk_sndbuf_bytes=socket_buffer_bytes(scenario.scale)),
+        supervisor=replace(scenario.supervisor, seed=scenario.seed),
+        cell=CellConfig(
+            scale=scenario.scale,
+            ue_buffer_bytes=max(1500, round(1_000_000 / scenario.scale)),
+            base_delay_up_ms=scenario.base_delay_ms,
+            base_delay_down_ms=scenario.base_delay_ms,
+            control_port=0,
+            default_listen_port=0,
+            priority_listen_port=0,
+            seed=scenario.seed,
+            priority_weight=scenario.priority_weight,
+            qod=scenario.qos_backend == "camara",
+            qod_max_sessions=scenario.qod_max_sessions,
+            background=(BackgroundConfig(name="bg", weight=scenario.bg_weight),),
+        ),
+        vehicle=VehicleSimConfig(
+            wind_mps=(scenario.wind_mps, 0.0, 0.0),
+            gust_std_mps=scenario.gust_std_mps,
+            gust_tau_s=scenario.gust_tau_s,
+            offboard_bind_port=0,
+            gcs_bind_port=0,
+            offboard_remote_port=fc_port,
+            gcs_remote_port=gcs_port,
+            seed=scenario.seed,
+        ),
+        planner=PlannerConfig(mission=scenario.mission, lead_in_s=2.0),
+        onboard=OnboardConfig(
+            mavlink_url=f"udpin:127.0.0.1:{fc_port}",
+            qos=scenario.qos,
+            camera_fps=scenario.camera_fps,
+            camera_pace_mbps=scenario.camera_pace_mbps / scenario.scale,
+            camera_part_bytes=scenario.camera_part_bytes,
+            # The heading stays the FC's own, as in every run the README quotes. Flown along the circle,
+            # the camera sees the pillars for most of a lap (measured: the baseline in q2, high risk, 22
+            # of 30 s) and the scenarios' contrast changes; docs/demo.md says more.
+            yaw="free",
+        ),
+        # The QoS agent's api_root is the cell's control port, known once the cell is up (with_bearers).
+        qos=QosConfig(
+            backend=scenario.qos_backend,
+            camara=CamaraConfig(
+                api_root="http://127.0.0.1:1/quality-on-demand/v1",
+                duration_s=QOD_DURATION_S,
+                extend_before_s=QOD_DURATION_S / 3,
+                retry_after_denied_s=5.0,
+                devices={UAV: DeviceConfig(phoneNumber=UAV_PHONE_NUMBER)},
+            ),
+        ),
+    )
+    part_bytes = config.onboard.camera_part_bytes if scenario.camera_pace_mbps > 0 else 0
+    target_bps = scenario.uav_mbps * 1e6 / scenario.scale
+    width, height = camera_size_for(target_bps, scenario.camera_fps, flight_views(config), part_bytes)
+    return replace(config, onboard=replace(config.onboard, camera_width=width, camera_height=height))
+
+
+def phone_number(index: int) -> str:
+    """The i-th drone's identity on the emulated operator's network (a test range)."""
+    return f"+4670000{index + 1:04d}"
+
+
+def fleet_configs(
+    scenario: Scenario, *, zenoh: ZenohConfig, fc_base: int, gcs_port: int
+) -> tuple[Config, dict[str, Config]]:
+    """The edge's config (one cell with a pair of bearers per drone, the planner's per-drone missions,
+    the QoS agent's policy and devices) and each drone's: its id, its vehicle (`--instance i`: system
+    id i + 1, offboard port fc_base + i), where it spawns, and a camera sized to offer uav_mbps from
+    the views of its own mission."""
+    shared = scenario_config(scenario, zenoh=zenoh, fc_port=fc_base, gcs_port=gcs_port)
+    world = world_path(scenario.world) if scenario.world else ""
+    bearers = tuple(
+        BearerConfig(name=f"{d.id}-{flow}", target=f"{zenoh.edge_host}:{port}", weight=weight, ue=d.id)
+        for d in scenario.drones
+        for flow, port, weight in (
+            ("default", zenoh.default_port, 1.0),
+            ("priority", zenoh.priority_port, scenario.priority_weight),
+        )
+    )
+    devices = {d.id: DeviceConfig(phoneNumber=phone_number(i)) for i, d in enumerate(scenario.drones)}
+    shared = replace(
+        shared,
+        cell=replace(shared.cell, bearers=bearers),
+        planner=replace(shared.planner, drones={d.id: d.mission_config() for d in scenario.drones}),
+        vehicle=replace(shared.vehicle, world_file=world),
+        onboard=replace(shared.onboard, world_file=world, yaw="command"),
+        qos=replace(
+            shared.qos,
+            policy=scenario.qos_policy,
+            arbiter=ArbiterConfig(max_grants=scenario.arbiter_max_grants),
+            camara=replace(shared.qos.camara, devices=devices),
+        ),
+    )
+    part_bytes = shared.onboard.camera_part_bytes if scenario.camera_pace_mbps > 0 else 0
+    target_bps = scenario.uav_mbps * 1e6 / scenario.scale
+    drones: dict[str, Config] = {}
+    for i, d in enumerate(scenario.drones):
+        config = replace(
+            shared,
+            drone=DroneConfig(id=d.id),
+            vehicle=replace(shared.vehicle, start_m=d.start_m, seed=scenario.seed + i),
+            onboard=replace(shared.onboard, mavlink_url=f"udpin:127.0.0.1:{fc_base + i}", fc_system_id=i + 1),
+        )
+        views = flight_views(config)
+        width, height = camera_size_for(target_bps, scenario.camera_fps, views, part_bytes, world)
+        drones[d.id] = replace(
+            config, onboard=replace(config.onboard, camera_width=width, camera_height=height)
+        )
+    return shared, drones
+
+
+def with_cell(config: Config, cell: dict[str, Any], sink_port: int = 0) -> Config:
+    """The config once the cell is up: the drone's flows connect to the bearers' ports it reported, and
+    the QoS agent asks its control port for QoD sessions and (`sink_port` > 0) takes the operator's
+    notifications on that port, as an agent that is told rather than only polling."""
+    bearers, uav = cell["bearers"], config.drone.id
+    onboard = config.onboard  # a fleet's edge config names no drone of its own
+    if f"{uav}-default" in bearers:
+        onboard = replace(
+            config.onboard,
+            connect_default=f"127.0.0.1:{bearers[f'{uav}-default']['port']}",
+            connect_priority=f"127.0.0.1:{bearers[f'{uav}-priority']['port']}",
+        )
+    api_root = f"http://127.0.0.1:{cell['control_port']}/quality-on-demand/v1"
+    camara = replace(config.qos.camara, api_root=api_root)
+    if sink_port:
+        sink = f"127.0.0.1:{sink_port}"
+        camara = replace(camara, sink=f"http://{sink}/qod-events", sink_listen=sink)
+    qos = replace(config.qos, camara=camara)
+    return replace(config, onboard=onboard, qos=qos)
+
+
+def write_config(path: Path, scenario: Scenario, config: Config) -> None:
+    path.write_text(f"# generated by dynqos demo for scenario {scenario.name}\n" + to_toml(config))

@@ -1,0 +1,1 @@
+"""The circle detector: the vision (pure), the assembler of a frame's chunks, and the service."""

@@ -1,0 +1,154 @@
+"""`dynqos edge detector`: acknowledges every camera frame at once, then detects circles in the newest.
+
+The ack goes out before any processing (for a paced image, once its last part is in), so the drone
+measures the network, not the detector. Frames the detector cannot keep up with are dropped, the
+newest kept (one slot per drone and kind). Zenoh callbacks only queue; one thread acks, one detects.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from prometheus_client import Histogram
+
+from dynqos.common import keys
+from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.config import Config
+from dynqos.common.errors import DecodeError
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.messages import CameraAck, CameraFrame, Detections
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Bus, Priority, Publisher, Received
+from dynqos.edge import metrics
+from dynqos.edge.detector.assembler import FrameAssembler
+from dynqos.edge.detector.circles import decode_depth, decode_rgb, find_circles, locate
+from dynqos.edge.service import Service, serve
+
+log = logging.getLogger(__name__)
+
+
+class DetectorService:
+    def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
+        self.cfg = config.detector
+        self.bus = bus
+        self.clock = clock or MonotonicClock()
+        self.acks: BoundedQueue[Received] = BoundedQueue(4096)
+        self.rgb_stats = bus.subscribe(
+            keys.uplink_all_drones(Stream.CAMERA_RGB), self.acks, expect=(CameraFrame,)
+        )
+        self.depth_stats = bus.subscribe(
+            keys.uplink_all_drones(Stream.CAMERA_DEPTH), self.acks, expect=(CameraFrame,)
+        )
+        self.assembler = FrameAssembler()
+        self._latest: dict[tuple[str, str], Received] = {}
+        self._latest_lock = threading.Condition()
+        self._ack_pubs: dict[str, Publisher] = {}
+        self._det_pubs: dict[str, Publisher] = {}
+        self.counters = {"frames": 0, "acks": 0, "detections": 0, "dropped": 0, "bad_frames": 0, "circles": 0}
+        self.detect_ms: list[float] = []
+        self.service = Service("detector", self.cfg.health_interval_s)
+        self.detect_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
+
+    def _publisher(self, table: dict[str, Publisher], uav: str, kind: Downlink, prio: Priority) -> Publisher:
+        pub = table.get(uav)
+        if pub is None:
+            pub = table[uav] = self.bus.publisher(
+                keys.downlink(uav, kind), prio, express=kind is Downlink.CAMERA_ACK
+            )
+        return pub
+
+    def ack_pending(self, timeout_s: float = 0.1) -> int:
+        """Ack every frame that has arrived; hand the newest of each drone and kind to the detector."""
+        first = self.acks.get(timeout_s)
+        if first is None:
+            return 0
+        done = 0
+        for item in [first, *self.acks.drain()]:
+            part = item.message
+            if not isinstance(part, CameraFrame):
+                continue
+            frame = self.assembler.add(part)  # a paced image is acked once its last part is in
+            if frame is None:
+                continue
+            if frame is not part:
+                item = replace(item, message=frame)
+            self.counters["frames"] += 1
+            ack = CameraAck(
+                uav=frame.uav, seq=frame.seq, frame_seq=frame.seq, kind=frame.kind, stamp_ns=frame.stamp_ns,
+                edge_hold_ns=max(0, self.clock.now_ns() - item.arrival_ns),
+            )  # fmt: skip
+            self._publisher(self._ack_pubs, frame.uav, Downlink.CAMERA_ACK, Priority.REAL_TIME).put(ack)
+            self.counters["acks"] += 1
+            done += 1
+            with self._latest_lock:
+                if (frame.uav, frame.kind) in self._latest and frame.kind == "rgb":
+                    self.counters["dropped"] += 1
+                self._latest[(frame.uav, frame.kind)] = item
+                self._latest_lock.notify()
+        return done
+
+    def detect_next(self, timeout_s: float = 0.1) -> bool:
+        with self._latest_lock:
+            if not self._latest_lock.wait_for(lambda: any(k[1] == "rgb" for k in self._latest), timeout_s):
+                return False
+            uav = next(k[0] for k in self._latest if k[1] == "rgb")
+            rgb_item = self._latest.pop((uav, "rgb"))
+            depth_item = self._latest.get((uav, "depth"))
+        frame = rgb_item.message
+        assert isinstance(frame, CameraFrame)
+        start = time.perf_counter()
+        try:
+            image = decode_rgb(frame)
+            depth = None
+            if depth_item is not None:
+                depth_frame = depth_item.message
+                assert isinstance(depth_frame, CameraFrame)
+                if (depth_frame.width, depth_frame.height) == (frame.width, frame.height):
+                    depth = decode_depth(depth_frame)
+        except DecodeError as exc:
+            self.counters["bad_frames"] += 1
+            log.warning("detector: %s frame %d: %s", uav, frame.seq, exc)
+            return True
+        circles = locate(find_circles(image, self.cfg), depth, frame.intrinsics)
+        self.detect_ms.append((time.perf_counter() - start) * 1000)
+        if self.detect_seconds is not None:
+            self.detect_seconds.observe(self.detect_ms[-1] / 1000)
+        del self.detect_ms[:-500]
+        detections = Detections(
+            uav=uav, seq=frame.seq, frame_seq=frame.seq, stamp_ns=frame.stamp_ns,
+            circles_px=tuple((c.u_px, c.v_px, c.r_px) for c in circles),
+            centers_m=tuple(c.center_m for c in circles),
+        )  # fmt: skip
+        self._publisher(self._det_pubs, uav, Downlink.DETECTIONS, Priority.DATA_HIGH).put(detections)
+        self.counters["detections"] += 1
+        self.counters["circles"] += len(circles)
+        return True
+
+    def health(self) -> str:
+        ms = sorted(self.detect_ms) or [0.0]
+        rejected = self.rgb_stats.rejected + self.depth_stats.rejected
+        counts = " ".join(f"{k}={v}" for k, v in self.counters.items())
+        parts = f"incomplete={self.assembler.incomplete} inconsistent={self.assembler.inconsistent}"
+        return f"{counts} {parts} rejected={rejected} detect_ms_p50={ms[len(ms) // 2]:.1f}"
+
+    def run(self) -> None:
+        worker = threading.Thread(target=self._detect_loop, name="detector", daemon=True)
+        worker.start()
+        while not self.service.stop.is_set():
+            self.ack_pending(0.1)
+            self.service.maybe_health(self.health)
+        worker.join(timeout=5)
+        log.info("detector: stopped; %s", self.health())
+
+    def _detect_loop(self) -> None:
+        while not self.service.stop.is_set():
+            self.detect_next(0.1)
+
+
+def run(config: Config, *, health_file: Path | None = None) -> int:
+    """`dynqos edge detector` until SIGTERM (edge/service.py's `serve`)."""
+    return serve("detector", config, DetectorService, metrics.detector, health_file=health_file)

@@ -1,0 +1,1 @@
+"""The mission planner: missions as references (pure) and the service that publishes them."""

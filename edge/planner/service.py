@@ -1,0 +1,99 @@
+"""`dynqos edge planner`: every drone that publishes its state gets the configured mission.
+
+Each drone's mission clock starts when the planner first hears from it; References covering the MPC
+horizon (and some margin) are published at `publish_hz` on `dynqos/<uav>/ref`.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from dynqos.common import keys
+from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.config import Config, DroneMissionConfig, PlannerConfig
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.messages import Reference, State
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Bus, Priority, Publisher, Received
+from dynqos.edge import metrics
+from dynqos.edge.planner.missions import Mission, load_waypoints
+from dynqos.edge.service import Service, serve
+
+log = logging.getLogger(__name__)
+
+
+def mission_from_config(cfg: PlannerConfig, uav: str | None = None) -> Mission:
+    """The planner's mission, or the one `[planner.drones.<uav>]` gives that drone."""
+    m: PlannerConfig | DroneMissionConfig = cfg.drones.get(uav, cfg) if uav is not None else cfg
+    waypoints = load_waypoints(m.waypoints_file) if m.mission == "waypoints" else ()
+    return Mission(
+        kind=m.mission, center_m=m.center_m, altitude_m=m.altitude_m, radius_m=m.radius_m,
+        period_s=m.period_s, yaw=m.yaw, fixed_yaw_rad=m.fixed_yaw_rad, lead_in_s=cfg.lead_in_s,
+        waypoints=waypoints, speed_mps=m.speed_mps,
+    )  # fmt: skip
+
+
+class PlannerService:
+    def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
+        self.config = config
+        self.cfg = config.planner
+        self.mission = mission_from_config(self.cfg)  # every drone's but those [planner.drones] names
+        self.missions = {uav: mission_from_config(self.cfg, uav) for uav in self.cfg.drones}
+        self.bus = bus
+        self.clock = clock or MonotonicClock()
+        self.dt_s = config.control.t_mpc_s
+        self.queue: BoundedQueue[Received] = BoundedQueue(1024)
+        self.stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,))
+        self.started_ns: dict[str, int] = {}
+        self.publishers: dict[str, Publisher] = {}
+        self.seq = 0
+        self.sent = 0
+        self.service = Service("planner", self.cfg.health_interval_s)
+
+    def discover(self) -> None:
+        for item in self.queue.drain():
+            message = item.message
+            if isinstance(message, State) and message.uav not in self.started_ns:
+                self.started_ns[message.uav] = item.arrival_ns
+                self.publishers[message.uav] = self.bus.publisher(
+                    keys.downlink(message.uav, Downlink.REFERENCE), Priority.INTERACTIVE_HIGH
+                )
+                mission = self.missions.get(message.uav, self.mission)
+                log.info(
+                    "planner: %s mission (centre %s) starts for %s",
+                    mission.kind,
+                    mission.center_m,
+                    message.uav,
+                )
+
+    def publish(self) -> None:
+        now = self.clock.now_ns()
+        for uav, start in self.started_ns.items():
+            t = (now - start) / 1e9
+            mission = self.missions.get(uav, self.mission)
+            pos, vel, yaw = mission.samples(t, self.dt_s, self.cfg.samples)
+            self.seq += 1
+            reference = Reference(
+                uav=uav, seq=self.seq, stamp_ns=now, dt_s=self.dt_s, pos_m=pos, vel_mps=vel, yaw_rad=yaw,
+                mission=mission.kind,
+            )  # fmt: skip
+            self.publishers[uav].put(reference)
+            self.sent += 1
+
+    def health(self) -> str:
+        return f"drones={len(self.started_ns)} references={self.sent} rejected={self.stats.rejected}"
+
+    def run(self) -> None:
+        period = 1.0 / self.cfg.publish_hz
+        while not self.service.stop.is_set():
+            self.discover()
+            self.publish()
+            self.service.maybe_health(self.health)
+            self.service.stop.wait(period)  # the publishing rate, not synchronisation
+        log.info("planner: stopped; %s", self.health())
+
+
+def run(config: Config, *, health_file: Path | None = None) -> int:
+    """`dynqos edge planner` until SIGTERM (edge/service.py's `serve`)."""
+    return serve("planner", config, PlannerService, metrics.planner, health_file=health_file)

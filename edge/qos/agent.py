@@ -1,0 +1,382 @@
+"""`dynqos edge qos`: the QoS agent. Drones ask it for priority over zenoh; it makes the network follow.
+
+The drone's supervisor decides alone and switches its zenoh link at once; this process turns the
+drone's wish (a QosRequest on `dynqos/<uav>/up/<flow>/qos`) into what the network needs and tells the
+drone what it got (a QosGrant on `dynqos/<uav>/down/qos`). It holds the operator credentials; drones
+never do. Backends ([qos] backend, docs/qos.md):
+
+- `links`: the network maps the priority port to a dedicated QoS flow by static policy; switching links
+  is all there is to do, so priority is AVAILABLE as soon as it is wanted.
+- `camara`: one CAMARA Quality-on-Demand session per drone (edge/qos/client.py), created, followed,
+  extended and deleted by the rules in edge/qos/grants.py.
+
+With `[qos] policy = "arbiter"` (camara only) a drone gets a session only while the arbiter
+(edge/qos/arbiter.py) admits it; every decision is logged, counted and published on
+`dynqos/<uav>/down/qos/decision`.
+
+One asyncio task per drone: a slow or failing API call for one drone never holds up another, and
+nothing here is on the drone's control path. On start the sessions a crashed agent left behind are
+found (retrieve-sessions per configured device) and deleted; on SIGTERM every session it holds is.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import ipaddress
+import logging
+import signal
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from dynqos.common import keys
+from dynqos.common.bus import Bus, Priority, Publisher, Received
+from dynqos.common.camara import read_secret
+from dynqos.common.clock import NS_PER_S, Clock, MonotonicClock, to_ns
+from dynqos.common.config import Config
+from dynqos.common.errors import ConfigError
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.lifecycle import ready_line, serving_metrics
+from dynqos.common.messages import QosDecision, QosGrant, QosRequest
+from dynqos.common.modes import Grant
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Role, open_bus
+from dynqos.edge import metrics as edge_metrics
+from dynqos.edge.qos.arbiter import Action, Arbiter, Decision, Need
+from dynqos.edge.qos.calls import OperatorCalls
+from dynqos.edge.qos.client import QodClient
+from dynqos.edge.qos.grants import DroneGrant
+from dynqos.edge.qos.sink import serve_sink
+from dynqos.edge.service import Service
+
+log = logging.getLogger(__name__)
+
+SHUTDOWN_S = 10.0  # deleting every session on SIGTERM ends within this
+FORGET_AFTER = 10  # a silent drone with no session is forgotten after this many drone timeouts
+
+
+def preflight(config: Config) -> None:
+    """What the operator settings need, checked before any network is opened: an IP address for the
+    application server (the network identifies the flow by address) and a readable client secret."""
+    if config.qos.backend != "camara":
+        return
+    server = config.qos.camara.application_server or config.zenoh.edge_host
+    try:
+        ipaddress.ip_network(server, strict=False)
+    except ValueError:
+        raise ConfigError(
+            "qos.camara.application_server",
+            f"{server!r} is not an IP address: the network identifies the flow by address",
+        ) from None
+    if config.qos.camara.token_url:
+        read_secret(config.qos.camara.client_secret_file)
+
+
+@dataclass(eq=False)
+class DroneRecord:
+    """Everything the agent keeps of one drone, so that forgetting it is one step: its grant rules, the
+    event that wakes its task, the task, its publishers, its latest need and the arbiter's refusal."""
+
+    grant: DroneGrant
+    publisher: Publisher  # its grants
+    decisions: Publisher | None = None  # the arbiter's decisions about it (policy "arbiter")
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+    task: asyncio.Task[None] | None = None
+    need: Need = field(default_factory=Need)  # from its latest request
+    refusal: str = ""  # why the arbiter does not admit it ("": no reason said)
+
+    def close(self) -> None:
+        self.publisher.close()
+        if self.decisions is not None:
+            self.decisions.close()
+
+
+class QosAgent:
+    def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
+        self.config = config
+        self.qos = config.qos
+        self.camara = config.qos.camara
+        self.bus = bus
+        self.clock = clock or MonotonicClock()
+        self.service = Service("qos", config.qos.health_interval_s)
+        self.requests: BoundedQueue[Received] = BoundedQueue(1024)
+        self.stats = bus.subscribe(keys.uplink_all_drones(Stream.QOS), self.requests, expect=(QosRequest,))
+        self.drones: dict[str, DroneRecord] = {}  # everything kept of a drone, forgotten in one step
+        self.client: QodClient | None = None
+        self.calls: OperatorCalls | None = None  # with backend "camara", once the client is open
+        self.port = config.zenoh.priority_port
+        self.server = self.camara.application_server or config.zenoh.edge_host
+        self.stopping = asyncio.Event()
+        self.seq = 0
+        self.arbiter = Arbiter(config.qos.arbiter) if config.qos.policy == "arbiter" else None
+        self.decisions = {action: 0 for action in Action}
+        preflight(config)
+
+    # ---- the process --------------------------------------------------------------------------------------
+
+    def run(self, ready: Any = None) -> None:
+        asyncio.run(self.main(ready))
+
+    async def main(self, ready: Any = None) -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, self.stopping.set)
+        forward = threading.Thread(target=self._forward, args=(loop,), name="qos-requests", daemon=True)
+        sink: web.AppRunner | None = None
+        async with contextlib.AsyncExitStack() as stack:
+            if self.qos.backend == "camara":
+                self.client = await stack.enter_async_context(QodClient(self.camara))
+                self.calls = OperatorCalls(self.client, self.camara, self.port, self.server, self.clock)
+                await self.calls.clean_leftovers()
+                if self.camara.sink_listen:
+                    sink = await serve_sink(self.camara.sink, self.camara.sink_listen, self._notified)
+            forward.start()
+            if self.arbiter is not None:
+                stack.push_async_callback(
+                    _cancel, asyncio.get_running_loop().create_task(self._arbitrate_loop())
+                )
+            log.info(
+                "qos agent: backend %s, policy %s, priority port %d, ready",
+                self.qos.backend, self.qos.policy, self.port,
+            )  # fmt: skip
+            if ready is not None:
+                ready()
+            self.service.write_health("ready")
+            while not self.stopping.is_set():
+                with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
+                    await asyncio.wait_for(self.stopping.wait(), self.qos.health_interval_s)
+                self.service.maybe_health(self.health)
+            self.service.stop.set()
+            await self._shut_down()
+            if sink is not None:
+                await sink.cleanup()
+        forward.join(timeout=2)
+        log.info("qos agent: stopped; %s", self.health())
+
+    def _forward(self, loop: asyncio.AbstractEventLoop) -> None:
+        """zenoh delivers on its own threads into a bounded queue; this hands each request to the loop."""
+        while not self.service.stop.is_set():
+            item = self.requests.get(0.5)
+            if item is not None:
+                with contextlib.suppress(RuntimeError):  # the loop has closed: we are stopping
+                    loop.call_soon_threadsafe(self._on_request, item)
+
+    def _on_request(self, item: Received) -> None:
+        message = item.message
+        if not isinstance(message, QosRequest) or self.stopping.is_set():
+            return
+        uav = message.uav
+        record = self.drones.get(uav)
+        if record is None:
+            record = self.drones[uav] = self._new_record(uav)
+            log.info("qos agent: %s asks for the first time (want=%s)", uav, message.want)
+        grant = record.grant
+        if message.want != grant.wanted:
+            log.info("qos agent: %s %s priority", uav, "wants" if message.want else "no longer wants")
+        grant.request(message.want, message.seq, self.clock.now_ns())
+        record.need = Need(
+            risk=message.risk, latency_excess=message.latency_excess, offered_mbps=message.offered_mbps
+        )
+        self._arbitrate()
+        record.wake.set()
+
+    def _new_record(self, uav: str) -> DroneRecord:
+        downlink = functools.partial(self.bus.publisher, priority=Priority.INTERACTIVE_HIGH)
+        record = DroneRecord(
+            grant=DroneGrant(uav, self.qos, self.clock.now_ns()),
+            publisher=downlink(keys.downlink(uav, Downlink.QOS_GRANT)),
+            decisions=downlink(keys.downlink(uav, Downlink.QOS_DECISION)) if self.arbiter else None,
+        )
+        if self.arbiter is not None:
+            record.grant.admit(False, "waiting for the arbiter")
+        record.task = asyncio.get_running_loop().create_task(self._drone(record))
+        return record
+
+    # ---- the arbiter (policy "arbiter") ---------------------------------------------------------------
+
+    async def _arbitrate_loop(self) -> None:
+        """Decide again when a min-hold or turn ends, or a drone goes silent or its hold-down ends."""
+        assert self.arbiter is not None
+        while not self.stopping.is_set():
+            now = self.clock.now_ns()
+            wait_s = min(0.5, max(0.001, (self.arbiter.next_change_ns(now) - now) / NS_PER_S))
+            with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
+                await asyncio.wait_for(self.stopping.wait(), wait_s)
+            if not self.stopping.is_set():
+                self._arbitrate()
+
+    def _arbitrate(self) -> None:
+        """The arbiter's decisions for the drones' needs now; each drone's grant follows them."""
+        if self.arbiter is None:
+            return
+        now = self.clock.now_ns()
+        needs: dict[str, Need] = {}
+        for uav, record in self.drones.items():
+            if record.grant.wants(now):
+                needs[uav] = record.need
+            elif record.grant.lingering(now):
+                needs[uav] = Need(offered_mbps=record.need.offered_mbps, lingering=True)
+        for decision in self.arbiter.decide(needs, now):
+            self._decided(decision, now)
+        for uav, record in self.drones.items():
+            grant = record.grant
+            admitted = uav in self.arbiter.holders
+            reason = record.refusal or "waiting for the arbiter"
+            if (admitted, reason if not admitted else "") != (grant.admitted, grant.arbiter_reason):
+                grant.admit(admitted, f"the arbiter: {reason}" if not admitted else "")
+                record.wake.set()
+
+    def _decided(self, decision: Decision, now: int) -> None:
+        assert self.arbiter is not None
+        uav, action = decision.uav, decision.action
+        self.decisions[action] += 1
+        record = self.drones.get(uav)
+        if record is not None:
+            record.refusal = decision.reason if action in (Action.DENY, Action.REVOKE) else ""
+        level = logging.WARNING if action is Action.REVOKE else logging.INFO
+        log.log(level, "qos agent: arbiter %s %s: %s", action.value, uav, decision.reason)
+        publisher = record.decisions if record is not None else None
+        if publisher is None:
+            return
+        self.seq += 1
+        publisher.put(
+            QosDecision(
+                uav=uav, seq=self.seq, stamp_ns=now, action=action.value, reason=decision.reason[:500],
+                risk=decision.need.risk, latency_excess=max(-1.0, min(1.0, decision.need.latency_excess)),
+                holders=tuple(sorted(self.arbiter.holders)),
+            )
+        )  # fmt: skip
+
+    # ---- one drone --------------------------------------------------------------------------------------
+
+    async def _drone(self, record: DroneRecord) -> None:
+        grant, wake, uav = record.grant, record.wake, record.grant.uav
+        told: Grant | None = None
+        next_tell = 0
+        repeat_ns = to_ns(self.qos.grant_interval_s)
+        while not self.stopping.is_set():
+            now = self.clock.now_ns()
+            op = grant.next_op(now)
+            if op is not None:
+                try:
+                    assert self.calls is not None  # an op is due only with backend "camara"
+                    await self.calls.do(op, grant)
+                except Exception as exc:  # one drone's surprise must not end its task
+                    log.exception("qos agent: %s: %s failed unexpectedly", uav, op.value)
+                    grant.failed(op, f"{op.value}: {type(exc).__name__}: {exc}"[:300], self.clock.now_ns())
+                continue
+            state = grant.grant(now)
+            if state is not told or now >= next_tell:
+                if state is not told:
+                    log.info(
+                        "qos agent: %s grant %s%s",
+                        uav,
+                        state.value,
+                        f" ({grant.why()})" if grant.why() else "",
+                    )
+                self._tell(record, state)
+                told, next_tell = state, now + repeat_ns
+            if grant.silent(now) and grant.session is None:
+                if now - grant.heard_ns > FORGET_AFTER * to_ns(self.qos.drone_timeout_s):
+                    log.info("qos agent: %s silent; forgotten", uav)
+                    self._forget(uav)
+                    return
+                next_tell = now + to_ns(self.qos.drone_timeout_s)  # nobody listens: no need to repeat
+            deadline = min(grant.next_deadline_ns(now), next_tell)
+            wake.clear()
+            with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
+                await asyncio.wait_for(wake.wait(), max(0.001, (deadline - now) / NS_PER_S))
+
+    def _forget(self, uav: str) -> None:
+        record = self.drones.pop(uav, None)
+        if record is not None:
+            record.close()
+
+    def _tell(self, record: DroneRecord, state: Grant) -> None:
+        self.seq += 1
+        grant = record.grant
+        session_id = grant.session.session_id if grant.session else ""
+        record.publisher.put(
+            QosGrant(
+                uav=grant.uav, seq=self.seq, grant=state, backend=self.qos.backend, session_id=session_id,
+                reason=grant.why()[:300], answers_seq=grant.request_seq,
+            )
+        )  # fmt: skip
+
+    async def _shut_down(self) -> None:
+        """Let each drone's call in flight finish (a create cancelled mid-way would leave a session we
+        never heard of), delete every session held, then sweep the devices for any left anyway."""
+        for record in self.drones.values():
+            record.wake.set()
+        tasks = [r.task for r in self.drones.values() if r.task is not None]
+        if tasks:
+            _, late = await asyncio.wait(tasks, timeout=self.camara.timeout_s + 1)
+            for task in late:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+        held = [r.grant for r in self.drones.values() if r.grant.session is not None]
+
+        if self.calls is not None:
+            calls = self.calls
+            with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
+                await asyncio.wait_for(asyncio.gather(*(calls.release(g) for g in held)), SHUTDOWN_S)
+            with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
+                await asyncio.wait_for(calls.clean_leftovers("unaccounted for at shutdown"), SHUTDOWN_S)
+        for record in self.drones.values():
+            self._tell(record, Grant.NONE)
+
+    def _notified(self, session_id: str) -> None:
+        """News of a session at the sink: the drone holding it has it read at once."""
+        for record in self.drones.values():
+            session = record.grant.session
+            if session is not None and session.session_id == session_id:
+                record.grant.read_now()
+                record.wake.set()
+
+    @property
+    def errors(self) -> int:
+        return self.calls.errors if self.calls is not None else 0
+
+    @property
+    def cleaned(self) -> int:
+        return self.calls.cleaned if self.calls is not None else 0
+
+    def health(self) -> str:
+        sessions = sum(r.grant.session is not None for r in self.drones.values())
+        calls = f" api_calls={self.client.calls} retries={self.client.retries}" if self.client else ""
+        arbiter = ""
+        if self.arbiter is not None:
+            d = self.decisions
+            arbiter = (
+                f" holders={len(self.arbiter.holders)} grants={d[Action.GRANT]} denials={d[Action.DENY]} "
+                f"revocations={d[Action.REVOKE]} releases={d[Action.RELEASE]}"
+            )
+        return (
+            f"drones={len(self.drones)} sessions={sessions} errors={self.errors} "
+            f"leftovers_cleaned={self.cleaned}{calls}{arbiter} rejected={self.stats.rejected}"
+        )
+
+
+async def _cancel(task: asyncio.Task[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
+
+
+def run(config: Config, *, health_file: Path | None = None) -> int:
+    """`dynqos edge qos` until SIGTERM: the operator settings are checked before any network is opened;
+    its metrics served, its zenoh session open as an edge client, one ready line once it serves."""
+    preflight(config)
+    with serving_metrics("qos", config) as metrics, open_bus(config.zenoh, Role.EDGE) as bus:
+        agent = QosAgent(config, bus)
+        agent.service.health_file = health_file
+        agent.service.beat = metrics.health.beat
+        edge_metrics.qos(agent, metrics)
+        agent.run(ready=lambda: ready_line("qos"))
+    return 0

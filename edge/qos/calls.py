@@ -1,0 +1,172 @@
+"""The QoS agent's calls to the operator's CAMARA Quality-on-Demand API for one drone at a time, and
+what each answer means for that drone's grant rules (edge/qos/grants.py): the agent's task asks the rules
+which call is due, this makes it and reports the outcome back."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from typing import Any
+
+from dynqos.common.clock import NS_PER_S, Clock
+from dynqos.common.config import CamaraConfig
+from dynqos.edge.qos.client import QodClient, QodError, SessionInfo
+from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
+
+log = logging.getLogger(__name__)
+
+
+class OperatorCalls:
+    def __init__(self, client: QodClient, camara: CamaraConfig, port: int, server: str, clock: Clock) -> None:
+        """`port`: the zenoh priority port the sessions name; `server`: the edge address the network sees."""
+        self.client = client
+        self.camara = camara
+        self.port = port
+        self.server = server
+        self.clock = clock
+        self.errors = 0
+        self.cleaned = 0
+        self._logged: set[tuple[str, int, str]] = set()
+
+    async def do(self, op: Op, grant: DroneGrant) -> None:
+        """One API call for one drone, and what its answer means for the drone's grant."""
+        client = self.client
+        assert client is not None
+        device = self.camara.devices.get(grant.uav)
+        try:
+            if op is Op.RENEW:  # one session per device (409 otherwise): the capped one goes first
+                assert grant.session is not None
+                old = grant.session.session_id
+                with contextlib.suppress(QodError):  # gone already (404) or failing: the create says
+                    await client.delete(old)
+                grant.deleted(self.clock.now_ns())
+                log.info("qos agent: %s session %s deleted at its maximum duration; renewing", grant.uav, old)
+                op = Op.CREATE
+            if op is Op.CREATE:
+                if device is None:
+                    self._once(grant.uav, 0, "NO_DEVICE", f"no [qos.camara.devices] entry for {grant.uav}")
+                    grant.denied(
+                        f"no device identity for {grant.uav} in [qos.camara.devices]", self.clock.now_ns()
+                    )
+                    return
+                info = await client.create(self._session_body(device.as_api()))
+                log.info("qos agent: %s session %s created (%s)", grant.uav, info.session_id, info.qos_status)
+            elif op is Op.DELETE:
+                assert grant.session is not None
+                await client.delete(grant.session.session_id)
+                log.info("qos agent: %s session %s deleted", grant.uav, grant.session.session_id)
+                grant.deleted(self.clock.now_ns())
+                return
+            elif op is Op.EXTEND:
+                assert grant.session is not None
+                info = await client.extend(grant.session.session_id, self.camara.duration_s)
+                if grant.extended(self.session(info), self.clock.now_ns()):
+                    log.info(
+                        "qos agent: %s session %s is at the operator's maximum duration: replaced "
+                        "%.1f s before it ends", grant.uav, info.session_id, self.camara.renew_before_s,
+                    )  # fmt: skip
+                else:
+                    log.info("qos agent: %s session %s extended", grant.uav, info.session_id)
+                return
+            else:
+                assert grant.session is not None
+                info = await client.get(grant.session.session_id)
+            grant.observed(self.session(info), self.clock.now_ns())
+        except QodError as exc:
+            await self._failed(op, grant, exc)
+
+    async def _failed(self, op: Op, grant: DroneGrant, exc: QodError) -> None:
+        now = self.clock.now_ns()
+        self.errors += 1
+        reason = f"{op.value}: {exc.status or 'no answer'} {exc.code}: {exc.message}"
+        if exc.status == 404 and op is not Op.CREATE:
+            grant.deleted(now)  # not there any more (expired and removed, or deleted elsewhere)
+        elif exc.status == 409 and op is Op.CREATE:
+            await self._resolve_conflict(grant)
+        elif exc.status == 409 and op is Op.EXTEND:
+            grant.failed(op, reason, now)
+            grant.read_now()  # the session is no longer AVAILABLE: read what it is
+        else:
+            self._once(grant.uav, exc.status, exc.code, reason)
+            if exc.transient or op is not Op.CREATE:
+                grant.failed(op, reason, now)
+            else:
+                grant.denied(reason, now)
+
+    async def _resolve_conflict(self, grant: DroneGrant) -> None:
+        """409 on create: a session for this flow exists (ours from before a restart, or ended and not
+        deleted). Reuse it if it is alive; delete it if it has ended, and create afresh."""
+        assert self.client is not None
+        device = self.camara.devices[grant.uav].as_api()
+        try:
+            mine = await self.ours(device)
+        except QodError as exc:
+            grant.failed(Op.CREATE, f"409, then retrieve-sessions: {exc}", self.clock.now_ns())
+            return
+        if not mine:
+            grant.denied("409 CONFLICT, and no session of this device names our port", self.clock.now_ns())
+            return
+        alive = [s for s in mine if s.qos_status != "UNAVAILABLE"]
+        if alive:
+            log.info("qos agent: %s reuses session %s (409 on create)", grant.uav, alive[0].session_id)
+            grant.observed(self.session(alive[0]), self.clock.now_ns())
+            return
+        for info in mine:
+            with contextlib.suppress(QodError):
+                await self.client.delete(info.session_id)
+                log.info("qos agent: %s deleted ended session %s (409 on create)", grant.uav, info.session_id)
+
+    async def ours(self, device: dict[str, Any]) -> list[SessionInfo]:
+        """The device's sessions that name our priority port: the ones this agent (or an earlier one) made."""
+        assert self.client is not None
+        return [s for s in await self.client.retrieve(device) if self.port in s.server_ports()]
+
+    def _session_body(self, device: dict[str, Any]) -> dict[str, Any]:
+        address = "ipv6Address" if ":" in self.server else "ipv4Address"
+        body: dict[str, Any] = {
+            "device": device,
+            "applicationServer": {address: self.server},
+            "applicationServerPorts": {"ports": [self.port]},
+            "qosProfile": self.camara.qos_profile,
+            "duration": self.camara.duration_s,
+        }
+        if self.camara.sink:
+            body["sink"] = self.camara.sink
+        return body
+
+    def session(self, info: SessionInfo) -> Session:
+        now = self.clock.now_ns()
+        expires = None if info.expires_in_s is None else now + round(info.expires_in_s * NS_PER_S)
+        return Session(info.session_id, QodStatus(info.qos_status), info.status_info, expires)
+
+    def _once(self, uav: str, status: int, code: str, text: str) -> None:
+        """An API error is logged the first time it is seen for a drone; repeats only count."""
+        if (uav, status, code) not in self._logged:
+            self._logged.add((uav, status, code))
+            log.warning("qos agent: %s: %s", uav, text)
+
+    # ---- start and stop -------------------------------------------------------------------------------
+
+    async def clean_leftovers(self, whose: str = "left by an earlier agent") -> None:
+        """Sessions for our priority port that a crashed agent left: found per device, deleted."""
+        assert self.client is not None
+        for uav, device in self.camara.devices.items():
+            try:
+                for info in await self.ours(device.as_api()):
+                    await self.client.delete(info.session_id)
+                    self.cleaned += 1
+                    log.warning("qos agent: deleted %s's session %s %s", uav, info.session_id, whose)
+            except QodError as exc:
+                log.warning("qos agent: cannot check %s for leftover sessions (%s)", uav, exc)
+
+    async def release(self, grant: DroneGrant) -> None:
+        """Delete the session `grant` holds (the agent is stopping); a 404 means it is gone already."""
+        assert grant.session is not None
+        session_id = grant.session.session_id
+        try:
+            await self.client.delete(session_id)
+            log.info("qos agent: %s session %s deleted (stopping)", grant.uav, session_id)
+        except QodError as exc:
+            if exc.status != 404:
+                log.error("qos agent: could not delete %s's session %s: %s", grant.uav, session_id, exc)
+        grant.deleted(self.clock.now_ns())

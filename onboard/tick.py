@@ -1,0 +1,58 @@
+"""What goes into one tick of the onboard core (what the shell read) and what comes out (what the shell
+writes): the seam between onboard/core.py and onboard/daemon.py."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from dynqos.common.bus import Received
+from dynqos.common.keys import Stream
+from dynqos.common.messages import Message
+from dynqos.common.modes import Flow
+from dynqos.onboard.fc import FcState, Setpoint
+
+
+@dataclass(frozen=True, slots=True)
+class FrameSent:
+    """One image (both its parts if paced) handed to the bus by the camera pipeline."""
+
+    seq: int
+    kind: str
+    stamp_ns: int
+    nbytes: int  # encoded image bytes, message headers not counted
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class TickInput:
+    """What the shell read since the last tick. `offboard` turns True once the FC flies offboard."""
+
+    now_ns: int
+    fc: FcState | None
+    downlink: Sequence[Received] = ()
+    frames_sent: Sequence[FrameSent] = ()
+    spaciousness_m: float | None = None
+    offboard: bool = False
+    uplink_bytes: int | None = None  # every byte the drone's publishers put so far (None: unknown)
+
+
+@dataclass(frozen=True, slots=True)
+class Outgoing:
+    stream: Stream
+    flow: Flow
+    message: Message
+
+
+@dataclass(frozen=True, slots=True)
+class LogEvent:
+    level: int  # a `logging` level
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class TickOutput:
+    setpoint: Setpoint | None  # what the FC gets this tick; None before offboard or with no FC state
+    publish: tuple[Outgoing, ...]
+    camera_flow: Flow
+    camera_rate_factor: float
+    events: tuple[LogEvent, ...]

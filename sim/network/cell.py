@@ -1,0 +1,499 @@
+"""The cell emulator's I/O shell: TCP listeners per bearer, the TTI timer, the bytes, the records.
+
+Drone -> bearer listener -> UE buffer -> scheduler (each TTI) -> uplink delay line -> edge router port.
+Edge -> downlink serializer (capacity) -> downlink delay line -> drone. One asyncio loop, no threads.
+What the radio decides (capacity, coverage, who gets how much, the timeline's events) is the pure core
+in sim/network/cell_core.py; this shell reads the clock, moves bytes and does an event's I/O.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import functools
+import logging
+import socket
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from dynqos.common.config import BearerConfig, CellConfig, CellEventConfig
+from dynqos.common.errors import ConfigError
+from dynqos.sim.network.cell_core import CellCore, describe
+from dynqos.sim.network.delayline import DelayLine
+from dynqos.sim.network.operator import Notification, Operator
+from dynqos.sim.network.traces import Trace, TraceError
+from dynqos.sim.network.uebuffer import UeBuffer
+
+log = logging.getLogger(__name__)
+
+READ_CHUNK = 64 * 1024
+SOCKET_BUFFER = 64 * 1024  # at full scale; divided by `scale` like every rate (socket_buffer_bytes)
+MIN_SOCKET_BUFFER = 4096
+UPSTREAM_HIGH_WATER = 256 * 1024  # edge side slow: stop granting this bearer
+DOWNLINK_HIGH_WATER = 4 * 1024 * 1024
+QOD_CHECK_TICKS = 10  # sessions settle and expire at this many TTIs' resolution
+
+
+def _now_ns() -> int:
+    return time.monotonic_ns()
+
+
+class _DroneSide(asyncio.BufferedProtocol):
+    """Reads the drone's bytes straight into its connection's UE buffer, never past the bound."""
+
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+        self._buf = bytearray(READ_CHUNK)
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.conn.drone = transport
+        transport.pause_reading()  # until the edge side is connected
+        self.conn.bearer.emulator.open_upstream(self.conn)
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return memoryview(self._buf)[: max(1, min(READ_CHUNK, self.conn.bearer.free_bytes()))]
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self.conn.bearer.receive(self.conn, bytes(self._buf[:nbytes]))
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.conn.close()
+
+
+class _EdgeSide(asyncio.Protocol):
+    def __init__(self, conn: Connection) -> None:
+        self.conn = conn
+
+    def data_received(self, data: bytes) -> None:
+        self.conn.bearer.downlink(self.conn, data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.conn.close()
+
+
+@dataclass(eq=False)
+class Connection:
+    bearer: Bearer
+    drone: asyncio.Transport | None = None
+    edge: asyncio.Transport | None = None
+    ue: UeBuffer = field(init=False)
+    closed: bool = False
+    reading_paused: bool = True
+
+    def __post_init__(self) -> None:
+        self.ue = UeBuffer(self.bearer.ue_capacity)
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        for transport in (self.drone, self.edge):
+            if transport is not None:
+                transport.close()
+        self.bearer.forget(self)
+
+
+class Bearer:
+    """One QoS flow: its connections, their UE buffers, its weight, its counters."""
+
+    def __init__(self, emulator: CellEmulator, cfg: BearerConfig, cell: CellConfig) -> None:
+        self.emulator = emulator
+        self.name = cfg.name
+        self.target = cfg.target_host_port
+        self.ue = cfg.ue
+        self.ue_capacity = cfg.ue_buffer_bytes or cell.ue_buffer_bytes
+        self.connections: list[Connection] = []
+        self.up_line: DelayLine[tuple[Connection, bytes]] = DelayLine(
+            round(cell.base_delay_up_ms * 1e6), round(cell.jitter_ms * 1e6), seed=cell.seed
+        )
+        self.down_line: DelayLine[tuple[Connection, bytes]] = DelayLine(
+            round(cell.base_delay_down_ms * 1e6), round(cell.jitter_ms * 1e6), seed=cell.seed + 1
+        )
+        self._down_tx_end_ns = 0
+        self.credit_bits = 0.0
+        self.listen_port = cfg.listen_port
+        self.port = 0
+        self.server: asyncio.Server | None = None
+        self.totals = {"offered_bytes": 0, "delivered_bytes": 0, "downlink_bytes": 0, "dropped_bytes": 0}
+        self.interval = dict.fromkeys(self.totals, 0)
+
+    @property
+    def granted(self) -> bool:
+        """A QoD session grants this bearer its weight (with [cell] qod = true)."""
+        return self.emulator.core.granted[self.name]
+
+    def effective_weight(self) -> float:
+        return self.emulator.core.effective_weight(self.name)
+
+    def _count(self, key: str, nbytes: int) -> None:
+        self.totals[key] += nbytes
+        self.interval[key] += nbytes
+
+    @property
+    def buffered(self) -> int:
+        return sum(c.ue.size for c in self.connections)
+
+    def free_bytes(self) -> int:
+        return max(0, self.ue_capacity - self.buffered)
+
+    def receive(self, conn: Connection, data: bytes) -> None:
+        conn.ue.append(data, _now_ns())
+        self._count("offered_bytes", len(data))
+        if self.free_bytes() == 0:
+            self._pause_all()
+
+    def _pause_all(self) -> None:
+        for conn in self.connections:
+            if conn.drone is not None and not conn.reading_paused:
+                conn.drone.pause_reading()
+                conn.reading_paused = True
+
+    def resume_if_room(self) -> None:
+        if self.free_bytes() < min(16 * 1024, self.ue_capacity):
+            return
+        for conn in self.connections:
+            if conn.drone is not None and conn.edge is not None and conn.reading_paused and not conn.closed:
+                conn.drone.resume_reading()
+                conn.reading_paused = False
+
+    def demand_bits(self) -> float:
+        writable = [c for c in self.connections if c.edge is not None and not c.closed]
+        if any(c.edge.get_write_buffer_size() > UPSTREAM_HIGH_WATER for c in writable if c.edge):
+            return 0.0
+        return 8.0 * sum(c.ue.size for c in writable)
+
+    def grant(self, bits: float, now_ns: int) -> None:
+        """Move granted bytes from the UE buffers into the uplink delay line."""
+        self.credit_bits += bits
+        budget = int(self.credit_bits // 8)
+        for conn in self.connections:
+            if budget <= 0:
+                break
+            if conn.ue.size == 0 or conn.edge is None:
+                continue
+            data = conn.ue.take(budget)
+            budget -= len(data)
+            self.credit_bits -= 8 * len(data)
+            self.up_line.push((conn, data), len(data), now_ns)
+        if self.buffered == 0:
+            self.credit_bits = 0.0  # an idle bearer saves up no capacity
+
+    def flush(self, now_ns: int) -> None:
+        for conn, data in self.up_line.pop_due(now_ns):
+            if not conn.closed and conn.edge is not None:
+                conn.edge.write(data)
+                self._count("delivered_bytes", len(data))
+        if not self.emulator.core.downlink_up(now_ns):
+            return  # no downlink radio: the edge's bytes wait in the cell (TCP backs the edge off)
+        for conn, data in self.down_line.pop_due(now_ns):
+            if not conn.closed and conn.drone is not None:
+                conn.drone.write(data)
+                self._count("downlink_bytes", len(data))
+
+    def downlink(self, conn: Connection, data: bytes) -> None:
+        now = _now_ns()
+        rate = self.emulator.core.downlink_bps
+        self._down_tx_end_ns = max(now, self._down_tx_end_ns) + round(len(data) * 8 / rate * 1e9)
+        self.down_line.push((conn, data), len(data), self._down_tx_end_ns)
+        if self.down_line.size > DOWNLINK_HIGH_WATER and conn.edge is not None:
+            conn.edge.pause_reading()
+            self.emulator.loop.call_later(0.01, self._resume_downlink, conn)
+
+    def _resume_downlink(self, conn: Connection) -> None:
+        if conn.closed or conn.edge is None:
+            return
+        if self.down_line.size > DOWNLINK_HIGH_WATER:
+            self.emulator.loop.call_later(0.01, self._resume_downlink, conn)
+        else:
+            conn.edge.resume_reading()
+
+    def queue_delay_ms(self, now_ns: int) -> float:
+        ages = [age for c in self.connections if (age := c.ue.head_age_ns(now_ns)) is not None]
+        return max(ages) / 1e6 if ages else 0.0
+
+    def forget(self, conn: Connection) -> None:
+        if conn in self.connections:
+            self._count("dropped_bytes", conn.ue.clear())
+            self.connections.remove(conn)
+
+    def drop_connections(self) -> None:
+        for conn in list(self.connections):
+            conn.close()
+
+
+def socket_buffer_bytes(scale: float) -> int:
+    """The kernel socket buffer in front of (and behind) the emulated UE buffer. Bytes waiting in it
+    are queued as surely as bytes in the UE buffer, but the emulator cannot see them; unscaled, 64 KiB on
+    each side held ~0.5 s at a tenth of the rate and ~50 ms at full rate, so the scaled experiment's
+    latencies were not the full-scale ones. Scaled like the rates, it holds the same time at any scale."""
+    return max(MIN_SOCKET_BUFFER, round(SOCKET_BUFFER / scale))
+
+
+class CellEmulator:
+    def __init__(
+        self, cell: CellConfig, bearers: tuple[BearerConfig, ...], out_dir: Path | None = None
+    ) -> None:
+        self.cell = cell
+        self.scale = cell.scale
+        self.socket_buffer = socket_buffer_bytes(cell.scale)
+        self.loop = asyncio.get_running_loop()
+        self.start_ns = _now_ns()
+        self.core = CellCore(
+            cell, {b.name: b.weight for b in bearers}, self.start_ns,
+            ue_bearers=frozenset(b.name for b in bearers if b.ue),
+        )  # fmt: skip
+        self.core.qod = False  # until an operator is attached (`operator`)
+        self.bearers = [Bearer(self, b, cell) for b in bearers]
+        self.background = self.core.background
+        self.tti_ns = self.core.tti_ns
+        self._next_record_ns = self.start_ns + round(cell.record_interval_s * 1e9)
+        self._tick_handle: asyncio.TimerHandle | None = None
+        self._next_tick_ns = self.start_ns
+        self.stopped = asyncio.Event()
+        self._operator: Operator | None = None
+        self.notify: Callable[[list[Notification]], None] = lambda notes: None
+        self.ticks = 0
+        self.late_ticks = 0
+        self.beat: Callable[[str], None] | None = None  # /healthz (common/metrics.py), once per record
+        self._csv_file: TextIO | None = None
+        self._csv: Any = None
+        self.last_interval: dict[str, dict[str, float]] = {}
+        if cell.trace:
+            self._set_trace(cell.trace, cell.trace_mean_mbps, "cell.trace")
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            self._csv_file = (out_dir / "cell.csv").open("w", newline="")
+            self._csv = csv.writer(self._csv_file)
+            self._csv.writerow(
+                ["t_s", "name", "kind", "capacity_mbps", "offered_bits", "delivered_bits", "buffer_bytes",
+                 "queue_delay_ms", "dropped_bytes"]
+            )  # fmt: skip
+
+    # ---- set-up ------------------------------------------------------------------------------------
+
+    @property
+    def operator(self) -> Operator | None:
+        """The QoD API's sessions ([cell] qod = true): while one is attached, a drone's bearer has its
+        priority weight only while a session grants it."""
+        return self._operator
+
+    @operator.setter
+    def operator(self, operator: Operator | None) -> None:
+        self._operator = operator
+        self.core.qod = operator is not None
+
+    def _set_trace(self, path: str, mean_mbps: float, key: str) -> None:
+        trace = None
+        if path:
+            try:
+                trace = Trace.load(path, mean_mbps=mean_mbps)
+            except TraceError as exc:
+                raise ConfigError(key, str(exc)) from None
+        self.core.set_trace(trace, _now_ns())
+
+    async def start(self) -> None:
+        for bearer in self.bearers:
+            sock = socket.socket(socket.AF_INET6 if ":" in self.cell.listen_host else socket.AF_INET)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.socket_buffer)
+            port = bearer.listen_port
+            try:
+                sock.bind((self.cell.listen_host, port))
+            except OSError as exc:
+                sock.close()
+                raise ConfigError(
+                    f"bearer {bearer.name}",
+                    f"cannot listen on {self.cell.listen_host}:{port} ({exc.strerror})",
+                ) from None
+            sock.listen(16)
+            bearer.server = await self.loop.create_server(functools.partial(self._accept, bearer), sock=sock)
+            bearer.port = sock.getsockname()[1]
+        self._next_tick_ns = _now_ns()
+        self._schedule_tick()
+
+    def _accept(self, bearer: Bearer) -> _DroneSide:
+        conn = Connection(bearer)
+        bearer.connections.append(conn)
+        return _DroneSide(conn)
+
+    def open_upstream(self, conn: Connection) -> None:
+        async def connect() -> None:
+            host, port = conn.bearer.target
+            try:
+                transport, _ = await self.loop.create_connection(lambda: _EdgeSide(conn), host, port)
+            except OSError as exc:
+                log.warning("bearer %s: cannot reach edge %s:%d (%s); dropping the drone's connection",
+                            conn.bearer.name, host, port, exc.strerror or exc)  # fmt: skip
+                conn.close()
+                return
+            if conn.closed:
+                transport.close()
+                return
+            sock = transport.get_extra_info("socket")
+            if sock is not None:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.socket_buffer)
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            assert isinstance(transport, asyncio.Transport)
+            conn.edge = transport
+            if conn.drone is not None:
+                dsock = conn.drone.get_extra_info("socket")
+                if dsock is not None:
+                    dsock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            conn.bearer.resume_if_room()
+            log.info("bearer %s: drone connected, forwarding to %s:%d", conn.bearer.name, host, port)
+
+        self.loop.create_task(connect())
+
+    # ---- the TTI loop -------------------------------------------------------------------------------
+
+    def _schedule_tick(self) -> None:
+        self._next_tick_ns += self.tti_ns
+        now = _now_ns()
+        if self._next_tick_ns < now - 5 * self.tti_ns:  # fell behind: skip ahead, the bucket caps the burst
+            self.late_ticks += 1
+            self._next_tick_ns = now + self.tti_ns
+        delay_s = max(0.0, (self._next_tick_ns - now) / 1e9)
+        self._tick_handle = self.loop.call_at(self.loop.time() + delay_s, self._tick)
+
+    def _tick(self) -> None:
+        now = _now_ns()
+        self.ticks += 1
+        for event in self.core.due(now):
+            self.apply(event)
+        if self.operator is not None and self.ticks % QOD_CHECK_TICKS == 0:
+            self.notify(self.operator.advance())
+            self.refresh_grants()
+        grants = self.core.step(now, {bearer.name: bearer.demand_bits() for bearer in self.bearers})
+        for bearer in self.bearers:
+            bearer.grant(grants[bearer.name], now)
+        for bearer in self.bearers:
+            bearer.flush(now)
+            bearer.resume_if_room()
+        if now >= self._next_record_ns:
+            self._record(now)
+            self._next_record_ns += round(self.cell.record_interval_s * 1e9)
+            if self._next_record_ns < now:
+                self._next_record_ns = now + round(self.cell.record_interval_s * 1e9)
+        if not self.stopped.is_set():
+            self._schedule_tick()
+
+    def refresh_grants(self) -> None:
+        if self.operator is None:
+            return
+        for bearer in self.bearers:
+            granted = bool(bearer.ue) and self.operator.granted(bearer.ue, bearer.target[1])
+            if granted != bearer.granted:
+                self.core.granted[bearer.name] = granted
+                log.info("bearer %s: weight %g (%s)", bearer.name, bearer.effective_weight(),
+                         "QoD session available" if granted else "no QoD session")  # fmt: skip
+
+    # ---- events -------------------------------------------------------------------------------------
+
+    def apply(self, event: CellEventConfig) -> str:
+        """Apply one event now (from the timeline or the control API); returns what was done."""
+        now = _now_ns()
+        effect = self.core.apply(event, now)
+        if effect.load_trace is not None:
+            self._set_trace(*effect.load_trace, "file")
+        for bearer in self.bearers:
+            if bearer.name in effect.drop_bearers:
+                bearer.drop_connections()
+        if effect.end_qod is not None and self.operator is not None:
+            self.notify(self.operator.end_sessions(effect.end_qod))
+            self.refresh_grants()
+        text = describe(event)
+        log.info("cell event at %.2f s: %s", (now - self.start_ns) / 1e9, text)
+        return text
+
+    # ---- records and counters -----------------------------------------------------------------------
+
+    def current_capacity_mbps(self, now_ns: int) -> float:
+        return self.core.current_capacity_mbps(now_ns)
+
+    def _record(self, now_ns: int) -> None:
+        """One record per bearer and background user for the interval that just ended."""
+        t_s = f"{(now_ns - self.start_ns) / 1e9:.3f}"
+        capacity = f"{self.current_capacity_mbps(now_ns):.3f}"
+        interval_s = self.cell.record_interval_s
+        rows: list[list[Any]] = []
+        for bearer in self.bearers:
+            offered_bits = bearer.interval["offered_bytes"] * 8
+            delivered_bits = bearer.interval["delivered_bytes"] * 8
+            delay_ms = bearer.queue_delay_ms(now_ns)
+            self.last_interval[bearer.name] = {
+                "offered_mbps": offered_bits / interval_s / 1e6,
+                "delivered_mbps": delivered_bits / interval_s / 1e6,
+                "buffer_bytes": bearer.buffered,
+                "queue_delay_ms": delay_ms,
+            }
+            rows.append([t_s, bearer.name, "bearer", capacity, offered_bits, delivered_bits, bearer.buffered,
+                         f"{delay_ms:.3f}", bearer.interval["dropped_bytes"]])  # fmt: skip
+            bearer.interval = dict.fromkeys(bearer.interval, 0)
+        for user in self.background.values():
+            previous = self.last_interval.get("bg:" + user.name, {})
+            bg_offered = user.offered_bits - previous.get("offered_bits_total", 0.0)
+            bg_delivered = user.delivered_bits - previous.get("delivered_bits_total", 0.0)
+            self.last_interval["bg:" + user.name] = {
+                "offered_bits_total": user.offered_bits,
+                "delivered_bits_total": user.delivered_bits,
+                "offered_mbps": bg_offered / interval_s / 1e6,
+                "delivered_mbps": bg_delivered / interval_s / 1e6,
+                "backlog_bits": user.backlog_bits,
+            }
+            rows.append([t_s, user.name, "background", capacity, round(bg_offered), round(bg_delivered),
+                         round(user.backlog_bits / 8), "", 0])  # fmt: skip
+        if self._csv is not None and self._csv_file is not None:
+            self._csv.writerows(rows)
+            self._csv_file.flush()
+        if self.beat is not None:
+            self.beat(f"ticks={self.ticks} late_ticks={self.late_ticks} capacity_mbps={capacity}")
+
+    def counters(self) -> dict[str, Any]:
+        now = _now_ns()
+        return {
+            "t_s": (now - self.start_ns) / 1e9,
+            "scale": self.scale,
+            "capacity_mbps": self.current_capacity_mbps(now),
+            "ticks": self.ticks,
+            "late_ticks": self.late_ticks,
+            "bearers": {
+                b.name: {
+                    "port": b.port,
+                    "weight": b.effective_weight(),
+                    "granted": b.granted,
+                    "connections": len(b.connections),
+                    "buffer_bytes": b.buffered,
+                    "queue_delay_ms": b.queue_delay_ms(now),
+                    **b.totals,
+                    "last_interval": self.last_interval.get(b.name, {}),
+                }
+                for b in self.bearers
+            },
+            "background": {
+                u.name: {
+                    "weight": u.weight,
+                    "offered_mbps_now": u.offered_bps * self.scale / 1e6,
+                    "offered_bits": u.offered_bits,
+                    "delivered_bits": u.delivered_bits,
+                    "backlog_bits": u.backlog_bits,
+                    "last_interval": self.last_interval.get("bg:" + u.name, {}),
+                }
+                for u in self.background.values()
+            },
+        }
+
+    async def stop(self) -> None:
+        self.stopped.set()
+        if self._tick_handle is not None:
+            self._tick_handle.cancel()
+        for bearer in self.bearers:
+            if bearer.server is not None:
+                bearer.server.close()
+            bearer.drop_connections()
+        self._record(_now_ns())
+        if self._csv_file is not None:
+            self._csv_file.close()

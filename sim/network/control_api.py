@@ -1,0 +1,285 @@
+"""The cell emulator's control port over HTTP (aiohttp, on the emulator's own asyncio loop).
+
+    GET  /counters                          per-bearer and background counters, QoD sessions
+    POST /events                            apply a timeline event now (the same table as [[cell.events]])
+    /quality-on-demand/v1/...               the emulated operator's CAMARA QoD API (sim/network/operator.py)
+    POST /oauth2/token                      client-credentials tokens, when [cell] qod_auth = true
+    DELETE /oauth2/tokens                   revoke every token (an operator rotating credentials)
+
+Served on 127.0.0.1 only. Notifications to a session's sink are posted from here, in the background,
+bounded in number and time: a slow sink cannot stall the TTI loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import secrets
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any, Protocol
+
+from aiohttp import ClientSession, ClientTimeout, web
+
+from dynqos.common.config import CellConfig, CellEventConfig, build
+from dynqos.common.errors import ConfigError
+from dynqos.sim.network.operator import Answer, Notification, Operator, error
+
+log = logging.getLogger(__name__)
+
+QOD_PREFIX = "/quality-on-demand/v1"
+MAX_BODY_BYTES = 64 * 1024
+MAX_PENDING_NOTIFICATIONS = 64
+NOTIFY_TIMEOUT_S = 2.0
+
+
+class Emulator(Protocol):
+    """What the control API needs of the cell emulator (sim/network/cell.py)."""
+
+    cell: CellConfig
+
+    def counters(self) -> dict[str, Any]: ...
+    def apply(self, event: CellEventConfig) -> str: ...
+    def refresh_grants(self) -> None: ...
+
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+Tap = Callable[[str, str, Any, int, Any], None]  # method, path, request JSON, status, response JSON
+
+
+def _json(answer: Answer) -> web.Response:
+    if answer.body is None:
+        return web.Response(status=answer.status)
+    return web.json_response(answer.body, status=answer.status)
+
+
+async def _body(request: web.Request) -> Any:
+    """The request's JSON body; a bad one is a CAMARA 400."""
+    if request.content_length is not None and request.content_length > MAX_BODY_BYTES:
+        raise _Reply(error(400, "INVALID_ARGUMENT", f"body larger than {MAX_BODY_BYTES} bytes"))
+    try:
+        return json.loads(await request.read() or b"null")
+    except ValueError as exc:
+        raise _Reply(error(400, "INVALID_ARGUMENT", f"the body is not JSON ({exc})")) from None
+
+
+def _loads(data: bytes) -> Any:
+    try:
+        return json.loads(data) if data else None
+    except ValueError:
+        return data.decode(errors="replace")
+
+
+class _Reply(Exception):
+    def __init__(self, answer: Answer) -> None:
+        self.answer = answer
+
+
+class ControlApi:
+    def __init__(
+        self,
+        emulator: Emulator,
+        operator: Operator | None,
+        client_id: str = "",
+        secret: str = "",
+        *,
+        tap: Tap | None = None,
+    ) -> None:
+        self.emulator = emulator
+        self.tap = tap
+        self.operator = operator
+        self.client_id = client_id
+        self.secret = secret
+        self.tokens: dict[str, float] = {}  # token -> expiry (monotonic)
+        self.pending: set[asyncio.Task[None]] = set()
+        self.notified = 0
+        self.notify_failures = 0
+        self.http: ClientSession | None = None
+        self.app = web.Application(client_max_size=MAX_BODY_BYTES, middlewares=[self._errors])
+        r = self.app.router
+        r.add_get("/counters", self.counters)
+        r.add_post("/events", self.events)
+        r.add_post(QOD_PREFIX + "/sessions", self.create)
+        r.add_get(QOD_PREFIX + "/sessions/{sid}", self.get)
+        r.add_delete(QOD_PREFIX + "/sessions/{sid}", self.delete)
+        r.add_post(QOD_PREFIX + "/sessions/{sid}/extend", self.extend)
+        r.add_post(QOD_PREFIX + "/retrieve-sessions", self.retrieve)
+        r.add_post("/oauth2/token", self.token)
+        r.add_delete("/oauth2/tokens", self.revoke)
+        self.runner: web.AppRunner | None = None
+        self.port = 0
+
+    async def start(self, port: int) -> int:
+        self.http = ClientSession(timeout=ClientTimeout(total=NOTIFY_TIMEOUT_S))
+        self.runner = web.AppRunner(self.app, access_log=None, handle_signals=False)
+        await self.runner.setup()
+        site = web.TCPSite(self.runner, "127.0.0.1", port)
+        await site.start()
+        self.port = int(self.runner.addresses[0][1])  # the port bound (the configured one may be 0)
+        return self.port
+
+    async def stop(self) -> None:
+        for task in list(self.pending):
+            task.cancel()
+        if self.runner is not None:
+            await self.runner.cleanup()
+        if self.http is not None:
+            await self.http.close()
+
+    # ---- plumbing ---------------------------------------------------------------------------------------
+
+    @web.middleware
+    async def _errors(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        response = await self._answer(request, handler)
+        if self.tap is not None:
+            sent = await request.read()
+            body = response.body if isinstance(response, web.Response) else None
+            self.tap(
+                request.method,
+                request.path,
+                _loads(sent) if request.content_type == "application/json" else dict(await request.post()),
+                response.status,
+                _loads(body) if isinstance(body, bytes) else None,
+            )
+        return response
+
+    async def _answer(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        try:
+            if request.path.startswith(QOD_PREFIX):
+                if self.operator is None:
+                    return _json(error(404, "NOT_FOUND", "this cell serves no QoD API ([cell] qod = false)"))
+                self._authorise(request)
+            return await handler(request)
+        except _Reply as reply:
+            return _json(reply.answer)
+        except web.HTTPException as exc:
+            if request.path.startswith(QOD_PREFIX):
+                return _json(
+                    error(exc.status, "NOT_FOUND" if exc.status == 404 else "INVALID_ARGUMENT", exc.reason)
+                )
+            return web.json_response({"error": f"no {request.method} {request.path}; use GET /counters or "
+                                      "POST /events"}, status=exc.status)  # fmt: skip
+
+    def _authorise(self, request: web.Request) -> None:
+        if not self.emulator.cell.qod_auth:
+            return
+        header = request.headers.get("Authorization", "")
+        token = header.removeprefix("Bearer ").strip() if header.startswith("Bearer ") else ""
+        expiry = self.tokens.get(token)
+        if expiry is None or time.monotonic() >= expiry:
+            self.tokens.pop(token, None)
+            raise _Reply(
+                error(401, "UNAUTHENTICATED", "request not authenticated: a valid token is required")
+            )
+
+    def send(self, notes: list[Notification]) -> None:
+        """Post each notification to its sink in the background (bounded; the oldest work is not waited)."""
+        for note in notes:
+            if len(self.pending) >= MAX_PENDING_NOTIFICATIONS:
+                self.notify_failures += 1
+                log.warning("qod: too many notifications pending; dropping one for %s", note.sink)
+                continue
+            task = asyncio.get_running_loop().create_task(self._post(note))
+            self.pending.add(task)
+            task.add_done_callback(self.pending.discard)
+
+    async def _post(self, note: Notification) -> None:
+        assert self.http is not None
+        headers = {"Content-Type": "application/cloudevents+json"}
+        credential = note.credential or {}
+        if credential.get("credentialType") == "ACCESSTOKEN" and credential.get("accessToken"):
+            headers["Authorization"] = f"Bearer {credential['accessToken']}"
+        try:
+            async with self.http.post(note.sink, data=json.dumps(note.event), headers=headers) as response:
+                ok = response.status in (200, 202, 204)
+        except Exception as exc:  # any failure of a sink (refused, timed out, bad TLS) is the sink's
+            ok = False
+            log.warning("qod: notification to %s failed (%s)", note.sink, type(exc).__name__)
+        self.notified += ok
+        self.notify_failures += not ok
+
+    def _changed(self, notes: list[Notification]) -> None:
+        self.emulator.refresh_grants()
+        self.send(notes)
+
+    # ---- the emulator's own routes ---------------------------------------------------------------------
+
+    async def counters(self, request: web.Request) -> web.Response:
+        counters = self.emulator.counters()
+        if self.operator is not None:
+            counters["qod"] = {
+                **vars(self.operator.counters),
+                "notified": self.notified,
+                "notify_failures": self.notify_failures,
+                "sessions": self.operator.open_sessions(),
+            }
+        return web.json_response(counters)
+
+    async def events(self, request: web.Request) -> web.Response:
+        try:
+            table = await _body(request)
+            if table is None:
+                table = {}
+            if not isinstance(table, dict):
+                raise ConfigError("body", "must be a JSON object")
+            table.setdefault("at_s", 0.0)
+            event = build(CellEventConfig, table)
+            text = self.emulator.apply(event)
+        except _Reply as reply:
+            return web.json_response({"error": reply.answer.body["message"]}, status=400)
+        except ConfigError as exc:
+            return web.json_response({"error": str(exc)}, status=400)
+        return web.json_response({"applied": text})
+
+    # ---- the QoD API ---------------------------------------------------------------------------------------
+
+    @property
+    def op(self) -> Operator:
+        assert self.operator is not None
+        return self.operator
+
+    async def create(self, request: web.Request) -> web.Response:
+        answer, notes = self.op.create(await _body(request))
+        self._changed(notes)
+        return _json(answer)
+
+    async def get(self, request: web.Request) -> web.Response:
+        self._changed(self.op.advance())
+        return _json(self.op.get(request.match_info["sid"]))
+
+    async def delete(self, request: web.Request) -> web.Response:
+        answer, notes = self.op.delete(request.match_info["sid"])
+        self._changed(notes)
+        return _json(answer)
+
+    async def extend(self, request: web.Request) -> web.Response:
+        self._changed(self.op.advance())
+        return _json(self.op.extend(request.match_info["sid"], await _body(request)))
+
+    async def retrieve(self, request: web.Request) -> web.Response:
+        self._changed(self.op.advance())
+        return _json(self.op.retrieve(await _body(request)))
+
+    async def token(self, request: web.Request) -> web.Response:
+        form = await request.post()
+        if form.get("grant_type") != "client_credentials":
+            return web.json_response({"error": "unsupported_grant_type"}, status=400)
+        if (
+            not self.client_id
+            or form.get("client_id") != self.client_id
+            or not secrets.compare_digest(str(form.get("client_secret", "")), self.secret)
+        ):
+            return web.json_response({"error": "invalid_client"}, status=401)
+        token = secrets.token_urlsafe(24)
+        ttl = self.emulator.cell.qod_token_ttl_s
+        self.tokens = {
+            t: e for t, e in self.tokens.items() if e > time.monotonic()
+        }  # bounded: live ones only
+        self.tokens[token] = time.monotonic() + ttl
+        return web.json_response({"access_token": token, "token_type": "Bearer", "expires_in": ttl})
+
+    async def revoke(self, request: web.Request) -> web.Response:
+        count = len(self.tokens)
+        self.tokens.clear()
+        return web.json_response({"revoked": count})

@@ -1,0 +1,310 @@
+"""The emulated cell as an operator: QoD sessions, what they grant, and how the API answers.
+
+Pure logic with the clocks passed in; sim/network/control_api.py serves it over HTTP. A session names a device
+and the application server's ports; while it is AVAILABLE the bearers of that device whose target port
+it names get their priority weight (sim/network/cell.py asks `granted`). A session is REQUESTED for
+[cell] qod_setup_s, then AVAILABLE, or UNAVAILABLE/NETWORK_TERMINATED when the admission limit
+(qod_max_sessions) is reached, as an operator that cannot grant answers. It expires after its duration
+(DURATION_EXPIRED), a timeline event can end it (NETWORK_TERMINATED), and an ended session keeps its
+resources until it is deleted: creating another for the same device and ports before that is a 409,
+as the API says. Every status change is a notification for the session's sink.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from typing import Any
+
+from dynqos.common.camara import EVENT_TYPE, ports_named
+from dynqos.common.config import CellConfig
+from dynqos.sim.network.operator_schema import CREATE_SESSION, EXTEND_SESSION, RETRIEVE_SESSIONS, problem
+
+ENDED_KEPT_S = (
+    360.0  # an ended session not deleted is dropped this long after it ended (the spec's "at earliest")
+)
+MAX_SESSIONS = 10_000  # all sessions kept, ended ones included: a client that never deletes cannot grow this
+
+
+@dataclass
+class Session:
+    session_id: str
+    uav: str
+    device: dict[str, Any]
+    body: dict[str, Any]  # the create request (applicationServer, ports, qosProfile, sink...)
+    duration_s: int
+    status: str = "REQUESTED"
+    status_info: str = ""
+    settle_at_s: float = 0.0
+    started_wall: float | None = None
+    started_s: float | None = None
+    ended_s: float | None = None
+    ended_wall: float | None = None
+
+    def ports(self) -> set[int]:
+        return ports_named(self.body.get("applicationServerPorts"))
+
+
+@dataclass(frozen=True, slots=True)
+class Answer:
+    status: int
+    body: Any = None
+
+
+@dataclass(frozen=True, slots=True)
+class Notification:
+    sink: str
+    credential: dict[str, Any] | None
+    event: dict[str, Any]
+
+
+@dataclass
+class QodCounters:
+    created: int = 0
+    extended: int = 0
+    deleted: int = 0
+    refused: int = 0  # admission: created but never AVAILABLE
+    expired: int = 0
+    terminated: int = 0  # ended by the network (timeline event)
+    conflicts: int = 0
+    rejected: int = 0  # 4xx answers other than 409
+
+
+def _rfc3339(wall_s: float) -> str:
+    return (
+        datetime.fromtimestamp(wall_s, timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    )
+
+
+def error(status: int, code: str, message: str) -> Answer:
+    return Answer(status, {"status": status, "code": code, "message": message})
+
+
+def _device_matches(given: dict[str, Any], known: dict[str, Any]) -> bool:
+    """The request's device names the known one by any identifier both give."""
+    for key in ("phoneNumber", "networkAccessIdentifier", "ipv6Address"):
+        if key in given and given[key] == known.get(key):
+            return True
+    ipv4, mine = given.get("ipv4Address"), known.get("ipv4Address")
+    if (
+        isinstance(ipv4, dict)
+        and isinstance(mine, dict)
+        and ipv4.get("publicAddress") == mine.get("publicAddress")
+    ):
+        return any(k in ipv4 and ipv4[k] == mine.get(k) for k in ("privateAddress", "publicPort"))
+    return False
+
+
+def _server_matches(server: dict[str, Any], host: str) -> bool:
+    try:
+        address = ipaddress.ip_address(host)
+    except ValueError:
+        return True  # a host name: the emulator cannot tell; accept
+    for key in ("ipv4Address", "ipv6Address"):
+        if key in server:
+            try:
+                if address in ipaddress.ip_network(server[key], strict=False):
+                    return True
+            except ValueError:
+                continue
+    return False
+
+
+@dataclass
+class Operator:
+    """Sessions of the emulated operator. `devices`: drone id -> its CAMARA device object."""
+
+    cell: CellConfig
+    devices: dict[str, dict[str, Any]]
+    servers: dict[str, str]  # drone id -> the host of its priority bearer's target (what the network sees)
+    monotonic: Callable[[], float]
+    wall: Callable[[], float]
+    sessions: dict[str, Session] = field(default_factory=dict)
+    counters: QodCounters = field(default_factory=QodCounters)
+    source: str = "dynqos-sim-cell"
+
+    # ---- the API ----------------------------------------------------------------------------------------
+
+    def create(self, body: Any) -> tuple[Answer, list[Notification]]:
+        bad = problem(CREATE_SESSION, body)
+        if bad is not None:
+            return self._reject(400, "INVALID_ARGUMENT", bad), []
+        if "device" not in body:
+            return self._reject(
+                422, "MISSING_IDENTIFIER", "the device cannot be identified (two-legged token)"
+            ), []
+        uav = self._uav_of(body["device"])
+        if uav is None:
+            return self._reject(404, "IDENTIFIER_NOT_FOUND", "device identifier not found"), []
+        server = body["applicationServer"]
+        if not _server_matches(server, self.servers.get(uav, "")):
+            return self._reject(400, "INVALID_ARGUMENT", f"this device has no flow to {server}"), []
+        if body["qosProfile"] not in self.cell.qod_profiles:
+            profiles = ", ".join(self.cell.qod_profiles)
+            why = f"profile {body['qosProfile']} is not offered here (offered: {profiles})"
+            return self._reject(422, "QUALITY_ON_DEMAND.QOS_PROFILE_NOT_APPLICABLE", why), []
+        now = self.monotonic()
+        self._expire_and_settle(now)
+        ports = ports_named(body.get("applicationServerPorts"))
+        for other in self.sessions.values():
+            if other.uav == uav and (not ports or not other.ports() or ports & other.ports()):
+                self.counters.conflicts += 1
+                state = "ended but not deleted" if other.status == "UNAVAILABLE" else other.status
+                return error(
+                    409, "CONFLICT", f"session {other.session_id} for this flow exists ({state})"
+                ), []
+        if len(self.sessions) >= MAX_SESSIONS:
+            return error(429, "TOO_MANY_REQUESTS", "too many sessions; delete some"), []
+        duration = min(body["duration"], self.cell.qod_max_duration_s)
+        session = Session(str(uuid.uuid4()), uav, body["device"], body, duration)
+        session.settle_at_s = now + self.cell.qod_setup_s
+        self.sessions[session.session_id] = session
+        self.counters.created += 1
+        notes = self._expire_and_settle(now)
+        return Answer(201, self.info(session)), notes
+
+    def get(self, session_id: str) -> Answer:
+        session = self.sessions.get(session_id)
+        return (
+            error(404, "NOT_FOUND", "the session does not exist")
+            if session is None
+            else Answer(200, self.info(session))
+        )
+
+    def extend(self, session_id: str, body: Any) -> Answer:
+        session = self.sessions.get(session_id)
+        if session is None:
+            return self._reject(404, "NOT_FOUND", "the session does not exist")
+        bad = problem(EXTEND_SESSION, body)
+        if bad is not None:
+            return self._reject(400, "INVALID_ARGUMENT", bad)
+        if session.status != "AVAILABLE":
+            self.counters.conflicts += 1
+            return error(
+                409, "QUALITY_ON_DEMAND.SESSION_EXTENSION_NOT_ALLOWED", f"the session is {session.status}"
+            )
+        session.duration_s = min(
+            session.duration_s + body["requestedAdditionalDuration"], self.cell.qod_max_duration_s
+        )
+        self.counters.extended += 1
+        return Answer(200, self.info(session))
+
+    def delete(self, session_id: str) -> tuple[Answer, list[Notification]]:
+        session = self.sessions.pop(session_id, None)
+        if session is None:
+            return self._reject(404, "NOT_FOUND", "the session does not exist"), []
+        self.counters.deleted += 1
+        notes = []
+        if session.status == "AVAILABLE":
+            notes = self._end(session, "DELETE_REQUESTED", self.monotonic())
+        return Answer(204), notes
+
+    def retrieve(self, body: Any) -> Answer:
+        bad = problem(RETRIEVE_SESSIONS, body)
+        if bad is not None:
+            return self._reject(400, "INVALID_ARGUMENT", bad)
+        if "device" not in body:
+            return self._reject(
+                422, "MISSING_IDENTIFIER", "the device cannot be identified (two-legged token)"
+            )
+        uav = self._uav_of(body["device"])
+        if uav is None:
+            return self._reject(404, "IDENTIFIER_NOT_FOUND", "device identifier not found")
+        return Answer(200, [self.info(s) for s in self.sessions.values() if s.uav == uav])
+
+    # ---- the network --------------------------------------------------------------------------------------
+
+    def advance(self) -> list[Notification]:
+        """Settle REQUESTED sessions, expire the ones past their duration; called every few TTIs."""
+        return self._expire_and_settle(self.monotonic())
+
+    def end_sessions(self, uav: str = "") -> list[Notification]:
+        """The network ends the AVAILABLE sessions of `uav` (or of every drone): NETWORK_TERMINATED."""
+        now = self.monotonic()
+        notes: list[Notification] = []
+        for session in list(self.sessions.values()):
+            if session.status != "UNAVAILABLE" and (not uav or session.uav == uav):
+                self.counters.terminated += 1
+                notes += self._end(session, "NETWORK_TERMINATED", now)
+        return notes
+
+    def granted(self, uav: str, port: int) -> bool:
+        return any(
+            s.uav == uav and s.status == "AVAILABLE" and (not s.ports() or port in s.ports())
+            for s in self.sessions.values()
+        )
+
+    def open_sessions(self) -> list[dict[str, Any]]:
+        """Sessions not deleted (an ended one still holds resources until deleted)."""
+        return [self.info(s) | {"uav": s.uav} for s in self.sessions.values()]
+
+    # ---- inside -----------------------------------------------------------------------------------------
+
+    def _expire_and_settle(self, now: float) -> list[Notification]:
+        notes: list[Notification] = []
+        for session in list(self.sessions.values()):
+            if session.status == "REQUESTED" and now >= session.settle_at_s:
+                if self._admits():
+                    session.status = "AVAILABLE"
+                    session.started_s, session.started_wall = now, self.wall()
+                    notes += self._notify(session)
+                else:
+                    self.counters.refused += 1
+                    notes += self._end(session, "NETWORK_TERMINATED", now)
+            elif session.status == "AVAILABLE" and session.started_s is not None:
+                if now >= session.started_s + session.duration_s:
+                    self.counters.expired += 1
+                    notes += self._end(session, "DURATION_EXPIRED", session.started_s + session.duration_s)
+            elif session.ended_s is not None and now - session.ended_s > ENDED_KEPT_S:
+                del self.sessions[session.session_id]
+        return notes
+
+    def _admits(self) -> bool:
+        limit = self.cell.qod_max_sessions
+        return limit < 0 or sum(s.status == "AVAILABLE" for s in self.sessions.values()) < limit
+
+    def _end(self, session: Session, why: str, at_s: float) -> list[Notification]:
+        session.status, session.status_info = "UNAVAILABLE", why
+        session.ended_s = at_s
+        session.ended_wall = self.wall() - (self.monotonic() - at_s)
+        return self._notify(session)
+
+    def _notify(self, session: Session) -> list[Notification]:
+        sink = session.body.get("sink")
+        if not sink:
+            return []
+        data = {"sessionId": session.session_id, "qosStatus": session.status}
+        if session.status_info:
+            data["statusInfo"] = session.status_info
+        event = {
+            "id": str(uuid.uuid4()), "source": self.source, "type": EVENT_TYPE, "specversion": "1.0",
+            "datacontenttype": "application/json", "time": _rfc3339(self.wall()), "data": data,
+        }  # fmt: skip
+        return [Notification(sink, session.body.get("sinkCredential"), event)]
+
+    def info(self, session: Session) -> dict[str, Any]:
+        """The session as a CAMARA SessionInfo."""
+        out = {k: v for k, v in session.body.items() if k not in ("duration", "device", "sinkCredential")}
+        out["device"] = dict([next(iter(session.device.items()))])  # one identifier in a response
+        out |= {"sessionId": session.session_id, "duration": session.duration_s, "qosStatus": session.status}
+        if session.started_wall is not None:
+            out["startedAt"] = _rfc3339(session.started_wall)
+            if session.status == "AVAILABLE":
+                out["expiresAt"] = _rfc3339(session.started_wall + session.duration_s)
+        if session.status == "UNAVAILABLE":
+            out["statusInfo"] = session.status_info
+            if session.ended_wall is not None:
+                out["expiresAt"] = _rfc3339(session.ended_wall)
+            if session.started_s is not None and session.ended_s is not None:
+                out["duration"] = max(1, round(session.ended_s - session.started_s))
+        return out
+
+    def _uav_of(self, device: dict[str, Any]) -> str | None:
+        return next((uav for uav, known in self.devices.items() if _device_matches(device, known)), None)
+
+    def _reject(self, status: int, code: str, message: str) -> Answer:
+        self.counters.rejected += 1
+        return error(status, code, message)

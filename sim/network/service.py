@@ -1,0 +1,159 @@
+"""`dynqos sim cell`: the emulated cell (sim/network/cell.py) as a process: its control API and the
+emulated operator on one port, its Prometheus metrics, stopped by SIGINT/SIGTERM or after a duration."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import signal
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+
+from dynqos.common.camara import read_secret
+from dynqos.common.config import BearerConfig, CellConfig, Config
+from dynqos.common.errors import ConfigError, DynqosError
+from dynqos.common.lifecycle import serving_metrics
+from dynqos.common.metrics import ProcessMetrics, counter, gauge
+from dynqos.sim.network.cell import CellEmulator
+from dynqos.sim.network.control_api import ControlApi, Tap
+from dynqos.sim.network.operator import Operator
+
+log = logging.getLogger(__name__)
+
+
+def run(config: Config, *, out_dir: Path | None = None, duration_s: float | None = None) -> int:
+    """The cell of `config` ([cell], its bearers from [zenoh] and the drone id; the operator's devices
+    and client from [qos.camara]) until stopped; one ready line with the bearer ports."""
+    if duration_s is not None and duration_s <= 0:
+        raise DynqosError(f"--duration must be > 0, got {duration_s}")
+    camara = config.qos.camara
+    secret = read_secret(camara.client_secret_file) if config.cell.qod_auth else ""
+    if config.cell.qod_auth and not (camara.client_id and secret):
+        raise DynqosError("[cell] qod_auth = true needs [qos.camara] client_id and client_secret_file")
+    devices = {uav: device.as_api() for uav, device in camara.devices.items()}
+    with serving_metrics("cell", config) as metrics:
+        asyncio.run(
+            run_cell(
+                config.cell, config.cell.bearer_list(config.zenoh, config.drone.id), out_dir=out_dir,
+                duration_s=duration_s, ready=print_ready, qod_devices=devices,
+                qod_client=(camara.client_id, secret), metrics=metrics,
+            )
+        )  # fmt: skip
+    return 0
+
+
+async def run_cell(
+    cell: CellConfig,
+    bearers: tuple[BearerConfig, ...],
+    *,
+    out_dir: Path | None = None,
+    duration_s: float | None = None,
+    ready: Callable[[dict[str, Any]], None] | None = None,
+    qod_devices: dict[str, dict[str, Any]] | None = None,
+    qod_client: tuple[str, str] = ("", ""),
+    tap: Tap | None = None,
+    stop: asyncio.Event | None = None,
+    metrics: ProcessMetrics | None = None,
+) -> dict[str, Any]:
+    """Run the emulator until stopped (SIGINT/SIGTERM, `stop` set) or `duration_s`; returns the final
+    counters. `qod_devices`: drone id -> CAMARA device, the UEs the operator knows ([cell] qod = true);
+    `qod_client`: the (client id, secret) its token endpoint accepts ([cell] qod_auth = true); `tap`
+    sees every control-API exchange (method, path, request JSON, status, response JSON)."""
+    emulator = CellEmulator(cell, bearers, out_dir)
+    await emulator.start()
+    if metrics is not None:
+        emulator.beat = metrics.health.beat
+        metrics.add(lambda: cell_families(emulator))
+    control: ControlApi | None = None
+    control_port = None
+    if cell.qod:
+        if cell.control_port < 0:
+            raise ConfigError(
+                "cell.control_port", "the QoD API ([cell] qod = true) needs a control port (0: any)"
+            )
+        servers = {b.ue: b.target_host_port[0] for b in bearers if b.ue}
+        emulator.operator = Operator(cell, dict(qod_devices or {}), servers, time.monotonic, time.time)
+    try:
+        if cell.control_port >= 0:
+            control = ControlApi(emulator, emulator.operator, *qod_client, tap=tap)
+            try:
+                control_port = await control.start(cell.control_port)
+            except OSError as exc:
+                raise ConfigError(
+                    "cell.control_port", f"cannot listen on 127.0.0.1:{cell.control_port} ({exc.strerror})"
+                ) from None
+            emulator.notify = control.send
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                emulator.loop.add_signal_handler(sig, emulator.stopped.set)
+        info = {
+            "ready": True,
+            "bearers": {
+                b.name: {"port": b.port, "target": f"{b.target[0]}:{b.target[1]}"} for b in emulator.bearers
+            },
+            "control_port": control_port,
+        }
+        if stop is not None:
+            stopper = emulator.loop.create_task(stop.wait())
+            stopper.add_done_callback(lambda _: emulator.stopped.set())
+        if ready is not None:
+            ready(info)
+        log.info("cell emulator ready: %s", json.dumps(info))
+        if duration_s is not None:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(emulator.stopped.wait(), timeout=duration_s)
+        else:
+            await emulator.stopped.wait()
+    finally:
+        counters = _final_counters(emulator, out_dir)
+        if control is not None:
+            await control.stop()
+        await emulator.stop()
+    return counters
+
+
+def _final_counters(emulator: CellEmulator, out_dir: Path | None) -> dict[str, Any]:
+    counters = emulator.counters()
+    if emulator.operator is not None:
+        counters["qod"] = {**vars(emulator.operator.counters), "sessions": emulator.operator.open_sessions()}
+        if out_dir is not None:  # what the operator was left with, once every client has stopped
+            (out_dir / "qod.json").write_text(json.dumps(counters["qod"], indent=1) + "\n")
+    return counters
+
+
+def cell_families(emulator: CellEmulator) -> Iterator[Metric]:
+    """The cell's per-bearer throughput counters and queue state, for Prometheus (real bytes moved: at
+    `--scale F` multiply rates by `dynqos_cell_scale` for the emulated cell's figures)."""
+    moved = CounterMetricFamily("dynqos_cell_bytes", "Bytes per bearer and kind", labels=["bearer", "kind"])
+    delay = GaugeMetricFamily("dynqos_cell_queue_delay_seconds", "UE buffer delay now", labels=["bearer"])
+    buffered = GaugeMetricFamily(
+        "dynqos_cell_buffer_bytes", "Bytes waiting in the UE buffer", labels=["bearer"]
+    )
+    now = time.monotonic_ns()  # the clock the bearers keep
+    for bearer in emulator.bearers:
+        for kind, value in bearer.totals.items():
+            moved.add_metric([bearer.name, kind.removesuffix("_bytes")], value)
+        delay.add_metric([bearer.name], bearer.queue_delay_ms(now) / 1000)
+        buffered.add_metric([bearer.name], bearer.buffered)
+    for user in emulator.background.values():
+        moved.add_metric([f"bg:{user.name}", "offered"], user.offered_bits / 8)
+        moved.add_metric([f"bg:{user.name}", "delivered"], user.delivered_bits / 8)
+    yield moved
+    yield delay
+    yield buffered
+    yield gauge("dynqos_cell_scale", "Every rate of the emulated cell is divided by this", emulator.scale)
+    yield gauge("dynqos_cell_capacity_bits_per_second", "Uplink capacity now (emulated, unscaled)",
+                emulator.current_capacity_mbps(now) * 1e6 * emulator.scale)  # fmt: skip
+    yield counter("dynqos_cell_late_ticks", "Scheduler ticks that ran late", emulator.late_ticks)
+
+
+def print_ready(info: dict[str, Any]) -> None:
+    sys.stdout.write(json.dumps(info) + "\n")
+    sys.stdout.flush()

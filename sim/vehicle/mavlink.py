@@ -1,0 +1,352 @@
+"""The simulated vehicle on the wire: MAVLink 2 over UDP through pymavlink, like PX4 SITL.
+
+Links, as PX4 SITL has them: the offboard-API link binds 14580 and sends to 14540 (where MAVSDK or
+the onboard daemon listens), the ground-station link binds 18570 and sends to 14550 (QGroundControl,
+MAVProxy). Once a peer has sent something, replies go to the address it sent from. Telemetry:
+HEARTBEAT and SYS_STATUS and EXTENDED_SYS_STATE at 1 Hz, ATTITUDE_QUATERNION and LOCAL_POSITION_NED
+at 50 Hz. Datagrams that do not parse are counted and ignored.
+
+Clocking, as PX4 SITL offers it: real time (scaled by `speed`), or lock-step, where simulated time
+advances one telemetry period (20 ms) only after the peer has answered the last telemetry with a
+setpoint (as PX4's lock-step waits for actuator outputs). Commands sent before that setpoint act in
+the same period. Lock-step runs as fast as the peer can answer and, with a seed, gives the same
+flight for the same sequence of messages: what a test wants. With a world, every contact with
+an obstacle is logged and counted, so a run that flew through a pillar does not pass unnoticed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import selectors
+import socket
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from dynqos.sim.vehicle.model import PHYSICS_HZ, STEP_NS, VehicleModel
+from dynqos.sim.vehicle.px4 import Mode, Result, Setpoint
+from dynqos.sim.vehicle.world import World, collision
+
+log = logging.getLogger(__name__)
+
+SYSTEM_ID = 1  # instance 0's
+COMPONENT_ID = 1
+TELEMETRY_HZ = 50
+LOCKSTEP_HEARTBEAT_S = 1.0  # in lock-step, repeat the heartbeat in wall time while the peer is silent
+STEPS_PER_TELEMETRY = PHYSICS_HZ // TELEMETRY_HZ
+# The streams a peer can re-rate with MAV_CMD_SET_MESSAGE_INTERVAL, as PX4 lets it.
+STREAMS = (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED)
+SUPPORTED_IGNORED_COMMANDS = {
+    mavlink.MAV_CMD_REQUEST_MESSAGE,
+    mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+}
+
+
+@dataclass
+class Link:
+    """One UDP link: a local port we bind and the peer we send to."""
+
+    name: str
+    bind: tuple[str, int]
+    remote: tuple[str, int]
+    sock: socket.socket = field(init=False)
+    received: int = 0
+    garbage: int = 0
+
+    def open(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.sock.bind(self.bind)
+        self.sock.setblocking(False)
+        self.bind = self.sock.getsockname()
+
+
+class MavlinkVehicle:
+    """Steps a VehicleModel in (scaled) real time and speaks MAVLink for it."""
+
+    def __init__(
+        self,
+        model: VehicleModel,
+        links: list[Link],
+        *,
+        speed: float = 1.0,
+        lockstep: bool = False,
+        world: World | None = None,
+        system_id: int = SYSTEM_ID,
+    ) -> None:
+        if not speed > 0:
+            raise ValueError("speed must be > 0")
+        self.model = model
+        self.links = links
+        self.speed = speed
+        self.lockstep = lockstep
+        self.world = world
+        self.touching: str | None = None
+        self._peer_answered = False
+        self.system_id = system_id  # PX4 SITL: instance N is system N + 1
+        self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=COMPONENT_ID)
+        self._selector = selectors.DefaultSelector()
+        self._last_events = 0
+        self.stopped = False
+        self.stream_steps = dict.fromkeys(STREAMS, STEPS_PER_TELEMETRY)  # message id -> physics steps; 0 off
+        self.counters: dict[str, int] = {
+            "setpoints": 0,
+            "commands": 0,
+            "garbage": 0,
+            "ignored": 0,
+            "collisions": 0,
+        }
+
+    def open(self) -> None:
+        for link in self.links:
+            link.open()
+            self._selector.register(link.sock, selectors.EVENT_READ, link)
+
+    def close(self) -> None:
+        self._selector.close()
+        for link in self.links:
+            link.sock.close()
+
+    # ---- outgoing ----------------------------------------------------------------------------------
+
+    def _send(self, message: Any, link: Link | None = None) -> None:
+        data = message.pack(self.mav)
+        for target in [link] if link else self.links:
+            with contextlib.suppress(OSError):  # nobody listening yet: UDP, like PX4
+                target.sock.sendto(data, target.remote)
+
+    def _time_boot_ms(self) -> int:
+        return self.model.now_ns // 1_000_000 & 0xFFFFFFFF
+
+    def heartbeat(self) -> None:
+        fc = self.model.fc
+        base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
+        if fc.armed:
+            base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        status = mavlink.MAV_STATE_ACTIVE if fc.armed else mavlink.MAV_STATE_STANDBY
+        self._send(
+            self.mav.heartbeat_encode(
+                mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, fc.mode.custom_mode, status
+            )
+        )
+        sensors = 0x3FFFFFFF
+        self._send(
+            self.mav.sys_status_encode(sensors, sensors, sensors, 200, 16200, -1, 90, 0, 0, 0, 0, 0, 0)
+        )
+        landed = (
+            mavlink.MAV_LANDED_STATE_ON_GROUND
+            if self.model.plant.on_ground
+            else mavlink.MAV_LANDED_STATE_IN_AIR
+        )
+        if fc.mode is Mode.TAKEOFF:
+            landed = mavlink.MAV_LANDED_STATE_TAKEOFF
+        elif fc.mode is Mode.LAND and not self.model.plant.on_ground:
+            landed = mavlink.MAV_LANDED_STATE_LANDING
+        self._send(self.mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, landed))
+
+    def telemetry(self, step: int | None = None) -> None:
+        """Attitude and position: each at its own rate at physics step `step`, or both now (None)."""
+        s = self.model.state
+        t = self._time_boot_ms()
+
+        def due(message_id: int) -> bool:
+            every = self.stream_steps[message_id]
+            return every > 0 and (step is None or step % every == 0)
+
+        if due(mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION):
+            w, x, y, z = (float(v) for v in s.quat)
+            p, q, r = (float(v) for v in s.rates_rps)
+            self._send(self.mav.attitude_quaternion_encode(t, w, x, y, z, p, q, r))
+        if due(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
+            pos, vel = (float(v) for v in s.pos_m), (float(v) for v in s.vel_mps)
+            self._send(self.mav.local_position_ned_encode(t, *pos, *vel))
+
+    def _set_interval(self, message_id: float, interval_us: float) -> Result:
+        """MAV_CMD_SET_MESSAGE_INTERVAL as PX4 reads it: -1 stops the stream, 0 restores its default
+        rate, a positive interval (microseconds) sets it, rounded to the physics step (200 Hz at most)."""
+        if not (math.isfinite(message_id) and math.isfinite(interval_us)) or int(message_id) not in STREAMS:
+            return Result.DENIED
+        if interval_us < -1:
+            return Result.DENIED
+        steps = {-1: 0, 0: STEPS_PER_TELEMETRY}.get(int(interval_us))
+        if steps is None:
+            steps = max(1, round(interval_us * PHYSICS_HZ / 1e6))
+        self.stream_steps[int(message_id)] = steps
+        return Result.ACCEPTED
+
+    def _ack(self, command: int, result: Result, link: Link) -> None:
+        self._send(self.mav.command_ack_encode(command, int(result)), link)
+
+    # ---- incoming ----------------------------------------------------------------------------------
+
+    def poll(self, timeout_s: float) -> None:
+        for key, _ in self._selector.select(timeout=max(0.0, timeout_s)):
+            link: Link = key.data
+            while True:
+                try:
+                    data, sender = link.sock.recvfrom(65536)
+                except (BlockingIOError, InterruptedError):
+                    break
+                except OSError:
+                    break
+                link.received += 1
+                self._handle_datagram(data, link, sender)
+
+    def _handle_datagram(self, data: bytes, link: Link, sender: tuple[str, int]) -> None:
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        try:
+            messages = parser.parse_buffer(data) or []
+        except Exception:  # pymavlink raises MAVError and others on garbage; never crash on input
+            messages = []
+        # BAD_DATA failed its CRC; UNKNOWN_<id> has an id we cannot CRC-check: both are garbage here.
+        good = [m for m in messages if m.get_type() != "BAD_DATA" and not m.get_type().startswith("UNKNOWN")]
+        if not good:
+            link.garbage += 1
+            self.counters["garbage"] += 1
+            return
+        link.remote = sender  # answer a real MAVLink peer where it is (garbage never redirects us)
+        for message in good:
+            try:
+                self._handle(message, link)
+            except Exception as exc:  # a malformed but parseable message must not stop the vehicle
+                self.counters["ignored"] += 1
+                log.warning("ignored %s: %s", message.get_type(), exc)
+
+    def _handle(self, msg: Any, link: Link) -> None:
+        kind = msg.get_type()
+        fc, state, now = self.model.fc, self.model.state, self.model.now_ns
+        if kind == "SET_POSITION_TARGET_LOCAL_NED":
+            if (
+                msg.target_system not in (0, self.system_id)
+                or msg.coordinate_frame != mavlink.MAV_FRAME_LOCAL_NED
+            ):
+                self.counters["ignored"] += 1
+                return
+            setpoint = Setpoint.from_mavlink(
+                msg.type_mask,
+                (msg.x, msg.y, msg.z),
+                (msg.vx, msg.vy, msg.vz),
+                (msg.afx, msg.afy, msg.afz),
+                msg.yaw,
+            )
+            if setpoint is None:
+                self.counters["ignored"] += 1
+                return
+            fc.on_setpoint(setpoint, now)
+            self.counters["setpoints"] += 1
+            self._peer_answered = True  # lock-step: the controller has answered this period
+        elif kind in ("COMMAND_LONG", "COMMAND_INT"):
+            if msg.target_system not in (0, self.system_id):
+                return
+            self.counters["commands"] += 1
+            self._ack(msg.command, self._command(msg), link)
+        elif kind == "SET_MODE":
+            if (
+                msg.target_system in (0, self.system_id)
+                and msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+            ):
+                main, sub = (msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF
+                fc.set_mode(main, sub, state, now)
+        else:
+            self.counters["ignored"] += 1
+
+    def _command(self, msg: Any) -> Result:
+        fc, state, now = self.model.fc, self.model.state, self.model.now_ns
+        command = msg.command
+        if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+            if msg.param1 not in (0.0, 1.0):
+                return Result.DENIED
+            return fc.arm(msg.param1 == 1.0, state, self.model.plant.on_ground, now)
+        if command == mavlink.MAV_CMD_NAV_TAKEOFF:
+            altitude = float(msg.param7) if math.isfinite(msg.param7) and msg.param7 > 0 else None
+            return fc.takeoff(altitude, state, now)
+        if command == mavlink.MAV_CMD_NAV_LAND:
+            return fc.land(state)
+        if command == mavlink.MAV_CMD_DO_SET_MODE:
+            if not int(msg.param1) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+                return Result.UNSUPPORTED
+            if not (math.isfinite(msg.param2) and math.isfinite(msg.param3)):
+                return Result.DENIED
+            return fc.set_mode(int(msg.param2), int(msg.param3), state, now)
+        if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return self._set_interval(msg.param1, msg.param2)
+        if command in SUPPORTED_IGNORED_COMMANDS:
+            return Result.ACCEPTED
+        return Result.UNSUPPORTED
+
+    # ---- the loop ----------------------------------------------------------------------------------
+
+    def run(self, duration_s: float | None = None, should_stop: Callable[[], bool] | None = None) -> None:
+        """Step physics at 200 Hz of simulated time, paced to `speed` x wall time or lock-stepped."""
+        if self.lockstep:
+            self._run_lockstep(duration_s, should_stop)
+            return
+        wall_start = time.monotonic()
+        sim_start = self.model.now_ns
+        while not self.stopped and not (should_stop and should_stop()):
+            sim_elapsed_s = (self.model.now_ns - sim_start) / 1e9
+            if duration_s is not None and sim_elapsed_s >= duration_s:
+                break
+            due = wall_start + (sim_elapsed_s + STEP_NS / 1e9) / self.speed
+            self.poll(due - time.monotonic())
+            if time.monotonic() < due:
+                continue
+            self._step()
+
+    def _run_lockstep(self, duration_s: float | None, should_stop: Callable[[], bool] | None) -> None:
+        sim_start = self.model.now_ns
+        self.heartbeat()
+        self.telemetry()
+        last_heartbeat = time.monotonic()
+        while not self.stopped and not (should_stop and should_stop()):
+            if duration_s is not None and (self.model.now_ns - sim_start) / 1e9 >= duration_s:
+                break
+            self.poll(0.05)  # bounded, so that a stop request is seen while the peer is silent
+            if not self._peer_answered:
+                if time.monotonic() - last_heartbeat >= LOCKSTEP_HEARTBEAT_S:
+                    self.heartbeat()  # let a peer that connects late find us
+                    self.telemetry()
+                    last_heartbeat = time.monotonic()
+                continue
+            self._peer_answered = False
+            for _ in range(STEPS_PER_TELEMETRY):
+                self._step()
+            last_heartbeat = time.monotonic()
+
+    def _step(self) -> None:
+        """One physics step, with telemetry, heartbeat, contact check and event log at their rates."""
+        self.model.step()
+        step = self.model.now_ns // STEP_NS
+        self.telemetry(step)
+        if step % STEPS_PER_TELEMETRY == 0:
+            self._check_contact()
+        if step % PHYSICS_HZ == 1:
+            self.heartbeat()
+        self._log_events()
+
+    def _check_contact(self) -> None:
+        if self.world is None or self.model.plant.on_ground:
+            return
+        pos = tuple(float(v) for v in self.model.state.pos_m)
+        touching = collision(self.world, (pos[0], pos[1], pos[2]))
+        if touching and touching != self.touching:
+            self.counters["collisions"] += 1
+            log.warning(
+                "vehicle: collision with %s at (%.2f, %.2f, %.2f) m", touching, pos[0], pos[1], pos[2]
+            )
+        self.touching = touching
+
+    def _log_events(self) -> None:
+        events = self.model.fc.events
+        while self._last_events < len(events):
+            log.info("vehicle: %s", events[self._last_events])
+            self._last_events += 1
+        if len(events) > 1000:
+            del events[:500]
+            self._last_events = len(events)

@@ -1,0 +1,83 @@
+"""The take-off and the exit, decided by onboard/takeoff.py on a made-up clock: each step, each wait,
+each refusal, with no FC and no thread."""
+
+from __future__ import annotations
+
+from dynqos.onboard.fc import FcState
+from dynqos.onboard.takeoff import (
+    CLIMB_TIMEOUT_S,
+    PRIME_SETPOINTS,
+    Do,
+    ExitAction,
+    TakeoffSequencer,
+    on_exit,
+)
+
+S = 1_000_000_000
+
+
+def at(alt_m: float) -> FcState:
+    return FcState(stamp_ns=0, pos_m=(1.0, 2.0, -alt_m), vel_mps=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0))
+
+
+def test_arm_take_off_climb_prime_and_offboard_in_order() -> None:
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=10.0, start_ns=0)
+    assert seq.next(0, None, fc_heard=False).do is Do.WAIT  # no FC yet
+    assert seq.next(1 * S, at(0.0), fc_heard=True).do is Do.ARM
+    seq.answered(0)
+    assert seq.next(1 * S, at(0.0), fc_heard=True).do is Do.TAKE_OFF
+    seq.answered(0)
+    climbing = seq.next(2 * S, at(1.0), fc_heard=True)
+    assert (climbing.do, climbing.wait_s > 0) == (Do.WAIT, True)
+    assert seq.next(3 * S, at(1.9), fc_heard=True).do is Do.HOLD_SETPOINT  # within 0.15 m of 2 m
+    primes = [seq.next(3 * S, at(2.0), fc_heard=True) for _ in range(PRIME_SETPOINTS - 1)]
+    assert {p.do for p in primes} == {Do.HOLD_SETPOINT}
+    assert {p.hold for p in primes} == {at(1.9)}  # they hold where the climb ended
+    assert seq.next(3 * S, at(2.0), fc_heard=True).do is Do.OFFBOARD
+    seq.answered(0)
+    done = seq.next(3 * S, at(2.0), fc_heard=True)
+    assert (done.do, done.hold) == (Do.DONE, at(1.9))
+
+
+def test_a_silent_fc_fails_after_its_timeout_and_the_failure_sticks() -> None:
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    assert seq.next(4 * S, at(0.0), fc_heard=False).do is Do.WAIT  # a position but no heartbeat
+    failed = seq.next(5 * S, None, fc_heard=False)
+    assert failed.do is Do.FAILED
+    assert "no heartbeat" in failed.reason
+    assert seq.next(6 * S, at(0.0), fc_heard=True).do is Do.FAILED
+
+
+def test_each_refusal_ends_the_take_off_with_what_was_refused() -> None:
+    for refused_at, expected in ((0, "refused to arm (answered 4)"), (1, "refused to take off (answered 4)")):
+        seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+        for _ in range(refused_at):
+            seq.next(0, at(0.0), fc_heard=True)
+            seq.answered(0)
+        seq.next(0, at(0.0), fc_heard=True)
+        seq.answered(4)  # MAV_RESULT_FAILED
+        assert seq.next(0, at(0.0), fc_heard=True).reason == f"the flight controller {expected}"
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    while seq.next(0, at(2.0), fc_heard=True).do is not Do.OFFBOARD:
+        seq.answered(0)
+    seq.answered(None)  # no answer in time
+    assert seq.next(0, at(2.0), fc_heard=True).reason == (
+        "the flight controller refused offboard mode (did not answer)"
+    )
+
+
+def test_a_climb_that_never_reaches_the_altitude_goes_on_after_its_timeout() -> None:
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    for _ in range(2):
+        seq.next(0, at(0.0), fc_heard=True)
+        seq.answered(0)
+    assert seq.next(1 * S, at(1.0), fc_heard=True).do is Do.WAIT  # the climb's clock starts here
+    assert seq.next(int((1 + CLIMB_TIMEOUT_S) * S) - 1, at(1.0), fc_heard=True).do is Do.WAIT
+    step = seq.next(int((1 + CLIMB_TIMEOUT_S) * S), at(1.2), fc_heard=True)
+    assert (step.do, step.hold) == (Do.HOLD_SETPOINT, at(1.2))
+
+
+def test_only_a_drone_flying_from_the_edge_is_handed_a_mode_when_the_daemon_stops() -> None:
+    assert on_exit(offloading=False, on_exit_setting="land") is ExitAction.NOTHING
+    assert on_exit(offloading=True, on_exit_setting="land") is ExitAction.LAND
+    assert on_exit(offloading=True, on_exit_setting="hold") is ExitAction.HOLD
