@@ -24,8 +24,8 @@ import pytest
 
 from tests.conftest import free_tcp_port
 from tests.procs import DYNQOS, DynqosProcess
+from tests.wheel import build_wheel
 
-ROOT = Path(__file__).resolve().parents[1]
 HEALTH_WAIT_S = 45.0  # the first periodic line comes after health_interval_s; the rest is start-up
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
@@ -40,13 +40,7 @@ def _run(*cmd: str | Path, timeout: float = 600) -> subprocess.CompletedProcess[
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("wheel")
-    built = _run(
-        sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", out, ROOT
-    )
-    assert built.returncode == 0, built.stderr
-    (found,) = out.glob("dynqos-*.whl")
-    return found
+    return build_wheel(tmp_path_factory.mktemp("wheel"))
 
 
 def _venv_with(wheel: Path, extra: str, folder: Path) -> Path:
