@@ -300,3 +300,20 @@ def test_the_size_check_finds_a_long_module_a_long_function_and_a_silenced_rule(
     silenced.write_text("def g() -> None:  # noqa: C901\n    pass\n")
     found = oversized([long_module, long_function, silenced], root=tmp_path)
     assert [line.split(":")[0] for line in found] == ["long.py", "function.py", "silenced.py"]
+
+
+def test_the_command_line_starts_without_the_components_it_does_not_run() -> None:
+    """Every process starts through the CLI: a restarted MPC must not first import the simulator (its
+    MAVLink dialect alone is 0.3 s), nor any service load what only another command needs."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, dynqos.cli; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('pymavlink', 'osqp', 'cv2', 'zenoh', "
+        "'aiohttp', 'matplotlib') or m.startswith(('dynqos.sim.', 'dynqos.edge.', 'dynqos.onboard.'))))"
+    )
+    loaded = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert loaded.stdout.strip() == "['dynqos.sim.vehicle']", loaded.stdout  # the package: MAX_INSTANCE

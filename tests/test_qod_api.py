@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import json
 import time
+import uuid
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -20,7 +21,7 @@ import pytest
 from aiohttp import web
 
 from dynqos.common.config import CamaraConfig, CellConfig, ZenohConfig
-from dynqos.edge.qos.client import QodClient, QodError
+from dynqos.edge.qos.client import QodClient, QodError, retry_after_s
 from dynqos.sim.network import operator_schema as schema
 from dynqos.sim.network.service import run_cell
 
@@ -340,18 +341,24 @@ def test_an_operator_that_cannot_grant_ends_the_request_network_terminated() -> 
 # ---- what only a scripted operator does: throttle, fail, hang -------------------------------------------
 
 
+correlators: list[str] = []  # what the scripted operator last saw
+
+
 @contextlib.asynccontextmanager
 async def scripted(
     answers: list[tuple[int, dict[str, str], Any, float]],
 ) -> AsyncIterator[tuple[str, list[str]]]:
-    """A server answering POST /sessions with the scripted (status, headers, body, delay_s), in turn."""
+    """A server answering POST /sessions with the scripted (status, headers, body, delay_s), in turn; it
+    keeps each answer's status and the x-correlator of the request it answered (`scripted.correlators`)."""
     seen: list[str] = []
+    correlators.clear()
 
     async def handler(request: web.Request) -> web.Response:
         sent = await request.json()
         assert schema.problem(schema.CREATE_SESSION, sent) is None
         status, headers, body, delay = answers[min(len(seen), len(answers) - 1)]
         seen.append(f"{status}")
+        correlators.append(request.headers.get("x-correlator", ""))
         await asyncio.sleep(delay)  # a slow operator
         return web.json_response(body, status=status, headers=headers)
 
@@ -416,5 +423,79 @@ def test_a_hanging_operator_is_cut_off_at_the_timeout() -> None:
             assert hung.value.status == 0
             assert hung.value.code == "TIMEOUT"
             assert time.monotonic() - started < 2.0  # bounded by timeout_s, not by the operator
+
+    run(main())
+
+
+def test_every_call_carries_one_x_correlator_across_its_retries_and_its_error_names_it() -> None:
+    async def main() -> None:
+        async with (
+            scripted([(503, {}, DOWN, 0.0)]) as (root, seen),
+            QodClient(CamaraConfig(api_root=root, timeout_s=2)) as client,
+        ):
+            with pytest.raises(QodError) as failed:
+                await client.create(session_body())
+            first = list(correlators)
+            assert len(first) == len(seen) == 4
+            assert len(set(first)) == 1  # the same across the retries of one call
+            uuid.UUID(first[0])
+            assert failed.value.correlator == first[0]
+            assert first[0] in str(failed.value)
+            with pytest.raises(QodError):
+                await client.create(session_body())
+            assert correlators[-1] != first[0]  # a new call, a new correlator
+
+    run(main())
+
+
+def test_a_retry_after_longer_than_the_call_is_handed_to_the_agent_in_seconds_or_as_a_date() -> None:
+    assert retry_after_s("120") == 120.0
+    assert retry_after_s("Wed, 21 Oct 2015 07:28:00 GMT", now_unix=1445412430.0) == pytest.approx(50.0)
+    assert retry_after_s("Wed, 21 Oct 2015 07:28:00 GMT", now_unix=1445412530.0) == 0.0  # in the past
+    assert retry_after_s("soon") is None
+    assert retry_after_s(None) is None
+
+    async def main() -> None:
+        async with (
+            scripted([(429, {"Retry-After": "30"}, BUSY, 0.0)]) as (root, seen),
+            QodClient(CamaraConfig(api_root=root, timeout_s=1)) as client,
+        ):
+            with pytest.raises(QodError) as throttled:
+                await client.create(session_body())
+            assert seen == ["429"]  # 30 s does not fit in the call's 1 s: not retried within it
+            assert throttled.value.retry_after_s == 30.0
+            assert throttled.value.transient
+
+    run(main())
+
+
+def test_a_failing_token_endpoint_is_transient_and_refused_credentials_are_not(tmp_path: Path) -> None:
+    async def main() -> None:
+        async def token(request: web.Request) -> web.Response:
+            secret = (await request.post()).get("client_secret")
+            if secret == "wrong":
+                return web.json_response({"error": "invalid_client"}, status=401)
+            return web.json_response({"error": "down"}, status=503)
+
+        app = web.Application()
+        app.router.add_post("/token", token)
+        runner = web.AppRunner(app)
+        await runner.setup()
+        await web.TCPSite(runner, "127.0.0.1", 0).start()
+        url = f"http://127.0.0.1:{runner.addresses[0][1]}"
+        try:
+            for secret, status, transient in (("right", 503, True), ("wrong", 401, False)):
+                secret_file = tmp_path / f"secret-{secret}"
+                secret_file.write_text(secret)
+                cfg = CamaraConfig(
+                    api_root=f"{url}/qod", token_url=f"{url}/token", client_id="c",
+                    client_secret_file=str(secret_file), timeout_s=1,
+                )  # fmt: skip
+                async with QodClient(cfg) as client:
+                    with pytest.raises(QodError) as failed:
+                        await client.create(session_body())
+                assert (failed.value.status, failed.value.transient) == (status, transient)
+        finally:
+            await runner.cleanup()
 
     run(main())

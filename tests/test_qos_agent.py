@@ -349,3 +349,87 @@ def test_camara_an_operator_that_caps_sessions_gets_renewals_not_an_extend_storm
     assert available_s >= 0.9 * (time.monotonic() - start), available_s
     drone.until(False, Grant.NONE, also=lambda: rig.sessions() == [])
     assert "replaced 1.0 s before it ends" in rig.procs["agent"].stop()
+
+
+class RefusingOperator:
+    """A scripted operator (http.server on 127.0.0.1) that answers every create with one CAMARA error
+    and counts the calls: what a real operator says to settings it will not take."""
+
+    def __init__(self, status: int, code: str) -> None:
+        self.calls: list[str] = []
+        operator = self
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def log_message(self, *_: object) -> None:
+                pass
+
+            def do_POST(self) -> None:
+                self.rfile.read(int(self.headers.get("Content-Length", 0)))
+                operator.calls.append(f"POST {self.path} {self.headers.get('x-correlator', '')}")
+                body: Any = [] if self.path.endswith("/retrieve-sessions") else {
+                    "status": status, "code": code, "message": "as the spec says"
+                }  # fmt: skip
+                data = json.dumps(body).encode()
+                self.send_response(200 if isinstance(body, list) else status)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(data)))
+                self.end_headers()
+                self.wfile.write(data)
+
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+
+    @property
+    def root(self) -> str:
+        return f"http://127.0.0.1:{self.server.server_address[1]}/qod"
+
+    def creates(self) -> list[str]:
+        return [c for c in self.calls if c.startswith("POST /qod/sessions ")]
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+@pytest.mark.parametrize(
+    ("status", "code", "setting"),
+    [
+        (422, "UNNECESSARY_IDENTIFIER", "[qos.camara.devices]"),
+        (400, "QUALITY_ON_DEMAND.DURATION_OUT_OF_RANGE", "duration_s"),
+        (403, "PERMISSION_DENIED", "scopes"),
+    ],
+)
+def test_camara_settings_the_operator_refuses_are_one_error_line_and_no_retry_storm(
+    tmp_path: Path, status: int, code: str, setting: str
+) -> None:
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    operator = RefusingOperator(status, code)
+    config = tmp_path / "qos.toml"
+    config.write_text(
+        f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"
+        f'[qos]\nbackend = "camara"\ngrant_interval_s = 0.2\n[qos.camara]\napi_root = "{operator.root}"\n'
+        f"retry_after_denied_s = 0.1\n"
+        f'[qos.camara.devices]\n{UAV} = {{ phoneNumber = "+46700000001" }}\n'
+    )
+    procs = [DynqosProcess(["edge", "router"], config)]
+    drone = None
+    try:
+        procs.append(DynqosProcess(["edge", "qos"], config))
+        drone = Drone(zcfg)
+        told = drone.until(True, Grant.UNAVAILABLE)
+        assert code in told.reason
+        assert setting in told.reason
+        assert "x-correlator" in told.reason
+        started = time.monotonic()
+        while time.monotonic() - started < 3.0:  # the drone keeps asking, as it does in flight
+            drone.until(True, Grant.UNAVAILABLE)
+        assert len(operator.creates()) == 1, operator.calls  # the back-off alone would have asked ~20 times
+    finally:
+        if drone is not None:
+            drone.close()
+        errors = "".join(proc.stop() for proc in reversed(procs))
+        operator.close()
+    refused = [line for line in errors.splitlines() if "refused our settings" in line]
+    assert len(refused) == 1, errors[-2000:]
+    assert setting in refused[0]

@@ -287,3 +287,36 @@ def test_a_session_that_reached_its_duration_is_asked_for_again_without_a_back_o
     assert next_op(g, 20 * S) is Op.DELETE
     g.deleted(20 * S)
     assert next_op(g, 20 * S) is Op.CREATE
+
+
+def test_settings_the_operator_refuses_are_not_asked_again_and_the_drone_is_told_why() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    assert g.next_op(0) is Op.CREATE
+    g.refused_settings("create: 422 UNNECESSARY_IDENTIFIER: ...; fix [qos.camara.devices]")
+    for t in (1, 100, 10_000):
+        g.request(True, t, t * S)
+        assert g.next_op(t * S) is None
+        assert g.grant(t * S) is Grant.UNAVAILABLE
+    g.request(False, 20_000, 20_000 * S)
+    g.request(True, 20_001, 20_001 * S)  # a new episode does not forget it
+    assert g.next_op(20_001 * S) is None
+    assert "fix [qos.camara.devices]" in g.why()
+
+
+def test_an_operators_retry_after_is_honoured_up_to_the_ceiling() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.failed(Op.CREATE, "create: 429 QUOTA_EXCEEDED", 0, retry_after_ns=120 * S)
+    assert next_op(g, 119 * S) is None  # the back-off alone would have asked again after 10 s
+    g.request(True, 2, 120 * S)
+    assert next_op(g, 120 * S) is Op.CREATE
+    g.failed(Op.CREATE, "create: 429 QUOTA_EXCEEDED", 120 * S, retry_after_ns=86_400 * S)
+    g.request(True, 3, 720 * S)
+    assert next_op(g, 720 * S) is Op.CREATE  # a day's Retry-After is held to ten minutes
+    g.observed(available(2000 * S), 720 * S)
+    g.failed(Op.POLL, "get: 429", 720 * S, retry_after_ns=30 * S)
+    g.request(True, 4, 749 * S)
+    assert g.next_op(749 * S) is None
+    g.request(True, 5, 750 * S)
+    assert g.next_op(750 * S) is Op.POLL

@@ -6,7 +6,7 @@ import argparse
 
 from dynqos.cli.options import Commands, common_options, metrics_options, path_or_none, with_metrics
 from dynqos.common.config import Config
-from dynqos.sim.vehicle.service import MAX_INSTANCE
+from dynqos.sim.vehicle import MAX_INSTANCE  # the package alone: the CLI starts without the simulator
 
 CELL = (
     "A user-space 5G uplink: one TCP listener per bearer (QoS flow) forwarding to an edge router port, a UE "

@@ -24,6 +24,7 @@ from dynqos.common.messages import Reference, State, SupervisorStatus
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Received
 from dynqos.experiment.faults import FaultInjector, FaultWindow
+from dynqos.experiment.machine import read_cpu_times
 from dynqos.experiment.processes import Processes, resident_memory
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import UAV, Scenario, world_path
@@ -33,6 +34,7 @@ log = logging.getLogger(__name__)
 RECORD_PERIOD_S = 0.1  # the recorder's sampling period
 PROGRESS_EVERY_S = 10.0  # a progress log line this often when stderr is not a terminal
 CELL_POLL_S = 0.5  # how often the cell's counters are read
+MACHINE_SAMPLE_S = 1.0  # how often the machine's CPU times are read (one-second busy shares)
 OFFLOAD_TIMEOUT_S = 60.0  # from the daemon's start to its first offboard state
 QUEUE_ITEMS = 200_000  # per recorded stream: 30 min of states at 50 Hz, with room
 
@@ -146,7 +148,7 @@ def fly(
     progress: bool,
 ) -> None:
     """The recorded flight: faults begin and end on time, memory and the cell's counters are sampled."""
-    next_poll = next_memory = time.monotonic()
+    next_poll = next_memory = next_cpu = time.monotonic()
     end = time.monotonic() + scenario.duration_s
     pending = sorted(scenario.faults, key=lambda fault: fault.at_s)
     active: list[FaultWindow] = []
@@ -160,6 +162,9 @@ def fly(
         if time.monotonic() >= next_memory:
             next_memory += scenario.memory_sample_s
             _sample_memory(procs, rec, elapsed)
+        if time.monotonic() >= next_cpu:
+            next_cpu += MACHINE_SAMPLE_S
+            _sample_machine(rec, elapsed)
         _record_tick(scenario, rec, procs, cell_port, elapsed, progress)
         if time.monotonic() >= next_poll:
             next_poll += CELL_POLL_S
@@ -167,6 +172,13 @@ def fly(
             counters["now_ns"] = time.monotonic_ns()
             rec.cell.append(counters)
         stop.wait(RECORD_PERIOD_S)
+    _sample_machine(rec, scenario.duration_s - (end - time.monotonic()))  # the flight's last second
+
+
+def _sample_machine(rec: Recording, elapsed: float) -> None:
+    times = read_cpu_times()
+    if times is not None:
+        rec.cpu_times.append((elapsed, times))
 
 
 def _sample_memory(procs: Processes, rec: Recording, elapsed: float) -> None:

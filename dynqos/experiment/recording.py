@@ -9,6 +9,7 @@ from typing import Any
 
 from dynqos.common.messages import Reference, State, SupervisorStatus
 from dynqos.experiment.faults import FaultWindow
+from dynqos.experiment.machine import CpuTimes
 
 
 @dataclass
@@ -25,3 +26,5 @@ class Recording:
     memory_kb: dict[str, list[tuple[float, int, int]]] = field(default_factory=dict)
     qod: dict[str, Any] | None = None  # the emulated operator's QoD counters and sessions left at the end
     cpu_s: dict[str, float] = field(default_factory=dict)  # process name -> CPU seconds, read at the end
+    # (t_s into the flight, all cores' CPU times) about every second: how busy the machine was
+    cpu_times: list[tuple[float, CpuTimes]] = field(default_factory=list)

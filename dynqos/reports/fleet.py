@@ -13,6 +13,7 @@ from typing import Any
 
 from dynqos.common.messages import QosDecision, SupervisorStatus
 from dynqos.experiment.faults import time_in_states
+from dynqos.experiment.machine import describe, machine_figures
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import Scenario, run_id
 from dynqos.onboard.supervisor import PRIORITY_STATES as SUPERVISOR_PRIORITY_STATES
@@ -146,6 +147,7 @@ def summarise_fleet(
         | {"open_at_end": len(qod.get("sessions", []))},
         "checks": checks,
         "cpu_s": rec.cpu_s,
+        "machine": machine_figures(rec.cpu_times),
         "memory_mb": {name: max(s[1] for s in samples) / 1024 for name, samples in memory},
         "anon_memory_mb": {name: max(s[2] for s in samples) / 1024 for name, samples in memory},
         "ok": ok,
@@ -275,6 +277,10 @@ def fleet_section(s: dict[str, Any]) -> list[str]:
         + (" (first run)" if runs else ""),
         f"- CPU seconds: {_f(sum(cpu.values()))} over every process "
         f"({', '.join(f'{k} {v:.1f}' for k, v in sorted(cpu.items()))})" + (" (first run)" if runs else ""),
+        *[
+            f"- {'seed ' + str(run.get('seed')) + ': ' if runs else ''}{describe(run.get('machine'))}"
+            for run in (s["runs"] if runs else [s])
+        ],
         f"- ok: {s['ok']} {s['failure']}",
         "",
     ]

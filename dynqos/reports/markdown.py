@@ -9,6 +9,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from dynqos.experiment import machine
 from dynqos.experiment.scenario import run_id
 from dynqos.reports.aggregate import interval
 from dynqos.reports.figures import figure, fmt, interval_text, lookup, mean_of
@@ -158,6 +159,7 @@ def _single_section(out: Path, s: dict[str, Any], baseline: dict[str, Any] | Non
         *_qos_network_line(s),
         *_fault_lines(s),
         "- time in states (s): " + ", ".join(f"{k} {v:.1f}" for k, v in s["states_time_s"].items() if v > 0),
+        f"- {machine.describe(s.get('machine'))}",
         f"- ok: {s['ok']} {s['failure']}",
         "",
         f"![{run_id}]({run_id}/overview.png)",
@@ -248,6 +250,7 @@ def _repeated_section(s: dict[str, Any]) -> list[str]:
         f"- network QoS: grant AVAILABLE {figure(s, 'qos_network.decision_to_available_s', 2)} s and RTT "
         f"back within 1.2x {figure(s, 'qos_network.decision_to_rtt_back_s', 2)} s after the decision",
         *_repeated_fault_lines(s),
+        *[f"- seed {run.get('seed')}: {machine.describe(run.get('machine'))}" for run in s["runs"]],
         f"- ok: {s['ok']} {s['failure']}",
         "",
     ]

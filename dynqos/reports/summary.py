@@ -13,6 +13,7 @@ from dynqos.common.geometry import yaw_of
 from dynqos.common.messages import SupervisorStatus
 from dynqos.common.modes import SupervisorState
 from dynqos.experiment.faults import log_times, outcome, time_in_states
+from dynqos.experiment.machine import machine_figures
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import Scenario
 from dynqos.reports.measures import reference_errors, rmse, stats, tracking_errors
@@ -158,6 +159,7 @@ def summarise(
         ],
         "memory_mb": {name: memory_figures(samples) for name, samples in rec.memory_kb.items()},
         "cpu_s": rec.cpu_s,  # each process's CPU seconds over its whole life (start-up included)
+        "machine": machine_figures(rec.cpu_times),  # how busy all cores were over the recorded flight
         "ok": ok,
         "failure": failure,
     }

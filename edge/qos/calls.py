@@ -16,6 +16,31 @@ from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
 log = logging.getLogger(__name__)
 
 
+# Answers that say the agent's own settings are wrong, not the network's state: asking again cannot help.
+# CAMARA error codes (quality-on-demand v1.1.0, CAMARA Commonalities) and the setting each one points at.
+SETTINGS_AT_FAULT = {
+    "UNNECESSARY_IDENTIFIER": "[qos.camara.devices] (the access token already names the device)",
+    "UNSUPPORTED_IDENTIFIER": "[qos.camara.devices] (an identifier type this operator does not take)",
+    "MISSING_IDENTIFIER": "[qos.camara.devices] (the operator cannot tell which device)",
+    "IDENTIFIER_NOT_FOUND": "[qos.camara.devices] (the operator does not know this device)",
+    "QUALITY_ON_DEMAND.DURATION_OUT_OF_RANGE": "[qos.camara] duration_s (outside the profile's range)",
+    "DURATION_OUT_OF_RANGE": "[qos.camara] duration_s (outside the profile's range)",
+    "QUALITY_ON_DEMAND.QOS_PROFILE_NOT_APPLICABLE": "[qos.camara] qos_profile (not offered for this device)",
+    "PERMISSION_DENIED": "[qos.camara] client_id and its scopes (the token does not allow this call)",
+    "INVALID_TOKEN_CONTEXT": "[qos.camara] the authentication mode (the token does not fit the request)",
+    "TOKEN": "[qos.camara] client_id and client_secret_file (the token endpoint refused them)",
+}
+
+
+def settings_at_fault(exc: QodError) -> str | None:
+    """The setting an error points at when it is the agent's configuration, not the network (None)."""
+    if exc.code in SETTINGS_AT_FAULT:
+        return SETTINGS_AT_FAULT[exc.code]
+    if exc.status in (401, 403):
+        return "[qos.camara] client_id, client_secret_file and token_url (the operator refuses them)"
+    return None
+
+
 class OperatorCalls:
     def __init__(self, client: QodClient, camara: CamaraConfig, port: int, server: str, clock: Clock) -> None:
         """`port`: the zenoh priority port the sessions name; `server`: the edge address the network sees."""
@@ -79,6 +104,15 @@ class OperatorCalls:
         now = self.clock.now_ns()
         self.errors += 1
         reason = f"{op.value}: {exc.status or 'no answer'} {exc.code}: {exc.message}"
+        if exc.correlator:
+            reason += f" (x-correlator {exc.correlator})"
+        setting = settings_at_fault(exc)
+        if setting is not None and op is Op.CREATE:
+            why = f"{reason}; fix {setting}: not asked again until the agent restarts"
+            log.error("qos agent: %s: the operator refused our settings: %s", grant.uav, why)
+            grant.refused_settings(why[:300])
+            return
+        retry_after_ns = round((exc.retry_after_s or 0.0) * NS_PER_S)
         if exc.status == 404 and op is not Op.CREATE:
             grant.deleted(now)  # not there any more (expired and removed, or deleted elsewhere)
         elif exc.status == 409 and op is Op.CREATE:
@@ -89,9 +123,9 @@ class OperatorCalls:
         else:
             self._once(grant.uav, exc.status, exc.code, reason)
             if exc.transient or op is not Op.CREATE:
-                grant.failed(op, reason, now)
+                grant.failed(op, reason, now, retry_after_ns)
             else:
-                grant.denied(reason, now)
+                grant.denied(reason, now, retry_after_ns)
 
     async def _resolve_conflict(self, grant: DroneGrant) -> None:
         """409 on create: a session for this flow exists (ours from before a restart, or ended and not

@@ -2,9 +2,13 @@
 
 Only the calls dynqos needs: create, get, extend and delete a session, and retrieve a device's
 sessions (to clean up after a crashed agent and to resolve a 409). Every call is bounded by
-[qos.camara] timeout_s; 429 and 5xx are retried with jittered exponential back-off (a Retry-After
-header is honoured up to the cap) inside that bound; a 401 refreshes the OAuth2 token once and retries.
-Other errors raise QodError with the API's `code` and `message`. aiohttp, because the agent is an
+[qos.camara] timeout_s; 429 and 5xx are retried with jittered exponential back-off inside that bound
+(a Retry-After header, in seconds or as an HTTP-date, is honoured when it fits; when it does not, the
+error carries it for the agent to wait that long); a 401 refreshes the OAuth2 token once and retries.
+Every call carries an `x-correlator` (one per call, the same across its retries), which the provider
+echoes and an operator's support asks for; every error names it. Other errors raise QodError with the
+API's `code` and `message`. A token endpoint that fails (5xx, 429, no answer) is a transient error like
+the API's own; one that refuses the credentials is a 401. aiohttp, because the agent is an
 asyncio program and the emulated cell serves the API with the same library.
 """
 
@@ -12,9 +16,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import email.utils
 import logging
 import random
 import time
+import uuid
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -34,11 +40,23 @@ TOKEN_MARGIN_S = 30.0  # a token is refreshed this long (at most a quarter of it
 class QodError(Exception):
     """The API answered with an error (status, CAMARA `code`, `message`), or did not answer (status 0)."""
 
-    def __init__(self, status: int, code: str, message: str) -> None:
-        super().__init__(f"{status} {code}: {message}")
+    def __init__(
+        self,
+        status: int,
+        code: str,
+        message: str,
+        *,
+        correlator: str = "",
+        retry_after_s: float | None = None,
+    ) -> None:
+        super().__init__(
+            f"{status} {code}: {message}" + (f" (x-correlator {correlator})" if correlator else "")
+        )
         self.status = status
         self.code = code
         self.message = message
+        self.correlator = correlator  # the call's x-correlator: what the operator's support looks up
+        self.retry_after_s = retry_after_s  # the operator's Retry-After, when the call could not wait it out
 
     @property
     def transient(self) -> bool:
@@ -131,18 +149,19 @@ class QodClient:
         self, method: str, path: str, body: dict[str, Any] | None = None, *, expect: tuple[int, ...]
     ) -> Any:
         deadline = time.monotonic() + self.cfg.timeout_s
+        correlator = str(uuid.uuid4())
         refreshed = False
         attempt = 0
         while True:
             self.calls += 1
-            status, answer, retry_after = await self._once(method, path, body, deadline)
+            status, answer, retry_after = await self._once(method, path, body, deadline, correlator)
             if status in expect:
                 return answer
             if status == 401 and self.cfg.token_url and not refreshed:
                 refreshed = True
                 self._token_expires = 0.0  # the API no longer takes it: get a new one, try once more
                 continue
-            error = _error(status, answer)
+            error = _error(status, answer, correlator, retry_after)
             if not error.transient or attempt >= RETRIES:
                 raise error
             pause = retry_after if retry_after is not None else self.rng.uniform(0, BACKOFF_S * 2**attempt)
@@ -154,13 +173,13 @@ class QodClient:
             await asyncio.sleep(pause)  # the back-off itself
 
     async def _once(
-        self, method: str, path: str, body: dict[str, Any] | None, deadline: float
+        self, method: str, path: str, body: dict[str, Any] | None, deadline: float, correlator: str
     ) -> tuple[int, Any, float | None]:
         assert self.http is not None, "use `async with QodClient(...)`"
         left = deadline - time.monotonic()
         if left <= 0:
             return 0, {"code": "TIMEOUT", "message": f"no answer within {self.cfg.timeout_s:g} s"}, None
-        headers = {"Accept": "application/json"}
+        headers = {"Accept": "application/json", "x-correlator": correlator}
         try:
             token = await asyncio.wait_for(self._bearer(), left)
             if token:
@@ -173,7 +192,7 @@ class QodClient:
                 if response.content_length != 0 and response.status != 204:
                     with contextlib.suppress(aiohttp.ContentTypeError, ValueError):
                         answer = await response.json(content_type=None)
-                return response.status, answer, _retry_after(response.headers.get("Retry-After"))
+                return response.status, answer, retry_after_s(response.headers.get("Retry-After"))
         except QodError as exc:
             return exc.status, {"code": exc.code, "message": exc.message}, None
         except (TimeoutError, asyncio.TimeoutError):
@@ -193,6 +212,10 @@ class QodClient:
                     "client_secret": self.secret}  # fmt: skip
             async with self.http.post(self.cfg.token_url, data=form) as response:
                 answer = await response.json(content_type=None) if response.status == 200 else None
+                if response.status == 429 or response.status >= 500:  # the endpoint's trouble, not ours
+                    raise QodError(
+                        response.status, "TOKEN_ENDPOINT", f"the token endpoint answered {response.status}"
+                    )
                 if not isinstance(answer, dict) or not isinstance(answer.get("access_token"), str):
                     raise QodError(401, "TOKEN", f"the token endpoint answered {response.status}")
             self._token = answer["access_token"]
@@ -204,16 +227,26 @@ class QodClient:
             return self._token
 
 
-def _error(status: int, answer: Any) -> QodError:
+def _error(status: int, answer: Any, correlator: str, retry_after: float | None) -> QodError:
+    code, message = "", "no error body"
     if isinstance(answer, dict):
-        return QodError(status, str(answer.get("code", "")), str(answer.get("message", ""))[:300])
-    return QodError(status, "", "no error body")
+        code, message = str(answer.get("code", "")), str(answer.get("message", ""))[:300]
+    return QodError(status, code, message, correlator=correlator, retry_after_s=retry_after)
 
 
-def _retry_after(value: str | None) -> float | None:
+def retry_after_s(value: str | None, now_unix: float | None = None) -> float | None:
+    """A Retry-After header in seconds: delta-seconds, or an HTTP-date (RFC 9110) from now; None when
+    absent or unreadable."""
     if value is None:
         return None
     try:
-        return min(5.0, max(0.0, float(value)))
+        return max(0.0, float(value))
     except ValueError:
+        pass
+    try:
+        at = email.utils.parsedate_to_datetime(value)
+    except (TypeError, ValueError):
         return None
+    if at.tzinfo is None:
+        return None  # an HTTP-date is always GMT; one without a zone is not one
+    return max(0.0, at.timestamp() - (time.time() if now_unix is None else now_unix))

@@ -16,6 +16,10 @@ back; `grant` is what the drone is told. Rules a user relies on live here, each 
   before another is created) and asked for again after a back-off while still wanted;
 - a refusal (400/403/404/422) or an API that keeps failing (429, 5xx, timeouts) is a grant of
   UNAVAILABLE with the reason, and the next attempt waits, doubling up to 8x;
+- an answer that says the agent's own settings are wrong (an identifier the operator will not take, a
+  duration out of the profile's range, a profile it does not offer, credentials without the scope) is
+  not asked again: the drone is told UNAVAILABLE with the setting to fix, for as long as the agent runs;
+- an operator's Retry-After is honoured up to `RETRY_AFTER_CEILING_NS`;
 - a drone the arbiter does not admit (policy "arbiter", edge/qos/arbiter.py) is told UNAVAILABLE with the
   arbiter's reason, and a session it holds is deleted at once: a revocation frees the budget now.
 """
@@ -30,6 +34,9 @@ from dynqos.common.config import QosConfig
 from dynqos.common.modes import Grant
 
 MAX_BACKOFF_FACTOR = 8
+# The longest Retry-After the agent honours: ten minutes is a third of a typical flight's battery; an
+# HTTP-date further out (a clock off, a bad header) must not silence the agent for the rest of the flight.
+RETRY_AFTER_CEILING_NS = 600 * NS_PER_S
 RETRY_DELETE_NS = NS_PER_S  # a failed delete (or extend) is tried again after this
 # An extend that moved the session's end by less than this did not extend it (the operator capped it).
 # expiresAt comes on the operator's wall clock and is read against ours: a second absorbs the skew.
@@ -82,6 +89,7 @@ class DroneGrant:
         self.session: Session | None = None
         self.reason = ""
         self.refused = False  # the last attempt was refused or failed: UNAVAILABLE until the next succeeds
+        self.misconfigured = ""  # the operator refused our settings: never asked again (the reason)
         self._unwanted_since_ns: int | None = now_ns
         self._retry_at_ns = 0
         self._failures = 0
@@ -110,7 +118,7 @@ class DroneGrant:
     def request(self, want: bool, seq: int, now_ns: int) -> None:
         self.heard_ns = now_ns
         self.request_seq = max(self.request_seq, seq)
-        if want and not self.wanted:  # a new episode: asks at once, and says so (not the last refusal)
+        if want and not self.wanted and not self.misconfigured:  # a new episode: asks at once
             self._failures = 0
             self._retry_at_ns = 0
             self.refused, self.reason = False, ""
@@ -143,7 +151,7 @@ class DroneGrant:
             return None
         s = self.session
         if s is None:
-            return Op.CREATE if wants and now_ns >= self._retry_at_ns else None
+            return Op.CREATE if wants and now_ns >= self._retry_at_ns and not self.misconfigured else None
         revoked = not self.admitted
         if s.status is QodStatus.UNAVAILABLE or revoked or (not wants and self._released(now_ns)):
             return Op.DELETE if now_ns >= self._next_delete_ns else None
@@ -235,26 +243,32 @@ class DroneGrant:
         self.session = None
         self.capped = ""
         self._next_delete_ns = 0
-        if not self.wants(now_ns):
+        if not self.wants(now_ns) and not self.misconfigured:
             self.refused, self.reason = False, ""
 
-    def denied(self, reason: str, now_ns: int) -> None:
-        """The operator refused (400/403/404/422): no session; ask again after the back-off."""
+    def denied(self, reason: str, now_ns: int, retry_after_ns: int = 0) -> None:
+        """The operator refused (400/403/404/422): no session; ask again after the back-off (or the
+        operator's Retry-After, up to the ceiling, when it is longer)."""
         self.refused, self.reason = True, reason
         self._back_off(now_ns)
+        self._retry_at_ns = max(self._retry_at_ns, now_ns + min(retry_after_ns, RETRY_AFTER_CEILING_NS))
 
-    def failed(self, op: Op, reason: str, now_ns: int) -> None:
-        """The call did not get an answer (timeouts, 429 or 5xx after the client's retries)."""
+    def refused_settings(self, reason: str) -> None:
+        """The operator refused the agent's own settings for this drone: never asked again."""
+        self.refused, self.reason, self.misconfigured = True, reason, reason
+
+    def failed(self, op: Op, reason: str, now_ns: int, retry_after_ns: int = 0) -> None:
+        """The call did not get an answer (timeouts, 429 or 5xx after the client's retries); with a
+        Retry-After the call is not tried before it (up to the ceiling)."""
+        after = now_ns + max(RETRY_DELETE_NS, min(retry_after_ns, RETRY_AFTER_CEILING_NS))
         if op is Op.CREATE:
-            self.denied(reason, now_ns)
-        elif op is Op.DELETE:
-            self._next_delete_ns = now_ns + RETRY_DELETE_NS
+            self.denied(reason, now_ns, retry_after_ns)
+        elif op in (Op.DELETE, Op.RENEW):  # a failed renewal: the session stays, and ends on its own
+            self._next_delete_ns = after
         elif op is Op.EXTEND:
-            self._next_extend_ns = now_ns + RETRY_DELETE_NS
-        elif op is Op.RENEW:  # the delete failed: the session stays, and ends on its own if it must
-            self._next_delete_ns = now_ns + RETRY_DELETE_NS
+            self._next_extend_ns = after
         else:
-            self._next_read_ns = now_ns + self._watch_ns
+            self._next_read_ns = now_ns + max(self._watch_ns, min(retry_after_ns, RETRY_AFTER_CEILING_NS))
 
     def _back_off(self, now_ns: int) -> None:
         factor = min(MAX_BACKOFF_FACTOR, 2**self._failures)

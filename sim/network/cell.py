@@ -387,7 +387,7 @@ class CellEmulator:
         for bearer in self.bearers:
             granted = bool(bearer.ue) and self.operator.granted(bearer.ue, bearer.target[1])
             if granted != bearer.granted:
-                self.core.granted[bearer.name] = granted
+                self.core.grant(bearer.name, granted)
                 log.info("bearer %s: weight %g (%s)", bearer.name, bearer.effective_weight(),
                          "QoD session available" if granted else "no QoD session")  # fmt: skip
 

@@ -50,9 +50,10 @@ class CellCore:
         self.downlink_bps = cell.downlink_mbps * 1e6 / cell.scale
         self.bucket = CapacityBucket(self.tti_ns)
         self.weights = dict(bearer_weights)
-        self.qod = cell.qod
+        self._qod = cell.qod
         self.ue_bearers = ue_bearers
         self.granted = dict.fromkeys(bearer_weights, False)
+        self._shares: dict[str, float] | None = None  # the effective weights, until one of them changes
         self.background = {
             b.name: VirtualUser(b.name, b.weight, b.offered_mbps * 1e6 / cell.scale) for b in cell.background
         }
@@ -66,23 +67,37 @@ class CellCore:
 
     # ---- the TTI ----------------------------------------------------------------------------------------
 
+    @property
+    def qod(self) -> bool:
+        return self._qod
+
+    @qod.setter
+    def qod(self, on: bool) -> None:
+        self._qod, self._shares = on, None
+
+    def grant(self, bearer: str, granted: bool) -> None:
+        """A QoD session now grants `bearer` its weight (True) or no longer does."""
+        self.granted[bearer], self._shares = granted, None
+
     def step(self, now_ns: int, demands: Mapping[str, float]) -> dict[str, float]:
         """One TTI: the capacity since the last one shared by weight between the bearers' `demands` (bits
         waiting) and the background users (who arrive and are served here); the bits each bearer may
-        send."""
+        send, by name (the background users' grants are in it too, under "bg:<name>"). Runs every
+        millisecond: it allocates what it must and no more."""
         elapsed_s = (now_ns - self.last_tick_ns) / NS_PER_S
         capacity = self.capacity_bits(now_ns)
         self.last_tick_ns = now_ns
+        if self._shares is None:
+            self._shares = {name: self.effective_weight(name) for name in self.weights}
+            self._shares.update({"bg:" + u.name: u.weight for u in self.background.values()})
         wants = dict(demands)
-        weights = {name: self.effective_weight(name) for name in demands}
         for user in self.background.values():
             user.arrive(elapsed_s)
             wants["bg:" + user.name] = user.backlog_bits
-            weights["bg:" + user.name] = user.weight
-        grants = weighted_fair_share(capacity, wants, weights)
+        grants = weighted_fair_share(capacity, wants, self._shares)
         for user in self.background.values():
             user.serve(grants["bg:" + user.name])
-        return {name: grants[name] for name in demands}
+        return grants
 
     def capacity_bits(self, now_ns: int) -> float:
         """What the uplink carries between the last tick and `now_ns`: nothing while coverage is lost,
@@ -149,6 +164,7 @@ class CellCore:
             if event.bearer not in self.weights:
                 raise ConfigError("bearer", f"unknown bearer {event.bearer!r}")
             self.weights[event.bearer] = event.weight
+            self._shares = None
         elif kind == "trace":
             return Effect(load_trace=(event.file, event.mean_mbps))
         elif kind == "qod_end":

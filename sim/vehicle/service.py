@@ -9,13 +9,12 @@ import logging
 from dynqos.common.config import Config
 from dynqos.common.errors import DynqosError
 from dynqos.common.lifecycle import ready_line, stop_on_signals
+from dynqos.sim.vehicle import MAX_INSTANCE
 from dynqos.sim.vehicle.mavlink import Link, MavlinkVehicle
 from dynqos.sim.vehicle.model import VehicleModel
 from dynqos.sim.vehicle.world import default_world, load_world
 
 log = logging.getLogger(__name__)
-
-MAX_INSTANCE = 254  # MAVLink system ids are 1..255
 
 
 def instance_port(port: int, instance: int) -> int:

@@ -1,0 +1,66 @@
+"""How busy the machine was during a flight (dynqos/experiment/machine.py): read from the kernel's
+/proc/stat, figured per second, and said in the report, starved or not."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from dynqos.experiment.machine import (
+    CpuTimes,
+    busy_share,
+    describe,
+    machine_figures,
+    parse_cpu_line,
+    read_cpu_times,
+)
+
+STAT = """cpu  237491 3186 34901 606039 2155 0 5747 4819 0 0
+cpu0 82231 1602 14105 343587 316 0 2775 2466 0 0
+intr 12345
+"""
+
+
+def test_the_aggregate_line_counts_idle_and_iowait_as_not_busy_and_steal_as_busy() -> None:
+    times = parse_cpu_line(STAT)
+    assert times.total == 237491 + 3186 + 34901 + 606039 + 2155 + 0 + 5747 + 4819
+    assert times.busy == times.total - 606039 - 2155
+    with pytest.raises(ValueError, match="no aggregate cpu line"):
+        parse_cpu_line("cpu0 1 2 3 4\n")
+
+
+def test_this_kernels_proc_stat_reads_and_moves(tmp_path: Path) -> None:
+    first = read_cpu_times()
+    assert first is not None
+    assert 0 < first.busy < first.total
+    assert read_cpu_times(tmp_path / "missing") is None
+
+
+def test_busy_share_between_two_readings() -> None:
+    assert busy_share(CpuTimes(100, 1000), CpuTimes(250, 1200)) == pytest.approx(0.75)
+    assert busy_share(CpuTimes(100, 1000), CpuTimes(100, 1000)) is None
+
+
+def _flight(shares: list[float]) -> list[tuple[float, CpuTimes]]:
+    """One reading a second, each second `share` busy (200 ticks: two cores at 100 Hz)."""
+    samples, busy, total = [(0.0, CpuTimes(0, 0))], 0, 0
+    for t, share in enumerate(shares, 1):
+        busy, total = busy + round(200 * share), total + 200
+        samples.append((float(t), CpuTimes(busy, total)))
+    return samples
+
+
+def test_a_flight_with_headroom_is_not_starved_and_one_without_is() -> None:
+    calm = machine_figures(_flight([0.5] * 20 + [0.95] * 3))
+    assert calm is not None
+    assert calm["busy_share"] == pytest.approx((0.5 * 20 + 0.95 * 3) / 23)
+    assert calm["busy_share_max_1s"] == pytest.approx(0.95)
+    assert (calm["seconds_above_85"], calm["seconds_sampled"], calm["starved"]) == (3, 23, False)
+    busy = machine_figures(_flight([0.5] * 20 + [0.9] * 4))
+    assert busy is not None
+    assert busy["starved"]
+    assert "STARVED" in describe(busy)
+    assert "STARVED" not in describe(calm)
+    assert machine_figures(_flight([])) is None
+    assert describe(None) == "machine: not measured (no /proc/stat)"
