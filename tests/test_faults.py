@@ -156,8 +156,20 @@ def _check(result: dict[str, Any], kinds_with_fallback: set[str]) -> None:
             assert fault["log"], fault  # a line that names what happened
 
 
+def _fly_with_headroom(scenario: Scenario, tmp_path: Path) -> dict[str, Any]:
+    """The flight, flown once more when the machine was starved during it (its summary's `machine`, more
+    than 3 s above 85% busy): then its timings are the CPU's, not the runtime's (a detector flood that
+    delays the MPC past the watchdog, a restart that misses its window). The second flight is asserted
+    on whatever its machine was, so the test still fails on a runtime that does not recover."""
+    result = run_scenario(scenario, tmp_path / "first", progress=False)
+    if (result.get("machine") or {}).get("starved"):
+        print(f"starved the first time ({result['machine']}): flying again")
+        result = run_scenario(scenario, tmp_path / "again", progress=False)
+    return result
+
+
 @pytest.mark.slow
-@pytest.mark.timeout(400)
+@pytest.mark.timeout(600)  # a starved first flight is flown again
 def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
     """The shipped faults scenario, as docs/reliability.md measures it: MPC and router killed, coverage
     lost for 0.5, 2 and 10 s, the downlink lost, the FC silent for 2 s, the detector flooded."""
@@ -165,7 +177,7 @@ def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
     assert {f.kind for f in scenario.faults} == {
         "mpc_kill", "router_kill", "coverage_loss", "downlink_loss", "fc_silence", "detector_flood",
     }  # fmt: skip
-    result = run_scenario(scenario, tmp_path, progress=False)
+    result = _fly_with_headroom(scenario, tmp_path)
     _check(result, {"mpc_kill", "coverage_loss", "downlink_loss", "router_kill"})
     by_kind = {f["kind"]: f for f in result["faults"]}
     assert sorted(f["duration_s"] for f in result["faults"] if f["kind"] == "coverage_loss") == [0.5, 2, 10]
