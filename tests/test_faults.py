@@ -183,8 +183,9 @@ def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
     assert sorted(f["duration_s"] for f in result["faults"] if f["kind"] == "coverage_loss") == [0.5, 2, 10]
     assert any("no state from the flight controller" in line for line in by_kind["fc_silence"]["log"])
     assert "flood frames sent" in by_kind["detector_flood"]["notes"][0]
-    if not (result.get("machine") or {}).get("starved"):  # the flood is CPU load: on a starved machine it
-        assert not by_kind["detector_flood"]["fallback"]  # reaches control; with headroom it costs frames only
+    # The flood is CPU load: on a starved machine it reaches control; with headroom it costs frames only.
+    if not (result.get("machine") or {}).get("starved"):
+        assert not by_kind["detector_flood"]["fallback"]
 
 
 @pytest.mark.slow
