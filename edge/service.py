@@ -21,7 +21,6 @@ from dynqos.common.config import Config
 from dynqos.common.errors import DynqosError
 from dynqos.common.lifecycle import ready_line, serving_metrics, stop_on_signals
 from dynqos.common.metrics import ProcessMetrics
-from dynqos.common.transport import Role, open_bus
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +91,8 @@ def serve(
 ) -> int:
     """Run one edge worker (MPC, planner, detector) until SIGTERM: its metrics served, its zenoh session
     open as an edge client, its health file written, one ready line; everything closed on the way out."""
+    from dynqos.common.transport import Role, open_bus  # here: `dynqos health` (a probe) needs no zenoh
+
     with serving_metrics(name, config) as metrics, open_bus(config.zenoh, Role.EDGE) as bus:
         worker = make(config, bus)
         lifecycle = worker.service
