@@ -1,17 +1,30 @@
-"""Start `dynqos` subcommands as real processes, wait for their ready line, stop them by pid."""
+"""Start `dynqos` subcommands as real processes, wait for their ready line, stop them by pid.
+
+A child's stderr is read all the time by a thread of ours: a pipe nobody reads holds 64 KiB, and a
+service that logs a health line a second fills it within a few minutes and then blocks in its next log
+call, which stops the service mid-flight (a long flight on a loaded machine went silent that way).
+"""
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import json
 import os
+import queue
 import selectors
 import shutil
 import subprocess
 import sys
+import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 DYNQOS = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
+KEPT_STDERR_LINES = 20_000  # what stop() returns: the log's tail, bounded
+LIVE_STDERR_LINES = 10_000  # what lines() can still hand out; older ones are dropped when nobody reads
 
 
 class DynqosProcess:
@@ -31,6 +44,10 @@ class DynqosProcess:
             text=True,
             env={**os.environ, **env} if env else None,
         )
+        self._stderr_tail: collections.deque[str] = collections.deque(maxlen=KEPT_STDERR_LINES)
+        self._stderr_live: queue.Queue[str | None] = queue.Queue(maxsize=LIVE_STDERR_LINES)
+        self._drains = [threading.Thread(target=self._drain_stderr, daemon=True)]
+        self._drains[0].start()
         assert self.proc.stdout is not None
         with selectors.DefaultSelector() as selector:
             selector.register(self.proc.stdout, selectors.EVENT_READ)
@@ -40,6 +57,40 @@ class DynqosProcess:
             err = self.stop()
             raise AssertionError(f"dynqos {' '.join(args)} did not become ready: {err[-2000:]}")
         self.info: dict[str, Any] = json.loads(line)
+        self._drains.append(threading.Thread(target=self._drain_stdout, daemon=True))
+        self._drains[-1].start()
+
+    def _drain_stderr(self) -> None:
+        assert self.proc.stderr is not None
+        for text in self.proc.stderr:
+            self._stderr_tail.append(text)
+            self._offer(text)
+        self._offer(None)
+
+    def _offer(self, text: str | None) -> None:
+        while True:
+            try:
+                self._stderr_live.put_nowait(text)
+                return
+            except queue.Full:
+                with contextlib.suppress(queue.Empty):
+                    self._stderr_live.get_nowait()  # nobody is reading live: keep the newest
+
+    def _drain_stdout(self) -> None:
+        assert self.proc.stdout is not None
+        for _ in self.proc.stdout:
+            pass
+
+    def lines(self, timeout_s: float) -> Iterator[str]:
+        """The child's stderr as it comes, until it ends or `timeout_s` passes with nothing new."""
+        while True:
+            try:
+                text = self._stderr_live.get(timeout=timeout_s)
+            except queue.Empty:
+                return
+            if text is None:
+                return
+            yield text
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -49,8 +100,15 @@ class DynqosProcess:
         if self.proc.poll() is None:
             self.proc.terminate()
         try:
-            _, err = self.proc.communicate(timeout=15)
+            self.proc.wait(timeout=15)
         except subprocess.TimeoutExpired:
             self.proc.kill()
-            _, err = self.proc.communicate(timeout=5)
-        return err or ""
+            self.proc.wait(timeout=5)
+        deadline = time.monotonic() + 5
+        for drain in self._drains:
+            drain.join(timeout=max(0.0, deadline - time.monotonic()))  # the pipes end when it exits
+        if not any(drain.is_alive() for drain in self._drains):  # a grandchild may still hold a pipe
+            for pipe in (self.proc.stdout, self.proc.stderr):
+                if pipe is not None:
+                    pipe.close()
+        return "".join(self._stderr_tail)

@@ -12,6 +12,7 @@ import json
 import queue
 import signal
 import struct
+import time
 from pathlib import Path
 from typing import Any
 
@@ -100,6 +101,7 @@ def test_view_and_record_a_short_flight(tmp_path: Path) -> None:
     status_seqs: set[int] = set()
     seen: queue.Queue[str] = queue.Queue()
     observer = sentinel_drone = None
+    logs: dict[str, str] = {}
     try:
         procs["router"] = DynqosProcess(["edge", "router"], config)
         procs["vehicle"] = DynqosProcess(["sim", "vehicle", "--duration", "600"], config)
@@ -145,6 +147,10 @@ def test_view_and_record_a_short_flight(tmp_path: Path) -> None:
         procs["record"].proc.send_signal(signal.SIGTERM)
         record_log = procs.pop("record").stop()
         del subscribers
+    except (AssertionError, TimeoutError) as failure:
+        logs = {name: procs[name].stop() for name in reversed(list(procs))}
+        tails = {name: log.splitlines()[-3:] for name, log in logs.items()}
+        raise AssertionError(f"{failure}; the services' last log lines: {tails}") from failure
     finally:
         for session in (sentinel_drone, observer):
             if session is not None:
@@ -168,7 +174,8 @@ def _check_the_live_view(client: FoxgloveClient) -> None:
     assert json.loads(client.channels["/uav1/status"]["schema"])["title"] == "dynqos.SupervisorStatus"
     client.subscribe(wanted)
     got: dict[str, list[dict[str, Any]]] = {topic: [] for topic in wanted}
-    for _ in range(5000):
+    deadline = time.monotonic() + 90  # a closed loop shows an RTT within seconds of take-off
+    while time.monotonic() < deadline:
         item = client.read()
         if item is not None:
             channel, payload = item
@@ -176,6 +183,7 @@ def _check_the_live_view(client: FoxgloveClient) -> None:
             if all(len(v) >= 3 for v in got.values()) and any(s.get("rtt_ms") for s in got["/uav1/status"]):
                 break
     assert all(len(v) >= 3 for v in got.values()), {k: len(v) for k, v in got.items()}
+    assert any(s.get("rtt_ms") for s in got["/uav1/status"]), got["/uav1/status"][-3:]
     for pose in got["/uav1/pose"]:
         assert pose["frameId"] == "ned"
         position = pose["pose"]["position"]

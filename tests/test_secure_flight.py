@@ -53,7 +53,9 @@ def test_the_loop_closes_with_each_process_on_its_own_identity(tmp_path: Path) -
         edge_control = frames = detections = commands = 0
         grant_heard = False
         deadline = time.monotonic() + 120
-        for line in onboard.proc.stderr:  # the daemon's log (a health line a second) until the loop is proven
+        for line in onboard.lines(
+            timeout_s=30
+        ):  # the daemon's log (a health line a second) until the loop is proven
             assert time.monotonic() < deadline, "the loop did not close within 120 s"
             grant_heard = grant_heard or "qos: the network's grant is" in line
             if "onboard health:" in line:

@@ -1,0 +1,45 @@
+"""The harness that starts services for the end-to-end tests keeps a chatty child running: a service logs
+a health line a second, and a pipe nobody reads stops it after 64 KiB (about 140 s of the onboard
+daemon's log), which is how a long flight once went silent in CI."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.procs import DynqosProcess
+
+pytestmark = pytest.mark.timeout(60)
+
+CHATTY = """
+import json, sys, time
+print(json.dumps({"ready": True}), flush=True)
+for i in range(4000):
+    print(f"health line {i} " + "x" * 500, file=sys.stderr, flush=True)  # 2 MB: 30 pipes' worth
+print("and more on stdout " * 10000, flush=True)
+print("finished", file=sys.stderr, flush=True)
+time.sleep(60)
+"""
+TERSE = "import json, sys; print(json.dumps({}), flush=True); [print(i, file=sys.stderr) for i in range(5)]"
+
+
+def test_a_child_that_logs_megabytes_is_not_blocked_and_its_log_tail_is_kept(tmp_path: Path) -> None:
+    child = DynqosProcess(["-c", CHATTY], tmp_path / "unused.toml", executable=sys.executable)
+    try:
+        finished = any(line.strip() == "finished" for line in child.lines(timeout_s=20))
+        assert child.alive()
+    finally:
+        log = child.stop()
+    assert finished, "the child stopped writing: blocked on a full pipe"
+    assert "health line 3999 " in log  # the tail is kept, bounded
+    assert log.endswith("finished\n")
+
+
+def test_lines_hands_out_the_log_as_it_comes_and_ends_with_the_child(tmp_path: Path) -> None:
+    child = DynqosProcess(["-c", TERSE], tmp_path / "unused.toml", executable=sys.executable)
+    try:
+        assert [line.strip() for line in child.lines(timeout_s=20)] == ["0", "1", "2", "3", "4"]
+    finally:
+        child.stop()
