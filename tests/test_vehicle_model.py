@@ -8,9 +8,17 @@ import numpy as np
 import pytest
 
 from dynqos.common.config import VehicleSimConfig
-from dynqos.sim.vehicle.dynamics import QuadState, quat_to_rot, rot_to_quat, yaw_of
+from dynqos.sim.vehicle.dynamics import GRAVITY, QuadParams, QuadState, quat_to_rot, rot_to_quat, yaw_of
 from dynqos.sim.vehicle.model import VehicleModel
-from dynqos.sim.vehicle.px4 import MAIN_AUTO, MAIN_OFFBOARD, SUB_AUTO_LOITER, Mode, Result, Setpoint
+from dynqos.sim.vehicle.px4 import (
+    MAIN_AUTO,
+    MAIN_OFFBOARD,
+    SUB_AUTO_LOITER,
+    FlightController,
+    Mode,
+    Result,
+    Setpoint,
+)
 
 SETPOINT_S = 0.02
 
@@ -177,3 +185,45 @@ def test_world_collision_names_what_a_sphere_touches() -> None:
     assert collision(world, (0.0, -2.0, -1.5)) is None  # through its middle
     assert collision(world, (3.45, 0.0, -1.0)) == "arena wall"
     assert collision(world, (0.0, 0.0, -2.9)) == "arena ceiling"
+
+
+def _attitude_by_matrices(fc: FlightController, state: QuadState, accel: np.ndarray, yaw: float) -> tuple:
+    """Lee et al.'s geometric controller written with numpy matrices, as the paper writes it: the
+    reference the flight controller's plain-float version must match."""
+    p, g = fc.params, fc.gains
+    norm = float(np.linalg.norm(accel))
+    if norm > g.accel_max_mps2:
+        accel = accel * (g.accel_max_mps2 / norm)
+    thrust_vec = p.mass_kg * (accel - np.array([0.0, 0.0, GRAVITY]))
+    thrust_vec[2] = min(thrust_vec[2], -0.2 * p.mass_kg * GRAVITY)
+    z_body = -thrust_vec / np.linalg.norm(thrust_vec)
+    if math.acos(max(-1.0, min(1.0, z_body[2]))) > g.tilt_max_rad:
+        horizontal = np.array([z_body[0], z_body[1], 0.0])
+        horizontal /= max(np.linalg.norm(horizontal), 1e-9)
+        z_body = horizontal * math.sin(g.tilt_max_rad) + np.array([0.0, 0.0, math.cos(g.tilt_max_rad)])
+    y_body = np.cross(z_body, [math.cos(yaw), math.sin(yaw), 0.0])
+    y_body /= max(float(np.linalg.norm(y_body)), 1e-9)
+    r_des = np.column_stack([np.cross(y_body, z_body), y_body, z_body])
+    rot = quat_to_rot(state.quat)
+    e_mat = r_des.T @ rot - rot.T @ r_des
+    e_rot = 0.5 * np.array([e_mat[2, 1], e_mat[0, 2], e_mat[1, 0]])
+    inertia, wn = np.array(p.inertia), np.array([g.att_wn, g.att_wn, g.yaw_wn])
+    rates = state.rates_rps
+    torque = (
+        -inertia * wn**2 * e_rot - inertia * 2 * g.att_zeta * wn * rates + np.cross(rates, inertia * rates)
+    )
+    return float(-thrust_vec @ rot[:, 2]), torque
+
+
+def test_the_attitude_controller_matches_its_matrix_form_on_random_states() -> None:
+    rng = np.random.default_rng(7)
+    fc = FlightController(QuadParams())
+    for _ in range(2000):
+        quat = rng.normal(size=4)
+        state = QuadState(quat=quat / np.linalg.norm(quat), rates_rps=rng.normal(size=3))
+        accel = rng.normal(size=3) * rng.choice([0.1, 3.0, 30.0])  # gentle, tilted past the limit, capped
+        yaw = float(rng.uniform(-4, 4))
+        thrust, torque = fc._attitude(state, accel, yaw)
+        want_thrust, want_torque = _attitude_by_matrices(fc, state, accel, yaw)
+        assert thrust == pytest.approx(want_thrust, abs=1e-9)
+        np.testing.assert_allclose(torque, want_torque, atol=1e-9)

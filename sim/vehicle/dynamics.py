@@ -54,14 +54,6 @@ class Wind:
         return (m[0] + g[0], m[1] + g[1], m[2] + g[2])
 
 
-def cross3(a: Vec, b: Vec) -> Vec:
-    """a x b for 3-vectors: np.cross costs ten times this for one pair (the flight controller takes
-    three per physics step, and a fleet runs one simulator per drone)."""
-    a0, a1, a2 = float(a[0]), float(a[1]), float(a[2])
-    b0, b1, b2 = float(b[0]), float(b[1]), float(b[2])
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
-
-
 def quat_to_rot(q: Vec) -> Vec:
     w, x, y, z = q
     return np.array(
