@@ -42,6 +42,7 @@ PURE = (
     "dynqos.edge.mpc.problem",
     "dynqos.edge.qos.arbiter",
     "dynqos.edge.qos.grants",
+    "dynqos.edge.qos.profiles",
     "dynqos.sim.network.scheduler",
     "dynqos.sim.network.cell_core",
     "dynqos.sim.vehicle.dynamics",

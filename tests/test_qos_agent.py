@@ -8,6 +8,7 @@ import contextlib
 import http.server
 import json
 import signal
+import subprocess
 import threading
 import time
 import urllib.request
@@ -26,7 +27,7 @@ from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received, Role, open_bus
 from tests.conftest import free_tcp_port
-from tests.procs import DynqosProcess
+from tests.procs import DYNQOS, DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
 
@@ -215,6 +216,50 @@ def test_camara_an_operator_that_refuses_is_an_unavailable_grant_with_its_reason
     assert not rig.granted()
     drone.until(False, Grant.NONE, also=lambda: rig.sessions() == [])  # what it asked for is cleaned up
     assert rig.counters()["qod"]["refused"] >= 1
+
+
+def test_camara_a_profile_the_operator_does_not_offer_stops_the_agent_before_it_serves(
+    tmp_path: Path,
+) -> None:
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    cell_port = free_tcp_port()
+    config = tmp_path / "qos.toml"
+    write_config(config, zcfg, cell_port, "camara", 'qod_inactive_profiles = ["QOS_M"]\n')
+    procs: dict[str, DynqosProcess] = {}
+    try:
+        procs["router"] = DynqosProcess(["edge", "router"], config)
+        procs["cell"] = DynqosProcess(["sim", "cell"], config)
+        for name, why in (("QOS_Z", "QOS_Z is not offered (offered: QOS_E, QOS_L, QOS_M, QOS_S)"),
+                          ("QOS_M", "QOS_M is INACTIVE")):  # fmt: skip
+            text = config.read_text().replace("[qos.camara]\n", f'[qos.camara]\nqos_profile = "{name}"\n', 1)
+            (tmp_path / f"{name}.toml").write_text(text)
+            agent = subprocess.run(
+                [DYNQOS, "edge", "qos", "--config", str(tmp_path / f"{name}.toml")],
+                capture_output=True, text=True, timeout=60,
+            )  # fmt: skip
+            assert agent.returncode == 2, agent.stderr[-2000:]
+            assert agent.stdout == ""  # never said ready
+            errors = [line for line in agent.stderr.splitlines() if "qos.camara.qos_profile" in line]
+            assert len(errors) == 1, agent.stderr[-2000:]
+            assert why in errors[0]
+            assert "Traceback" not in agent.stderr
+        assert Rig(config, zcfg, cell_port, procs).counters()["qod"]["created"] == 0
+    finally:
+        for proc in reversed(list(procs.values())):
+            proc.stop()
+
+
+@pytest.mark.parametrize("rig", [("camara", "qod_max_duration_s = 3\n")], indirect=True)
+def test_camara_a_duration_past_the_profiles_maximum_is_fitted_before_the_first_session(
+    rig: Rig, drone: Drone
+) -> None:
+    granted = drone.until(True, Grant.AVAILABLE, also=rig.granted)  # asks for 4 s, the profile allows 3
+    (session,) = rig.sessions()
+    assert session["duration"] == 3
+    assert session["sessionId"] == granted.session_id
+    drone.until(False, Grant.NONE, also=lambda: rig.sessions() == [])
+    log = rig.procs.pop("agent").stop()
+    assert "profile QOS_E is ACTIVE, 1..3 s: asking for 3 s, not 4" in log
 
 
 @pytest.mark.parametrize("rig", [("links", "")], indirect=True)

@@ -181,6 +181,7 @@ class CellConfig:
     qod_setup_s: float = 0.05  # REQUESTED -> AVAILABLE (or UNAVAILABLE when refused) after this long
     qod_max_duration_s: int = 86400  # a session's duration (with extensions) is capped here
     qod_profiles: tuple[str, ...] = ("QOS_E", "QOS_S", "QOS_M", "QOS_L")  # what the operator offers
+    qod_inactive_profiles: tuple[str, ...] = ()  # listed by its QoS Profiles API as INACTIVE: no sessions
     qod_auth: bool = False  # require OAuth2 client-credential tokens ([qos.camara] client_id/secret file)
     qod_token_ttl_s: float = 3600.0
     trace: str = ""

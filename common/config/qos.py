@@ -86,6 +86,10 @@ class CamaraConfig:
     client_id: str = ""
     client_secret_file: str = ""  # a file holding the client secret (never the secret itself)
     qos_profile: str = "QOS_E"
+    # Before any session, read the operator's QoS Profiles API: refuse to start if qos_profile is not
+    # offered or not ACTIVE, fit duration_s into its min..max (docs/qos.md, "Profiles first")
+    check_profile: bool = True
+    profiles_root: str = ""  # e.g. https://api.operator.example/qos-profiles/v1 ("" = beside api_root)
     duration_s: int = 600  # requested per session; extended while priority is still wanted
     extend_before_s: float = 30.0  # extend when the session has less than this left
     # A session the operator capped (an extend did not move its end) is replaced this long before it ends
@@ -99,7 +103,7 @@ class CamaraConfig:
     devices: dict[str, DeviceConfig] = field(default_factory=dict)  # drone id -> its device
 
     def __post_init__(self) -> None:
-        for name in ("api_root", "token_url", "sink"):
+        for name in ("api_root", "token_url", "sink", "profiles_root"):
             url = getattr(self, name)
             _require(not url or url.startswith(("http://", "https://")), name, "must be an http(s) URL")
         _require(len(self.qos_profile) >= 3 and re.fullmatch(r"[A-Za-z0-9_.-]{3,256}", self.qos_profile)

@@ -28,7 +28,7 @@ import ipaddress
 import logging
 import signal
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +38,7 @@ from dynqos.common import keys
 from dynqos.common.bus import Bus, Priority, Publisher, Received
 from dynqos.common.camara import read_secret
 from dynqos.common.clock import NS_PER_S, Clock, MonotonicClock, to_ns
-from dynqos.common.config import Config
+from dynqos.common.config import CamaraConfig, Config
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.lifecycle import ready_line, serving_metrics
@@ -47,9 +47,10 @@ from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Role, open_bus
 from dynqos.edge import metrics as edge_metrics
+from dynqos.edge.qos import profiles
 from dynqos.edge.qos.arbiter import Action, Arbiter, Decision, Need
 from dynqos.edge.qos.calls import OperatorCalls
-from dynqos.edge.qos.client import QodClient
+from dynqos.edge.qos.client import QodClient, QodError
 from dynqos.edge.qos.grants import DroneGrant
 from dynqos.edge.qos.sink import serve_sink
 from dynqos.edge.service import Service
@@ -132,6 +133,8 @@ class QosAgent:
         async with contextlib.AsyncExitStack() as stack:
             if self.qos.backend == "camara":
                 self.client = await stack.enter_async_context(QodClient(self.camara))
+                if self.camara.check_profile:
+                    self.camara = await checked_profile(self.client, self.camara)
                 self.calls = OperatorCalls(self.client, self.camara, self.port, self.server, self.clock)
                 await self.calls.clean_leftovers()
                 if self.camara.sink_listen:
@@ -361,6 +364,33 @@ class QosAgent:
             f"drones={len(self.drones)} sessions={sessions} errors={self.errors} "
             f"leftovers_cleaned={self.cleaned}{calls}{arbiter} rejected={self.stats.rejected}"
         )
+
+
+async def checked_profile(client: QodClient, camara: CamaraConfig) -> CamaraConfig:
+    """The settings once the operator's QoS Profiles API has been read (edge/qos/profiles.py): the same,
+    or with the duration fitted into the profile's range. A profile that is not offered or not ACTIVE
+    stops the agent before it serves; an API that does not answer leaves the settings unchecked."""
+    try:
+        answer = await client.retrieve_profiles()
+    except QodError as exc:
+        log.warning(
+            "qos agent: the QoS Profiles API at %s did not answer (%s): profile %s and duration %d s are "
+            "not checked", client.profiles_root, exc, camara.qos_profile, camara.duration_s,
+        )  # fmt: skip
+        return camara
+    try:
+        fitted = profiles.fit(answer, camara.qos_profile, camara.duration_s)
+    except profiles.ProfileError as exc:
+        raise ConfigError("qos.camara.qos_profile", f"{exc}, says {client.profiles_root}") from None
+    log.info("qos agent: %s", fitted.note)
+    if fitted.duration_s == camara.duration_s:
+        return camara
+    return replace(
+        camara,
+        duration_s=fitted.duration_s,  # the margins stay inside the shorter session
+        extend_before_s=min(camara.extend_before_s, fitted.duration_s / 2),
+        renew_before_s=min(camara.renew_before_s, fitted.duration_s / 4),
+    )
 
 
 async def _cancel(task: asyncio.Task[None]) -> None:

@@ -102,6 +102,7 @@ class QodClient:
     def __init__(self, cfg: CamaraConfig, *, rng: random.Random | None = None) -> None:
         self.cfg = cfg
         self.root = cfg.api_root.rstrip("/")
+        self.profiles_root = profiles_root(cfg)
         self.secret = read_secret(cfg.client_secret_file) if cfg.token_url else ""
         self.rng = rng or random.Random()
         self.http: aiohttp.ClientSession | None = None
@@ -143,10 +144,20 @@ class QodClient:
             raise QodError(502, "BAD_RESPONSE", "retrieve-sessions did not answer an array")
         return [SessionInfo.parse(item) for item in body]
 
+    async def retrieve_profiles(self) -> Any:
+        """Every QoS profile the operator offers this client (QoS Profiles API, retrieve-qos-profiles)."""
+        return await self._call("POST", "/retrieve-qos-profiles", {}, expect=(200,), root=self.profiles_root)
+
     # ---- one call: token, timeout, retries --------------------------------------------------------------
 
     async def _call(
-        self, method: str, path: str, body: dict[str, Any] | None = None, *, expect: tuple[int, ...]
+        self,
+        method: str,
+        path: str,
+        body: dict[str, Any] | None = None,
+        *,
+        expect: tuple[int, ...],
+        root: str = "",
     ) -> Any:
         deadline = time.monotonic() + self.cfg.timeout_s
         correlator = str(uuid.uuid4())
@@ -154,7 +165,8 @@ class QodClient:
         attempt = 0
         while True:
             self.calls += 1
-            status, answer, retry_after = await self._once(method, path, body, deadline, correlator)
+            url = (root or self.root) + path
+            status, answer, retry_after = await self._once(method, url, body, deadline, correlator)
             if status in expect:
                 return answer
             if status == 401 and self.cfg.token_url and not refreshed:
@@ -173,7 +185,7 @@ class QodClient:
             await asyncio.sleep(pause)  # the back-off itself
 
     async def _once(
-        self, method: str, path: str, body: dict[str, Any] | None, deadline: float, correlator: str
+        self, method: str, url: str, body: dict[str, Any] | None, deadline: float, correlator: str
     ) -> tuple[int, Any, float | None]:
         assert self.http is not None, "use `async with QodClient(...)`"
         left = deadline - time.monotonic()
@@ -185,7 +197,7 @@ class QodClient:
             if token:
                 headers["Authorization"] = f"Bearer {token}"
             async with self.http.request(
-                method, self.root + path, json=body, headers=headers,
+                method, url, json=body, headers=headers,
                 timeout=aiohttp.ClientTimeout(total=max(0.01, deadline - time.monotonic())),
             ) as response:  # fmt: skip
                 answer: Any = None
@@ -225,6 +237,16 @@ class QodClient:
             self.token_refreshes += 1
             log.info("qod: new access token (expires in %.0f s)", ttl)
             return self._token
+
+
+def profiles_root(cfg: CamaraConfig) -> str:
+    """Where the QoS Profiles API is: `profiles_root`, or beside the QoD API as CAMARA publishes both
+    ({apiRoot}/quality-on-demand/v1 and {apiRoot}/qos-profiles/v1)."""
+    if cfg.profiles_root:
+        return cfg.profiles_root.rstrip("/")
+    root = cfg.api_root.rstrip("/")
+    base, _, _ = root.rpartition("/quality-on-demand/")
+    return (base or root.rsplit("/", 2)[0]) + "/qos-profiles/v1"
 
 
 def _error(status: int, answer: Any, correlator: str, retry_after: float | None) -> QodError:

@@ -3,6 +3,7 @@
     GET  /counters                          per-bearer and background counters, QoD sessions
     POST /events                            apply a timeline event now (the same table as [[cell.events]])
     /quality-on-demand/v1/...               the emulated operator's CAMARA QoD API (sim/network/operator.py)
+    /qos-profiles/v1/...                    its QoS Profiles API: retrieve-qos-profiles, qos-profiles/{name}
     POST /oauth2/token                      client-credentials tokens, when [cell] qod_auth = true
     DELETE /oauth2/tokens                   revoke every token (an operator rotating credentials)
 
@@ -29,6 +30,7 @@ from dynqos.sim.network.operator import Answer, Notification, Operator, error
 log = logging.getLogger(__name__)
 
 QOD_PREFIX = "/quality-on-demand/v1"
+PROFILES_PREFIX = "/qos-profiles/v1"
 MAX_BODY_BYTES = 64 * 1024
 MAX_PENDING_NOTIFICATIONS = 64
 NOTIFY_TIMEOUT_S = 2.0
@@ -105,6 +107,8 @@ class ControlApi:
         r.add_delete(QOD_PREFIX + "/sessions/{sid}", self.delete)
         r.add_post(QOD_PREFIX + "/sessions/{sid}/extend", self.extend)
         r.add_post(QOD_PREFIX + "/retrieve-sessions", self.retrieve)
+        r.add_post(PROFILES_PREFIX + "/retrieve-qos-profiles", self.retrieve_profiles)
+        r.add_get(PROFILES_PREFIX + "/qos-profiles/{name}", self.get_profile)
         r.add_post("/oauth2/token", self.token)
         r.add_delete("/oauth2/tokens", self.revoke)
         self.runner: web.AppRunner | None = None
@@ -146,7 +150,7 @@ class ControlApi:
 
     async def _answer(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         try:
-            if request.path.startswith(QOD_PREFIX):
+            if request.path.startswith((QOD_PREFIX, PROFILES_PREFIX)):
                 if self.operator is None:
                     return _json(error(404, "NOT_FOUND", "this cell serves no QoD API ([cell] qod = false)"))
                 self._authorise(request)
@@ -154,7 +158,7 @@ class ControlApi:
         except _Reply as reply:
             return _json(reply.answer)
         except web.HTTPException as exc:
-            if request.path.startswith(QOD_PREFIX):
+            if request.path.startswith((QOD_PREFIX, PROFILES_PREFIX)):
                 return _json(
                     error(exc.status, "NOT_FOUND" if exc.status == 404 else "INVALID_ARGUMENT", exc.reason)
                 )
@@ -260,6 +264,12 @@ class ControlApi:
     async def retrieve(self, request: web.Request) -> web.Response:
         self._changed(self.op.advance())
         return _json(self.op.retrieve(await _body(request)))
+
+    async def retrieve_profiles(self, request: web.Request) -> web.Response:
+        return _json(self.op.profiles(await _body(request)))
+
+    async def get_profile(self, request: web.Request) -> web.Response:
+        return _json(self.op.profile(request.match_info["name"]))
 
     async def token(self, request: web.Request) -> web.Response:
         form = await request.post()

@@ -142,7 +142,10 @@ class Operator:
         server = body["applicationServer"]
         if not _server_matches(server, self.servers.get(uav, "")):
             return self._reject(400, "INVALID_ARGUMENT", f"this device has no flow to {server}"), []
-        if body["qosProfile"] not in self.cell.qod_profiles:
+        if (
+            body["qosProfile"] not in self.cell.qod_profiles
+            or body["qosProfile"] in self.cell.qod_inactive_profiles
+        ):
             profiles = ", ".join(self.cell.qod_profiles)
             why = f"profile {body['qosProfile']} is not offered here (offered: {profiles})"
             return self._reject(422, "QUALITY_ON_DEMAND.QOS_PROFILE_NOT_APPLICABLE", why), []
@@ -214,6 +217,40 @@ class Operator:
         if uav is None:
             return self._reject(404, "IDENTIFIER_NOT_FOUND", "device identifier not found")
         return Answer(200, [self.info(s) for s in self.sessions.values() if s.uav == uav])
+
+    # ---- the QoS Profiles API (qos-profiles v1.1.0) ----------------------------------------------------
+
+    def profiles(self, body: Any) -> Answer:
+        """retrieve-qos-profiles: every profile offered, filtered by `name` and `status` when given."""
+        if not isinstance(body, dict):
+            return self._reject(400, "INVALID_ARGUMENT", "the body must be a QosProfileDeviceRequest object")
+        unknown = set(body) - {"device", "name", "status"}
+        if unknown:
+            return self._reject(400, "INVALID_ARGUMENT", f"unknown fields: {', '.join(sorted(unknown))}")
+        if "device" in body and self._uav_of(body["device"]) is None:
+            return self._reject(404, "IDENTIFIER_NOT_FOUND", "device identifier not found")
+        listed = [self.profile_info(name) for name in self._listed()]
+        return Answer(
+            200, [p for p in listed if all(p[k] == body[k] for k in ("name", "status") if k in body)]
+        )
+
+    def profile(self, name: str) -> Answer:
+        if name not in self._listed():
+            return self._reject(404, "NOT_FOUND", f"no QoS profile named {name}")
+        return Answer(200, self.profile_info(name))
+
+    def profile_info(self, name: str) -> dict[str, Any]:
+        """A QosProfile: what this emulated operator enforces of it (status, the session duration range)."""
+        return {
+            "name": name,
+            "description": "dynqos emulated cell: the priority bearer's scheduling weight while AVAILABLE",
+            "status": "INACTIVE" if name in self.cell.qod_inactive_profiles else "ACTIVE",
+            "minDuration": {"value": 1, "unit": "Seconds"},
+            "maxDuration": {"value": self.cell.qod_max_duration_s, "unit": "Seconds"},
+        }
+
+    def _listed(self) -> list[str]:
+        return list(dict.fromkeys((*self.cell.qod_profiles, *self.cell.qod_inactive_profiles)))
 
     # ---- the network --------------------------------------------------------------------------------------
 
