@@ -21,9 +21,11 @@ import pytest
 from aiohttp import web
 
 from dynqos.common.config import CamaraConfig, CellConfig, ZenohConfig
+from dynqos.edge.qos.agent import checked_profile
 from dynqos.edge.qos.client import QodClient, QodError, retry_after_s
 from dynqos.sim.network import operator_schema as schema
 from dynqos.sim.network.service import run_cell
+from tests import camara_spec
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
@@ -128,6 +130,9 @@ async def emulated_operator(requests_valid: bool = True, **cell: Any) -> AsyncIt
         rig.final = await asyncio.wait_for(task, 10)
         for exchange in rig.exchanges:
             check(*exchange, requests=requests_valid)
+        if not camara_spec.available():  # the official documents, where this checkout has them
+            found = [p for e in rig.exchanges for p in camara_spec.problems(*e, request=requests_valid)]
+            assert not found, "\n".join(found[:10])
 
 
 async def until(probe: Callable[[], Awaitable[bool]], timeout_s: float = 5.0) -> None:
@@ -220,6 +225,7 @@ def test_what_the_operator_refuses_is_an_error_with_its_code_and_no_retry(
         {"device": {"phoneNumber": "0700"}},
         {"qosProfile": None},
         {"applicationServerPorts": {}},
+        {"sink": "http://203.0.113.9/notify"},  # https only, except on loopback (the demo's sink)
     ],
 )
 def test_the_emulator_answers_a_request_outside_the_spec_with_400(changes: dict[str, Any]) -> None:
@@ -486,3 +492,43 @@ def test_a_failing_token_endpoint_is_transient_and_refused_credentials_are_not(t
             await runner.cleanup()
 
     run(main())
+
+
+def test_the_agents_profile_check_and_the_profiles_api_fit_the_official_document() -> None:
+    """The QoS Profiles API as the agent reads it (and by name, found or not): each exchange is checked
+    against qos-profiles 1.1.0 by the fixture when the official documents are here."""
+
+    async def main() -> None:
+        async with emulated_operator(qod_max_duration_s=20, qod_inactive_profiles=("QOS_M",)) as op:
+            async with QodClient(op.camara(duration_s=600, extend_before_s=30)) as client:
+                fitted = await checked_profile(client, client.cfg)
+            assert (fitted.duration_s, fitted.extend_before_s, fitted.renew_before_s) == (20, 10.0, 2.0)
+            root = f"http://127.0.0.1:{op.port}/qos-profiles/v1/qos-profiles"
+            async with aiohttp.ClientSession() as http:
+                async with http.get(f"{root}/QOS_M") as found:
+                    assert (found.status, (await found.json())["status"]) == (200, "INACTIVE")
+                async with http.get(f"{root}/QOS_X") as missing:
+                    assert (missing.status, (await missing.json())["code"]) == (404, "NOT_FOUND")
+        paths = [path for _, path, *_ in op.exchanges]
+        assert "/qos-profiles/v1/retrieve-qos-profiles" in paths
+
+    run(main())
+
+
+def test_the_official_documents_flag_what_breaks_them() -> None:
+    """The checker itself: an answer outside the spec and a status it does not list are found."""
+    if why := camara_spec.available():
+        pytest.skip(why)
+    body = session_body()
+    good = body | {"sessionId": str(uuid.uuid4()), "qosStatus": "REQUESTED"}
+    assert camara_spec.problems("POST", "/quality-on-demand/v1/sessions", body, 201, good) == []
+    assert camara_spec.problems(
+        "POST", "/quality-on-demand/v1/sessions", body, 201, good | {"qosStatus": "OK"}
+    )
+    teapot = {"status": 418, "code": "TEAPOT", "message": "no"}
+    assert camara_spec.problems("POST", "/quality-on-demand/v1/sessions", body, 418, teapot)
+    profile = {"name": "QOS_E", "status": "ACTIVE", "maxDuration": {"value": 0, "unit": "Seconds"}}
+    assert camara_spec.problems("POST", "/qos-profiles/v1/retrieve-qos-profiles", {}, 200, [profile])
+    remote_sink = body | {"sink": "http://203.0.113.9/notify"}  # only loopback is a known deviation
+    found = camara_spec.problems("POST", "/quality-on-demand/v1/sessions", remote_sink, 201, good)
+    assert any(": request: " in p for p in found), found

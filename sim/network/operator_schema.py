@@ -84,8 +84,8 @@ _BASE = {
     "qosProfile": QOS_PROFILE,
     "sink": {
         "type": "string",
-        "pattern": r"^https?://.+$",
-    },  # the spec says https; the emulator takes http too
+        "pattern": r"^(https://.+|http://(127\.[0-9.]+|localhost|\[::1\])(:[0-9]+)?(/.*)?)$",
+    },  # the spec says https; the emulator also takes http on loopback, for the demo (docs/qos.md)
     "sinkCredential": SINK_CREDENTIAL,
 }
 CREATE_SESSION: dict[str, Any] = {
