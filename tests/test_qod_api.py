@@ -532,3 +532,58 @@ def test_the_official_documents_flag_what_breaks_them() -> None:
     remote_sink = body | {"sink": "http://203.0.113.9/notify"}  # only loopback is a known deviation
     found = camara_spec.problems("POST", "/quality-on-demand/v1/sessions", remote_sink, 201, good)
     assert any(": request: " in p for p in found), found
+
+
+def test_the_x_correlator_is_echoed_and_a_malformed_one_refused() -> None:
+    async def main() -> None:
+        async with emulated_operator(requests_valid=False) as op, aiohttp.ClientSession() as http:
+            mine = {"x-correlator": "b4333c46-49c0-4f62-80d7-f0ef930f1c46"}
+            async with http.post(op.root + "/retrieve-sessions", json={"device": DEVICE}, headers=mine) as r:
+                assert (r.status, r.headers.get("x-correlator")) == (200, mine["x-correlator"])
+            async with http.post(op.root + "/retrieve-sessions", json={"device": DEVICE},
+                                 headers={"x-correlator": "no spaces allowed"}) as r:  # fmt: skip
+                assert (r.status, (await r.json())["code"]) == (400, "INVALID_ARGUMENT")
+            async with http.post(op.root + "/retrieve-sessions", json={"device": DEVICE}) as r:
+                assert r.status == 200
+                assert "x-correlator" not in r.headers  # none sent, none echoed
+
+    run(main())
+
+
+def test_too_many_sessions_is_a_429_with_retry_after(monkeypatch: pytest.MonkeyPatch) -> None:
+    from dynqos.sim.network import operator
+
+    monkeypatch.setattr(operator, "MAX_SESSIONS", 1)
+
+    async def main() -> None:
+        async with emulated_operator() as op, aiohttp.ClientSession() as http:
+            async with http.post(op.root + "/sessions", json=session_body()) as r:
+                assert r.status == 201
+            other_port = session_body(applicationServerPorts={"ports": [7449]})
+            async with http.post(op.root + "/sessions", json=other_port) as r:
+                assert (r.status, r.headers.get("Retry-After")) == (429, "5")
+            async with QodClient(op.camara(timeout_s=0.5)) as client:
+                with pytest.raises(QodError) as throttled:
+                    await client.create(other_port)
+            assert (throttled.value.status, throttled.value.retry_after_s) == (429, 5.0)  # too long to wait
+
+    run(main())
+
+
+def test_a_device_by_nai_alone_is_unsupported_and_ipv6_matches_within_its_64() -> None:
+    from dynqos.sim.network.operator import Operator as Emulated
+
+    devices = {"uav1": {"phoneNumber": "+46700000001", "ipv6Address": "2001:db8:85a3:8d3:1319:8a2e:370:7344"}}
+    op = Emulated(
+        CellConfig(qod=True), devices, {"uav1": "127.0.0.1"}, monotonic=lambda: 0.0, wall=lambda: 0.0
+    )
+    nai = op.create(session_body(device={"networkAccessIdentifier": "uav1@example.com"}))[0]
+    assert (nai.status, nai.body["code"]) == (422, "UNSUPPORTED_IDENTIFIER")
+    both = op.retrieve(
+        {"device": {"networkAccessIdentifier": "uav1@example.com", "phoneNumber": "+46700000001"}}
+    )
+    assert both.status == 200  # the phone number names it; the NAI is not looked at
+    same_64 = op.retrieve({"device": {"ipv6Address": "2001:db8:85a3:8d3::"}})
+    assert same_64.status == 200
+    other_64 = op.retrieve({"device": {"ipv6Address": "2001:db8:85a3:8d4::1"}})
+    assert (other_64.status, other_64.body["code"]) == (404, "IDENTIFIER_NOT_FOUND")

@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
 import secrets
 import time
 from collections.abc import Awaitable, Callable
@@ -31,6 +32,7 @@ log = logging.getLogger(__name__)
 
 QOD_PREFIX = "/quality-on-demand/v1"
 PROFILES_PREFIX = "/qos-profiles/v1"
+CORRELATOR = re.compile(r"[a-zA-Z0-9\-_:;./<>{}]{0,256}")  # XCorrelator in both APIs' documents
 MAX_BODY_BYTES = 64 * 1024
 MAX_PENDING_NOTIFICATIONS = 64
 NOTIFY_TIMEOUT_S = 2.0
@@ -51,9 +53,10 @@ Tap = Callable[[str, str, Any, int, Any], None]  # method, path, request JSON, s
 
 
 def _json(answer: Answer) -> web.Response:
+    headers = {} if answer.retry_after_s is None else {"Retry-After": str(answer.retry_after_s)}
     if answer.body is None:
-        return web.Response(status=answer.status)
-    return web.json_response(answer.body, status=answer.status)
+        return web.Response(status=answer.status, headers=headers)
+    return web.json_response(answer.body, status=answer.status, headers=headers)
 
 
 async def _body(request: web.Request) -> Any:
@@ -149,6 +152,20 @@ class ControlApi:
         return response
 
     async def _answer(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        """A CAMARA call is authorised and its x-correlator checked and echoed (CAMARA Commonalities)."""
+        if not request.path.startswith((QOD_PREFIX, PROFILES_PREFIX)):
+            return await self._handle(request, handler)
+        correlator = request.headers.get("x-correlator")
+        if correlator is not None and not CORRELATOR.fullmatch(correlator):
+            return _json(
+                error(400, "INVALID_ARGUMENT", "x-correlator does not match ^[a-zA-Z0-9-_:;./<>{}]{0,256}$")
+            )
+        response = await self._handle(request, handler)
+        if correlator is not None:
+            response.headers["x-correlator"] = correlator
+        return response
+
+    async def _handle(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         try:
             if request.path.startswith((QOD_PREFIX, PROFILES_PREFIX)):
                 if self.operator is None:

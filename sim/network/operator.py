@@ -15,7 +15,7 @@ from __future__ import annotations
 import ipaddress
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from typing import Any
 
@@ -27,6 +27,7 @@ ENDED_KEPT_S = (
     360.0  # an ended session not deleted is dropped this long after it ended (the spec's "at earliest")
 )
 MAX_SESSIONS = 10_000  # all sessions kept, ended ones included: a client that never deletes cannot grow this
+TOO_MANY_RETRY_AFTER_S = 5  # the Retry-After of that 429: sessions are deleted within seconds of their end
 
 
 @dataclass
@@ -52,6 +53,7 @@ class Session:
 class Answer:
     status: int
     body: Any = None
+    retry_after_s: int | None = None  # a Retry-After header (429)
 
 
 @dataclass(frozen=True, slots=True)
@@ -83,11 +85,38 @@ def error(status: int, code: str, message: str) -> Answer:
     return Answer(status, {"status": status, "code": code, "message": message})
 
 
+UNSUPPORTED_NAI = (
+    "networkAccessIdentifier is not supported (quality-on-demand v1.1.0); name the device by phoneNumber, "
+    "ipv4Address or ipv6Address"
+)
+
+
+def _only_nai(device: Any) -> bool:
+    """The device is named by a networkAccessIdentifier alone: v1.1.0 keeps it in the schema for the
+    future and allows no use of it, so nothing the operator supports identifies the device."""
+    return isinstance(device, dict) and set(device) == {"networkAccessIdentifier"}
+
+
+def _same_subnet(given: Any, known: Any) -> bool:
+    """An IPv6 device is named by its observed address or by any address in the /64 allocated to it."""
+    try:
+        address = ipaddress.IPv6Address(str(given))
+        subnet = ipaddress.IPv6Network(str(known), strict=False)
+    except ValueError:
+        return False
+    return address in (subnet if subnet.prefixlen < 128 else subnet.supernet(new_prefix=64))
+
+
 def _device_matches(given: dict[str, Any], known: dict[str, Any]) -> bool:
-    """The request's device names the known one by any identifier both give."""
-    for key in ("phoneNumber", "networkAccessIdentifier", "ipv6Address"):
-        if key in given and given[key] == known.get(key):
-            return True
+    """The request's device names the known one by any supported identifier both give."""
+    if "phoneNumber" in given and given["phoneNumber"] == known.get("phoneNumber"):
+        return True
+    if (
+        "ipv6Address" in given
+        and "ipv6Address" in known
+        and _same_subnet(given["ipv6Address"], known["ipv6Address"])
+    ):
+        return True
     ipv4, mine = given.get("ipv4Address"), known.get("ipv4Address")
     if (
         isinstance(ipv4, dict)
@@ -136,6 +165,8 @@ class Operator:
             return self._reject(
                 422, "MISSING_IDENTIFIER", "the device cannot be identified (two-legged token)"
             ), []
+        if _only_nai(body["device"]):
+            return self._reject(422, "UNSUPPORTED_IDENTIFIER", UNSUPPORTED_NAI), []
         uav = self._uav_of(body["device"])
         if uav is None:
             return self._reject(404, "IDENTIFIER_NOT_FOUND", "device identifier not found"), []
@@ -160,7 +191,8 @@ class Operator:
                     409, "CONFLICT", f"session {other.session_id} for this flow exists ({state})"
                 ), []
         if len(self.sessions) >= MAX_SESSIONS:
-            return error(429, "TOO_MANY_REQUESTS", "too many sessions; delete some"), []
+            answer = error(429, "TOO_MANY_REQUESTS", "too many sessions; delete some")
+            return replace(answer, retry_after_s=TOO_MANY_RETRY_AFTER_S), []
         duration = min(body["duration"], self.cell.qod_max_duration_s)
         session = Session(str(uuid.uuid4()), uav, body["device"], body, duration)
         session.settle_at_s = now + self.cell.qod_setup_s
@@ -213,6 +245,8 @@ class Operator:
             return self._reject(
                 422, "MISSING_IDENTIFIER", "the device cannot be identified (two-legged token)"
             )
+        if _only_nai(body["device"]):
+            return self._reject(422, "UNSUPPORTED_IDENTIFIER", UNSUPPORTED_NAI)
         uav = self._uav_of(body["device"])
         if uav is None:
             return self._reject(404, "IDENTIFIER_NOT_FOUND", "device identifier not found")
@@ -227,6 +261,8 @@ class Operator:
         unknown = set(body) - {"device", "name", "status"}
         if unknown:
             return self._reject(400, "INVALID_ARGUMENT", f"unknown fields: {', '.join(sorted(unknown))}")
+        if "device" in body and _only_nai(body["device"]):
+            return self._reject(422, "UNSUPPORTED_IDENTIFIER", UNSUPPORTED_NAI)
         if "device" in body and self._uav_of(body["device"]) is None:
             return self._reject(404, "IDENTIFIER_NOT_FOUND", "device identifier not found")
         listed = [self.profile_info(name) for name in self._listed()]
