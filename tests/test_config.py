@@ -85,6 +85,19 @@ def test_effective_config_round_trips_through_toml(tmp_path: Path) -> None:
         ("[qos.arbiter]\nmax_share = 0.5\n", "qos.arbiter.uplink_mbps", "required"),
         ("[qos.arbiter]\nmax_grants = -2\n", "qos.arbiter.max_grants", "-1 (no limit)"),
         ("[qos.arbiter]\nmin_hold_s = 10\nrotate_after_s = 5\n", "qos.arbiter.rotate_after_s", "min_hold_s"),
+        # tokens and device identities cross these URLs: plain http only to this host
+        (
+            "[qos.camara]\napi_root = 'http://api.operator.example/qod/v1'\n",
+            "qos.camara.api_root",
+            "https://",
+        ),
+        (
+            "[qos.camara]\ntoken_url = 'http://10.0.0.1/token'\nclient_id = 'x'\nclient_secret_file = 'f'\n",
+            "qos.camara.token_url",
+            "https://",
+        ),
+        ("[qos.camara]\nsink = 'http://127.0.0.1.example/qod'\n", "qos.camara.sink", "https://"),
+        ("[qos.camara]\nprofiles_root = 'ftp://x/y'\n", "qos.camara.profiles_root", "http(s) URL"),
     ],
 )
 def test_bad_values_name_file_key_and_reason(tmp_path: Path, text: str, key: str, reason: str) -> None:

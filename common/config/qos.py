@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ipaddress
 import re
+import urllib.parse
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
@@ -106,6 +107,9 @@ class CamaraConfig:
         for name in ("api_root", "token_url", "sink", "profiles_root"):
             url = getattr(self, name)
             _require(not url or url.startswith(("http://", "https://")), name, "must be an http(s) URL")
+            # tokens, device identities and the sink's credential cross these: TLS, except on this host
+            plain_http_ok = not url.startswith("http://") or _loopback(url)
+            _require(plain_http_ok, name, "must be https:// (plain http only to 127.0.0.0/8, ::1, localhost)")
         _require(len(self.qos_profile) >= 3 and re.fullmatch(r"[A-Za-z0-9_.-]{3,256}", self.qos_profile)
                  is not None, "qos_profile", "must be 3..256 of A-Z a-z 0-9 _ . -")  # fmt: skip
         _require(1 <= self.duration_s <= 10**7, "duration_s", "must be in 1..10000000 s")
@@ -121,6 +125,16 @@ class CamaraConfig:
             _require(bool(self.client_secret_file), "client_secret_file", "is required with token_url")
         for uav in self.devices:
             _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"devices.{uav}", "is not a drone id")
+
+
+def _loopback(url: str) -> bool:
+    host = urllib.parse.urlsplit(url).hostname or ""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
