@@ -52,7 +52,7 @@ from dynqos.edge.qos.arbiter import Action, Arbiter, Decision, Need
 from dynqos.edge.qos.calls import OperatorCalls
 from dynqos.edge.qos.client import QodClient, QodError
 from dynqos.edge.qos.grants import DroneGrant
-from dynqos.edge.qos.sink import serve_sink
+from dynqos.edge.qos.sink import SinkGuard, serve_sink
 from dynqos.edge.service import Service
 
 log = logging.getLogger(__name__)
@@ -110,6 +110,7 @@ class QosAgent:
         self.drones: dict[str, DroneRecord] = {}  # everything kept of a drone, forgotten in one step
         self.client: QodClient | None = None
         self.calls: OperatorCalls | None = None  # with backend "camara", once the client is open
+        self.sink_guard = SinkGuard()  # what the operator's notifications must carry
         self.port = config.zenoh.priority_port
         self.server = self.camara.application_server or config.zenoh.edge_host
         self.stopping = asyncio.Event()
@@ -135,10 +136,14 @@ class QosAgent:
                 self.client = await stack.enter_async_context(QodClient(self.camara))
                 if self.camara.check_profile:
                     self.camara = await checked_profile(self.client, self.camara)
-                self.calls = OperatorCalls(self.client, self.camara, self.port, self.server, self.clock)
+                self.calls = OperatorCalls(
+                    self.client, self.camara, self.port, self.server, self.clock, self.sink_guard
+                )
                 await self.calls.clean_leftovers()
                 if self.camara.sink_listen:
-                    sink = await serve_sink(self.camara.sink, self.camara.sink_listen, self._notified)
+                    sink = await serve_sink(
+                        self.camara.sink, self.camara.sink_listen, self._notified, self.sink_guard
+                    )
             forward.start()
             if self.arbiter is not None:
                 stack.push_async_callback(
@@ -360,9 +365,16 @@ class QosAgent:
                 f" holders={len(self.arbiter.holders)} grants={d[Action.GRANT]} denials={d[Action.DENY]} "
                 f"revocations={d[Action.REVOKE]} releases={d[Action.RELEASE]}"
             )
+        sink = ""
+        if self.camara.sink_listen:
+            c = self.sink_guard.counters
+            sink = (
+                f" notifications={c['taken']} refused={c['unauthenticated'] + c['malformed']} "
+                f"replayed={c['replayed']}"
+            )
         return (
             f"drones={len(self.drones)} sessions={sessions} errors={self.errors} "
-            f"leftovers_cleaned={self.cleaned}{calls}{arbiter} rejected={self.stats.rejected}"
+            f"leftovers_cleaned={self.cleaned}{calls}{arbiter}{sink} rejected={self.stats.rejected}"
         )
 
 

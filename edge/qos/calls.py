@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import time
 from typing import Any
 
 from dynqos.common.clock import NS_PER_S, Clock
 from dynqos.common.config import CamaraConfig
 from dynqos.edge.qos.client import QodClient, QodError, SessionInfo
 from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
+from dynqos.edge.qos.sink import SinkGuard
 
 log = logging.getLogger(__name__)
 
@@ -42,9 +44,19 @@ def settings_at_fault(exc: QodError) -> str | None:
 
 
 class OperatorCalls:
-    def __init__(self, client: QodClient, camara: CamaraConfig, port: int, server: str, clock: Clock) -> None:
-        """`port`: the zenoh priority port the sessions name; `server`: the edge address the network sees."""
+    def __init__(
+        self,
+        client: QodClient,
+        camara: CamaraConfig,
+        port: int,
+        server: str,
+        clock: Clock,
+        sink_guard: SinkGuard | None = None,
+    ) -> None:
+        """`port`: the zenoh priority port the sessions name; `server`: the edge address the network sees;
+        `sink_guard`: the credential each session gives the operator for its notifications."""
         self.client = client
+        self.sink_guard = sink_guard
         self.camara = camara
         self.port = port
         self.server = server
@@ -166,6 +178,8 @@ class OperatorCalls:
         }
         if self.camara.sink:
             body["sink"] = self.camara.sink
+            if self.sink_guard is not None:
+                body["sinkCredential"] = self.sink_guard.credential(self.camara.duration_s, time.time())
         return body
 
     def session(self, info: SessionInfo) -> Session:
