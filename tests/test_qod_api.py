@@ -587,3 +587,17 @@ def test_a_device_by_nai_alone_is_unsupported_and_ipv6_matches_within_its_64() -
     assert same_64.status == 200
     other_64 = op.retrieve({"device": {"ipv6Address": "2001:db8:85a3:8d4::1"}})
     assert (other_64.status, other_64.body["code"]) == (404, "IDENTIFIER_NOT_FOUND")
+
+
+def test_the_sink_credential_the_agent_sends_fits_the_document_and_is_never_echoed() -> None:
+    from dynqos.edge.qos.sink import SinkGuard
+
+    async def main() -> None:
+        credential = SinkGuard().credential(60, time.time())
+        async with emulated_operator() as op, QodClient(op.camara()) as client:
+            body = session_body(sink=f"http://127.0.0.1:{op.port}/nowhere", sinkCredential=credential)
+            created = await client.create(body)
+            assert "sinkCredential" not in created.raw  # a secret the operator keeps
+            await client.delete(created.session_id)
+
+    run(main())
