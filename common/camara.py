@@ -15,6 +15,49 @@ from dynqos.common.errors import ConfigError
 QOS_STATUS = ("REQUESTED", "AVAILABLE", "UNAVAILABLE")  # SessionInfo.qosStatus
 STATUS_INFO = ("DURATION_EXPIRED", "NETWORK_TERMINATED", "DELETE_REQUESTED")  # SessionInfo.statusInfo
 EVENT_TYPE = "org.camaraproject.quality-on-demand.v1.qos-status-changed"  # the CloudEvent's type
+# The scope each call needs (the documents' `security: openId: [...]`), by (method, last path part)
+SCOPES = {
+    ("POST", "sessions"): "quality-on-demand:sessions:create",
+    ("GET", "sessions"): "quality-on-demand:sessions:read",
+    ("DELETE", "sessions"): "quality-on-demand:sessions:delete",
+    ("POST", "extend"): "quality-on-demand:sessions:update",
+    ("POST", "retrieve-sessions"): "quality-on-demand:sessions:retrieve-by-device",
+    ("POST", "retrieve-qos-profiles"): "qos-profiles:read",
+    ("GET", "qos-profiles"): "qos-profiles:read",
+}
+AGENT_SCOPE = " ".join(dict.fromkeys(SCOPES.values()))  # every call the agent makes
+JWT_BEARER = "urn:ietf:params:oauth:client-assertion-type:jwt-bearer"  # RFC 7523 client authentication
+
+
+def scope_for(method: str, path: str) -> str:
+    """The scope a call to `path` (under the API's root) needs."""
+    parts = [p for p in path.split("/") if p]
+    if len(parts) >= 2 and parts[-2] in ("sessions", "qos-profiles"):
+        parts = parts[:-1]  # /sessions/{id}, /qos-profiles/{name}
+    return SCOPES.get((method, parts[-1] if parts else ""), "")
+
+
+def load_private_key(path: str, setting: str = "qos.camara.client_key_file") -> Any:
+    """The PEM private key (RSA or EC P-256) in `path`; a ConfigError naming `setting` when it is not one."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ec, rsa
+
+    try:
+        key = serialization.load_pem_private_key(Path(path).read_bytes(), password=None)
+    except OSError as exc:
+        raise ConfigError(setting, f"cannot read {path} ({exc.strerror})") from None
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(setting, f"{path} is not an unencrypted PEM private key ({exc})") from None
+    if not isinstance(key, (rsa.RSAPrivateKey, ec.EllipticCurvePrivateKey)):
+        raise ConfigError(setting, f"{path}: only RSA and EC (P-256) keys sign client assertions")
+    return key
+
+
+def signing_algorithm(key: Any) -> str:
+    """RS256 for an RSA key, ES256 for an EC one (what operators' identity servers accept)."""
+    from cryptography.hazmat.primitives.asymmetric import rsa
+
+    return "RS256" if isinstance(key, (rsa.RSAPrivateKey, rsa.RSAPublicKey)) else "ES256"
 
 
 def ports_named(spec: dict[str, Any] | None) -> set[int]:

@@ -22,6 +22,7 @@ from aiohttp import web
 
 from dynqos.common.config import CamaraConfig, CellConfig, ZenohConfig
 from dynqos.edge.qos.agent import checked_profile
+from dynqos.edge.qos.calls import settings_at_fault
 from dynqos.edge.qos.client import QodClient, QodError, retry_after_s
 from dynqos.sim.network import operator_schema as schema
 from dynqos.sim.network.service import run_cell
@@ -109,7 +110,9 @@ class Operator:
 
 
 @contextlib.asynccontextmanager
-async def emulated_operator(requests_valid: bool = True, **cell: Any) -> AsyncIterator[Operator]:
+async def emulated_operator(
+    requests_valid: bool = True, client_key: Any = None, **cell: Any
+) -> AsyncIterator[Operator]:
     cfg = CellConfig(
         qod=True, control_port=0, default_listen_port=0, priority_listen_port=0, qod_setup_s=0.05, **cell
     )
@@ -119,7 +122,7 @@ async def emulated_operator(requests_valid: bool = True, **cell: Any) -> AsyncIt
     task = asyncio.create_task(
         run_cell(
             cfg, cfg.bearer_list(ZenohConfig(), "uav1"), ready=ready.set_result, qod_devices={"uav1": DEVICE},
-            qod_client=("dynqos-test", SECRET), tap=rig.record, stop=stop,
+            qod_client=("dynqos-test", SECRET), qod_client_key=client_key, tap=rig.record, stop=stop,
         )
     )  # fmt: skip
     rig.port = (await asyncio.wait_for(ready, 10))["control_port"]
@@ -599,5 +602,74 @@ def test_the_sink_credential_the_agent_sends_fits_the_document_and_is_never_echo
             created = await client.create(body)
             assert "sinkCredential" not in created.raw  # a secret the operator keeps
             await client.delete(created.session_id)
+
+    run(main())
+
+
+def _ec_key(path: Path) -> Any:
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    pem = key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
+    path.write_bytes(pem)
+    return key
+
+
+def test_private_key_jwt_gets_a_token_with_a_signed_assertion_and_a_foreign_key_none(tmp_path: Path) -> None:
+    registered = _ec_key(tmp_path / "client.pem")
+    _ec_key(tmp_path / "stranger.pem")
+
+    async def main() -> None:
+        async with emulated_operator(qod_auth=True, client_key=registered.public_key()) as op:
+            token_url = f"http://127.0.0.1:{op.port}/oauth2/token"
+            mine = op.camara(
+                token_url=token_url, client_id="dynqos-test", client_key_file=str(tmp_path / "client.pem")
+            )
+            async with QodClient(mine) as client:
+                created = await client.create(session_body())
+                await client.delete(created.session_id)
+                form = client._token_form()
+            assert "client_secret" not in form
+            assert form["client_assertion_type"] == "urn:ietf:params:oauth:client-assertion-type:jwt-bearer"
+            async with aiohttp.ClientSession() as http:
+                async with http.post(token_url, data=form) as first:
+                    assert first.status == 200
+                async with http.post(token_url, data=form) as replayed:
+                    assert replayed.status == 401  # an assertion is used once (jti)
+            stranger = replace(mine, client_key_file=str(tmp_path / "stranger.pem"))
+            async with QodClient(stranger) as client:
+                with pytest.raises(QodError) as refused:
+                    await client.create(session_body())
+            assert (refused.value.status, refused.value.code) == (401, "TOKEN")
+            assert settings_at_fault(refused.value)  # one error line naming the setting, no retries
+
+    run(main())
+
+
+def test_a_token_without_the_calls_scope_is_a_403_that_names_the_setting(tmp_path: Path) -> None:
+    secret_file = tmp_path / "secret"
+    secret_file.write_text(SECRET)
+
+    async def main() -> None:
+        async with emulated_operator(qod_auth=True) as op:
+            narrow = op.camara(
+                token_url=f"http://127.0.0.1:{op.port}/oauth2/token", client_id="dynqos-test",
+                client_secret_file=str(secret_file), scope="quality-on-demand:sessions:read",
+            )  # fmt: skip
+            async with QodClient(narrow) as client:
+                with pytest.raises(QodError) as denied:
+                    await client.create(session_body())
+                assert (denied.value.status, denied.value.code) == (403, "PERMISSION_DENIED")
+                assert "scopes" in (settings_at_fault(denied.value) or "")
+                with pytest.raises(QodError) as unknown:  # the scope it has lets a read through
+                    await client.get(str(uuid.uuid4()))
+                assert unknown.value.status == 404
+                with pytest.raises(QodError) as by_device:
+                    await client.retrieve(DEVICE)
+                assert by_device.value.status == 403
+        assert op.final["qod"]["created"] == 0
 
     run(main())

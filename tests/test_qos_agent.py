@@ -262,6 +262,33 @@ def test_camara_a_duration_past_the_profiles_maximum_is_fitted_before_the_first_
     assert "profile QOS_E is ACTIVE, 1..3 s: asking for 3 s, not 4" in log
 
 
+def test_camara_private_key_jwt_flies_a_drone_to_priority_against_the_real_cell(tmp_path: Path) -> None:
+    """The agent authenticates with a signed client assertion (RFC 7523), the emulated operator checks
+    it against the registered public key; the drone gets its session."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import rsa
+
+    key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
+    key_file = tmp_path / "agent.pem"
+    key_file.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                           serialization.NoEncryption()))  # fmt: skip
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    cell_port = free_tcp_port()
+    config = tmp_path / "qos.toml"
+    camara = (f'token_url = "http://127.0.0.1:{cell_port}/oauth2/token"\nclient_id = "dynqos-edge"\n'
+              f'client_key_file = "{key_file}"\n')  # fmt: skip
+    write_config(config, zcfg, cell_port, "camara", "qod_auth = true\n", camara)
+    with running(config, zcfg, cell_port) as rig:
+        drone = Drone(zcfg)
+        try:
+            granted = drone.until(True, Grant.AVAILABLE, also=rig.granted)
+            assert granted.session_id
+        finally:
+            drone.close()
+        log = rig.procs.pop("agent").stop()
+    assert "qod: new access token" in log
+
+
 @pytest.mark.parametrize("rig", [("links", "")], indirect=True)
 def test_links_priority_is_available_at_once_and_the_network_is_not_asked(rig: Rig, drone: Drone) -> None:
     granted = drone.until(True, Grant.AVAILABLE)

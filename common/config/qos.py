@@ -9,6 +9,7 @@ import urllib.parse
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
+from dynqos.common.camara import AGENT_SCOPE
 from dynqos.common.config.validate import _host_port, _require
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import UAV_ID_PATTERN
@@ -86,6 +87,10 @@ class CamaraConfig:
     token_url: str = ""  # OAuth2 token endpoint for client credentials ("" = no token)
     client_id: str = ""
     client_secret_file: str = ""  # a file holding the client secret (never the secret itself)
+    # or private_key_jwt (RFC 7523, what CAMARA's identity rules ask): a PEM key (RSA or EC P-256) that
+    # signs a client assertion for each token; its public key is registered with the operator
+    client_key_file: str = ""
+    scope: str = AGENT_SCOPE  # asked with each token: the scopes of every call the agent makes
     qos_profile: str = "QOS_E"
     # Before any session, read the operator's QoS Profiles API: refuse to start if qos_profile is not
     # offered or not ACTIVE, fit duration_s into its min..max (docs/qos.md, "Profiles first")
@@ -122,7 +127,8 @@ class CamaraConfig:
             _host_port(self.sink_listen, "sink_listen")
         if self.token_url:
             _require(bool(self.client_id), "client_id", "is required with token_url")
-            _require(bool(self.client_secret_file), "client_secret_file", "is required with token_url")
+            one_credential = bool(self.client_secret_file) != bool(self.client_key_file)
+            _require(one_credential, "client_secret_file", "with token_url, give it or client_key_file (one)")
         for uav in self.devices:
             _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"devices.{uav}", "is not a drone id")
 

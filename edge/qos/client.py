@@ -27,13 +27,21 @@ from typing import Any
 
 import aiohttp
 
-from dynqos.common.camara import QOS_STATUS, ports_named, read_secret
+from dynqos.common.camara import (
+    JWT_BEARER,
+    QOS_STATUS,
+    load_private_key,
+    ports_named,
+    read_secret,
+    signing_algorithm,
+)
 from dynqos.common.config import CamaraConfig
 
 log = logging.getLogger(__name__)
 
 RETRIES = 3  # attempts after the first, for 429 and 5xx, within the call's timeout
 BACKOFF_S = 0.1  # first back-off; doubles, with full jitter
+ASSERTION_LIFETIME_S = 300  # a client assertion is good for this long (and used once)
 TOKEN_MARGIN_S = 30.0  # a token is refreshed this long (at most a quarter of its life) before it expires
 
 
@@ -104,6 +112,7 @@ class QodClient:
         self.root = cfg.api_root.rstrip("/")
         self.profiles_root = profiles_root(cfg)
         self.secret = read_secret(cfg.client_secret_file) if cfg.token_url else ""
+        self.key = load_private_key(cfg.client_key_file) if cfg.token_url and cfg.client_key_file else None
         self.rng = rng or random.Random()
         self.http: aiohttp.ClientSession | None = None
         self._token = ""
@@ -220,9 +229,7 @@ class QodClient:
             if time.monotonic() < self._token_expires and self._token:
                 return self._token
             assert self.http is not None
-            form = {"grant_type": "client_credentials", "client_id": self.cfg.client_id,
-                    "client_secret": self.secret}  # fmt: skip
-            async with self.http.post(self.cfg.token_url, data=form) as response:
+            async with self.http.post(self.cfg.token_url, data=self._token_form()) as response:
                 answer = await response.json(content_type=None) if response.status == 200 else None
                 if response.status == 429 or response.status >= 500:  # the endpoint's trouble, not ours
                     raise QodError(
@@ -237,6 +244,22 @@ class QodClient:
             self.token_refreshes += 1
             log.info("qod: new access token (expires in %.0f s)", ttl)
             return self._token
+
+    def _token_form(self) -> dict[str, str]:
+        """The client-credentials request: the secret in the form, or (private_key_jwt, RFC 7523) a
+        client assertion signed with the key, for this token endpoint, used once (`jti`), for 5 minutes."""
+        form = {"grant_type": "client_credentials", "client_id": self.cfg.client_id}
+        if self.cfg.scope:
+            form["scope"] = self.cfg.scope
+        if self.key is None:
+            return form | {"client_secret": self.secret}
+        import jwt  # PyJWT: the signing and the claims, as identity servers check them
+
+        now = int(time.time())
+        claims = {"iss": self.cfg.client_id, "sub": self.cfg.client_id, "aud": self.cfg.token_url,
+                  "jti": str(uuid.uuid4()), "iat": now, "exp": now + ASSERTION_LIFETIME_S}  # fmt: skip
+        assertion = jwt.encode(claims, self.key, algorithm=signing_algorithm(self.key))
+        return form | {"client_assertion_type": JWT_BEARER, "client_assertion": assertion}
 
 
 def profiles_root(cfg: CamaraConfig) -> str:

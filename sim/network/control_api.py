@@ -14,6 +14,7 @@ bounded in number and time: a slow sink cannot stall the TTI loop.
 from __future__ import annotations
 
 import asyncio
+import collections
 import json
 import logging
 import re
@@ -24,6 +25,7 @@ from typing import Any, Protocol
 
 from aiohttp import ClientSession, ClientTimeout, web
 
+from dynqos.common.camara import JWT_BEARER, SCOPES, scope_for, signing_algorithm
 from dynqos.common.config import CellConfig, CellEventConfig, build
 from dynqos.common.errors import ConfigError
 from dynqos.sim.network.operator import Answer, Notification, Operator, error
@@ -32,6 +34,8 @@ log = logging.getLogger(__name__)
 
 QOD_PREFIX = "/quality-on-demand/v1"
 PROFILES_PREFIX = "/qos-profiles/v1"
+MAX_ASSERTION_LIFETIME_S = 600  # a client assertion valid longer than this is refused
+SEEN_ASSERTIONS = 4096  # jti values remembered against replays
 CORRELATOR = re.compile(r"[a-zA-Z0-9\-_:;./<>{}]{0,256}")  # XCorrelator in both APIs' documents
 MAX_BODY_BYTES = 64 * 1024
 MAX_PENDING_NOTIFICATIONS = 64
@@ -89,14 +93,19 @@ class ControlApi:
         client_id: str = "",
         secret: str = "",
         *,
+        client_key: Any = None,
         tap: Tap | None = None,
     ) -> None:
+        """`secret`: the client secret its token endpoint takes; `client_key`: the client's registered
+        public key, for private_key_jwt client assertions (either or both)."""
         self.emulator = emulator
         self.tap = tap
         self.operator = operator
         self.client_id = client_id
         self.secret = secret
-        self.tokens: dict[str, float] = {}  # token -> expiry (monotonic)
+        self.client_key = client_key
+        self.tokens: dict[str, tuple[float, frozenset[str]]] = {}  # token -> expiry (monotonic), scopes
+        self.assertions: collections.OrderedDict[str, None] = collections.OrderedDict()  # jti seen
         self.pending: set[asyncio.Task[None]] = set()
         self.notified = 0
         self.notify_failures = 0
@@ -187,12 +196,16 @@ class ControlApi:
             return
         header = request.headers.get("Authorization", "")
         token = header.removeprefix("Bearer ").strip() if header.startswith("Bearer ") else ""
-        expiry = self.tokens.get(token)
-        if expiry is None or time.monotonic() >= expiry:
+        expiry, scopes = self.tokens.get(token, (0.0, frozenset()))
+        if time.monotonic() >= expiry:
             self.tokens.pop(token, None)
             raise _Reply(
                 error(401, "UNAUTHENTICATED", "request not authenticated: a valid token is required")
             )
+        prefix = QOD_PREFIX if request.path.startswith(QOD_PREFIX) else PROFILES_PREFIX
+        needed = scope_for(request.method, request.path.removeprefix(prefix))
+        if needed and needed not in scopes:
+            raise _Reply(error(403, "PERMISSION_DENIED", f"the token lacks the scope {needed}"))
 
     def send(self, notes: list[Notification]) -> None:
         """Post each notification to its sink in the background (bounded; the oldest work is not waited)."""
@@ -289,22 +302,65 @@ class ControlApi:
         return _json(self.op.profile(request.match_info["name"]))
 
     async def token(self, request: web.Request) -> web.Response:
+        """OAuth2 client credentials: the client authenticates with its secret or with a client assertion
+        (private_key_jwt); the token carries the scopes asked (all of them when none is asked)."""
         form = await request.post()
         if form.get("grant_type") != "client_credentials":
             return web.json_response({"error": "unsupported_grant_type"}, status=400)
-        if (
-            not self.client_id
-            or form.get("client_id") != self.client_id
-            or not secrets.compare_digest(str(form.get("client_secret", "")), self.secret)
-        ):
+        if not self._client_authenticated(form):
             return web.json_response({"error": "invalid_client"}, status=401)
+        asked = frozenset(str(form.get("scope", "")).split()) or frozenset(SCOPES.values())
+        if not asked <= frozenset(SCOPES.values()):
+            unknown = " ".join(sorted(asked - frozenset(SCOPES.values())))
+            return web.json_response({"error": "invalid_scope", "error_description": unknown}, status=400)
         token = secrets.token_urlsafe(24)
         ttl = self.emulator.cell.qod_token_ttl_s
-        self.tokens = {
-            t: e for t, e in self.tokens.items() if e > time.monotonic()
-        }  # bounded: live ones only
-        self.tokens[token] = time.monotonic() + ttl
-        return web.json_response({"access_token": token, "token_type": "Bearer", "expires_in": ttl})
+        now = time.monotonic()
+        self.tokens = {t: v for t, v in self.tokens.items() if v[0] > now}  # bounded: live ones only
+        self.tokens[token] = (now + ttl, asked)
+        return web.json_response(
+            {
+                "access_token": token,
+                "token_type": "Bearer",
+                "expires_in": ttl,
+                "scope": " ".join(sorted(asked)),
+            }
+        )
+
+    def _client_authenticated(self, form: Any) -> bool:
+        if not self.client_id or form.get("client_id", self.client_id) != self.client_id:
+            return False
+        if "client_assertion" in form:
+            return form.get("client_assertion_type") == JWT_BEARER and self._assertion_ok(
+                str(form["client_assertion"])
+            )
+        return bool(self.secret) and secrets.compare_digest(str(form.get("client_secret", "")), self.secret)
+
+    def _assertion_ok(self, assertion: str) -> bool:
+        """RFC 7523: signed by the registered key, issued by and for the client, for this token endpoint
+        (any host, its path), not expired, with a `jti` never used before."""
+        if self.client_key is None:
+            return False
+        import jwt
+
+        try:
+            claims = jwt.decode(
+                assertion, self.client_key, algorithms=[signing_algorithm(self.client_key)],
+                issuer=self.client_id,
+                options={"require": ["exp", "iat", "jti", "aud", "sub"], "verify_aud": False},
+            )  # fmt: skip
+        except jwt.PyJWTError as exc:
+            log.info("qod: client assertion refused: %s", exc)
+            return False
+        audience = claims["aud"] if isinstance(claims["aud"], list) else [claims["aud"]]
+        if claims["sub"] != self.client_id or not any(str(a).endswith("/oauth2/token") for a in audience):
+            return False
+        if claims["exp"] - claims["iat"] > MAX_ASSERTION_LIFETIME_S or claims["jti"] in self.assertions:
+            return False
+        self.assertions[str(claims["jti"])] = None
+        while len(self.assertions) > SEEN_ASSERTIONS:
+            self.assertions.popitem(last=False)
+        return True
 
     async def revoke(self, request: web.Request) -> web.Response:
         count = len(self.tokens)

@@ -16,7 +16,7 @@ from typing import Any
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
-from dynqos.common.camara import read_secret
+from dynqos.common.camara import load_private_key, read_secret
 from dynqos.common.config import BearerConfig, CellConfig, Config
 from dynqos.common.errors import ConfigError, DynqosError
 from dynqos.common.lifecycle import serving_metrics
@@ -35,15 +35,23 @@ def run(config: Config, *, out_dir: Path | None = None, duration_s: float | None
         raise DynqosError(f"--duration must be > 0, got {duration_s}")
     camara = config.qos.camara
     secret = read_secret(camara.client_secret_file) if config.cell.qod_auth else ""
-    if config.cell.qod_auth and not (camara.client_id and secret):
-        raise DynqosError("[cell] qod_auth = true needs [qos.camara] client_id and client_secret_file")
+    # The emulated operator has the client's public key registered: the one of its client_key_file
+    client_key = (
+        load_private_key(camara.client_key_file).public_key()
+        if config.cell.qod_auth and camara.client_key_file
+        else None
+    )
+    if config.cell.qod_auth and not (camara.client_id and (secret or client_key)):
+        raise DynqosError(
+            "[cell] qod_auth = true needs [qos.camara] client_id and client_secret_file or client_key_file"
+        )
     devices = {uav: device.as_api() for uav, device in camara.devices.items()}
     with serving_metrics("cell", config) as metrics:
         asyncio.run(
             run_cell(
                 config.cell, config.cell.bearer_list(config.zenoh, config.drone.id), out_dir=out_dir,
                 duration_s=duration_s, ready=print_ready, qod_devices=devices,
-                qod_client=(camara.client_id, secret), metrics=metrics,
+                qod_client=(camara.client_id, secret), qod_client_key=client_key, metrics=metrics,
             )
         )  # fmt: skip
     return 0
@@ -58,13 +66,15 @@ async def run_cell(
     ready: Callable[[dict[str, Any]], None] | None = None,
     qod_devices: dict[str, dict[str, Any]] | None = None,
     qod_client: tuple[str, str] = ("", ""),
+    qod_client_key: Any = None,
     tap: Tap | None = None,
     stop: asyncio.Event | None = None,
     metrics: ProcessMetrics | None = None,
 ) -> dict[str, Any]:
     """Run the emulator until stopped (SIGINT/SIGTERM, `stop` set) or `duration_s`; returns the final
     counters. `qod_devices`: drone id -> CAMARA device, the UEs the operator knows ([cell] qod = true);
-    `qod_client`: the (client id, secret) its token endpoint accepts ([cell] qod_auth = true); `tap`
+    `qod_client`: the (client id, secret) its token endpoint accepts ([cell] qod_auth = true), and
+    `qod_client_key` the client's public key for private_key_jwt assertions; `tap`
     sees every control-API exchange (method, path, request JSON, status, response JSON)."""
     emulator = CellEmulator(cell, bearers, out_dir)
     await emulator.start()
@@ -82,7 +92,7 @@ async def run_cell(
         emulator.operator = Operator(cell, dict(qod_devices or {}), servers, time.monotonic, time.time)
     try:
         if cell.control_port >= 0:
-            control = ControlApi(emulator, emulator.operator, *qod_client, tap=tap)
+            control = ControlApi(emulator, emulator.operator, *qod_client, client_key=qod_client_key, tap=tap)
             try:
                 control_port = await control.start(cell.control_port)
             except OSError as exc:
