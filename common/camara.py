@@ -7,6 +7,7 @@ emulator's schema validator (jsonschema, a `demo` extra)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -81,3 +82,28 @@ def read_secret(path: str, setting: str = "qos.camara.client_secret_file") -> st
     if not secret:
         raise ConfigError(setting, f"{path} is empty")
     return secret
+
+
+HEADER_LINE = re.compile(r"([!#$%&'*+.^_`|~0-9A-Za-z-]+):[ \t]*(\S.*?)\s*")  # an HTTP field name, a value
+
+
+def read_headers(path: str, setting: str = "qos.camara.headers_file") -> dict[str, str]:
+    """The `Name: value` lines of the file at `path` (blank lines and # comments skipped); {} when no
+    file is configured. Anything else is a ConfigError naming `setting` and the line, never its value."""
+    if not path:
+        return {}
+    try:
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except OSError as exc:
+        raise ConfigError(setting, f"cannot read {path} ({exc.strerror})") from None
+    headers: dict[str, str] = {}
+    for number, line in enumerate(lines, start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        match = HEADER_LINE.fullmatch(line)
+        if match is None:
+            raise ConfigError(setting, f"{path} line {number} is not `Name: value`")
+        headers[match.group(1)] = match.group(2)
+    if not headers:
+        raise ConfigError(setting, f"{path} names no header")
+    return headers

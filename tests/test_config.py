@@ -98,6 +98,12 @@ def test_effective_config_round_trips_through_toml(tmp_path: Path) -> None:
         ),
         ("[qos.camara]\nsink = 'http://127.0.0.1.example/qod'\n", "qos.camara.sink", "https://"),
         ("[qos.camara]\nprofiles_root = 'ftp://x/y'\n", "qos.camara.profiles_root", "http(s) URL"),
+        (
+            "[qos.camara]\nheaders_file = 'h'\ntoken_url = 'https://a.example/t'\nclient_id = 'x'\n"
+            "client_secret_file = 'f'\n",
+            "qos.camara.headers_file",
+            "instead of token_url",
+        ),
     ],
 )
 def test_bad_values_name_file_key_and_reason(tmp_path: Path, text: str, key: str, reason: str) -> None:
@@ -190,3 +196,22 @@ def test_per_drone_missions_and_the_arbiter_round_trip_and_reach_the_planner(tmp
     assert (uav2.kind, uav2.center_m, uav2.radius_m, uav2.altitude_m) == ("circle", (10.0, -4.0), 1.5, 1.5)
     assert mission_from_config(config.planner, "uav3").kind == "hover"
     assert config.qos.arbiter.max_grants == 2
+
+
+def test_a_headers_file_is_name_value_lines_and_a_bad_one_names_its_line_not_its_value(
+    tmp_path: Path,
+) -> None:
+    from dynqos.common.camara import read_headers
+
+    good = tmp_path / "good"
+    good.write_text("# keys\n\nX-API-Key:  s3cret value \nX-Other: 1\n")
+    assert read_headers(str(good)) == {"X-API-Key": "s3cret value", "X-Other": "1"}
+    bad = tmp_path / "bad"
+    bad.write_text("X-API-Key: fine\nno colon here s3cret\n")
+    with pytest.raises(ConfigError, match="line 2 is not") as info:
+        read_headers(str(bad))
+    assert "s3cret" not in str(info.value)
+    (tmp_path / "empty").write_text("# nothing\n")
+    with pytest.raises(ConfigError, match="names no header"):
+        read_headers(str(tmp_path / "empty"))
+    assert read_headers("") == {}

@@ -111,7 +111,10 @@ class Operator:
 
 @contextlib.asynccontextmanager
 async def emulated_operator(
-    requests_valid: bool = True, client_key: Any = None, **cell: Any
+    requests_valid: bool = True,
+    client_key: Any = None,
+    api_headers: dict[str, str] | None = None,
+    **cell: Any,
 ) -> AsyncIterator[Operator]:
     cfg = CellConfig(
         qod=True, control_port=0, default_listen_port=0, priority_listen_port=0, qod_setup_s=0.05, **cell
@@ -122,7 +125,8 @@ async def emulated_operator(
     task = asyncio.create_task(
         run_cell(
             cfg, cfg.bearer_list(ZenohConfig(), "uav1"), ready=ready.set_result, qod_devices={"uav1": DEVICE},
-            qod_client=("dynqos-test", SECRET), qod_client_key=client_key, tap=rig.record, stop=stop,
+            qod_client=("dynqos-test", SECRET), qod_client_key=client_key, qod_api_headers=api_headers,
+            tap=rig.record, stop=stop,
         )
     )  # fmt: skip
     rig.port = (await asyncio.wait_for(ready, 10))["control_port"]
@@ -671,5 +675,26 @@ def test_a_token_without_the_calls_scope_is_a_403_that_names_the_setting(tmp_pat
                     await client.retrieve(DEVICE)
                 assert by_device.value.status == 403
         assert op.final["qod"]["created"] == 0
+
+    run(main())
+
+
+def test_an_aggregators_fixed_api_key_headers_instead_of_a_token(tmp_path: Path) -> None:
+    keys_file = tmp_path / "headers"
+    keys_file.write_text("# the aggregator's keys\nX-API-Key: k3y-for-tests\nX-API-Host: qod.example\n")
+    (tmp_path / "wrong").write_text("X-API-Key: guessed\nX-API-Host: qod.example\n")
+
+    async def main() -> None:
+        wanted = {"X-API-Key": "k3y-for-tests", "X-API-Host": "qod.example"}
+        async with emulated_operator(qod_auth=True, api_headers=wanted) as op:
+            async with QodClient(op.camara(headers_file=str(keys_file))) as client:
+                created = await client.create(session_body())
+                await client.delete(created.session_id)
+            async with QodClient(op.camara(headers_file=str(tmp_path / "wrong"))) as client:
+                with pytest.raises(QodError) as refused:
+                    await client.create(session_body())
+            assert refused.value.status == 401
+            assert settings_at_fault(refused.value)
+        assert op.final["qod"]["created"] == 1
 
     run(main())

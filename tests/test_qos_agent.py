@@ -289,6 +289,21 @@ def test_camara_private_key_jwt_flies_a_drone_to_priority_against_the_real_cell(
     assert "qod: new access token" in log
 
 
+def test_camara_fixed_api_key_headers_fly_a_drone_to_priority_against_the_real_cell(tmp_path: Path) -> None:
+    headers = tmp_path / "qod-headers"
+    headers.write_text("X-API-Key: k3y\n")
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    cell_port = free_tcp_port()
+    config = tmp_path / "qos.toml"
+    write_config(config, zcfg, cell_port, "camara", "qod_auth = true\n", f'headers_file = "{headers}"\n')
+    with running(config, zcfg, cell_port) as rig:
+        drone = Drone(zcfg)
+        try:
+            assert drone.until(True, Grant.AVAILABLE, also=rig.granted).session_id
+        finally:
+            drone.close()
+
+
 @pytest.mark.parametrize("rig", [("links", "")], indirect=True)
 def test_links_priority_is_available_at_once_and_the_network_is_not_asked(rig: Rig, drone: Drone) -> None:
     granted = drone.until(True, Grant.AVAILABLE)

@@ -91,6 +91,9 @@ class CamaraConfig:
     # signs a client assertion for each token; its public key is registered with the operator
     client_key_file: str = ""
     scope: str = AGENT_SCOPE  # asked with each token: the scopes of every call the agent makes
+    # or fixed API-key headers, as aggregators authenticate: a file of `Name: value` lines sent with
+    # every call (no token_url then)
+    headers_file: str = ""
     qos_profile: str = "QOS_E"
     # Before any session, read the operator's QoS Profiles API: refuse to start if qos_profile is not
     # offered or not ACTIVE, fit duration_s into its min..max (docs/qos.md, "Profiles first")
@@ -129,6 +132,9 @@ class CamaraConfig:
             _require(bool(self.client_id), "client_id", "is required with token_url")
             one_credential = bool(self.client_secret_file) != bool(self.client_key_file)
             _require(one_credential, "client_secret_file", "with token_url, give it or client_key_file (one)")
+        _require(
+            not (self.headers_file and self.token_url), "headers_file", "is instead of token_url, not with it"
+        )
         for uav in self.devices:
             _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"devices.{uav}", "is not a drone id")
 

@@ -32,6 +32,7 @@ from dynqos.common.camara import (
     QOS_STATUS,
     load_private_key,
     ports_named,
+    read_headers,
     read_secret,
     signing_algorithm,
 )
@@ -112,6 +113,7 @@ class QodClient:
         self.root = cfg.api_root.rstrip("/")
         self.profiles_root = profiles_root(cfg)
         self.secret = read_secret(cfg.client_secret_file) if cfg.token_url else ""
+        self.fixed_headers = read_headers(cfg.headers_file)
         self.key = load_private_key(cfg.client_key_file) if cfg.token_url and cfg.client_key_file else None
         self.rng = rng or random.Random()
         self.http: aiohttp.ClientSession | None = None
@@ -200,7 +202,7 @@ class QodClient:
         left = deadline - time.monotonic()
         if left <= 0:
             return 0, {"code": "TIMEOUT", "message": f"no answer within {self.cfg.timeout_s:g} s"}, None
-        headers = {"Accept": "application/json", "x-correlator": correlator}
+        headers = {**self.fixed_headers, "Accept": "application/json", "x-correlator": correlator}
         try:
             token = await asyncio.wait_for(self._bearer(), left)
             if token:

@@ -16,7 +16,7 @@ from typing import Any
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
-from dynqos.common.camara import load_private_key, read_secret
+from dynqos.common.camara import load_private_key, read_headers, read_secret
 from dynqos.common.config import BearerConfig, CellConfig, Config
 from dynqos.common.errors import ConfigError, DynqosError
 from dynqos.common.lifecycle import serving_metrics
@@ -41,9 +41,11 @@ def run(config: Config, *, out_dir: Path | None = None, duration_s: float | None
         if config.cell.qod_auth and camara.client_key_file
         else None
     )
-    if config.cell.qod_auth and not (camara.client_id and (secret or client_key)):
+    api_headers = read_headers(camara.headers_file) if config.cell.qod_auth else {}
+    if config.cell.qod_auth and not api_headers and not (camara.client_id and (secret or client_key)):
         raise DynqosError(
-            "[cell] qod_auth = true needs [qos.camara] client_id and client_secret_file or client_key_file"
+            "[cell] qod_auth = true needs [qos.camara] headers_file, or client_id and client_secret_file or "
+            "client_key_file"
         )
     devices = {uav: device.as_api() for uav, device in camara.devices.items()}
     with serving_metrics("cell", config) as metrics:
@@ -51,7 +53,8 @@ def run(config: Config, *, out_dir: Path | None = None, duration_s: float | None
             run_cell(
                 config.cell, config.cell.bearer_list(config.zenoh, config.drone.id), out_dir=out_dir,
                 duration_s=duration_s, ready=print_ready, qod_devices=devices,
-                qod_client=(camara.client_id, secret), qod_client_key=client_key, metrics=metrics,
+                qod_client=(camara.client_id, secret), qod_client_key=client_key, qod_api_headers=api_headers,
+                metrics=metrics,
             )
         )  # fmt: skip
     return 0
@@ -67,6 +70,7 @@ async def run_cell(
     qod_devices: dict[str, dict[str, Any]] | None = None,
     qod_client: tuple[str, str] = ("", ""),
     qod_client_key: Any = None,
+    qod_api_headers: dict[str, str] | None = None,
     tap: Tap | None = None,
     stop: asyncio.Event | None = None,
     metrics: ProcessMetrics | None = None,
@@ -92,7 +96,10 @@ async def run_cell(
         emulator.operator = Operator(cell, dict(qod_devices or {}), servers, time.monotonic, time.time)
     try:
         if cell.control_port >= 0:
-            control = ControlApi(emulator, emulator.operator, *qod_client, client_key=qod_client_key, tap=tap)
+            control = ControlApi(
+                emulator, emulator.operator, *qod_client,
+                client_key=qod_client_key, api_headers=qod_api_headers, tap=tap,
+            )  # fmt: skip
             try:
                 control_port = await control.start(cell.control_port)
             except OSError as exc:
