@@ -233,6 +233,9 @@ def test_what_the_operator_refuses_is_an_error_with_its_code_and_no_retry(
         {"qosProfile": None},
         {"applicationServerPorts": {}},
         {"sink": "http://203.0.113.9/notify"},  # https only, except on loopback (the demo's sink)
+        {"colour": "red"},  # a field the API does not have, at the top
+        {"device": {"phoneNumber": "+46700000001", "imei": "35209900176148"}},  # or inside an object
+        {"applicationServer": {"ipv4Address": "127.0.0.1", "port": 7448}},
     ],
 )
 def test_the_emulator_answers_a_request_outside_the_spec_with_400(changes: dict[str, Any]) -> None:

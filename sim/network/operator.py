@@ -21,7 +21,12 @@ from typing import Any
 
 from dynqos.common.camara import EVENT_TYPE, ports_named
 from dynqos.common.config import CellConfig
-from dynqos.sim.network.operator_schema import CREATE_SESSION, EXTEND_SESSION, RETRIEVE_SESSIONS, problem
+from dynqos.sim.network.operator_schema import (
+    CREATE_SESSION_STRICT,
+    EXTEND_SESSION_STRICT,
+    RETRIEVE_SESSIONS_STRICT,
+    problem,
+)
 
 ENDED_KEPT_S = (
     360.0  # an ended session not deleted is dropped this long after it ended (the spec's "at earliest")
@@ -158,7 +163,7 @@ class Operator:
     # ---- the API ----------------------------------------------------------------------------------------
 
     def create(self, body: Any) -> tuple[Answer, list[Notification]]:
-        bad = problem(CREATE_SESSION, body)
+        bad = problem(CREATE_SESSION_STRICT, body)
         if bad is not None:
             return self._reject(400, "INVALID_ARGUMENT", bad), []
         if "device" not in body:
@@ -213,7 +218,7 @@ class Operator:
         session = self.sessions.get(session_id)
         if session is None:
             return self._reject(404, "NOT_FOUND", "the session does not exist")
-        bad = problem(EXTEND_SESSION, body)
+        bad = problem(EXTEND_SESSION_STRICT, body)
         if bad is not None:
             return self._reject(400, "INVALID_ARGUMENT", bad)
         if session.status != "AVAILABLE":
@@ -238,7 +243,7 @@ class Operator:
         return Answer(204), notes
 
     def retrieve(self, body: Any) -> Answer:
-        bad = problem(RETRIEVE_SESSIONS, body)
+        bad = problem(RETRIEVE_SESSIONS_STRICT, body)
         if bad is not None:
             return self._reject(400, "INVALID_ARGUMENT", bad)
         if "device" not in body:

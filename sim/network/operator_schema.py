@@ -145,6 +145,26 @@ QOS_STATUS_CHANGED: dict[str, Any] = {
 }
 
 
+def _closed(schema: Any, keep_open: tuple[Any, ...]) -> Any:
+    """A copy of `schema` where every object with `properties` takes no others (additionalProperties
+    false), except the schemas in `keep_open`: a request with a field the API does not have is a 400."""
+    if isinstance(schema, list):
+        return [_closed(item, keep_open) for item in schema]
+    if not isinstance(schema, dict) or any(schema is k for k in keep_open):
+        return schema
+    out = {key: _closed(value, keep_open) for key, value in schema.items()}
+    if "properties" in out:
+        out["additionalProperties"] = False
+    return out
+
+
+# What the emulated operator takes: the request objects, closed. The sink credential stays open (its
+# fields depend on credentialType, and the emulator reads only the token from it).
+CREATE_SESSION_STRICT: dict[str, Any] = _closed(CREATE_SESSION, (SINK_CREDENTIAL,))
+EXTEND_SESSION_STRICT: dict[str, Any] = _closed(EXTEND_SESSION, ())
+RETRIEVE_SESSIONS_STRICT: dict[str, Any] = _closed(RETRIEVE_SESSIONS, ())
+
+
 def problem(schema: dict[str, Any], value: Any) -> str | None:
     """None if `value` fits `schema`, else the first violation, as a CAMARA error message would say it."""
     error = jsonschema.exceptions.best_match(jsonschema.Draft202012Validator(schema).iter_errors(value))
