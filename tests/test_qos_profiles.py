@@ -90,3 +90,15 @@ def test_an_inactive_profile_starts_no_session() -> None:
     answer, _ = op.create(body)
     assert answer.status == 422
     assert answer.body["code"] == "QUALITY_ON_DEMAND.QOS_PROFILE_NOT_APPLICABLE"
+
+
+def test_each_profile_can_have_its_own_maximum_and_sessions_keep_to_it() -> None:
+    op = operator(qod_max_duration_s=600, qod_profile_max_duration_s={"QOS_E": 20})
+    caps = {p["name"]: p["maxDuration"]["value"] for p in op.profiles({}).body}
+    assert caps == {"QOS_E": 20, "QOS_S": 600, "QOS_M": 600, "QOS_L": 600}
+    body = {"device": {"phoneNumber": "+46700000001"}, "applicationServer": {"ipv4Address": "127.0.0.1"},
+            "qosProfile": "QOS_E", "duration": 60}  # fmt: skip
+    created, _ = op.create(body)
+    assert created.body["duration"] == 20
+    other, _ = op.create(body | {"qosProfile": "QOS_S", "applicationServerPorts": {"ports": [1]}})
+    assert other.status == 409  # one session per device and flow, whatever its profile

@@ -4,7 +4,7 @@ timeline events), [vehicle] and [metrics]."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 from dynqos.common.acl import reserved_name
@@ -180,6 +180,8 @@ class CellConfig:
     qod_max_sessions: int = -1  # sessions AVAILABLE at once (-1: no limit; 0: the operator grants none)
     qod_setup_s: float = 0.05  # REQUESTED -> AVAILABLE (or UNAVAILABLE when refused) after this long
     qod_max_duration_s: int = 86400  # a session's duration (with extensions) is capped here
+    # per profile, a cap of its own (its QoS Profiles API's maxDuration); the others have qod_max_duration_s
+    qod_profile_max_duration_s: dict[str, int] = field(default_factory=dict)
     qod_profiles: tuple[str, ...] = ("QOS_E", "QOS_S", "QOS_M", "QOS_L")  # what the operator offers
     qod_inactive_profiles: tuple[str, ...] = ()  # listed by its QoS Profiles API as INACTIVE: no sessions
     qod_auth: bool = False  # require OAuth2 client-credential tokens ([qos.camara] client_id/secret file)
@@ -209,6 +211,12 @@ class CellConfig:
         _require(self.qod_max_sessions >= -1, "qod_max_sessions", "must be -1 (no limit) or >= 0")
         _require(0 <= self.qod_setup_s <= 60, "qod_setup_s", "must be in 0..60 s")
         _require(1 <= self.qod_max_duration_s <= 10**7, "qod_max_duration_s", "must be in 1..10000000 s")
+        for name, cap in self.qod_profile_max_duration_s.items():
+            key = f"qod_profile_max_duration_s.{name}"
+            _require(
+                name in (*self.qod_profiles, *self.qod_inactive_profiles), key, "is not an offered profile"
+            )
+            _require(1 <= cap <= 10**7, key, "must be in 1..10000000 s")
         _require(1 <= self.qod_token_ttl_s <= 86400, "qod_token_ttl_s", "must be in 1..86400 s")
         names = [b.name for b in self.bearers]
         _require(len(set(names)) == len(names), "bearers", "bearer names must be unique")

@@ -198,7 +198,7 @@ class Operator:
         if len(self.sessions) >= MAX_SESSIONS:
             answer = error(429, "TOO_MANY_REQUESTS", "too many sessions; delete some")
             return replace(answer, retry_after_s=TOO_MANY_RETRY_AFTER_S), []
-        duration = min(body["duration"], self.cell.qod_max_duration_s)
+        duration = min(body["duration"], self.max_duration_s(body["qosProfile"]))
         session = Session(str(uuid.uuid4()), uav, body["device"], body, duration)
         session.settle_at_s = now + self.cell.qod_setup_s
         self.sessions[session.session_id] = session
@@ -227,7 +227,8 @@ class Operator:
                 409, "QUALITY_ON_DEMAND.SESSION_EXTENSION_NOT_ALLOWED", f"the session is {session.status}"
             )
         session.duration_s = min(
-            session.duration_s + body["requestedAdditionalDuration"], self.cell.qod_max_duration_s
+            session.duration_s + body["requestedAdditionalDuration"],
+            self.max_duration_s(session.body["qosProfile"]),
         )
         self.counters.extended += 1
         return Answer(200, self.info(session))
@@ -287,8 +288,12 @@ class Operator:
             "description": "dynqos emulated cell: the priority bearer's scheduling weight while AVAILABLE",
             "status": "INACTIVE" if name in self.cell.qod_inactive_profiles else "ACTIVE",
             "minDuration": {"value": 1, "unit": "Seconds"},
-            "maxDuration": {"value": self.cell.qod_max_duration_s, "unit": "Seconds"},
+            "maxDuration": {"value": self.max_duration_s(name), "unit": "Seconds"},
         }
+
+    def max_duration_s(self, profile: str) -> int:
+        """What a session of `profile` may last, extensions included."""
+        return self.cell.qod_profile_max_duration_s.get(profile, self.cell.qod_max_duration_s)
 
     def _listed(self) -> list[str]:
         return list(dict.fromkeys((*self.cell.qod_profiles, *self.cell.qod_inactive_profiles)))
