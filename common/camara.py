@@ -28,6 +28,7 @@ SCOPES = {
 }
 AGENT_SCOPE = " ".join(dict.fromkeys(SCOPES.values()))  # every call the agent makes
 JWT_BEARER = "urn:ietf:params:oauth:client-assertion-type:jwt-bearer"  # RFC 7523 client authentication
+JWT_BEARER_GRANT = "urn:ietf:params:oauth:grant-type:jwt-bearer"  # RFC 7523 authorization grant
 
 
 def scope_for(method: str, path: str) -> str:

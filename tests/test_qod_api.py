@@ -701,3 +701,32 @@ def test_an_aggregators_fixed_api_key_headers_instead_of_a_token(tmp_path: Path)
         assert op.final["qod"]["created"] == 1
 
     run(main())
+
+
+def test_three_legged_a_token_per_device_and_bodies_that_name_none(tmp_path: Path) -> None:
+    from dynqos.edge.qos.client import SUBJECT
+
+    registered = _ec_key(tmp_path / "client.pem")
+
+    async def main() -> None:
+        async with emulated_operator(qod_auth=True, client_key=registered.public_key()) as op:
+            token_url = f"http://127.0.0.1:{op.port}/oauth2/token"
+            cfg = op.camara(token_url=token_url, client_id="dynqos-test",
+                            client_key_file=str(tmp_path / "client.pem"), three_legged=True)  # fmt: skip
+            body = {k: v for k, v in session_body().items() if k != "device"}
+            async with QodClient(cfg) as client:
+                SUBJECT.set(f"tel:{DEVICE['phoneNumber']}")
+                created = await client.create(body)
+                assert "device" not in created.raw  # the token names it; the answer does not repeat it
+                assert [s.session_id for s in await client.retrieve(None)] == [created.session_id]
+                with pytest.raises(QodError) as named:
+                    await client.create(session_body())  # device in the body as well
+                assert (named.value.status, named.value.code) == (422, "UNNECESSARY_IDENTIFIER")
+                await client.delete(created.session_id)
+                SUBJECT.set("tel:+46799999999")  # a phone the operator does not know: no token
+                with pytest.raises(QodError) as stranger:
+                    await client.create(body)
+                assert (stranger.value.status, stranger.value.code) == (401, "TOKEN")
+        assert op.final["qod"]["created"] == 1
+
+    run(main())

@@ -102,3 +102,19 @@ def test_each_profile_can_have_its_own_maximum_and_sessions_keep_to_it() -> None
     assert created.body["duration"] == 20
     other, _ = op.create(body | {"qosProfile": "QOS_S", "applicationServerPorts": {"ports": [1]}})
     assert other.status == 409  # one session per device and flow, whatever its profile
+
+
+def test_a_three_legged_token_sees_only_its_own_devices_sessions() -> None:
+    op = operator()
+    op.devices["uav2"] = {"phoneNumber": "+46700000002"}
+    op.servers["uav2"] = "127.0.0.1"
+    body = {"applicationServer": {"ipv4Address": "127.0.0.1"}, "qosProfile": "QOS_E", "duration": 60}
+    mine, _ = op.create(body, subject="uav1")
+    sid = mine.body["sessionId"]
+    assert op.get(sid, subject="uav2").status == 404  # another device's token: no such session
+    assert op.extend(sid, {"requestedAdditionalDuration": 5}, subject="uav2").status == 404
+    assert op.delete(sid, subject="uav2")[0].status == 404
+    assert op.get(sid, subject="uav1").status == 200
+    assert op.delete(sid, subject="uav1")[0].status == 204
+    refused, _ = op.create(body | {"device": {"phoneNumber": "+46700000001"}}, subject="uav1")
+    assert (refused.status, refused.body["code"]) == (422, "UNNECESSARY_IDENTIFIER")

@@ -91,6 +91,9 @@ class CamaraConfig:
     # signs a client assertion for each token; its public key is registered with the operator
     client_key_file: str = ""
     scope: str = AGENT_SCOPE  # asked with each token: the scopes of every call the agent makes
+    # three-legged: a token per drone (RFC 7523 JWT-bearer grant, the assertion's `sub` the drone's
+    # login hint, tel:<phoneNumber>), and requests that name no device (needs client_key_file)
+    three_legged: bool = False
     # or fixed API-key headers, as aggregators authenticate: a file of `Name: value` lines sent with
     # every call (no token_url then)
     headers_file: str = ""

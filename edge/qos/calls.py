@@ -7,11 +7,12 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+from collections.abc import Iterator
 from typing import Any
 
 from dynqos.common.clock import NS_PER_S, Clock
 from dynqos.common.config import CamaraConfig
-from dynqos.edge.qos.client import QodClient, QodError, SessionInfo
+from dynqos.edge.qos.client import SUBJECT, QodClient, QodError, SessionInfo
 from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
 from dynqos.edge.qos.sink import SinkGuard
 
@@ -67,6 +68,20 @@ class OperatorCalls:
 
     async def do(self, op: Op, grant: DroneGrant) -> None:
         """One API call for one drone, and what its answer means for the drone's grant."""
+        with self.as_drone(grant.uav):
+            await self._do(op, grant)
+
+    @contextlib.contextmanager
+    def as_drone(self, uav: str) -> Iterator[None]:
+        """The calls inside are this drone's: with `three_legged`, made with its own token."""
+        device = self.camara.devices.get(uav)
+        token = SUBJECT.set(f"tel:{device.phoneNumber}" if self.camara.three_legged and device else "")
+        try:
+            yield
+        finally:
+            SUBJECT.reset(token)
+
+    async def _do(self, op: Op, grant: DroneGrant) -> None:
         client = self.client
         assert client is not None
         device = self.camara.devices.get(grant.uav)
@@ -145,7 +160,8 @@ class OperatorCalls:
         assert self.client is not None
         device = self.camara.devices[grant.uav].as_api()
         try:
-            mine = await self.ours(device)
+            with self.as_drone(grant.uav):
+                mine = await self.ours(device)
         except QodError as exc:
             grant.failed(Op.CREATE, f"409, then retrieve-sessions: {exc}", self.clock.now_ns())
             return
@@ -158,19 +174,20 @@ class OperatorCalls:
             grant.observed(self.session(alive[0]), self.clock.now_ns())
             return
         for info in mine:
-            with contextlib.suppress(QodError):
+            with contextlib.suppress(QodError), self.as_drone(grant.uav):
                 await self.client.delete(info.session_id)
                 log.info("qos agent: %s deleted ended session %s (409 on create)", grant.uav, info.session_id)
 
     async def ours(self, device: dict[str, Any]) -> list[SessionInfo]:
         """The device's sessions that name our priority port: the ones this agent (or an earlier one) made."""
         assert self.client is not None
-        return [s for s in await self.client.retrieve(device) if self.port in s.server_ports()]
+        named = None if self.camara.three_legged else device  # the drone's token names it already
+        return [s for s in await self.client.retrieve(named) if self.port in s.server_ports()]
 
     def _session_body(self, device: dict[str, Any]) -> dict[str, Any]:
         address = "ipv6Address" if ":" in self.server else "ipv4Address"
         body: dict[str, Any] = {
-            "device": device,
+            **({} if self.camara.three_legged else {"device": device}),  # three-legged: the token names it
             "applicationServer": {address: self.server},
             "applicationServerPorts": {"ports": [self.port]},
             "qosProfile": self.camara.qos_profile,
@@ -200,8 +217,11 @@ class OperatorCalls:
         assert self.client is not None
         for uav, device in self.camara.devices.items():
             try:
-                for info in await self.ours(device.as_api()):
-                    await self.client.delete(info.session_id)
+                with self.as_drone(uav):
+                    leftovers = await self.ours(device.as_api())
+                for info in leftovers:
+                    with self.as_drone(uav):
+                        await self.client.delete(info.session_id)
                     self.cleaned += 1
                     log.warning("qos agent: deleted %s's session %s %s", uav, info.session_id, whose)
             except QodError as exc:
@@ -212,7 +232,8 @@ class OperatorCalls:
         assert grant.session is not None
         session_id = grant.session.session_id
         try:
-            await self.client.delete(session_id)
+            with self.as_drone(grant.uav):
+                await self.client.delete(session_id)
             log.info("qos agent: %s session %s deleted (stopping)", grant.uav, session_id)
         except QodError as exc:
             if exc.status != 404:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import contextvars
 import email.utils
 import logging
 import random
@@ -29,6 +30,7 @@ import aiohttp
 
 from dynqos.common.camara import (
     JWT_BEARER,
+    JWT_BEARER_GRANT,
     QOS_STATUS,
     load_private_key,
     ports_named,
@@ -42,6 +44,8 @@ log = logging.getLogger(__name__)
 
 RETRIES = 3  # attempts after the first, for 429 and 5xx, within the call's timeout
 BACKOFF_S = 0.1  # first back-off; doubles, with full jitter
+# The drone a call is for, with `three_legged`: its login hint, set by the agent around that drone's calls
+SUBJECT: contextvars.ContextVar[str] = contextvars.ContextVar("qod_subject", default="")
 ASSERTION_LIFETIME_S = 300  # a client assertion is good for this long (and used once)
 TOKEN_MARGIN_S = 30.0  # a token is refreshed this long (at most a quarter of its life) before it expires
 
@@ -117,8 +121,7 @@ class QodClient:
         self.key = load_private_key(cfg.client_key_file) if cfg.token_url and cfg.client_key_file else None
         self.rng = rng or random.Random()
         self.http: aiohttp.ClientSession | None = None
-        self._token = ""
-        self._token_expires = 0.0
+        self._tokens: dict[str, tuple[str, float]] = {}  # subject ("": two-legged) -> token, refresh time
         self._token_lock = asyncio.Lock()
         self.calls = 0
         self.retries = 0
@@ -149,8 +152,10 @@ class QodClient:
     async def delete(self, session_id: str) -> None:
         await self._call("DELETE", f"/sessions/{session_id}", expect=(204, 200))
 
-    async def retrieve(self, device: dict[str, Any]) -> list[SessionInfo]:
-        body = await self._call("POST", "/retrieve-sessions", {"device": device}, expect=(200,))
+    async def retrieve(self, device: dict[str, Any] | None) -> list[SessionInfo]:
+        """The device's sessions; `device` None when a three-legged token names it."""
+        query = {} if device is None else {"device": device}
+        body = await self._call("POST", "/retrieve-sessions", query, expect=(200,))
         if not isinstance(body, list):
             raise QodError(502, "BAD_RESPONSE", "retrieve-sessions did not answer an array")
         return [SessionInfo.parse(item) for item in body]
@@ -182,7 +187,7 @@ class QodClient:
                 return answer
             if status == 401 and self.cfg.token_url and not refreshed:
                 refreshed = True
-                self._token_expires = 0.0  # the API no longer takes it: get a new one, try once more
+                self._tokens.pop(SUBJECT.get(), None)  # the API no longer takes it: get a new one, once more
                 continue
             error = _error(status, answer, correlator, retry_after)
             if not error.transient or attempt >= RETRIES:
@@ -224,14 +229,18 @@ class QodClient:
             return 0, {"code": "UNREACHABLE", "message": f"{type(exc).__name__}: {exc}"[:300]}, None
 
     async def _bearer(self) -> str:
-        """The access token, fetched (client credentials) when there is none or it is about to expire."""
+        """The access token, fetched when there is none or it is about to expire: the client's own
+        (client credentials), or with `three_legged` the current drone's (SUBJECT, the JWT-bearer grant)."""
         if not self.cfg.token_url:
             return ""
+        subject = SUBJECT.get() if self.cfg.three_legged else ""
         async with self._token_lock:
-            if time.monotonic() < self._token_expires and self._token:
-                return self._token
+            token, refresh_at = self._tokens.get(subject, ("", 0.0))
+            if token and time.monotonic() < refresh_at:
+                return token
             assert self.http is not None
-            async with self.http.post(self.cfg.token_url, data=self._token_form()) as response:
+            form = self._token_form(subject)
+            async with self.http.post(self.cfg.token_url, data=form) as response:
                 answer = await response.json(content_type=None) if response.status == 200 else None
                 if response.status == 429 or response.status >= 500:  # the endpoint's trouble, not ours
                     raise QodError(
@@ -239,29 +248,43 @@ class QodClient:
                     )
                 if not isinstance(answer, dict) or not isinstance(answer.get("access_token"), str):
                     raise QodError(401, "TOKEN", f"the token endpoint answered {response.status}")
-            self._token = answer["access_token"]
+            token = answer["access_token"]
             ttl = float(answer.get("expires_in", 3600))
             # refreshed ahead of its expiry: a call never starts with a token about to lapse
-            self._token_expires = time.monotonic() + ttl - min(TOKEN_MARGIN_S, ttl / 4)
+            self._tokens[subject] = (token, time.monotonic() + ttl - min(TOKEN_MARGIN_S, ttl / 4))
             self.token_refreshes += 1
-            log.info("qod: new access token (expires in %.0f s)", ttl)
-            return self._token
+            log.info("qod: new access token%s (expires in %.0f s)", f" for {subject}" if subject else "", ttl)
+            return str(token)
 
-    def _token_form(self) -> dict[str, str]:
-        """The client-credentials request: the secret in the form, or (private_key_jwt, RFC 7523) a
-        client assertion signed with the key, for this token endpoint, used once (`jti`), for 5 minutes."""
-        form = {"grant_type": "client_credentials", "client_id": self.cfg.client_id}
-        if self.cfg.scope:
-            form["scope"] = self.cfg.scope
+    def _token_form(self, subject: str = "") -> dict[str, str]:
+        """The token request. Client credentials: the secret in the form, or (private_key_jwt, RFC 7523
+        section 2.2) a client assertion signed with the key, for this token endpoint, used once (`jti`),
+        for 5 minutes. For a `subject` (three-legged, RFC 7523 section 2.1): the JWT-bearer grant, an
+        assertion of the same kind whose `sub` is the device's login hint (`tel:+46...`)."""
+        scope = {"scope": self.cfg.scope} if self.cfg.scope else {}
+        if subject:
+            assertion = self._assertion(subject)
+            return {
+                "grant_type": JWT_BEARER_GRANT,
+                "assertion": assertion,
+                "client_id": self.cfg.client_id,
+            } | scope
+        form = {"grant_type": "client_credentials", "client_id": self.cfg.client_id} | scope
         if self.key is None:
             return form | {"client_secret": self.secret}
+        return form | {
+            "client_assertion_type": JWT_BEARER,
+            "client_assertion": self._assertion(self.cfg.client_id),
+        }
+
+    def _assertion(self, subject: str) -> str:
         import jwt  # PyJWT: the signing and the claims, as identity servers check them
 
+        assert self.key is not None, "client assertions need [qos.camara] client_key_file"
         now = int(time.time())
-        claims = {"iss": self.cfg.client_id, "sub": self.cfg.client_id, "aud": self.cfg.token_url,
+        claims = {"iss": self.cfg.client_id, "sub": subject, "aud": self.cfg.token_url,
                   "jti": str(uuid.uuid4()), "iat": now, "exp": now + ASSERTION_LIFETIME_S}  # fmt: skip
-        assertion = jwt.encode(claims, self.key, algorithm=signing_algorithm(self.key))
-        return form | {"client_assertion_type": JWT_BEARER, "client_assertion": assertion}
+        return str(jwt.encode(claims, self.key, algorithm=signing_algorithm(self.key)))
 
 
 def profiles_root(cfg: CamaraConfig) -> str:

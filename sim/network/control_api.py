@@ -25,7 +25,7 @@ from typing import Any, Protocol
 
 from aiohttp import ClientSession, ClientTimeout, web
 
-from dynqos.common.camara import JWT_BEARER, SCOPES, scope_for, signing_algorithm
+from dynqos.common.camara import JWT_BEARER, JWT_BEARER_GRANT, SCOPES, scope_for, signing_algorithm
 from dynqos.common.config import CellConfig, CellEventConfig, build
 from dynqos.common.errors import ConfigError
 from dynqos.sim.network.operator import Answer, Notification, Operator, error
@@ -106,7 +106,8 @@ class ControlApi:
         self.secret = secret
         self.client_key = client_key
         self.api_headers = dict(api_headers or {})  # with these on a call, no token is needed
-        self.tokens: dict[str, tuple[float, frozenset[str]]] = {}  # token -> expiry (monotonic), scopes
+        # token -> expiry (monotonic), scopes, the drone a three-legged token names ("": two-legged)
+        self.tokens: dict[str, tuple[float, frozenset[str], str]] = {}
         self.assertions: collections.OrderedDict[str, None] = collections.OrderedDict()  # jti seen
         self.pending: set[asyncio.Task[None]] = set()
         self.notified = 0
@@ -206,7 +207,7 @@ class ControlApi:
             )
         header = request.headers.get("Authorization", "")
         token = header.removeprefix("Bearer ").strip() if header.startswith("Bearer ") else ""
-        expiry, scopes = self.tokens.get(token, (0.0, frozenset()))
+        expiry, scopes, subject = self.tokens.get(token, (0.0, frozenset(), ""))
         if time.monotonic() >= expiry:
             self.tokens.pop(token, None)
             raise _Reply(
@@ -216,6 +217,7 @@ class ControlApi:
         needed = scope_for(request.method, request.path.removeprefix(prefix))
         if needed and needed not in scopes:
             raise _Reply(error(403, "PERMISSION_DENIED", f"the token lacks the scope {needed}"))
+        request["subject"] = subject
 
     def send(self, notes: list[Notification]) -> None:
         """Post each notification to its sink in the background (bounded; the oldest work is not waited)."""
@@ -284,26 +286,28 @@ class ControlApi:
         return self.operator
 
     async def create(self, request: web.Request) -> web.Response:
-        answer, notes = self.op.create(await _body(request))
+        answer, notes = self.op.create(await _body(request), subject=request.get("subject", ""))
         self._changed(notes)
         return _json(answer)
 
     async def get(self, request: web.Request) -> web.Response:
         self._changed(self.op.advance())
-        return _json(self.op.get(request.match_info["sid"]))
+        return _json(self.op.get(request.match_info["sid"], request.get("subject", "")))
 
     async def delete(self, request: web.Request) -> web.Response:
-        answer, notes = self.op.delete(request.match_info["sid"])
+        answer, notes = self.op.delete(request.match_info["sid"], request.get("subject", ""))
         self._changed(notes)
         return _json(answer)
 
     async def extend(self, request: web.Request) -> web.Response:
         self._changed(self.op.advance())
-        return _json(self.op.extend(request.match_info["sid"], await _body(request)))
+        return _json(
+            self.op.extend(request.match_info["sid"], await _body(request), request.get("subject", ""))
+        )
 
     async def retrieve(self, request: web.Request) -> web.Response:
         self._changed(self.op.advance())
-        return _json(self.op.retrieve(await _body(request)))
+        return _json(self.op.retrieve(await _body(request), subject=request.get("subject", "")))
 
     async def retrieve_profiles(self, request: web.Request) -> web.Response:
         return _json(self.op.profiles(await _body(request)))
@@ -312,12 +316,20 @@ class ControlApi:
         return _json(self.op.profile(request.match_info["name"]))
 
     async def token(self, request: web.Request) -> web.Response:
-        """OAuth2 client credentials: the client authenticates with its secret or with a client assertion
-        (private_key_jwt); the token carries the scopes asked (all of them when none is asked)."""
+        """OAuth2: client credentials, the client authenticated by its secret or a client assertion
+        (private_key_jwt); or the JWT-bearer grant for one device (three-legged: the assertion's `sub` is
+        the device's `tel:` login hint). The token carries the scopes asked (all when none is asked)."""
         form = await request.post()
-        if form.get("grant_type") != "client_credentials":
+        grant = form.get("grant_type")
+        subject = ""
+        if grant == JWT_BEARER_GRANT:
+            claims = self._verified(str(form.get("assertion", "")))
+            subject = self._device_of_hint(str(claims.get("sub", ""))) if claims else ""
+            if not subject:
+                return web.json_response({"error": "invalid_grant"}, status=400)
+        elif grant != "client_credentials":
             return web.json_response({"error": "unsupported_grant_type"}, status=400)
-        if not self._client_authenticated(form):
+        elif not self._client_authenticated(form):
             return web.json_response({"error": "invalid_client"}, status=401)
         asked = frozenset(str(form.get("scope", "")).split()) or frozenset(SCOPES.values())
         if not asked <= frozenset(SCOPES.values()):
@@ -327,7 +339,7 @@ class ControlApi:
         ttl = self.emulator.cell.qod_token_ttl_s
         now = time.monotonic()
         self.tokens = {t: v for t, v in self.tokens.items() if v[0] > now}  # bounded: live ones only
-        self.tokens[token] = (now + ttl, asked)
+        self.tokens[token] = (now + ttl, asked, subject)
         return web.json_response(
             {
                 "access_token": token,
@@ -341,36 +353,46 @@ class ControlApi:
         if not self.client_id or form.get("client_id", self.client_id) != self.client_id:
             return False
         if "client_assertion" in form:
-            return form.get("client_assertion_type") == JWT_BEARER and self._assertion_ok(
-                str(form["client_assertion"])
-            )
+            if form.get("client_assertion_type") != JWT_BEARER:
+                return False
+            claims = self._verified(str(form["client_assertion"]))
+            return claims is not None and claims["sub"] == self.client_id
         return bool(self.secret) and secrets.compare_digest(str(form.get("client_secret", "")), self.secret)
 
-    def _assertion_ok(self, assertion: str) -> bool:
-        """RFC 7523: signed by the registered key, issued by and for the client, for this token endpoint
-        (any host, its path), not expired, with a `jti` never used before."""
+    def _device_of_hint(self, hint: str) -> str:
+        """The drone whose phone number a `tel:` login hint names ("" when none)."""
+        phone = hint.removeprefix("tel:") if hint.startswith("tel:") else ""
+        operator = self.operator
+        if not phone or operator is None:
+            return ""
+        return next((uav for uav, d in operator.devices.items() if d.get("phoneNumber") == phone), "")
+
+    def _verified(self, assertion: str) -> dict[str, Any] | None:
+        """RFC 7523's checks of an assertion: signed by the registered key, issued by the client, for this
+        token endpoint (any host, its path), at most MAX_ASSERTION_LIFETIME_S long, its `jti` never used
+        before. Its claims, or None."""
         if self.client_key is None:
-            return False
+            return None
         import jwt
 
         try:
-            claims = jwt.decode(
+            claims: dict[str, Any] = jwt.decode(
                 assertion, self.client_key, algorithms=[signing_algorithm(self.client_key)],
                 issuer=self.client_id,
                 options={"require": ["exp", "iat", "jti", "aud", "sub"], "verify_aud": False},
             )  # fmt: skip
         except jwt.PyJWTError as exc:
-            log.info("qod: client assertion refused: %s", exc)
-            return False
+            log.info("qod: assertion refused: %s", exc)
+            return None
         audience = claims["aud"] if isinstance(claims["aud"], list) else [claims["aud"]]
-        if claims["sub"] != self.client_id or not any(str(a).endswith("/oauth2/token") for a in audience):
-            return False
+        if not any(str(a).endswith("/oauth2/token") for a in audience):
+            return None
         if claims["exp"] - claims["iat"] > MAX_ASSERTION_LIFETIME_S or claims["jti"] in self.assertions:
-            return False
+            return None
         self.assertions[str(claims["jti"])] = None
         while len(self.assertions) > SEEN_ASSERTIONS:
             self.assertions.popitem(last=False)
-        return True
+        return claims
 
     async def revoke(self, request: web.Request) -> web.Response:
         count = len(self.tokens)

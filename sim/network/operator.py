@@ -162,19 +162,14 @@ class Operator:
 
     # ---- the API ----------------------------------------------------------------------------------------
 
-    def create(self, body: Any) -> tuple[Answer, list[Notification]]:
+    def create(self, body: Any, subject: str = "") -> tuple[Answer, list[Notification]]:
+        """`subject`: the drone a three-legged token names ("": a two-legged token)."""
         bad = problem(CREATE_SESSION_STRICT, body)
         if bad is not None:
             return self._reject(400, "INVALID_ARGUMENT", bad), []
-        if "device" not in body:
-            return self._reject(
-                422, "MISSING_IDENTIFIER", "the device cannot be identified (two-legged token)"
-            ), []
-        if _only_nai(body["device"]):
-            return self._reject(422, "UNSUPPORTED_IDENTIFIER", UNSUPPORTED_NAI), []
-        uav = self._uav_of(body["device"])
-        if uav is None:
-            return self._reject(404, "IDENTIFIER_NOT_FOUND", "device identifier not found"), []
+        uav, refused = self._identified(body, subject)
+        if refused is not None:
+            return refused, []
         server = body["applicationServer"]
         if not _server_matches(server, self.servers.get(uav, "")):
             return self._reject(400, "INVALID_ARGUMENT", f"this device has no flow to {server}"), []
@@ -199,23 +194,28 @@ class Operator:
             answer = error(429, "TOO_MANY_REQUESTS", "too many sessions; delete some")
             return replace(answer, retry_after_s=TOO_MANY_RETRY_AFTER_S), []
         duration = min(body["duration"], self.max_duration_s(body["qosProfile"]))
-        session = Session(str(uuid.uuid4()), uav, body["device"], body, duration)
+        session = Session(str(uuid.uuid4()), uav, body.get("device", {}), body, duration)
         session.settle_at_s = now + self.cell.qod_setup_s
         self.sessions[session.session_id] = session
         self.counters.created += 1
         notes = self._expire_and_settle(now)
         return Answer(201, self.info(session)), notes
 
-    def get(self, session_id: str) -> Answer:
+    def _session(self, session_id: str, subject: str) -> Session | None:
+        """A session by id; a three-legged token sees only its own device's (another's does not exist)."""
         session = self.sessions.get(session_id)
+        return None if session is None or (subject and session.uav != subject) else session
+
+    def get(self, session_id: str, subject: str = "") -> Answer:
+        session = self._session(session_id, subject)
         return (
             error(404, "NOT_FOUND", "the session does not exist")
             if session is None
             else Answer(200, self.info(session))
         )
 
-    def extend(self, session_id: str, body: Any) -> Answer:
-        session = self.sessions.get(session_id)
+    def extend(self, session_id: str, body: Any, subject: str = "") -> Answer:
+        session = self._session(session_id, subject)
         if session is None:
             return self._reject(404, "NOT_FOUND", "the session does not exist")
         bad = problem(EXTEND_SESSION_STRICT, body)
@@ -233,8 +233,10 @@ class Operator:
         self.counters.extended += 1
         return Answer(200, self.info(session))
 
-    def delete(self, session_id: str) -> tuple[Answer, list[Notification]]:
-        session = self.sessions.pop(session_id, None)
+    def delete(self, session_id: str, subject: str = "") -> tuple[Answer, list[Notification]]:
+        session = self._session(session_id, subject)
+        if session is not None:
+            del self.sessions[session_id]
         if session is None:
             return self._reject(404, "NOT_FOUND", "the session does not exist"), []
         self.counters.deleted += 1
@@ -243,19 +245,13 @@ class Operator:
             notes = self._end(session, "DELETE_REQUESTED", self.monotonic())
         return Answer(204), notes
 
-    def retrieve(self, body: Any) -> Answer:
+    def retrieve(self, body: Any, subject: str = "") -> Answer:
         bad = problem(RETRIEVE_SESSIONS_STRICT, body)
         if bad is not None:
             return self._reject(400, "INVALID_ARGUMENT", bad)
-        if "device" not in body:
-            return self._reject(
-                422, "MISSING_IDENTIFIER", "the device cannot be identified (two-legged token)"
-            )
-        if _only_nai(body["device"]):
-            return self._reject(422, "UNSUPPORTED_IDENTIFIER", UNSUPPORTED_NAI)
-        uav = self._uav_of(body["device"])
-        if uav is None:
-            return self._reject(404, "IDENTIFIER_NOT_FOUND", "device identifier not found")
+        uav, refused = self._identified(body, subject)
+        if refused is not None:
+            return refused
         return Answer(200, [self.info(s) for s in self.sessions.values() if s.uav == uav])
 
     # ---- the QoS Profiles API (qos-profiles v1.1.0) ----------------------------------------------------
@@ -371,7 +367,8 @@ class Operator:
     def info(self, session: Session) -> dict[str, Any]:
         """The session as a CAMARA SessionInfo."""
         out = {k: v for k, v in session.body.items() if k not in ("duration", "device", "sinkCredential")}
-        out["device"] = dict([next(iter(session.device.items()))])  # one identifier in a response
+        if session.device:  # one identifier in a response; none for a three-legged token's session
+            out["device"] = dict([next(iter(session.device.items()))])
         out |= {"sessionId": session.session_id, "duration": session.duration_s, "qosStatus": session.status}
         if session.started_wall is not None:
             out["startedAt"] = _rfc3339(session.started_wall)
@@ -384,6 +381,24 @@ class Operator:
             if session.started_s is not None and session.ended_s is not None:
                 out["duration"] = max(1, round(session.ended_s - session.started_s))
         return out
+
+    def _identified(self, body: dict[str, Any], subject: str) -> tuple[str, Answer | None]:
+        """The drone a request is about: the one its three-legged token names (then the body must not
+        name a device), or the one its `device` names (a two-legged token)."""
+        if subject:
+            if "device" in body:
+                why = "the access token already identifies the device: leave `device` out"
+                return "", self._reject(422, "UNNECESSARY_IDENTIFIER", why)
+            return subject, None
+        if "device" not in body:
+            why = "the device cannot be identified (two-legged token)"
+            return "", self._reject(422, "MISSING_IDENTIFIER", why)
+        if _only_nai(body["device"]):
+            return "", self._reject(422, "UNSUPPORTED_IDENTIFIER", UNSUPPORTED_NAI)
+        uav = self._uav_of(body["device"])
+        if uav is None:
+            return "", self._reject(404, "IDENTIFIER_NOT_FOUND", "device identifier not found")
+        return uav, None
 
     def _uav_of(self, device: dict[str, Any]) -> str | None:
         return next((uav for uav, known in self.devices.items() if _device_matches(device, known)), None)
