@@ -262,13 +262,14 @@ def test_camara_a_duration_past_the_profiles_maximum_is_fitted_before_the_first_
     assert "profile QOS_E is ACTIVE, 1..3 s: asking for 3 s, not 4" in log
 
 
-@pytest.mark.parametrize("legs", ["two", "three"])
-def test_camara_private_key_jwt_flies_a_drone_to_priority_against_the_real_cell(
-    tmp_path: Path, legs: str
+@pytest.mark.parametrize("mode", ["client-secret", "private-key-jwt", "three-legged"])
+def test_camara_each_oauth2_mode_flies_a_drone_to_priority_against_the_real_cell(
+    tmp_path: Path, mode: str
 ) -> None:
-    """The agent authenticates with a signed client assertion (RFC 7523), the emulated operator checks
-    it against the registered public key; the drone gets its session. Three-legged: a token for the
-    drone (the JWT-bearer grant with its tel: login hint), and no `device` in any body."""
+    """The agent gets its tokens from the emulated operator's token endpoint with a client secret, with a
+    signed client assertion (RFC 7523) checked against the registered public key, or (three-legged) per
+    drone by the JWT-bearer grant with its tel: login hint and no `device` in any body; in each mode the
+    drone gets its session."""
     from cryptography.hazmat.primitives import serialization
     from cryptography.hazmat.primitives.asymmetric import rsa
 
@@ -276,11 +277,18 @@ def test_camara_private_key_jwt_flies_a_drone_to_priority_against_the_real_cell(
     key_file = tmp_path / "agent.pem"
     key_file.write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                            serialization.NoEncryption()))  # fmt: skip
+    secret_file = tmp_path / "secret"
+    secret_file.write_text("s3cret\n")
     zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
     cell_port = free_tcp_port()
     config = tmp_path / "qos.toml"
+    credential = (
+        f'client_secret_file = "{secret_file}"'
+        if mode == "client-secret"
+        else f'client_key_file = "{key_file}"'
+    )
     camara = (f'token_url = "http://127.0.0.1:{cell_port}/oauth2/token"\nclient_id = "dynqos-edge"\n'
-              f'client_key_file = "{key_file}"\nthree_legged = {str(legs == "three").lower()}\n')  # fmt: skip
+              f'{credential}\nthree_legged = {str(mode == "three-legged").lower()}\n')  # fmt: skip
     write_config(config, zcfg, cell_port, "camara", "qod_auth = true\n", camara)
     with running(config, zcfg, cell_port) as rig:
         drone = Drone(zcfg)
@@ -291,7 +299,7 @@ def test_camara_private_key_jwt_flies_a_drone_to_priority_against_the_real_cell(
             drone.close()
         log = rig.procs.pop("agent").stop()
     assert "qod: new access token" in log
-    assert ("for tel:+46700000001" in log) == (legs == "three")  # whose token it was
+    assert ("for tel:+46700000001" in log) == (mode == "three-legged")  # whose token it was
 
 
 def test_camara_fixed_api_key_headers_fly_a_drone_to_priority_against_the_real_cell(tmp_path: Path) -> None:
