@@ -108,3 +108,24 @@ def read_headers(path: str, setting: str = "qos.camara.headers_file") -> dict[st
     if not headers:
         raise ConfigError(setting, f"{path} names no header")
     return headers
+
+
+def tls_context(ca_file: str, cert_file: str, key_file: str) -> Any:
+    """The TLS settings for calls to the operator: its CA (else the system's trust) and our client
+    certificate (mutual TLS), or None when none is set. A file that does not load is a ConfigError."""
+    if not (ca_file or cert_file):
+        return None
+    import ssl
+
+    try:
+        context = ssl.create_default_context(cafile=ca_file or None)
+    except (OSError, ssl.SSLError) as exc:
+        raise ConfigError("qos.camara.ca_file", f"cannot load {ca_file} ({exc})") from None
+    if cert_file:
+        try:
+            context.load_cert_chain(cert_file, key_file)
+        except (OSError, ssl.SSLError) as exc:
+            raise ConfigError(
+                "qos.camara.tls_cert_file", f"cannot load {cert_file} with {key_file} ({exc})"
+            ) from None
+    return context

@@ -91,6 +91,11 @@ class CamaraConfig:
     # signs a client assertion for each token; its public key is registered with the operator
     client_key_file: str = ""
     scope: str = AGENT_SCOPE  # asked with each token: the scopes of every call the agent makes
+    # TLS to the operator: a CA bundle to verify it ("" = the system's), and a client certificate and its
+    # key for operators that want mutual TLS (both or neither)
+    ca_file: str = ""
+    tls_cert_file: str = ""
+    tls_key_file: str = ""
     # three-legged: a token per drone (RFC 7523 JWT-bearer grant, the assertion's `sub` the drone's
     # login hint, tel:<phoneNumber>), and requests that name no device (needs client_key_file)
     three_legged: bool = False
@@ -138,6 +143,19 @@ class CamaraConfig:
         _require(
             not (self.headers_file and self.token_url), "headers_file", "is instead of token_url, not with it"
         )
+        _require(
+            bool(self.tls_cert_file) == bool(self.tls_key_file),
+            "tls_cert_file",
+            "and tls_key_file go together",
+        )
+        if self.three_legged:  # the drone's token is asked with an assertion naming its phone number
+            _require(
+                bool(self.token_url and self.client_key_file),
+                "three_legged",
+                "needs token_url and client_key_file",
+            )
+            for uav, device in self.devices.items():
+                _require(bool(device.phoneNumber), f"devices.{uav}", "needs a phoneNumber with three_legged")
         for uav in self.devices:
             _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"devices.{uav}", "is not a drone id")
 

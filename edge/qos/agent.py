@@ -36,7 +36,7 @@ from aiohttp import web
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus, Priority, Publisher, Received
-from dynqos.common.camara import load_private_key, read_headers, read_secret
+from dynqos.common.camara import load_private_key, read_headers, read_secret, tls_context
 from dynqos.common.clock import NS_PER_S, Clock, MonotonicClock, to_ns
 from dynqos.common.config import CamaraConfig, Config
 from dynqos.common.errors import ConfigError
@@ -75,6 +75,7 @@ def preflight(config: Config) -> None:
             f"{server!r} is not an IP address: the network identifies the flow by address",
         ) from None
     read_headers(config.qos.camara.headers_file)
+    tls_context(config.qos.camara.ca_file, config.qos.camara.tls_cert_file, config.qos.camara.tls_key_file)
     if config.qos.camara.token_url:
         read_secret(config.qos.camara.client_secret_file)
         if config.qos.camara.client_key_file:

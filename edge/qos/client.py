@@ -37,6 +37,7 @@ from dynqos.common.camara import (
     read_headers,
     read_secret,
     signing_algorithm,
+    tls_context,
 )
 from dynqos.common.config import CamaraConfig
 
@@ -118,6 +119,7 @@ class QodClient:
         self.profiles_root = profiles_root(cfg)
         self.secret = read_secret(cfg.client_secret_file) if cfg.token_url else ""
         self.fixed_headers = read_headers(cfg.headers_file)
+        self.tls = tls_context(cfg.ca_file, cfg.tls_cert_file, cfg.tls_key_file)
         self.key = load_private_key(cfg.client_key_file) if cfg.token_url and cfg.client_key_file else None
         self.rng = rng or random.Random()
         self.http: aiohttp.ClientSession | None = None
@@ -128,7 +130,10 @@ class QodClient:
         self.token_refreshes = 0
 
     async def __aenter__(self) -> QodClient:
-        self.http = aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=self.cfg.timeout_s))
+        connector = aiohttp.TCPConnector(ssl=self.tls) if self.tls is not None else None
+        self.http = aiohttp.ClientSession(
+            timeout=aiohttp.ClientTimeout(total=self.cfg.timeout_s), connector=connector
+        )
         return self
 
     async def __aexit__(self, *exc: object) -> None:
