@@ -112,7 +112,7 @@ def _cases(closed: int, closed2: int, taken: int, tmp: Path) -> list[tuple[list[
         (["sim", "cell", "--set", "cell.qod=true"], "needs a control port"),
         (
             ["sim", "cell", "--set", "cell.qod=true", "--set", "cell.qod_auth=true"],
-            "needs [qos.camara] client_id",
+            "needs [qos.camara] headers_file, or client_id",
         ),
         (
             ["onboard", *unreachable, "--set", f"zenoh.priority_port={closed2}"],
