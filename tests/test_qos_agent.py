@@ -354,7 +354,37 @@ def agent_for(
 stopped_stderr: list[str] = []
 
 
-class SlowOperator:
+class ScriptedOperator:
+    """A scripted QoD operator: http.server on 127.0.0.1 in a thread, answering as its subclass says."""
+
+    def _serve(self, handler: type[http.server.BaseHTTPRequestHandler]) -> None:
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+
+    @property
+    def root(self) -> str:
+        return f"http://127.0.0.1:{self.server.server_address[1]}/qod"
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+class QuietHandler(http.server.BaseHTTPRequestHandler):
+    def log_message(self, *_: object) -> None:
+        pass
+
+    def _answer(self, status: int, body: Any = None) -> None:
+        data = b"" if body is None else json.dumps(body).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+
+class SlowOperator(ScriptedOperator):
     """A scripted QoD operator (http.server on 127.0.0.1, in a thread) whose create answers only after
     `delay_s`: what a real one may do, and what the emulated cell never does."""
 
@@ -367,18 +397,7 @@ class SlowOperator:
         self.port = port
         operator = self
 
-        class Handler(http.server.BaseHTTPRequestHandler):
-            def log_message(self, *_: object) -> None:
-                pass
-
-            def _answer(self, status: int, body: Any = None) -> None:
-                data = b"" if body is None else json.dumps(body).encode()
-                self.send_response(status)
-                self.send_header("Content-Type", "application/json")
-                self.send_header("Content-Length", str(len(data)))
-                self.end_headers()
-                self.wfile.write(data)
-
+        class Handler(QuietHandler):
             def _session(self, status: str) -> dict[str, Any]:
                 return {
                     "sessionId": operator.SESSION_ID, "duration": 60, "qosStatus": status,
@@ -409,17 +428,7 @@ class SlowOperator:
                 operator.calls.append(f"DELETE {self.path}")
                 self._answer(204)
 
-        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
-        self.thread.start()
-
-    @property
-    def root(self) -> str:
-        return f"http://127.0.0.1:{self.server.server_address[1]}/qod"
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
+        self._serve(Handler)
 
 
 def test_camara_a_create_in_flight_at_sigterm_is_waited_for_and_its_session_deleted(tmp_path: Path) -> None:
@@ -437,7 +446,7 @@ def test_camara_a_create_in_flight_at_sigterm_is_waited_for_and_its_session_dele
         operator.close()
 
 
-class RefusingOperator:
+class RefusingOperator(ScriptedOperator):
     """A scripted operator (http.server on 127.0.0.1) that answers every create with one CAMARA error
     and counts the calls: what a real operator says to settings it will not take."""
 
@@ -445,37 +454,19 @@ class RefusingOperator:
         self.calls: list[str] = []
         operator = self
 
-        class Handler(http.server.BaseHTTPRequestHandler):
-            def log_message(self, *_: object) -> None:
-                pass
-
+        class Handler(QuietHandler):
             def do_POST(self) -> None:
                 self.rfile.read(int(self.headers.get("Content-Length", 0)))
                 operator.calls.append(f"POST {self.path} {self.headers.get('x-correlator', '')}")
                 body: Any = [] if self.path.endswith("/retrieve-sessions") else {
                     "status": status, "code": code, "message": "as the spec says"
                 }  # fmt: skip
-                data = json.dumps(body).encode()
-                self.send_response(200 if isinstance(body, list) else status)
-                self.send_header("Content-Type", "application/json")
-                self.send_header("Content-Length", str(len(data)))
-                self.end_headers()
-                self.wfile.write(data)
+                self._answer(200 if isinstance(body, list) else status, body)
 
-        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
-        self.thread.start()
-
-    @property
-    def root(self) -> str:
-        return f"http://127.0.0.1:{self.server.server_address[1]}/qod"
+        self._serve(Handler)
 
     def creates(self) -> list[str]:
         return [c for c in self.calls if c.startswith("POST /qod/sessions ")]
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
 
 
 @pytest.mark.parametrize(
