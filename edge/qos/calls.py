@@ -19,6 +19,7 @@ from dynqos.edge.qos.sink import SinkGuard
 log = logging.getLogger(__name__)
 
 
+CREDENTIAL = "its credential (client_secret_file, client_key_file or headers_file)"
 # Answers that say the agent's own settings are wrong, not the network's state: asking again cannot help.
 # CAMARA error codes (quality-on-demand v1.1.0, CAMARA Commonalities) and the setting each one points at.
 SETTINGS_AT_FAULT = {
@@ -31,7 +32,7 @@ SETTINGS_AT_FAULT = {
     "QUALITY_ON_DEMAND.QOS_PROFILE_NOT_APPLICABLE": "[qos.camara] qos_profile (not offered for this device)",
     "PERMISSION_DENIED": "[qos.camara] client_id and its scopes (the token does not allow this call)",
     "INVALID_TOKEN_CONTEXT": "[qos.camara] the authentication mode (the token does not fit the request)",
-    "TOKEN": "[qos.camara] client_id and client_secret_file (the token endpoint refused them)",
+    "TOKEN": f"[qos.camara] client_id and {CREDENTIAL} (the token endpoint refused them)",
 }
 
 
@@ -40,7 +41,7 @@ def settings_at_fault(exc: QodError) -> str | None:
     if exc.code in SETTINGS_AT_FAULT:
         return SETTINGS_AT_FAULT[exc.code]
     if exc.status in (401, 403):
-        return "[qos.camara] client_id, client_secret_file and token_url (the operator refuses them)"
+        return f"[qos.camara] client_id, {CREDENTIAL} and token_url (the operator refuses them)"
     return None
 
 
