@@ -12,8 +12,10 @@ Default deny, then:
   sends a put where a subscriber was declared, so without this no publisher's data would go anywhere.
 
 A rule applies only where the message's key is included in the rule's key expression, so a session
-that declares a wider subscriber (`dynqos/**`, `**`) matches no allow rule and is refused. Queries,
-queryables and liveliness are used by no dynqos component and are denied to everyone.
+that declares a wider subscriber (`dynqos/**`, `**`) matches no allow rule and is refused. Liveliness
+is allowed only where replicas of one edge service find each other (`dynqos/edge/replicas/<service>/**`,
+for that service's identity alone); queries and queryables are used by no dynqos component and are
+denied to everyone.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from dynqos.common.keys import (
     ROOT,
     Downlink,
     Stream,
+    any_replica_of,
     check_uav_id,
     downlink_all_drones,
     uplink_all_drones,
@@ -33,16 +36,24 @@ from dynqos.common.keys import (
 
 @dataclass(frozen=True, slots=True)
 class EdgeRole:
-    """What one edge service may read (subscribe to) and write (publish)."""
+    """What one edge service may read (subscribe to) and write (publish), and the liveliness tokens its
+    replicas declare and watch."""
 
     reads: tuple[str, ...]
     writes: tuple[str, ...]
+    tokens: tuple[str, ...] = ()
 
 
 EDGE_ROLES: dict[str, EdgeRole] = {
     "mpc": EdgeRole(
-        reads=(uplink_all_drones(Stream.STATE), downlink_all_drones(Downlink.REFERENCE)),
+        # the commands too: a standby watches the ones the replica flying a drone sends (edge/replicas.py)
+        reads=(
+            uplink_all_drones(Stream.STATE),
+            downlink_all_drones(Downlink.REFERENCE),
+            downlink_all_drones(Downlink.COMMAND),
+        ),
         writes=(downlink_all_drones(Downlink.COMMAND),),
+        tokens=(any_replica_of("mpc"),),
     ),
     "planner": EdgeRole(
         reads=(uplink_all_drones(Stream.STATE),),
@@ -84,14 +95,25 @@ def _rule(rule_id: str, flow: str, messages: list[str], keys: list[str] | tuple[
 
 
 def _reader_and_writer(
-    name: str, reads: list[str] | tuple[str, ...], writes: list[str] | tuple[str, ...]
+    name: str,
+    reads: list[str] | tuple[str, ...],
+    writes: list[str] | tuple[str, ...],
+    tokens: tuple[str, ...] = (),
 ) -> list[dict[str, Any]]:
-    """Rules for a subject that subscribes to `reads` and publishes on `writes`."""
-    return [
+    """Rules for a subject that subscribes to `reads`, publishes on `writes` and, where it has
+    `tokens`, declares, queries and watches liveliness tokens there."""
+    rules = [
         _rule(f"{name}-subscribe", "ingress", ["declare_subscriber"], reads),
         _rule(f"{name}-receive", "egress", ["put"], reads),
         _rule(f"{name}-publish", "ingress", ["put"], writes),
     ]
+    if tokens:
+        rules += [
+            _rule(f"{name}-tokens", "ingress",
+                  ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"], tokens),
+            _rule(f"{name}-tokens-seen", "egress", ["liveliness_token", "reply"], tokens),
+        ]  # fmt: skip
+    return rules
 
 
 def access_control_policy(drones: tuple[str, ...] | list[str]) -> dict[str, Any]:
@@ -115,7 +137,7 @@ def access_control_policy(drones: tuple[str, ...] | list[str]) -> dict[str, Any]
 
     for service, role in EDGE_ROLES.items():
         cn = edge_common_name(service)
-        grant(cn, cn, _reader_and_writer(cn, role.reads, role.writes))
+        grant(cn, cn, _reader_and_writer(cn, role.reads, role.writes, role.tokens))
     for uav in drones:
         check_uav_id(uav)
         if reserved_name(uav):

@@ -78,6 +78,16 @@ class Publisher(Protocol):
     def close(self) -> None: ...
 
 
+class Token(Protocol):
+    """A liveliness token: present on the bus while held, gone when closed or when its process dies."""
+
+    def close(self) -> None: ...
+
+
+# (key, alive): called once per token already present, then once per change
+TokenWatcher = Callable[[str, bool], None]
+
+
 class Bus(Protocol):
     """A session seen through the few operations dynqos needs."""
 
@@ -95,6 +105,12 @@ class Bus(Protocol):
         expect: tuple[type[Message], ...] = (),
         decoder: Callable[[bytes], Message] = decode,
     ) -> SubscriptionStats: ...
+
+    def declare_token(self, key: str) -> Token: ...
+
+    def watch_tokens(self, key_expr: str, on_change: TokenWatcher) -> None: ...
+
+    def alive_tokens(self, key_expr: str, timeout_s: float) -> list[str]: ...
 
     def close(self) -> None: ...
 
@@ -164,6 +180,16 @@ class MemoryPublisher:
         pass
 
 
+class MemoryToken:
+    def __init__(self, bus: MemoryBus, key: str) -> None:
+        self._bus, self.key, self.closed = bus, key, False
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self._bus._token_changed(self.key, alive=False)
+
+
 class MemoryBus:
     """Every subscriber of the process, matched by key expression; puts are delivered in order.
 
@@ -183,6 +209,8 @@ class MemoryBus:
         self._in_flight: deque[tuple[int, str, bytes]] = deque()
         self._lock = threading.Lock()
         self.published: dict[str, int] = {}  # key -> messages put (delivered or not)
+        self._tokens: dict[str, int] = {}  # key -> how many holders
+        self._token_watchers: list[tuple[re.Pattern[str], TokenWatcher]] = []
 
     def publisher(
         self, key: str, priority: Priority, *, drop_when_congested: bool = False, express: bool = False
@@ -202,6 +230,37 @@ class MemoryBus:
             self._subscribers.append((key_matcher(key_expr), delivery(queue, stats, expect, decoder)))
             self.subscriptions.append(stats)
         return stats
+
+    def declare_token(self, key: str) -> MemoryToken:
+        self._token_changed(key, alive=True)
+        return MemoryToken(self, key)
+
+    def watch_tokens(self, key_expr: str, on_change: TokenWatcher) -> None:
+        pattern = key_matcher(key_expr)
+        with self._lock:
+            self._token_watchers.append((pattern, on_change))
+            present = [key for key in self._tokens if pattern.fullmatch(key)]
+        for key in present:
+            on_change(key, True)
+
+    def alive_tokens(self, key_expr: str, timeout_s: float) -> list[str]:
+        pattern = key_matcher(key_expr)
+        with self._lock:
+            return [key for key in self._tokens if pattern.fullmatch(key)]
+
+    def _token_changed(self, key: str, *, alive: bool) -> None:
+        """zenoh's rule: a key is alive while any token holds it; watchers hear only the edges."""
+        with self._lock:
+            before = self._tokens.get(key, 0)
+            after = before + (1 if alive else -1)
+            if after > 0:
+                self._tokens[key] = after
+            else:
+                self._tokens.pop(key, None)
+            watchers = [w for pattern, w in self._token_watchers if pattern.fullmatch(key)]
+        if (before == 0) != (after <= 0):
+            for watcher in watchers:
+                watcher(key, alive)
 
     def deliver(self, key: str, data: bytes) -> None:
         with self._lock:
@@ -234,3 +293,4 @@ class MemoryBus:
         with self._lock:
             self._subscribers.clear()
             self._in_flight.clear()
+            self._token_watchers.clear()

@@ -12,6 +12,8 @@ declared on, so a receiver subscribes to both flows with one wildcard:
     dynqos/<uav>/up/<flow>/qos            drone -> QoS agent: priority wanted or not (QosRequest)
     dynqos/<uav>/down/qos                 QoS agent -> drone: the network's grant (QosGrant)
     dynqos/<uav>/down/qos/decision        QoS agent's arbiter -> drone and tools (QosDecision)
+    dynqos/edge/replicas/<service>/<group>/<id>
+                                          liveliness token of one replica of an edge service
 """
 
 from __future__ import annotations
@@ -73,6 +75,26 @@ def downlink(uav: str, kind: Downlink) -> str:
 
 def downlink_all_drones(kind: Downlink) -> str:
     return f"{ROOT}/*/{Downlink(kind).value}"
+
+
+def replicas_of(service: str, group: str = "all") -> str:
+    """The liveliness tokens of the replicas of an edge service that share one set of drones (`group`:
+    all of them, or one static shard); "edge" is never a drone id."""
+    return f"{ROOT}/edge/replicas/{service}/{group}/*"
+
+
+def replica_token(service: str, group: str, replica: str) -> str:
+    return f"{ROOT}/edge/replicas/{service}/{group}/{replica}"
+
+
+def any_replica_of(service: str) -> str:
+    """Every token of an edge service's replicas, in any group (what its ACL rules cover)."""
+    return f"{ROOT}/edge/replicas/{service}/**"
+
+
+def replica_of_token(key: str) -> str:
+    """The replica id at the end of a replica token's key."""
+    return key.rsplit("/", 1)[-1]
 
 
 @dataclass(frozen=True, slots=True)

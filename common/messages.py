@@ -80,6 +80,8 @@ class State(Message):
         "quat": f.vector(4, -1.0001, 1.0001),
         "rtt_est_ms": _latency_ms,
         "mode": f.text(32),
+        "command_term": f.integer(),
+        "command_replica": f.text(64),
     }
 
     stamp_ns: int
@@ -88,6 +90,10 @@ class State(Message):
     quat: tuple[float, float, float, float]
     rtt_est_ms: float = 0.0
     mode: str = ""
+    # The controller the drone follows now (the term and replica of its last accepted Command), so the
+    # edge's replicas agree on who flies it (edge/replicas.py).
+    command_term: int = 0
+    command_replica: str = ""
 
     def _check(self) -> None:
         norm = math.sqrt(sum(q * q for q in self.quat))
@@ -109,6 +115,8 @@ class Command(Message):
         "dt_s": f.real(1e-4, 1.0),
         "accel_mps2": f.sequence(f.vector(3, -ACCEL_LIMIT_MPS2, ACCEL_LIMIT_MPS2), 1, MAX_HORIZON),
         "yaw_rad": f.sequence(_angle, 1, MAX_HORIZON),
+        "term": f.integer(),
+        "replica": f.text(64),
     }
 
     state_seq: int
@@ -117,6 +125,10 @@ class Command(Message):
     dt_s: float
     accel_mps2: tuple[tuple[float, float, float], ...]
     yaw_rad: tuple[float, ...]
+    # Fencing (edge/replicas.py): the drone follows only the highest term it has seen; 0 and "" are a
+    # controller that does not take part (a single MPC of an older release).
+    term: int = 0
+    replica: str = ""
 
     def _check(self) -> None:
         if len(self.yaw_rad) != len(self.accel_mps2):

@@ -266,6 +266,16 @@ class ZenohPublisher:
         self._inner.undeclare()  # type: ignore[no-untyped-call]
 
 
+class ZenohToken:
+    def __init__(self, inner: zenoh.LivelinessToken) -> None:
+        self._inner: zenoh.LivelinessToken | None = inner
+
+    def close(self) -> None:
+        if self._inner is not None:
+            self._inner.undeclare()  # type: ignore[no-untyped-call]
+            self._inner = None
+
+
 class ZenohBus:
     """A zenoh session seen through the few operations dynqos needs (the `Bus` protocol)."""
 
@@ -310,6 +320,25 @@ class ZenohBus:
             self._subscribers.append(subscriber)
             self.subscriptions.append(stats)
         return stats
+
+    def declare_token(self, key: str) -> ZenohToken:
+        """A liveliness token; the router withdraws it when this session closes or its process dies."""
+        return ZenohToken(self._session.liveliness().declare_token(key))
+
+    def watch_tokens(self, key_expr: str, on_change: Callable[[str, bool], None]) -> None:
+        """Tokens already present (zenoh's history), then every appearance and withdrawal."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+        subscriber = self._session.liveliness().declare_subscriber(key_expr, on_sample, history=True)
+        with self._lock:
+            self._subscribers.append(subscriber)
+
+    def alive_tokens(self, key_expr: str, timeout_s: float) -> list[str]:
+        """The tokens present now, as the router knows them (a liveliness query; ends when it answers)."""
+        replies = self._session.liveliness().get(key_expr, timeout=timeout_s)
+        return [str(reply.ok.key_expr) for reply in replies if reply.ok is not None]
 
     def links(self) -> list[LinkInfo]:
         return [LinkInfo(link.src, link.dst, link.priorities) for link in self._session.info.links()]

@@ -5,6 +5,11 @@ than the last accepted one: duplicates, replays and reordering are rejected), it
 not in the future and its horizon still covers now. The setpoint for onboard time t is index
 floor((t - state_stamp_ns) / dt_s). RTT = arrival - state_stamp - edge_hold (onboard clock only).
 The watchdog expires when no valid command has arrived for `watchdog_ns`.
+
+Fencing: a command whose term is below the highest term accepted so far comes from a replica that has
+been replaced (a hung or partitioned MPC that came back) and is refused; an equal term from another
+replica than the one that holds it is refused too, so two replicas never fly the drone at once
+(edge/replicas.py). The term and replica followed go back to the edge in every State.
 """
 
 from __future__ import annotations
@@ -23,10 +28,12 @@ class CommandCounters:
     future: int = 0
     expired: int = 0
     unknown_state: int = 0
+    fenced: int = 0  # from a replica with an older term, or a second replica claiming the same term
+    controller_changes: int = 0
 
     @property
     def rejected(self) -> int:
-        return self.wrong_drone + self.stale + self.future + self.expired + self.unknown_state
+        return self.wrong_drone + self.stale + self.future + self.expired + self.unknown_state + self.fenced
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,6 +52,9 @@ class CommandTracker:
     active: Command | None = None
     last_valid_ns: int | None = None
     last_rtt_ms: float | None = None
+    longest_gap_ns: int = 0  # between two accepted commands
+    term: int = 0  # the controller followed: the highest term accepted, and the replica holding it
+    replica: str = ""
 
     def __post_init__(self) -> None:
         self.rtts = SlidingWindow(self.rtt_window)
@@ -68,6 +78,11 @@ class CommandTracker:
         if command.uav != self.uav:
             c.wrong_drone += 1
             return False
+        if command.term < self.term or (
+            command.term == self.term and self.active is not None and command.replica != self.replica
+        ):
+            c.fenced += 1
+            return False
         if self.active is not None and command.state_seq <= self.active.state_seq:
             c.stale += 1
             return False
@@ -89,6 +104,12 @@ class CommandTracker:
             self.last_rtt_ms = rtt_ms
         for seq in [s for s in self._sent if s <= command.state_seq]:
             del self._sent[seq]
+        if (command.term, command.replica) != (self.term, self.replica):
+            if self.active is not None:
+                c.controller_changes += 1
+            self.term, self.replica = command.term, command.replica
+        if self.last_valid_ns is not None:
+            self.longest_gap_ns = max(self.longest_gap_ns, arrival_ns - self.last_valid_ns)
         self.active = command
         self.last_valid_ns = arrival_ns
         c.accepted += 1

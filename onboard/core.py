@@ -192,7 +192,7 @@ class OnboardCore:
         for item in inp.downlink:
             message = item.message
             if isinstance(message, Command):
-                self.tracker.offer(message, item.arrival_ns)
+                self._offer_command(message, item.arrival_ns)
             elif isinstance(message, CameraAck):
                 self.camera_monitor.on_ack(message, item.arrival_ns)
             elif isinstance(message, Detections):
@@ -272,6 +272,8 @@ class OnboardCore:
             quat=fc.quat,
             rtt_est_ms=self.tracker.rtt_estimate_ms(),
             mode="offboard" if self.offloading else "standby",
+            command_term=self.tracker.term,
+            command_replica=self.tracker.replica,
         )
         self.tracker.state_sent(self._state_seq, now)
         self.counters.states += 1
@@ -424,6 +426,18 @@ class OnboardCore:
             **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),
         )
 
+    def _offer_command(self, command: Command, arrival_ns: int) -> None:
+        counters = self.tracker.counters
+        changes, fenced = counters.controller_changes, counters.fenced
+        accepted = self.tracker.offer(command, arrival_ns)
+        sender = f"MPC replica {command.replica or '(unnamed)'}"
+        if accepted and counters.controller_changes > changes:
+            self._log(logging.INFO, f"{self.uav}: controller is now {sender} (term {command.term})")
+        elif counters.fenced > fenced and (counters.fenced == 1 or counters.fenced % 1000 == 0):
+            followed = f"{self.tracker.replica or '(unnamed)'} term {self.tracker.term}"
+            self._log(logging.WARNING, f"{self.uav}: refused a command from {sender} term {command.term}: "
+                      f"the drone follows {followed} ({counters.fenced} so far)")  # fmt: skip
+
     def _log(self, level: int, text: str) -> None:
         self._events.append(LogEvent(level, text))
 
@@ -442,8 +456,12 @@ class OnboardCore:
             "expired": t.expired,
             "future": t.future,
             "wrong_drone": t.wrong_drone,
+            "fenced": t.fenced,
+            "controller_changes": t.controller_changes,
+            "controller": f"{self.tracker.replica or '-'}@{self.tracker.term}",
             **vars(self.counters),
             "max_setpoint_gap_ms": f"{self.max_setpoint_gap_ms:.1f}",
+            "max_command_gap_ms": f"{self.tracker.longest_gap_ns / 1e6:.1f}",
         }
 
 

@@ -18,7 +18,7 @@ from dynqos.common.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
-K8S_VERSION = "1.30.0"  # the oldest Kubernetes we promise (StatefulSet pod-index label: 1.28+)
+K8S_VERSION = "1.30.0"  # the oldest Kubernetes we promise
 
 yaml = pytest.importorskip("yaml")
 kubernetes_validate = pytest.importorskip("kubernetes_validate")
@@ -48,7 +48,7 @@ def _base_files() -> list[Path]:
 
 def test_every_base_manifest_validates_against_the_kubernetes_schema() -> None:
     docs = [doc for path in _base_files() for doc in yaml.safe_load_all(path.read_text()) if doc]
-    assert {d["kind"] for d in docs} == {"Namespace", "Deployment", "StatefulSet", "Service"}
+    assert {d["kind"] for d in docs} == {"Namespace", "Deployment", "Service"}
     _validate(docs)
 
 
@@ -95,7 +95,7 @@ SERVICES = {"dynqos-router": "router", "dynqos-mpc": "mpc", "dynqos-planner": "p
             "dynqos-detector": "detector", "dynqos-qos": "qos"}  # fmt: skip
 
 
-def test_production_overlay_turns_on_mtls_access_control_and_mpc_shards(tmp_path: Path) -> None:
+def test_production_overlay_turns_on_mtls_access_control_and_mpc_replicas(tmp_path: Path) -> None:
     docs = _kustomize(DEPLOY / "k8s" / "overlays" / "production")
     configs = _configs(docs, tmp_path)
     router = load_config(configs["router.toml"]).zenoh
@@ -116,9 +116,26 @@ def test_production_overlay_turns_on_mtls_access_control_and_mpc_shards(tmp_path
             f"/etc/dynqos/certs/{f}" for f in ("ca.pem", "cert.pem", "key.pem")
         )
     mpc = workloads["dynqos-mpc"]
+    assert (mpc["kind"], mpc["spec"]["replicas"]) == ("Deployment", 2)  # a primary and a standby per drone
     container = mpc["spec"]["template"]["spec"]["containers"][0]
     env = {e["name"]: e for e in container["env"]}
-    assert int(env["MPC_SHARDS"]["value"]) == mpc["spec"]["replicas"] == 2
+    assert env["DYNQOS_MPC__REPLICA_ID"]["valueFrom"]["fieldRef"]["fieldPath"] == "metadata.name"
+    assert not any("shard" in arg for arg in container["args"])  # no setting has to equal the replica count
+    spread = mpc["spec"]["template"]["spec"]["affinity"]["podAntiAffinity"]
+    assert spread["preferredDuringSchedulingIgnoredDuringExecution"][0]["podAffinityTerm"]["topologyKey"] == (
+        "kubernetes.io/hostname"
+    )
+    (budget,) = [
+        d for d in docs if d["kind"] == "PodDisruptionBudget" and d["metadata"]["name"] == "dynqos-mpc"
+    ]
+    assert budget["spec"]["maxUnavailable"] == 1  # a drain never takes the last standby
+    (hpa,) = [d for d in docs if d["kind"] == "HorizontalPodAutoscaler"]
+    assert hpa["spec"]["scaleTargetRef"] == {
+        "apiVersion": "apps/v1",
+        "kind": "Deployment",
+        "name": "dynqos-mpc",
+    }
+    assert hpa["spec"]["minReplicas"] >= 2
     resources = container["resources"]
     assert resources["requests"] == resources["limits"]  # the Guaranteed QoS class: never CFS-throttled
     assert str(resources["limits"]["cpu"]).isdigit()  # whole CPUs (the static CPU manager pins them)
@@ -157,7 +174,9 @@ def test_production_network_policies_let_in_only_the_flows_and_let_edge_services
     other_egress = [n for n, p in policies.items() if p.get("egress") and n != "dynqos-edge-to-router"]
     assert other_egress == ["dynqos-qos-to-operator"]  # the QoD API; no other service reaches out
     assert [p["port"] for p in policies["dynqos-qos-to-operator"]["egress"][0]["ports"]] == [443]
-    (pdb,) = [d for d in docs if d["kind"] == "PodDisruptionBudget"]
+    (pdb,) = [
+        d for d in docs if d["kind"] == "PodDisruptionBudget" and d["metadata"]["name"] == "dynqos-router"
+    ]
     assert pdb["spec"]["selector"] == {"matchLabels": {"app.kubernetes.io/name": "dynqos-router"}}
     assert pdb["spec"]["minAvailable"] == 1
 

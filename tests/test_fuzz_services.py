@@ -156,7 +156,8 @@ def test_every_bad_message_is_rejected_and_valid_traffic_still_served(
     rgb = keys.uplink("uav1", Flow.DEFAULT, Stream.CAMERA_RGB)
     depth = keys.uplink("uav1", Flow.DEFAULT, Stream.CAMERA_DEPTH)
     down = [keys.downlink("uav1", k) for k in (Downlink.COMMAND, Downlink.CAMERA_ACK, Downlink.DETECTIONS)]
-    assert _last(logs["mpc"], "rejected") == sent[state_key] + sent[ref_key]
+    command_key = keys.downlink("uav1", Downlink.COMMAND)  # the MPC watches its replicas' commands too
+    assert _last(logs["mpc"], "rejected") == sent[state_key] + sent[ref_key] + sent[command_key]
     assert _last(logs["planner"], "rejected") == sent[state_key]
     assert _last(logs["detector"], "rejected") == sent[rgb] + sent[depth]
     assert _last(logs["onboard"], "bad_downlink") == sum(sent[k] for k in down) + sent[ref_key]

@@ -43,6 +43,7 @@ PURE = (
     "dynqos.edge.qos.arbiter",
     "dynqos.edge.qos.grants",
     "dynqos.edge.qos.profiles",
+    "dynqos.edge.replicas",
     "dynqos.sim.network.scheduler",
     "dynqos.sim.network.cell_core",
     "dynqos.sim.vehicle.dynamics",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import re
 import signal
@@ -87,8 +88,20 @@ class Observer:
         return False
 
 
-@pytest.fixture
-def loop(tmp_path: Path) -> Iterator[tuple[Path, ZenohConfig, dict[str, DynqosProcess]]]:
+LoopProcs = tuple[Path, ZenohConfig, dict[str, DynqosProcess]]
+
+
+def mpc_replica(name: str, config: Path) -> DynqosProcess:
+    """An MPC process; named replicas (not "mpc") get that replica id (docs/reliability.md)."""
+    return DynqosProcess(
+        ["edge", "mpc"], config, env=None if name == "mpc" else {"DYNQOS_MPC__REPLICA_ID": name}
+    )
+
+
+@contextlib.contextmanager
+def edge_loop(tmp_path: Path, mpcs: tuple[str, ...] = ("mpc",)) -> Iterator[LoopProcs]:
+    """Router, simulator, planner and the MPC processes `mpcs`; the test adds the onboard daemon. Each is
+    stopped at the end in the reverse order of its start (a SIGSTOPped one is resumed first)."""
     zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
     config = loop_config(tmp_path, zcfg)
     procs: dict[str, DynqosProcess] = {}
@@ -96,12 +109,19 @@ def loop(tmp_path: Path) -> Iterator[tuple[Path, ZenohConfig, dict[str, DynqosPr
         procs["router"] = DynqosProcess(["edge", "router"], config)
         procs["vehicle"] = DynqosProcess(["sim", "vehicle", "--duration", "600"], config)
         procs["planner"] = DynqosProcess(["edge", "planner"], config)
-        procs["mpc"] = DynqosProcess(["edge", "mpc"], config)
+        for name in mpcs:
+            procs[name] = mpc_replica(name, config)
         yield config, zcfg, procs
     finally:
-        for name in ("onboard", "mpc", "planner", "vehicle", "router"):
-            if name in procs:
-                procs[name].stop()
+        for name in reversed(list(procs)):
+            procs[name].proc.send_signal(signal.SIGCONT)
+            procs[name].stop()
+
+
+@pytest.fixture
+def loop(tmp_path: Path) -> Iterator[LoopProcs]:
+    with edge_loop(tmp_path) as started:
+        yield started
 
 
 @pytest.mark.slow
@@ -140,6 +160,8 @@ def test_the_drone_flies_the_circle_survives_bad_commands_and_an_mpc_restart(
             dt_s=0.05,
             accel_mps2=[(9.0, 0.0, 0.0)] * 5,
             yaw_rad=[0.0] * 5,
+            term=real[-1].term,  # a forger that copies the MPC's term still answers no state we sent
+            replica=real[-1].replica,
         )
         for _ in range(5):
             attacker.put_bytes(b"\x00garbage")

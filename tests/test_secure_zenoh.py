@@ -475,3 +475,32 @@ def test_tls_config_errors_name_the_key(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert "tls_ca" in proc.stderr
     assert "missing.pem" in proc.stderr
+
+
+def test_mpc_replicas_find_each_other_and_nobody_else_can_pose_as_one(secure_router: Pki) -> None:
+    """The one liveliness the ACL allows: MPC replicas' tokens, declared, watched and queried by edge-mpc
+    identities (edge/replicas.py). A drone's or the detector's token there never reaches them: the
+    MPC's own second token, declared after them, is the sentinel (one router, in order)."""
+    from dynqos.common import keys
+    from dynqos.common.transport import ZenohBus
+
+    watcher, replica = (
+        ZenohBus(secure_router.open("edge-mpc")),
+        ZenohBus(secure_router.open("edge-mpc")),
+    )
+    seen: queue.Queue[tuple[str, bool]] = queue.Queue()
+    watcher.watch_tokens(keys.replicas_of("mpc"), lambda key, alive: seen.put((key, alive)))
+    impostors = [
+        ZenohBus(secure_router.open(name)).declare_token(keys.replica_token("mpc", "all", name))
+        for name in ("uav1", "edge-detector")
+    ]
+    mine = replica.declare_token(keys.replica_token("mpc", "all", "b"))
+    assert seen.get(timeout=10) == (keys.replica_token("mpc", "all", "b"), True)
+    assert watcher.alive_tokens(keys.replicas_of("mpc"), timeout_s=2.0) == [
+        keys.replica_token("mpc", "all", "b")
+    ]
+    mine.close()
+    assert seen.get(timeout=10) == (keys.replica_token("mpc", "all", "b"), False)
+    assert seen.empty()
+    for token in impostors:
+        token.close()

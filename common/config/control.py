@@ -4,6 +4,7 @@ mission), [detector] and [onboard]."""
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -99,7 +100,15 @@ class MpcConfig:
     max_compensation_s: float = 1.0
     idle_timeout_s: float = 10.0
     health_interval_s: float = 5.0
-    # Scale-out: replica shard_index of shard_count serves the drones with crc32(id) % count == index.
+    # Replicas (docs/reliability.md): any number of `dynqos edge mpc` processes share the drones by
+    # themselves. replica_id names this one (empty: <host>-<pid>); a standby takes a drone over when its
+    # holder leaves a state unanswered this long (keep it well inside [supervisor] watchdog_s), and a
+    # replica that was displaced waits holdoff_s before it takes a drone back by rank alone.
+    replica_id: str = ""
+    takeover_after_s: float = 0.05
+    holdoff_s: float = 2.0
+    # Static sharding (older deployments): shard_index of shard_count serves the drones with
+    # crc32(id) % count == index. Replicas need none of it.
     shard_index: int = 0
     shard_count: int = 1
 
@@ -113,6 +122,10 @@ class MpcConfig:
         _require(10 <= self.max_iter <= 100_000, "max_iter", "must be in 10..100000")
         _require(1 <= self.command_steps <= 60, "command_steps", "must be in 1..60")
         _require(0 <= self.max_compensation_s <= 2.5, "max_compensation_s", "must be in 0..2.5 s")
+        _require(self.replica_id == "" or re.fullmatch(r"[A-Za-z0-9_-]{1,64}", self.replica_id) is not None,
+                 "replica_id", "use 1 to 64 characters from A-Z a-z 0-9 _ - (or leave it empty)")  # fmt: skip
+        _require(0.005 <= self.takeover_after_s <= 1.0, "takeover_after_s", "must be in 0.005..1 s")
+        _require(0 <= self.holdoff_s <= 600, "holdoff_s", "must be in 0..600 s")
         _require(1 <= self.shard_count <= 1024, "shard_count", "must be in 1..1024")
         _require(0 <= self.shard_index < self.shard_count, "shard_index", "must be in 0..shard_count-1")
         _require(0.5 <= self.idle_timeout_s <= 3600, "idle_timeout_s", "must be in 0.5..3600 s")

@@ -144,7 +144,10 @@ class Processes:
         if not self.metrics_base or not (args[0] in ("edge", "onboard") or args[:2] == ["sim", "cell"]):
             return []
         port = self.metrics_ports.setdefault(name, self.metrics_base + len(self.metrics_ports))
-        (self.logs / "metrics.json").write_text(json.dumps(self.metrics_ports, indent=1) + "\n")
+        # Replaced whole (write aside, then rename): a scraper reading it mid-write saw an empty file.
+        tmp = self.logs / "metrics.json.tmp"
+        tmp.write_text(json.dumps(self.metrics_ports, indent=1) + "\n")
+        tmp.replace(self.logs / "metrics.json")
         return ["--metrics-port", str(port)]
 
     def tail(self, name: str, lines: int = 3) -> str:

@@ -3,11 +3,20 @@
 Zenoh callbacks only decode and queue; one worker thread drains the queue, keeps the newest state
 per drone, solves and publishes the Command (REAL_TIME, express). A failed solve sends nothing and
 is counted; the drone's watchdog takes over. Idle drones are dropped after `idle_timeout_s`.
+
+Any number of processes may run side by side: each declares a liveliness token, and edge/replicas.py
+decides from the live set which one flies each drone (the others stand by for it, watching the
+commands it sends, and take over when its token goes or it leaves a state unanswered for
+`takeover_after_s`). Commands carry the replica's term, which the drone uses to refuse a replaced one.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import re
+import socket
+import threading
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +34,7 @@ from dynqos.common.transport import Bus, Priority, Publisher, Received
 from dynqos.edge import metrics
 from dynqos.edge.mpc.controller import DroneController
 from dynqos.edge.mpc.problem import SolveError
+from dynqos.edge.replicas import Assignment, Change, Role
 from dynqos.edge.service import Service, serve
 
 log = logging.getLogger(__name__)
@@ -38,7 +48,18 @@ class MpcCounters:
     solve_failures: int = 0
     references: int = 0
     other_shard: int = 0
+    not_mine: int = 0  # states of drones this replica neither flies nor stands by for
+    membership_refused: int = 0  # token changes beyond MAX_MEMBERSHIP_EVENTS (a flood)
     solve_ms: list[float] = field(default_factory=list)
+
+
+MAX_MEMBERSHIP_EVENTS = 1024  # token changes waiting for the worker; a flood beyond is refused
+
+
+def default_replica_id() -> str:
+    """`<host>-<pid>`: unique on a machine and, under Kubernetes, across pods (the host is the pod)."""
+    host = re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname())[:40] or "host"
+    return f"{host}-{os.getpid()}"
 
 
 def shard_of(uav: str, shard_count: int) -> int:
@@ -55,12 +76,55 @@ class MpcService:
         self.publishers: dict[str, Publisher] = {}
         self.queue: BoundedQueue[Received] = BoundedQueue(4096)
         self.counters = MpcCounters()
+        cfg = config.mpc
+        self.replica = cfg.replica_id or default_replica_id()
+        self.assignment = Assignment(
+            self.replica, lease_ns=round(cfg.takeover_after_s * 1e9), holdoff_ns=round(cfg.holdoff_s * 1e9)
+        )
+        self.newest: dict[str, Received] = {}  # the newest state per drone we stand by for
+        self._membership: dict[str, bool] = {}  # token changes from zenoh's thread, for the worker
+        self._membership_lock = threading.Lock()
+        # Replicas of one static shard (or all, unsharded) share its drones among themselves.
+        group = "all" if cfg.shard_count == 1 else f"shard-{cfg.shard_index}-of-{cfg.shard_count}"
+        bus.watch_tokens(keys.replicas_of("mpc", group), self._on_token)
+        self.token = bus.declare_token(keys.replica_token("mpc", group, self.replica))
+        for key in bus.alive_tokens(keys.replicas_of("mpc", group), timeout_s=2.0):  # the live set first
+            self._on_token(key, True)
         self.state_stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,))
         self.ref_stats = bus.subscribe(
             keys.downlink_all_drones(Downlink.REFERENCE), self.queue, expect=(Reference,)
         )
+        self.command_stats = bus.subscribe(
+            keys.downlink_all_drones(Downlink.COMMAND), self.queue, expect=(Command,)
+        )
         self.service = Service("mpc", config.mpc.health_interval_s)
         self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
+
+    def _on_token(self, key: str, alive: bool) -> None:
+        """zenoh's thread: note the change; the worker applies it (the assignment is not shared)."""
+        with self._membership_lock:
+            if key not in self._membership and len(self._membership) >= MAX_MEMBERSHIP_EVENTS:
+                self.counters.membership_refused += 1
+                return
+            self._membership[key] = alive
+
+    def _apply_membership(self) -> None:
+        with self._membership_lock:
+            changes, self._membership = self._membership, {}
+        for key, alive in changes.items():
+            replica = keys.replica_of_token(key)
+            live = len(self.assignment.members)
+            if alive and self.assignment.join(replica):
+                log.info("mpc %s: replica %s joined (%d live)", self.replica, replica, live + 1)
+            elif not alive and self.assignment.leave(replica):
+                log.info("mpc %s: replica %s left (%d live)", self.replica, replica, live - 1)
+            elif alive and replica not in self.assignment.members and replica != self.replica:
+                log.warning("mpc %s: replica token %r refused (invalid or too many)", self.replica, key[:120])
+
+    def _log_change(self, change: Change | None) -> None:
+        if change is not None:
+            log.info("mpc %s: drone %s: %s (term %d, now %s)", self.replica, change.uav, change.reason,
+                     change.term, change.role.value)  # fmt: skip
 
     def _mine(self, uav: str) -> bool:
         cfg = self.config.mpc
@@ -78,35 +142,72 @@ class MpcService:
 
     def process(self, timeout_s: float = 0.1) -> int:
         """Handle what has arrived; returns how many commands were sent."""
+        self._apply_membership()
+        if self.newest:  # standing by: wake often enough to see a holder's lease run out in time
+            timeout_s = min(timeout_s, self.config.mpc.takeover_after_s / 4)
         first = self.queue.get(timeout_s)
-        if first is None:
-            return 0
-        items = [first, *self.queue.drain()]
-        newest: dict[str, Received] = {}
-        for item in items:
+        fresh: set[str] = set()  # drones with a new state to answer
+        for item in [] if first is None else [first, *self.queue.drain()]:
             message = item.message
             if isinstance(message, Reference):
-                if not self._mine(message.uav):
-                    continue
-                self.counters.references += 1
-                self._controller(message.uav).reference.update(message, item.arrival_ns)
+                self._on_reference(message, item.arrival_ns)
+            elif isinstance(message, Command):
+                self._on_command(message, item.arrival_ns)
             elif isinstance(message, State):
-                if not self._mine(message.uav):
-                    self.counters.other_shard += 1
-                    continue
-                self.counters.states += 1
-                previous = newest.get(message.uav)
-                if previous is None or message.seq > previous.message.seq:
-                    if previous is not None:
-                        self.counters.stale += 1
-                    newest[message.uav] = item
-                else:
-                    self.counters.stale += 1
+                self._on_state(item, message, fresh)
+        for change in self.assignment.tick(self.clock.now_ns()):
+            self._log_change(change)
+            fresh.add(change.uav)  # a takeover answers the newest state at once
         sent = 0
-        for uav, item in newest.items():
-            sent += self._answer(uav, item)
+        for uav in fresh & self.newest.keys():
+            if self.assignment.role(uav) is Role.SERVE:
+                sent += self._answer(uav, self.newest[uav])
+            else:
+                self._controller(uav)  # a standby keeps a warm controller, fed by the holder's commands
         self._drop_idle()
         return sent
+
+    def _on_reference(self, message: Reference, arrival_ns: int) -> None:
+        if self._mine(message.uav) and self.assignment.mine(message.uav):
+            self.counters.references += 1
+            self._controller(message.uav).reference.update(message, arrival_ns)
+
+    def _on_command(self, message: Command, arrival_ns: int) -> None:
+        if not self._mine(message.uav) or not self.assignment.mine(message.uav):
+            return  # another shard's drone, or one we neither fly nor stand by for
+        change = self.assignment.on_command(
+            message.uav, message.state_seq, message.term, message.replica, arrival_ns
+        )
+        self._log_change(change)
+        ctrl = self.controllers.get(message.uav)
+        if ctrl is not None and message.replica != self.replica:
+            ctrl.observe(message.state_stamp_ns, message.accel_mps2)
+
+    def _on_state(self, item: Received, message: State, fresh: set[str]) -> None:
+        uav = message.uav
+        if not self._mine(uav):
+            self.counters.other_shard += 1
+            return
+        if not self.assignment.mine(uav):
+            self.counters.not_mine += 1
+            self.assignment.forget(uav)
+            self.newest.pop(uav, None)
+            return
+        self.counters.states += 1
+        self._log_change(
+            self.assignment.on_state(
+                uav, message.seq, message.command_term, message.command_replica, item.arrival_ns
+            )
+        )
+        previous = self.newest.get(uav)
+        restarted = previous is not None and message.seq < previous.message.seq - 1000
+        if previous is None or message.seq > previous.message.seq or restarted:
+            if uav in fresh:  # superseded in this batch
+                self.counters.stale += 1
+            self.newest[uav] = item
+            fresh.add(uav)
+        else:
+            self.counters.stale += 1
 
     def _answer(self, uav: str, item: Received) -> int:
         ctrl = self._controller(uav)
@@ -129,7 +230,8 @@ class MpcService:
         command = Command(
             uav=uav, seq=state.seq, state_seq=plan.state_seq, state_stamp_ns=plan.state_stamp_ns,
             edge_hold_ns=max(0, self.clock.now_ns() - item.arrival_ns), dt_s=plan.dt_s,
-            accel_mps2=plan.accel_mps2, yaw_rad=plan.yaw_rad,
+            accel_mps2=plan.accel_mps2, yaw_rad=plan.yaw_rad, term=self.assignment.term(uav),
+            replica=self.replica,
         )  # fmt: skip
         self.publishers[uav].put(command)
         self.counters.commands += 1
@@ -138,18 +240,25 @@ class MpcService:
     def _drop_idle(self) -> None:
         now = self.clock.now_ns()
         timeout_ns = round(self.config.mpc.idle_timeout_s * 1e9)
-        for uav in [
-            u for u, c in self.controllers.items() if c.last_seen_ns and now - c.last_seen_ns > timeout_ns
-        ]:
-            del self.controllers[uav]
-            self.publishers.pop(uav).close()
+        for uav in [u for u, item in self.newest.items() if now - item.arrival_ns > timeout_ns]:
+            del self.newest[uav]
+            self.assignment.forget(uav)
+            self.controllers.pop(uav, None)
+            publisher = self.publishers.pop(uav, None)
+            if publisher is not None:
+                publisher.close()
             log.info("mpc: drone %s idle for %.0f s, dropped", uav, self.config.mpc.idle_timeout_s)
 
     def health(self) -> str:
         c = self.counters
         solve = np.array(c.solve_ms[-500:]) if c.solve_ms else np.zeros(1)
-        rejected = self.state_stats.rejected + self.ref_stats.rejected
+        rejected = self.state_stats.rejected + self.ref_stats.rejected + self.command_stats.rejected
+        a = self.assignment
+        flying = sum(1 for uav in self.newest if a.role(uav) is Role.SERVE)
         return (
+            f"replica={self.replica} replicas={len(a.members)} flying={flying} "
+            f"standby={len(self.newest) - flying} takeovers={a.counters.takeovers} "
+            f"stepped_down={a.counters.stepped_down} "
             f"shard={self.config.mpc.shard_index}/{self.config.mpc.shard_count} "
             f"drones={len(self.controllers)} states={c.states} commands={c.commands} stale={c.stale} "
             f"rejected={rejected} solve_failures={c.solve_failures} "

@@ -1,0 +1,197 @@
+"""Which replica of an edge service flies which drone, and when another takes over. Pure.
+
+Every replica sees the same live set (zenoh liveliness tokens, one per replica) and ranks it per drone
+by rendezvous hashing: the first is the drone's primary, the second its standby. When a replica joins or
+leaves, only the drones it ranks first or second for move. Whoever serves a drone stamps its commands
+with a term; the drone accepts only the highest term it has seen (onboard/commands.py) and reports it
+in every State, so two replicas never fly one drone, and a replica that comes back after a hang or a
+partition with an old term is ignored and steps down.
+
+A replica takes a drone (with the highest term it has seen + 1) when it is the first-ranked live
+replica and the holder is gone, is another replica ranked below it (a join moves the drone back), or
+has left a state unanswered for `lease_ns` (a hung process keeps its token; its silence does not).
+A replica that was just displaced waits `holdoff_ns` before it takes a drone back by rank alone, so a
+replica that flaps does not drag its drones with it.
+"""
+
+from __future__ import annotations
+
+import enum
+import hashlib
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+REPLICA_ID_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
+MAX_REPLICAS = 256  # a token flood beyond this is ignored (and counted) rather than ranked
+
+
+def valid_replica_id(name: str) -> bool:
+    return 0 < len(name) <= 64 and set(name) <= REPLICA_ID_CHARS
+
+
+def weight(replica: str, uav: str) -> int:
+    """Rendezvous weight: stable across processes and machines (unlike hash())."""
+    digest = hashlib.blake2b(f"{replica}\x00{uav}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "big")
+
+
+def ranked(uav: str, members: Iterable[str]) -> list[str]:
+    """Live replicas, best first for `uav` (ties, impossible in practice, fall to the name)."""
+    return sorted(members, key=lambda r: (-weight(r, uav), r))
+
+
+class Role(str, enum.Enum):
+    SERVE = "serve"  # this replica answers the drone's states with its term
+    WATCH = "watch"  # standby: keeps a warm controller, watches the holder's lease
+    IDLE = "idle"  # neither primary nor standby: nothing to do for this drone
+
+
+@dataclass
+class Seat:
+    """One drone as this replica sees it."""
+
+    term: int = 0  # the highest term seen (the drone's own report, commands, our own)
+    holder: str | None = None  # who holds `term`, when known
+    latest_seq: int = -1  # the newest state seen
+    answered_seq: int = -1  # the newest state the holder has answered
+    unanswered_since_ns: int | None = None  # when a state newer than `answered_seq` was first seen
+    displaced_ns: int | None = None  # when another replica took this drone from us
+
+
+@dataclass(frozen=True, slots=True)
+class Change:
+    """A change of this replica's role for one drone, for the log."""
+
+    uav: str
+    role: Role
+    term: int
+    reason: str
+
+
+@dataclass
+class ReplicaCounters:
+    takeovers: int = 0
+    stepped_down: int = 0
+    stale_commands: int = 0  # commands seen with a term below the drone's (a fenced replica)
+    members_refused: int = 0  # tokens beyond MAX_REPLICAS or with an invalid name
+
+
+class Assignment:
+    def __init__(self, me: str, *, lease_ns: int, holdoff_ns: int) -> None:
+        if not valid_replica_id(me):
+            raise ValueError(f"replica id {me[:80]!r} is invalid: use 1 to 64 of A-Z a-z 0-9 _ -")
+        self.me = me
+        self.lease_ns = lease_ns
+        self.holdoff_ns = holdoff_ns
+        self.members: set[str] = {me}
+        self.seats: dict[str, Seat] = {}
+        self.counters = ReplicaCounters()
+
+    # membership -------------------------------------------------------------------------------------
+    def join(self, replica: str) -> bool:
+        if replica in self.members:
+            return False
+        if not valid_replica_id(replica) or len(self.members) >= MAX_REPLICAS:
+            self.counters.members_refused += 1
+            return False
+        self.members.add(replica)
+        return True
+
+    def leave(self, replica: str) -> bool:
+        if replica == self.me or replica not in self.members:
+            return False
+        self.members.discard(replica)
+        return True
+
+    def role(self, uav: str) -> Role:
+        seat = self.seats.get(uav)
+        if seat is not None and seat.holder == self.me:
+            return Role.SERVE
+        return Role.WATCH if self.me in ranked(uav, self.members)[:2] else Role.IDLE
+
+    def mine(self, uav: str) -> bool:
+        """Whether this replica should receive the drone's messages at all (primary, standby or holder)."""
+        return self.role(uav) is not Role.IDLE
+
+    # what the wire tells us --------------------------------------------------------------------------
+    def on_state(self, uav: str, seq: int, drone_term: int, drone_holder: str, now_ns: int) -> Change | None:
+        """A state from the drone, carrying the term (and its holder) the drone accepts now."""
+        seat = self.seats.setdefault(uav, Seat())
+        if seq < seat.latest_seq:  # the drone restarted (or states crossed): count from here
+            seat.answered_seq = -1
+        seat.latest_seq = seq
+        change = None
+        other_holder = bool(drone_holder) and drone_holder != seat.holder
+        if drone_term > seat.term or (drone_term == seat.term and other_holder):
+            was_mine = seat.holder == self.me
+            seat.term, seat.holder = drone_term, drone_holder or None
+            if was_mine and seat.holder != self.me:
+                change = self._step_down(uav, seat, now_ns, f"the drone follows {drone_holder or '?'}")
+        if seq > seat.answered_seq and seat.unanswered_since_ns is None:
+            seat.unanswered_since_ns = now_ns
+        return change or self._maybe_take(uav, seat, now_ns)
+
+    def on_command(self, uav: str, state_seq: int, term: int, replica: str, now_ns: int) -> Change | None:
+        """A command some replica (maybe this one) sent to the drone, answering state `state_seq`."""
+        seat = self.seats.setdefault(uav, Seat())
+        if term < seat.term:
+            self.counters.stale_commands += 1
+            return None
+        if term > seat.term or seat.holder is None:
+            was_mine = seat.holder == self.me
+            seat.term, seat.holder = term, replica
+            if was_mine and replica != self.me:
+                return self._step_down(uav, seat, now_ns, f"{replica} holds term {term}")
+        if replica == seat.holder and state_seq > seat.answered_seq:
+            seat.answered_seq = state_seq
+            # a newer state may still wait: time it from now (later than its arrival: never too early)
+            seat.unanswered_since_ns = None if state_seq >= seat.latest_seq else now_ns
+        return None
+
+    def forget(self, uav: str) -> None:
+        self.seats.pop(uav, None)
+
+    # decisions ---------------------------------------------------------------------------------------
+    def _step_down(self, uav: str, seat: Seat, now_ns: int, reason: str) -> Change:
+        seat.displaced_ns = now_ns
+        self.counters.stepped_down += 1
+        return Change(uav, self.role(uav), seat.term, f"stepped down: {reason}")
+
+    def _maybe_take(self, uav: str, seat: Seat, now_ns: int) -> Change | None:
+        if seat.holder == self.me:
+            return None
+        order = ranked(uav, self.members)
+        holder = seat.holder
+        if holder is None or holder not in self.members:
+            candidates, reason = order, f"holder {holder or '(none)'} is gone"
+        elif order.index(holder) > order.index(self.me):
+            if seat.displaced_ns is not None and now_ns - seat.displaced_ns < self.holdoff_ns:
+                return None
+            candidates, reason = order, f"ranked above {holder}"
+        elif seat.unanswered_since_ns is not None and now_ns - seat.unanswered_since_ns > self.lease_ns:
+            late_ms = (now_ns - seat.unanswered_since_ns) / 1e6
+            candidates, reason = [r for r in order if r != holder], f"{holder} silent for {late_ms:.0f} ms"
+        else:
+            return None
+        if not candidates or candidates[0] != self.me:
+            return None
+        seat.term += 1
+        seat.holder = self.me
+        seat.unanswered_since_ns = None
+        seat.displaced_ns = None
+        self.counters.takeovers += 1
+        return Change(uav, Role.SERVE, seat.term, f"took over: {reason}")
+
+    def tick(self, now_ns: int) -> list[Change]:
+        """Takeovers due now without a new message: a holder's token went, or its lease ran out."""
+        changes = []
+        for uav, seat in self.seats.items():
+            if seat.holder != self.me and seat.latest_seq >= 0 and self.role(uav) is Role.WATCH:
+                change = self._maybe_take(uav, seat, now_ns)
+                if change is not None:
+                    changes.append(change)
+        return changes
+
+    def term(self, uav: str) -> int:
+        seat = self.seats.get(uav)
+        return 0 if seat is None else seat.term

@@ -1,0 +1,177 @@
+"""Which MPC replica flies which drone (edge/replicas.py), and the drone's fencing (onboard/commands.py).
+
+Pure, on nanosecond timestamps: the assignment is a function of the live set, the states and the
+commands seen, so every takeover rule is checked without processes."""
+
+from __future__ import annotations
+
+import pytest
+
+from dynqos.common.messages import Command
+from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Role, ranked
+from dynqos.onboard.commands import CommandTracker
+
+MS = 1_000_000
+LEASE = 50 * MS
+HOLDOFF = 2000 * MS
+
+
+def replica(me: str, *others: str) -> Assignment:
+    a = Assignment(me, lease_ns=LEASE, holdoff_ns=HOLDOFF)
+    for other in others:
+        a.join(other)
+    return a
+
+
+def drone_ranked(first: str, second: str, members: tuple[str, ...] = ("a", "b", "c")) -> str:
+    """A drone id whose rendezvous order over `members` starts with first, second."""
+    for i in range(10_000):
+        uav = f"uav{i}"
+        if ranked(uav, members)[:2] == [first, second]:
+            return uav
+    raise AssertionError("no such drone")
+
+
+def test_rendezvous_moves_only_the_drones_of_the_replica_that_joins_or_leaves() -> None:
+    drones = [f"uav{i}" for i in range(300)]
+    before = {u: ranked(u, ["a", "b", "c"])[0] for u in drones}
+    after_leave = {u: ranked(u, ["a", "c"])[0] for u in drones}
+    moved = {u for u in drones if before[u] != after_leave[u]}
+    assert moved == {u for u in drones if before[u] == "b"}  # only b's drones move
+    assert 60 < len(moved) < 140  # and b had about a third of them
+    after_join = {u: ranked(u, ["a", "b", "c", "d"])[0] for u in drones}
+    assert {u for u in drones if before[u] != after_join[u]} == {u for u in drones if after_join[u] == "d"}
+
+
+def test_a_lone_replica_takes_every_drone_with_the_next_term() -> None:
+    a = replica("a")
+    change = a.on_state("uav1", 1, drone_term=4, drone_holder="old", now_ns=0)
+    assert change is not None
+    assert change.role is Role.SERVE
+    assert change.term == 5
+    assert a.role("uav1") is Role.SERVE
+
+
+def test_the_standby_waits_while_the_primary_answers_and_takes_over_when_it_falls_silent() -> None:
+    uav = drone_ranked("a", "b", ("a", "b"))
+    primary, standby = replica("a", "b"), replica("b", "a")
+    assert primary.on_state(uav, 1, 0, "", 0) is not None  # a takes the drone: term 1
+    assert standby.on_state(uav, 1, 0, "", 0) is None
+    t = 0
+    for seq in range(1, 20):  # a answers every state within 10 ms
+        t = seq * 50 * MS
+        standby.on_state(uav, seq, 1, "a", t)
+        standby.on_command(uav, seq, 1, "a", t + 10 * MS)
+        assert standby.tick(t + 45 * MS) == []
+    assert standby.role(uav) is Role.WATCH
+    standby.on_state(uav, 20, 1, "a", t + 50 * MS)  # a hangs: state 20 is never answered
+    assert standby.tick(t + 50 * MS + LEASE) == []  # not before the lease
+    changes = standby.tick(t + 51 * MS + LEASE)
+    assert [(c.uav, c.role, c.term) for c in changes] == [(uav, Role.SERVE, 2)]
+    assert "silent" in changes[0].reason
+
+
+def test_a_replica_whose_token_goes_is_replaced_at_once_without_waiting_for_the_lease() -> None:
+    uav = drone_ranked("a", "b", ("a", "b"))
+    standby = replica("b", "a")
+    standby.on_state(uav, 1, 3, "a", 0)
+    standby.on_command(uav, 1, 3, "a", 1 * MS)
+    assert standby.tick(2 * MS) == []
+    standby.leave("a")
+    changes = standby.tick(3 * MS)
+    assert [(c.role, c.term) for c in changes] == [(Role.SERVE, 4)]
+
+
+def test_a_hung_replica_that_comes_back_steps_down_on_the_newer_term() -> None:
+    uav = drone_ranked("a", "b", ("a", "b"))
+    hung = replica("a", "b")
+    assert hung.on_state(uav, 1, 0, "", 0) is not None
+    assert hung.role(uav) is Role.SERVE
+    # while it was stopped, b took over with term 2; the drone now follows b
+    change = hung.on_command(uav, 30, 2, "b", 2000 * MS)
+    assert change is not None
+    assert change.role is Role.WATCH
+    assert "b holds term 2" in change.reason
+    assert hung.role(uav) is Role.WATCH
+    # it is ranked first, yet it waits the hold-off before taking the drone back
+    hung.on_state(uav, 31, 2, "b", 2001 * MS)
+    hung.on_command(uav, 31, 2, "b", 2002 * MS)
+    assert hung.tick(2100 * MS) == []
+    hung.on_state(uav, 80, 2, "b", 4100 * MS)
+    assert hung.role(uav) is Role.SERVE
+    assert hung.term(uav) == 3
+
+
+def test_a_joining_replica_ranked_first_takes_the_drone_and_the_old_holder_steps_down() -> None:
+    uav = drone_ranked("c", "a", ("a", "b", "c"))
+    old = replica("a", "b")  # before c joins, a is first for this drone
+    assert old.on_state(uav, 1, 0, "", 0) is not None
+    new = replica("c", "a", "b")
+    change = new.on_state(uav, 2, 1, "a", 10 * MS)
+    assert change is not None
+    assert change.term == 2
+    assert "ranked above a" in change.reason
+    old.join("c")
+    stepped = old.on_command(uav, 2, 2, "c", 12 * MS)
+    assert stepped is not None
+    assert old.role(uav) is Role.WATCH
+
+
+def test_two_replicas_with_the_same_term_follow_the_drone() -> None:
+    uav = drone_ranked("a", "b", ("a", "b"))
+    b = replica("b")  # b did not know of a and took the drone with term 1
+    assert b.on_state(uav, 1, 0, "", 0) is not None
+    b.join("a")
+    change = b.on_state(uav, 2, 1, "a", 50 * MS)  # the drone accepted a's term 1
+    assert change is not None
+    assert b.role(uav) is Role.WATCH
+
+
+def test_a_replica_neither_primary_nor_standby_is_idle_and_stale_commands_are_counted() -> None:
+    uav = drone_ranked("a", "b")
+    c = replica("c", "a", "b")
+    assert c.role(uav) is Role.IDLE
+    assert not c.mine(uav)
+    c.on_command(uav, 5, 3, "a", 0)
+    c.on_command(uav, 6, 2, "x", 1)
+    assert c.counters.stale_commands == 1
+
+
+def test_a_token_flood_and_bad_names_are_refused() -> None:
+    a = replica("a")
+    assert not a.join("bad/name")
+    for i in range(MAX_REPLICAS + 10):
+        a.join(f"r{i}")
+    assert len(a.members) == MAX_REPLICAS
+    assert a.counters.members_refused == 1 + 11  # the bad name, then the flood
+    with pytest.raises(ValueError, match="replica id"):
+        Assignment("", lease_ns=1, holdoff_ns=1)
+
+
+def _command(state_seq: int, stamp: int, term: int, replica_id: str) -> Command:
+    return Command(uav="uav1", seq=state_seq, state_seq=state_seq, state_stamp_ns=stamp, edge_hold_ns=0,
+                   dt_s=0.05, accel_mps2=((0.0, 0.0, 0.0),) * 10, yaw_rad=(0.0,) * 10, term=term,
+                   replica=replica_id)  # fmt: skip
+
+
+def test_the_drone_follows_the_highest_term_and_refuses_a_replaced_or_second_controller() -> None:
+    tracker = CommandTracker("uav1", watchdog_ns=150 * MS)
+    for seq in range(1, 6):
+        tracker.state_sent(seq, seq * 50 * MS)
+    assert tracker.offer(_command(1, 50 * MS, 1, "a"), 60 * MS)
+    assert (tracker.term, tracker.replica) == (1, "a")
+    assert not tracker.offer(_command(2, 100 * MS, 1, "b"), 110 * MS)  # same term, another replica
+    assert tracker.offer(_command(2, 100 * MS, 2, "b"), 111 * MS)  # b took over
+    assert tracker.counters.controller_changes == 1
+    assert not tracker.offer(_command(3, 150 * MS, 1, "a"), 160 * MS)  # a came back with its old term
+    assert tracker.counters.fenced == 2
+    assert tracker.offer(_command(3, 150 * MS, 2, "b"), 161 * MS)
+    assert tracker.longest_gap_ns == 51 * MS  # 60 -> 111 ms
+
+
+def test_a_drone_known_only_from_commands_is_not_taken_until_its_state_arrives() -> None:
+    uav = drone_ranked("b", "a", ("a", "b"))
+    b = replica("b")
+    b.on_command(uav, 7, 3, "a", 0)  # a, in another group, flies it: b has no state to answer
+    assert b.tick(10 * MS) == []
+    assert b.on_state(uav, 8, 3, "a", 20 * MS) is not None  # a is not in b's live set: b takes it

@@ -1,0 +1,116 @@
+"""MPC replicas over real processes: the one flying the drone is killed, then a new replica joins, then
+the one flying is hung (SIGSTOP); the drone never falls back to its PID (docs/reliability.md)."""
+
+from __future__ import annotations
+
+import re
+import signal
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from dynqos.common import keys
+from dynqos.common.keys import Downlink
+from dynqos.common.messages import Command, State
+from dynqos.common.transport import Priority
+from tests.procs import DynqosProcess
+from tests.test_onboard_loop import LoopProcs, Observer, edge_loop, mpc_replica
+
+pytestmark = [pytest.mark.integration]
+
+WATCHDOG_MS = 150
+
+
+@pytest.fixture
+def edge(tmp_path: Path) -> Iterator[LoopProcs]:
+    with edge_loop(tmp_path, ("mpc-a", "mpc-b")) as started:
+        yield started
+
+
+def _followed(observer: Observer, condition: Callable[[State], bool], timeout_s: float, what: str) -> State:
+    found: list[State] = []
+
+    def check(state: State) -> bool:
+        if condition(state):
+            found.append(state)
+            return True
+        return False
+
+    assert observer.wait_until(check, timeout_s), f"{what}: never seen in {timeout_s} s"
+    return found[0]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("qos", ["dynamic", "default", "priority"])
+def test_killing_hanging_and_adding_mpc_replicas_never_sends_the_drone_to_its_fallback(
+    edge: LoopProcs, qos: str
+) -> None:
+    """In each QoS mode: the drone's states and the commands take that mode's flows."""
+    config, zcfg, procs = edge
+    observer = Observer(zcfg)
+    try:
+        procs["onboard"] = DynqosProcess(["onboard", "--takeoff"], config, env={"DYNQOS_ONBOARD__QOS": qos})
+        first = _followed(observer, lambda s: s.mode == "offboard" and s.command_term > 0, 60, "offload")
+        observer.wait_until(lambda s: False, 4.0)  # settle on the circle
+        serving = observer.state_log[-1].command_replica
+        assert serving in ("mpc-a", "mpc-b"), serving
+        term = observer.state_log[-1].command_term
+
+        # 1. SIGKILL the replica that flies the drone: its token goes, the other takes over.
+        procs[serving].proc.kill()
+        standby = "mpc-b" if serving == "mpc-a" else "mpc-a"
+        after_kill = _followed(observer, lambda s: s.command_replica == standby, 5, f"{standby} flying")
+        assert after_kill.command_term > term
+        procs.pop(serving).stop()
+        observer.wait_until(lambda s: False, 3.0)
+
+        # 2. A new replica joins mid-flight: the drones it ranks first move to it (or stay), no fallback.
+        procs["mpc-c"] = mpc_replica("mpc-c", config)
+        observer.wait_until(lambda s: False, 4.0)
+        flying = observer.state_log[-1].command_replica
+        assert flying in ("mpc-c", standby)
+
+        # 3. SIGSTOP the replica that flies it: its token stays, its silence hands the drone over.
+        term = observer.state_log[-1].command_term
+        procs[flying].proc.send_signal(signal.SIGSTOP)
+        try:
+            other = "mpc-c" if flying == standby else standby
+            after_hang = _followed(observer, lambda s: s.command_replica == other, 5, f"{other} flying")
+            assert after_hang.command_term > term
+            observer.wait_until(lambda s: False, 2.0)
+        finally:
+            procs[flying].proc.send_signal(signal.SIGCONT)
+        observer.wait_until(lambda s: False, 3.0)
+        assert observer.state_log[-1].mode == "offboard"
+
+        # 4. Commands with a replaced replica's term, answering a real state: refused, never flown.
+        latest = observer.state_log[-1]
+        stale = Command(uav="uav1", seq=latest.seq, state_seq=latest.seq, state_stamp_ns=latest.stamp_ns,
+                        edge_hold_ns=0, dt_s=0.05, accel_mps2=((9.0, 0.0, 0.0),) * 10, yaw_rad=(0.0,) * 10,
+                        term=1, replica="mpc-a")  # fmt: skip
+        attacker = observer.bus.publisher(keys.downlink("uav1", Downlink.COMMAND), Priority.REAL_TIME)
+        for _ in range(5):
+            attacker.put(stale)
+        observer.wait_until(lambda s: False, 2.0)
+        assert first.command_term >= 1
+    finally:
+        observer.bus.close()
+    log = procs.pop("onboard").stop()
+    assert "fallback PID" not in log, re.findall(r".*fallback PID.*", log)[:3]
+    assert log.count("controller is now MPC replica") >= 2
+    command_gap = max(float(g) for g in re.findall(r"max_command_gap_ms=([\d.]+)", log))
+    setpoint_gap = max(float(g) for g in re.findall(r"max_setpoint_gap_ms=([\d.]+)", log))
+    print(
+        f"longest gap between accepted commands {command_gap:.0f} ms, between setpoints {setpoint_gap:.0f} ms"
+    )
+    assert command_gap < WATCHDOG_MS
+    assert setpoint_gap < 50
+    mpc_logs = {name: procs.pop(name).stop() for name in [n for n in procs if n.startswith("mpc-")]}
+    for name, text in mpc_logs.items():
+        print(name, *re.findall(r"drone uav1: .*", text), sep="\n  ")
+    print(*re.findall(r"controller is now .*", log), sep="\n")
+    assert any("took over" in text for text in mpc_logs.values()), mpc_logs
+    assert int(re.findall(r" fenced=(\d+)", log)[-1]) >= 5  # the stale terms were refused
+    assert "refused a command from MPC replica" in log  # logged once (the hung replica may come first)
