@@ -4,15 +4,21 @@ status stream. The pure parts are tested here quickly; the flights are marked sl
 from __future__ import annotations
 
 import os
+import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from dynqos.common import keys
+from dynqos.common.bus import MemoryBus, Priority
 from dynqos.common.errors import ConfigError
-from dynqos.common.messages import SupervisorStatus
+from dynqos.common.keys import Flow, Stream
+from dynqos.common.messages import State, SupervisorStatus
 from dynqos.experiment.faults import Fault, FaultInjector, FaultWindow, log_times, outcome, time_in_states
+from dynqos.experiment.processes import Processes
 from dynqos.experiment.runner import run_scenario
 from dynqos.experiment.scenario import Scenario, builtin_scenario
 
@@ -47,6 +53,62 @@ def test_faults_are_validated() -> None:
     soak = builtin_scenario("soak")
     assert soak.duration_s == 600
     assert [f.at_s for f in soak.faults] == [30 + 60 * k for k in range(10)]
+
+
+def test_replica_faults_need_a_standby() -> None:
+    with pytest.raises(ConfigError, match="mpc_replicas >= 2"):
+        Scenario(name="x", duration_s=10, bg_start_s=-1, faults=(Fault(at_s=1, kind="mpc_replica_hang"),))
+    with pytest.raises(ConfigError, match="mpc_replicas"):
+        Scenario(name="x", duration_s=10, bg_start_s=-1, mpc_replicas=9)
+    assert builtin_scenario("replicas").mpc_replicas == 2
+
+
+SLEEPER = [sys.executable, "-c", "import time; print('{}', flush=True); time.sleep(120)"]
+
+
+def test_replica_faults_act_on_the_replica_the_drone_says_flies_it(tmp_path: Path) -> None:
+    """Real child processes (stand-ins that only wait) under the runner's Processes; the drone's State
+    on the bus names the replica it follows, and that one is killed and restarted, then stopped and
+    resumed."""
+    procs = Processes(tmp_path / "run.toml", tmp_path)
+    bus = MemoryBus()
+    try:
+        for name in ("mpc", "mpc-1"):
+            procs.start(name, [], program=SLEEPER)
+        injector = FaultInjector(procs, lambda event: None, bus, watch_uav="uav1")
+        state = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+        state.put(State(uav="uav1", seq=1, stamp_ns=1, pos_m=(0.0, 0.0, 0.0), vel_mps=(0.0, 0.0, 0.0),
+                        quat=(1.0, 0.0, 0.0, 0.0), command_term=3, command_replica="mpc-1"))  # fmt: skip
+        first_pid = procs.procs["mpc-1"].pid
+        window = injector.begin(Fault(at_s=1, kind="mpc_replica_kill", duration_s=1))
+        assert (window.target, window.notes) == ("mpc-1", ["mpc-1 flew the drone (term 3)"])
+        assert procs.procs["mpc-1"].poll() is not None  # killed
+        assert procs.procs["mpc"].poll() is None  # the standby untouched
+        injector.end(window)
+        assert procs.procs["mpc-1"].poll() is None
+        assert procs.procs["mpc-1"].pid != first_pid  # restarted
+        # No state since: the injector says so and acts on the first live replica.
+        hang = injector.begin(Fault(at_s=3, kind="mpc_replica_hang", duration_s=1))
+        assert hang.target == "mpc"
+        assert "no live replica was seen flying" in hang.notes[0]
+        assert _reaches(procs.procs["mpc"].pid, stopped=True)
+        injector.end(hang)
+        assert _reaches(procs.procs["mpc"].pid, stopped=False)
+    finally:
+        procs.stop_all()
+        bus.close()
+
+
+def _reaches(pid: int, *, stopped: bool, timeout_s: float = 10.0) -> bool:
+    """Whether the process is (or stops being) stopped within the timeout: a signal takes effect when the
+    kernel next schedules it, which on a loaded machine is not at once."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        if (state == "T") == stopped:
+            return True
+        time.sleep(0.01)
+    return False
 
 
 def test_time_in_states_lasts_each_state_until_the_next_status() -> None:
@@ -186,6 +248,24 @@ def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
     # The flood is CPU load: on a starved machine it reaches control; with headroom it costs frames only.
     if not (result.get("machine") or {}).get("starved"):
         assert not by_kind["detector_flood"]["fallback"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)  # a starved first flight is flown again
+def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> None:
+    """The shipped replicas scenario: two MPC replicas; the one flying the drone killed, a third joining,
+    the one flying hung for 2 s. None of them makes the drone fall back (docs/reliability.md)."""
+    scenario = builtin_scenario("replicas")
+    assert [f.kind for f in scenario.faults] == ["mpc_replica_kill", "replica_join", "mpc_replica_hang"]
+    result = _fly_with_headroom(scenario, tmp_path)
+    _check(result, set())
+    for fault in result["faults"]:
+        assert not fault["fallback"], fault
+        assert fault["max_setpoint_gap_ms"] < 50, fault
+    kill, join, hang = result["faults"]
+    assert "flew the drone" in kill["notes"][0], kill  # it acted on the replica flying the drone
+    assert "flew the drone" in hang["notes"][0], hang
+    assert join["notes"] == ["mpc-join1 joined"]
 
 
 @pytest.mark.slow

@@ -7,7 +7,14 @@ from __future__ import annotations
 
 import pytest
 
-from dynqos.common.messages import Command
+from dynqos.common import keys
+from dynqos.common.bus import MemoryBus, Priority, Received
+from dynqos.common.clock import FakeClock
+from dynqos.common.config import load_config
+from dynqos.common.keys import Downlink, Flow, Stream
+from dynqos.common.messages import Command, State
+from dynqos.common.queues import BoundedQueue
+from dynqos.edge.mpc.service import MpcService
 from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Role, ranked
 from dynqos.onboard.commands import CommandTracker
 
@@ -175,3 +182,52 @@ def test_a_drone_known_only_from_commands_is_not_taken_until_its_state_arrives()
     b.on_command(uav, 7, 3, "a", 0)  # a, in another group, flies it: b has no state to answer
     assert b.tick(10 * MS) == []
     assert b.on_state(uav, 8, 3, "a", 20 * MS) is not None  # a is not in b's live set: b takes it
+
+
+def _mpc(name: str, bus: MemoryBus, clock: FakeClock) -> MpcService:
+    return MpcService(load_config(None, [f'mpc.replica_id="{name}"']), bus, clock)
+
+
+def _state(seq: int, clock: FakeClock, term: int, holder: str) -> State:
+    return State(uav="uav1", seq=seq, stamp_ns=clock.now_ns(), pos_m=(0.0, 0.0, -1.5),
+                 vel_mps=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0), command_term=term,
+                 command_replica=holder)  # fmt: skip
+
+
+def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goes() -> None:
+    """The service wiring on the in-memory bus (same codec and checks as zenoh) and a fake clock: the
+    drone's states, the commands each replica sees of the other, the tokens; a token flood is counted."""
+    clock, bus = FakeClock(1_000_000_000), MemoryBus()
+    a, b = _mpc("mpc-a", bus, clock), _mpc("mpc-b", bus, clock)
+    commands: BoundedQueue[Received] = BoundedQueue(1000)
+    bus.subscribe(keys.downlink("uav1", Downlink.COMMAND), commands, expect=(Command,))
+    drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+    followed = (0, "")
+
+    def step(seq: int, services: list[MpcService]) -> list[Command]:
+        nonlocal followed
+        drone.put(_state(seq, clock, *followed))
+        for service in services:
+            service.process(0.0)
+        got = [i.message for i in commands.drain() if isinstance(i.message, Command)]
+        for service in services:  # each sees the commands sent in this round (the other's too)
+            service.process(0.0)
+        if got:
+            followed = (got[-1].term, got[-1].replica)
+        clock.advance_s(0.05)
+        return got
+
+    first = [c for seq in range(1, 11) for c in step(seq, [a, b])]
+    assert len(first) == 10  # one answer per state: the standby stays silent
+    flying = first[-1].replica
+    assert {c.replica for c in first} == {flying}
+    survivor = b if flying == "mpc-a" else a
+    (a if flying == "mpc-a" else b).token.close()  # its process is gone: the router withdraws the token
+    after = [c for seq in range(11, 16) for c in step(seq, [survivor])]
+    assert len(after) == 5
+    assert {(c.replica, c.term) for c in after} == {(survivor.replica, first[-1].term + 1)}
+    for i in range(300):  # a flood of replica tokens: the live set stops growing, each is counted
+        bus.declare_token(keys.replica_token("mpc", "all", f"x{i}"))
+    survivor.process(0.0)
+    assert len(survivor.assignment.members) == 256
+    assert survivor.assignment.counters.members_refused == 300 - 255

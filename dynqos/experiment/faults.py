@@ -22,11 +22,14 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Literal
 
-from dynqos.common.bus import Bus
+from dynqos.common import keys
+from dynqos.common.bus import Bus, Received
 from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.errors import ConfigError
-from dynqos.common.messages import SupervisorStatus
+from dynqos.common.keys import Stream
+from dynqos.common.messages import State, SupervisorStatus
 from dynqos.common.modes import ControlSource
+from dynqos.common.queues import BoundedQueue
 from dynqos.experiment.processes import Processes
 
 log = logging.getLogger(__name__)
@@ -34,7 +37,7 @@ SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zen
 
 FaultKind = Literal[
     "mpc_kill", "router_kill", "coverage_loss", "downlink_loss", "fc_silence", "detector_flood", "background",
-    "capacity", "trace",
+    "capacity", "trace", "mpc_replica_kill", "mpc_replica_hang", "replica_join",
 ]  # fmt: skip
 FLOOD_FPS = 100.0  # several times what the detector can process
 FLOOD_MAX_FRAMES = 20_000
@@ -72,6 +75,7 @@ class FaultWindow:
     end_wall: float | None = None
     end_ns: int | None = None
     notes: list[str] = field(default_factory=list)
+    target: str = ""  # the process a replica fault acted on
 
 
 class Flood:
@@ -132,13 +136,46 @@ class FaultInjector:
         bus: Bus,
         *,
         uplink_mbps: float = 81.3,
+        watch_uav: str | None = None,
     ) -> None:
+        """`watch_uav`: the drone whose MPC replica the replica faults act on (the one flying it, from the
+        drone's own State), watched from the start when a scenario has such faults."""
         self.procs = procs
         self.cell_event = cell_event  # POST /events to the cell emulator
         self.bus = bus
         self.uplink_mbps = uplink_mbps  # the cell's configured capacity, restored when a capacity fault ends
         self.windows: list[FaultWindow] = []
         self._floods: dict[int, Flood] = {}
+        self._states: BoundedQueue[Received] = BoundedQueue(64)  # the newest few (the oldest drop)
+        self._joined = 0
+        if watch_uav is not None:
+            bus.subscribe(keys.uplink_any_flow(watch_uav, Stream.STATE), self._states, expect=(State,))
+
+    def _flying(self) -> tuple[str, str]:
+        """The MPC process flying the watched drone, and a note saying how it was chosen."""
+        latest = [i.message for i in self._states.drain() if isinstance(i.message, State)]
+        name = latest[-1].command_replica if latest else ""
+        if name in self.procs.procs and name not in self.procs.down:
+            return name, f"{name} flew the drone (term {latest[-1].command_term})"
+        live = [n for n in self.procs.procs if n.startswith("mpc") and n not in self.procs.down]
+        if not live:
+            return "", "no MPC replica is running: nothing to act on"
+        return live[0], f"no live replica was seen flying the drone ({name or 'none'}): acted on {live[0]}"
+
+    def _begin_replica_fault(self, window: FaultWindow) -> None:
+        kind = window.fault.kind
+        if kind == "replica_join":
+            self._joined += 1
+            window.target = f"mpc-join{self._joined}"
+            self.procs.start(window.target, ["edge", "mpc", "--set", f'mpc.replica_id="{window.target}"'])
+            window.notes.append(f"{window.target} joined")
+            return
+        window.target, note = self._flying()
+        window.notes.append(note)
+        if window.target and kind == "mpc_replica_kill":
+            self.procs.kill(window.target)
+        elif window.target:
+            self.procs.signal(window.target, signal.SIGSTOP)
 
     def begin(self, fault: Fault) -> FaultWindow:
         window = FaultWindow(fault, time.time(), time.monotonic_ns())
@@ -159,6 +196,8 @@ class FaultInjector:
             self.cell_event({"kind": "capacity", "uplink_mbps": fault.uplink_mbps})
         elif kind == "trace":
             self.cell_event({"kind": "trace", "file": str(Path(fault.file).resolve()), "mean_mbps": 0.0})
+        elif kind in ("mpc_replica_kill", "mpc_replica_hang", "replica_join"):
+            self._begin_replica_fault(window)
         log.info("fault: %s for %.1f s", kind, fault.duration_s)
         self.windows.append(window)
         return window
@@ -171,6 +210,10 @@ class FaultInjector:
             self.procs.restart("router")
         elif kind == "fc_silence":
             self.procs.signal("vehicle", signal.SIGCONT)
+        elif kind == "mpc_replica_kill" and window.target:
+            self.procs.restart(window.target)
+        elif kind == "mpc_replica_hang" and window.target:
+            self.procs.signal(window.target, signal.SIGCONT)
         elif kind == "detector_flood":
             flood = self._floods.pop(id(window))
             window.notes.append(f"{flood.close()} flood frames sent")

@@ -27,9 +27,16 @@ from dynqos.experiment.faults import FaultInjector, FaultWindow
 from dynqos.experiment.machine import read_cpu_times
 from dynqos.experiment.processes import Processes, resident_memory
 from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import UAV, Scenario, world_path
+from dynqos.experiment.scenario import UAV, Scenario, mpc_replica_names, world_path
 
 log = logging.getLogger(__name__)
+
+
+def start_mpc_replicas(procs: Processes, count: int) -> None:
+    """The run's MPC processes, each named by its replica id (docs/reliability.md)."""
+    for name in mpc_replica_names(count):
+        procs.start(name, ["edge", "mpc", "--set", f'mpc.replica_id="{name}"'])
+
 
 RECORD_PERIOD_S = 0.1  # the recorder's sampling period
 PROGRESS_EVERY_S = 10.0  # a progress log line this often when stderr is not a terminal

@@ -25,11 +25,12 @@ from dynqos.experiment.flight import (
     fly_and_stop,
     post_json,
     start_mcap_recorder,
+    start_mpc_replicas,
     wait_for_offload,
 )
 from dynqos.experiment.processes import Processes, free_port
 from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import Scenario, scenario_config, with_cell, write_config
+from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, with_cell, write_config
 from dynqos.reports.summary import summarise, write_scenario
 
 log = logging.getLogger(__name__)
@@ -89,7 +90,7 @@ def _start_edge_and_cell(
     start_mcap_recorder(procs, scenario, folder)
     procs.start("vehicle", ["sim", "vehicle", "--duration", "3600"])
     procs.start("planner", ["edge", "planner"])
-    procs.start("mpc", ["edge", "mpc"])
+    start_mpc_replicas(procs, scenario.mpc_replicas)
     procs.start("detector", ["edge", "detector"])
     port: int = cell["control_port"]
     return port
@@ -110,9 +111,11 @@ def _record_flight(
         streams = Streams.subscribe(bus)
         procs.start("onboard", ["onboard", "--takeoff"])
         rec.offload_ns = rec.t0_ns = wait_for_offload(streams.states, procs, stop)
+        replica_faults = any(f.kind in REPLICA_FAULTS for f in scenario.faults)
         injector = FaultInjector(
-            procs, lambda event: post_json(cell_port, "/events", event), bus, uplink_mbps=uplink_mbps
-        )
+            procs, lambda event: post_json(cell_port, "/events", event), bus, uplink_mbps=uplink_mbps,
+            watch_uav=UAV if replica_faults else None,
+        )  # fmt: skip
         try:
             fly(scenario, procs, cell_port, injector, rec, stop, progress)
         finally:

@@ -124,6 +124,8 @@ class Scenario:
     qos_policy: Literal["grant-all", "arbiter"] = "grant-all"  # who of the fleet gets priority
     arbiter_max_grants: int = -1  # the arbiter's budget: at most this many drones at once (-1: none)
     bg_weight: float = 1.0  # the background user's scheduling weight (a busy cell: several users' worth)
+    # MPC processes (docs/reliability.md, "Replicated MPC"): named mpc, mpc-1, mpc-2, ... (their replica ids)
+    mpc_replicas: int = 1
 
     @property
     def run_id(self) -> str:
@@ -151,6 +153,11 @@ class Scenario:
         self._check_fleet()
 
     def _check_run(self) -> None:
+        if not 1 <= self.mpc_replicas <= MAX_MPC_REPLICAS:
+            raise ConfigError("mpc_replicas", f"must be in 1..{MAX_MPC_REPLICAS}")
+        for i, fault in enumerate(self.faults):
+            if fault.kind in REPLICA_FAULTS and self.mpc_replicas < 2:
+                raise ConfigError(f"faults[{i}].kind", f"{fault.kind} needs mpc_replicas >= 2 (a standby)")
         if self.qod_max_sessions < -1:
             raise ConfigError("qod_max_sessions", "must be -1 (no limit) or >= 0")
         if not 0.5 <= self.memory_sample_s <= 600:
@@ -183,6 +190,15 @@ class Scenario:
     @property
     def uavs(self) -> list[str]:
         return [d.id for d in self.drones] or [UAV]
+
+
+MAX_MPC_REPLICAS = 8
+REPLICA_FAULTS = ("mpc_replica_kill", "mpc_replica_hang")
+
+
+def mpc_replica_names(count: int) -> list[str]:
+    """The MPC processes of a run, which are also their replica ids: mpc, mpc-1, mpc-2, ..."""
+    return ["mpc", *(f"mpc-{i}" for i in range(1, count))]
 
 
 def world_path(world: str) -> str:

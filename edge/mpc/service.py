@@ -119,7 +119,10 @@ class MpcService:
             elif not alive and self.assignment.leave(replica):
                 log.info("mpc %s: replica %s left (%d live)", self.replica, replica, live - 1)
             elif alive and replica not in self.assignment.members and replica != self.replica:
-                log.warning("mpc %s: replica token %r refused (invalid or too many)", self.replica, key[:120])
+                refused = self.assignment.counters.members_refused
+                if refused == 1 or refused % 1000 == 0:  # a flood is logged once, and counted
+                    log.warning("mpc %s: replica token %r refused (invalid or too many; %d so far)",
+                                self.replica, key[:120], refused)  # fmt: skip
 
     def _log_change(self, change: Change | None) -> None:
         if change is not None:
@@ -258,7 +261,7 @@ class MpcService:
         return (
             f"replica={self.replica} replicas={len(a.members)} flying={flying} "
             f"standby={len(self.newest) - flying} takeovers={a.counters.takeovers} "
-            f"stepped_down={a.counters.stepped_down} "
+            f"stepped_down={a.counters.stepped_down} tokens_refused={a.counters.members_refused} "
             f"shard={self.config.mpc.shard_index}/{self.config.mpc.shard_count} "
             f"drones={len(self.controllers)} states={c.states} commands={c.commands} stale={c.stale} "
             f"rejected={rejected} solve_failures={c.solve_failures} "
