@@ -104,6 +104,7 @@ class Bus(Protocol):
         *,
         expect: tuple[type[Message], ...] = (),
         decoder: Callable[[bytes], Message] = decode,
+        remote_only: bool = False,
     ) -> SubscriptionStats: ...
 
     def declare_token(self, key: str) -> Token: ...
@@ -224,7 +225,10 @@ class MemoryBus:
         *,
         expect: tuple[type[Message], ...] = (),
         decoder: Callable[[bytes], Message] = decode,
+        remote_only: bool = False,
     ) -> SubscriptionStats:
+        """`remote_only` has no meaning within one process: everything is delivered (a subscriber that
+        asks for it must, and does, tolerate its own messages)."""
         stats = SubscriptionStats(key_expr)
         with self._lock:
             self._subscribers.append((key_matcher(key_expr), delivery(queue, stats, expect, decoder)))

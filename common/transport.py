@@ -306,8 +306,10 @@ class ZenohBus:
         *,
         expect: tuple[type[Message], ...] = (),
         decoder: Callable[[bytes], Message] = decode,
+        remote_only: bool = False,
     ) -> SubscriptionStats:
-        """Decode every sample on key_expr into `queue`; bad payloads are counted, never raised."""
+        """Decode every sample on key_expr into `queue`; bad payloads are counted, never raised.
+        `remote_only`: not what this session itself publishes (zenoh drops those before any decoding)."""
         stats = SubscriptionStats(key_expr)
         clock = self._clock
         deliver = delivery(queue, stats, expect, decoder)
@@ -315,7 +317,8 @@ class ZenohBus:
         def on_sample(sample: zenoh.Sample) -> None:
             deliver(str(sample.key_expr), sample.payload.to_bytes(), clock.now_ns())
 
-        subscriber = self._session.declare_subscriber(key_expr, on_sample)
+        origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
+        subscriber = self._session.declare_subscriber(key_expr, on_sample, allowed_origin=origin)
         with self._lock:
             self._subscribers.append(subscriber)
             self.subscriptions.append(stats)

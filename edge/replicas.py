@@ -123,11 +123,9 @@ class Assignment:
         change = None
         other_holder = bool(drone_holder) and drone_holder != seat.holder
         if drone_term > seat.term or (drone_term == seat.term and other_holder):
-            was_mine = seat.holder == self.me
-            seat.term, seat.holder = drone_term, drone_holder or None
-            if was_mine and seat.holder != self.me:
-                change = self._step_down(uav, seat, now_ns, f"the drone follows {drone_holder or '?'}")
-        if seq > seat.answered_seq and seat.unanswered_since_ns is None:
+            change = self._new_holder(uav, seat, drone_term, drone_holder or None, now_ns,
+                                      f"the drone follows {drone_holder or '?'}")  # fmt: skip
+        if seat.holder != self.me and seq > seat.answered_seq and seat.unanswered_since_ns is None:
             seat.unanswered_since_ns = now_ns
         return change or self._maybe_take(uav, seat, now_ns)
 
@@ -137,15 +135,25 @@ class Assignment:
         if term < seat.term:
             self.counters.stale_commands += 1
             return None
+        change = None
         if term > seat.term or seat.holder is None:
-            was_mine = seat.holder == self.me
-            seat.term, seat.holder = term, replica
-            if was_mine and replica != self.me:
-                return self._step_down(uav, seat, now_ns, f"{replica} holds term {term}")
+            change = self._new_holder(uav, seat, term, replica, now_ns, f"{replica} holds term {term}")
         if replica == seat.holder and state_seq > seat.answered_seq:
             seat.answered_seq = state_seq
             # a newer state may still wait: time it from now (later than its arrival: never too early)
             seat.unanswered_since_ns = None if state_seq >= seat.latest_seq else now_ns
+        return change
+
+    def _new_holder(
+        self, uav: str, seat: Seat, term: int, holder: str | None, now_ns: int, reason: str
+    ) -> Change | None:
+        """Another holder (or term): its lease starts now, whatever the last one left unanswered."""
+        was_mine = seat.holder == self.me
+        seat.term, seat.holder = term, holder
+        seat.answered_seq = -1
+        seat.unanswered_since_ns = None
+        if was_mine and holder != self.me:
+            return self._step_down(uav, seat, now_ns, reason)
         return None
 
     def forget(self, uav: str) -> None:

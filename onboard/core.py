@@ -428,11 +428,12 @@ class OnboardCore:
 
     def _offer_command(self, command: Command, arrival_ns: int) -> None:
         counters = self.tracker.counters
-        changes, fenced = counters.controller_changes, counters.fenced
+        changes, fenced, last_ns = counters.controller_changes, counters.fenced, self.tracker.last_valid_ns
         accepted = self.tracker.offer(command, arrival_ns)
         sender = f"MPC replica {command.replica or '(unnamed)'}"
         if accepted and counters.controller_changes > changes:
-            self._log(logging.INFO, f"{self.uav}: controller is now {sender} (term {command.term})")
+            gap = "" if last_ns is None else f", {(arrival_ns - last_ns) / 1e6:.0f} ms after the last command"
+            self._log(logging.INFO, f"{self.uav}: controller is now {sender} (term {command.term}{gap})")
         elif counters.fenced > fenced and (counters.fenced == 1 or counters.fenced % 1000 == 0):
             followed = f"{self.tracker.replica or '(unnamed)'} term {self.tracker.term}"
             self._log(logging.WARNING, f"{self.uav}: refused a command from {sender} term {command.term}: "

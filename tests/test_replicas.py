@@ -231,3 +231,21 @@ def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goe
     survivor.process(0.0)
     assert len(survivor.assignment.members) == 256
     assert survivor.assignment.counters.members_refused == 300 - 255
+
+
+def test_a_replica_that_never_hears_its_own_commands_does_not_take_back_at_once_when_displaced() -> None:
+    """A replica subscribes to other replicas' commands only, so while it flies a drone it hears no
+    answer to the states it sees; displaced, it must time the new holder from then, not from then."""
+    uav = drone_ranked("c", "b", ("b", "c"))
+    b = replica("b")
+    t = 0
+    for seq in range(1, 60):  # b flies alone for 3 s, hearing none of its own commands
+        t = seq * 50 * MS
+        b.on_state(uav, seq, 1, "b", t)
+    b.join("c")
+    change = b.on_command(uav, 59, 2, "c", t + 5 * MS)  # c joined ranked first and took the drone
+    assert change is not None
+    assert change.role is Role.WATCH
+    assert b.tick(t + 6 * MS) == []  # no "c silent for 3000 ms"
+    b.on_state(uav, 60, 2, "c", t + 50 * MS)
+    assert b.tick(t + 50 * MS + LEASE + MS) != []  # c really silent now: b takes over after the lease

@@ -98,6 +98,10 @@ def test_killing_hanging_and_adding_mpc_replicas_never_sends_the_drone_to_its_fa
     finally:
         observer.bus.close()
     log = procs.pop("onboard").stop()
+    mpc_logs = {name: procs.pop(name).stop() for name in [n for n in procs if n.startswith("mpc-")]}
+    for name, text in mpc_logs.items():  # what each replica did, then what the drone followed
+        print(name, *re.findall(r"drone uav1: .*", text), sep="\n  ")
+    print(*re.findall(r"controller is now .*", log), sep="\n")
     assert "fallback PID" not in log, re.findall(r".*fallback PID.*", log)[:3]
     assert log.count("controller is now MPC replica") >= 2
     command_gap = max(float(g) for g in re.findall(r"max_command_gap_ms=([\d.]+)", log))
@@ -107,10 +111,6 @@ def test_killing_hanging_and_adding_mpc_replicas_never_sends_the_drone_to_its_fa
     )
     assert command_gap < WATCHDOG_MS
     assert setpoint_gap < 50
-    mpc_logs = {name: procs.pop(name).stop() for name in [n for n in procs if n.startswith("mpc-")]}
-    for name, text in mpc_logs.items():
-        print(name, *re.findall(r"drone uav1: .*", text), sep="\n  ")
-    print(*re.findall(r"controller is now .*", log), sep="\n")
     assert any("took over" in text for text in mpc_logs.values()), mpc_logs
     assert int(re.findall(r" fenced=(\d+)", log)[-1]) >= 5  # the stale terms were refused
     assert "refused a command from MPC replica" in log  # logged once (the hung replica may come first)

@@ -94,8 +94,9 @@ class MpcService:
         self.ref_stats = bus.subscribe(
             keys.downlink_all_drones(Downlink.REFERENCE), self.queue, expect=(Reference,)
         )
+        # Other replicas' commands (ours never: with one replica this costs nothing per message).
         self.command_stats = bus.subscribe(
-            keys.downlink_all_drones(Downlink.COMMAND), self.queue, expect=(Command,)
+            keys.downlink_all_drones(Downlink.COMMAND), self.queue, expect=(Command,), remote_only=True
         )
         self.service = Service("mpc", config.mpc.health_interval_s)
         self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
