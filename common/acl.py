@@ -56,8 +56,10 @@ EDGE_ROLES: dict[str, EdgeRole] = {
         tokens=(any_replica_of("mpc"),),
     ),
     "planner": EdgeRole(
-        reads=(uplink_all_drones(Stream.STATE),),
+        # the references too: a standby planner follows the mission time of the one it stands by for
+        reads=(uplink_all_drones(Stream.STATE), downlink_all_drones(Downlink.REFERENCE)),
         writes=(downlink_all_drones(Downlink.REFERENCE),),
+        tokens=(any_replica_of("planner"),),
     ),
     "detector": EdgeRole(
         reads=(uplink_all_drones(Stream.CAMERA_RGB), uplink_all_drones(Stream.CAMERA_DEPTH)),

@@ -232,6 +232,9 @@ class Reference(Message):
         "vel_mps": f.sequence(_velocity, 1, MAX_REFERENCE_SAMPLES),
         "yaw_rad": f.sequence(_angle, 1, MAX_REFERENCE_SAMPLES),
         "mission": f.text(64),
+        "mission_t_s": f.real(0.0, 1e7),
+        "term": f.integer(),
+        "replica": f.text(64),
     }
 
     stamp_ns: int
@@ -240,6 +243,11 @@ class Reference(Message):
     vel_mps: tuple[tuple[float, float, float], ...]
     yaw_rad: tuple[float, ...]
     mission: str = ""
+    # The mission's own time at sample 0, and the planner replica's term and id: a standby planner
+    # continues the mission where the one it replaces left it (edge/replicas.py).
+    mission_t_s: float = 0.0
+    term: int = 0
+    replica: str = ""
 
     def _check(self) -> None:
         n = len(self.pos_m)

@@ -77,12 +77,15 @@ class ReplicaCounters:
 
 
 class Assignment:
-    def __init__(self, me: str, *, lease_ns: int, holdoff_ns: int) -> None:
+    def __init__(self, me: str, *, lease_ns: int, holdoff_ns: int, drone_arbitrates: bool = True) -> None:
+        """`drone_arbitrates`: the drone reports whom it follows (the MPC's case), which settles two
+        replicas that took the same term; otherwise (the planner's) the better ranked of them keeps it."""
         if not valid_replica_id(me):
             raise ValueError(f"replica id {me[:80]!r} is invalid: use 1 to 64 of A-Z a-z 0-9 _ -")
         self.me = me
         self.lease_ns = lease_ns
         self.holdoff_ns = holdoff_ns
+        self.drone_arbitrates = drone_arbitrates
         self.members: set[str] = {me}
         self.seats: dict[str, Seat] = {}
         self.counters = ReplicaCounters()
@@ -138,6 +141,12 @@ class Assignment:
         change = None
         if term > seat.term or seat.holder is None:
             change = self._new_holder(uav, seat, term, replica, now_ns, f"{replica} holds term {term}")
+        elif not self.drone_arbitrates and seat.holder == self.me and replica != self.me:
+            order = ranked(uav, self.members | {replica})
+            if order.index(replica) < order.index(self.me):  # both took this term: the better ranked keeps it
+                change = self._new_holder(
+                    uav, seat, term, replica, now_ns, f"{replica} also took term {term}"
+                )
         if replica == seat.holder and state_seq > seat.answered_seq:
             seat.answered_seq = state_seq
             # a newer state may still wait: time it from now (later than its arrival: never too early)

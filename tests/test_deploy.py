@@ -136,6 +136,10 @@ def test_production_overlay_turns_on_mtls_access_control_and_mpc_replicas(tmp_pa
         "name": "dynqos-mpc",
     }
     assert hpa["spec"]["minReplicas"] >= 2
+    planner = workloads["dynqos-planner"]
+    assert planner["spec"]["replicas"] == 2
+    (planner_env,) = planner["spec"]["template"]["spec"]["containers"][0]["env"]
+    assert planner_env["name"] == "DYNQOS_PLANNER__REPLICA_ID"
     resources = container["resources"]
     assert resources["requests"] == resources["limits"]  # the Guaranteed QoS class: never CFS-throttled
     assert str(resources["limits"]["cpu"]).isdigit()  # whole CPUs (the static CPU manager pins them)

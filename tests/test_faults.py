@@ -15,8 +15,8 @@ import pytest
 from dynqos.common import keys
 from dynqos.common.bus import MemoryBus, Priority
 from dynqos.common.errors import ConfigError
-from dynqos.common.keys import Flow, Stream
-from dynqos.common.messages import State, SupervisorStatus
+from dynqos.common.keys import Downlink, Flow, Stream
+from dynqos.common.messages import Reference, State, SupervisorStatus
 from dynqos.experiment.faults import Fault, FaultInjector, FaultWindow, log_times, outcome, time_in_states
 from dynqos.experiment.processes import Processes
 from dynqos.experiment.runner import run_scenario
@@ -60,6 +60,8 @@ def test_replica_faults_need_a_standby() -> None:
         Scenario(name="x", duration_s=10, bg_start_s=-1, faults=(Fault(at_s=1, kind="mpc_replica_hang"),))
     with pytest.raises(ConfigError, match="mpc_replicas"):
         Scenario(name="x", duration_s=10, bg_start_s=-1, mpc_replicas=9)
+    with pytest.raises(ConfigError, match="planner_replicas >= 2"):
+        Scenario(name="x", duration_s=10, bg_start_s=-1, faults=(Fault(at_s=1, kind="planner_replica_kill"),))
     assert builtin_scenario("replicas").mpc_replicas == 2
 
 
@@ -81,7 +83,7 @@ def test_replica_faults_act_on_the_replica_the_drone_says_flies_it(tmp_path: Pat
                         quat=(1.0, 0.0, 0.0, 0.0), command_term=3, command_replica="mpc-1"))  # fmt: skip
         first_pid = procs.procs["mpc-1"].pid
         window = injector.begin(Fault(at_s=1, kind="mpc_replica_kill", duration_s=1))
-        assert (window.target, window.notes) == ("mpc-1", ["mpc-1 flew the drone (term 3)"])
+        assert (window.target, window.notes) == ("mpc-1", ["mpc-1 served the drone (term 3)"])
         assert procs.procs["mpc-1"].poll() is not None  # killed
         assert procs.procs["mpc"].poll() is None  # the standby untouched
         injector.end(window)
@@ -90,10 +92,21 @@ def test_replica_faults_act_on_the_replica_the_drone_says_flies_it(tmp_path: Pat
         # No state since: the injector says so and acts on the first live replica.
         hang = injector.begin(Fault(at_s=3, kind="mpc_replica_hang", duration_s=1))
         assert hang.target == "mpc"
-        assert "no live replica was seen flying" in hang.notes[0]
+        assert "no live mpc replica was seen serving" in hang.notes[0]
         assert _reaches(procs.procs["mpc"].pid, stopped=True)
         injector.end(hang)
         assert _reaches(procs.procs["mpc"].pid, stopped=False)
+        # The planner replica that sent the drone's latest reference is the one a planner fault acts on.
+        for name in ("planner", "planner-1"):
+            procs.start(name, [], program=SLEEPER)
+        refs = bus.publisher(keys.downlink("uav1", Downlink.REFERENCE), Priority.INTERACTIVE_HIGH)
+        refs.put(Reference(uav="uav1", seq=1, stamp_ns=1, dt_s=0.05, pos_m=((0.0, 0.0, -1.5),),
+                           vel_mps=((0.0, 0.0, 0.0),), yaw_rad=(0.0,), mission_t_s=12.0, term=2,
+                           replica="planner-1"))  # fmt: skip
+        planner = injector.begin(Fault(at_s=5, kind="planner_replica_kill", duration_s=1))
+        assert (planner.target, planner.notes) == ("planner-1", ["planner-1 served the drone (term 2)"])
+        assert procs.procs["planner-1"].poll() is not None
+        assert procs.procs["planner"].poll() is None
     finally:
         procs.stop_all()
         bus.close()
@@ -253,18 +266,22 @@ def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(600)  # a starved first flight is flown again
 def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> None:
-    """The shipped replicas scenario: two MPC replicas; the one flying the drone killed, a third joining,
-    the one flying hung for 2 s. None of them makes the drone fall back (docs/reliability.md)."""
+    """The shipped replicas scenario: two MPC and two planner replicas; the MPC replica flying the drone
+    killed, a third joining, the one flying hung for 2 s, the planner replica publishing killed. None of
+    them makes the drone fall back (docs/reliability.md)."""
     scenario = builtin_scenario("replicas")
-    assert [f.kind for f in scenario.faults] == ["mpc_replica_kill", "replica_join", "mpc_replica_hang"]
+    assert [f.kind for f in scenario.faults] == [
+        "mpc_replica_kill", "replica_join", "mpc_replica_hang", "planner_replica_kill",
+    ]  # fmt: skip
     result = _fly_with_headroom(scenario, tmp_path)
     _check(result, set())
     for fault in result["faults"]:
         assert not fault["fallback"], fault
         assert fault["max_setpoint_gap_ms"] < 50, fault
-    kill, join, hang = result["faults"]
-    assert "flew the drone" in kill["notes"][0], kill  # it acted on the replica flying the drone
-    assert "flew the drone" in hang["notes"][0], hang
+    kill, join, hang, planner = result["faults"]
+    assert "served the drone" in planner["notes"][0], planner
+    assert "served the drone" in kill["notes"][0], kill  # it acted on the replica flying the drone
+    assert "served the drone" in hang["notes"][0], hang
     assert join["notes"] == ["mpc-join1 joined"]
 
 

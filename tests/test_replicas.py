@@ -12,9 +12,10 @@ from dynqos.common.bus import MemoryBus, Priority, Received
 from dynqos.common.clock import FakeClock
 from dynqos.common.config import load_config
 from dynqos.common.keys import Downlink, Flow, Stream
-from dynqos.common.messages import Command, State
+from dynqos.common.messages import Command, Reference, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.edge.mpc.service import MpcService
+from dynqos.edge.planner.service import PlannerService
 from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Role, ranked
 from dynqos.onboard.commands import CommandTracker
 
@@ -197,7 +198,8 @@ def _state(seq: int, clock: FakeClock, term: int, holder: str) -> State:
 def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goes() -> None:
     """The service wiring on the in-memory bus (same codec and checks as zenoh) and a fake clock: the
     drone's states, the commands each replica sees of the other, the tokens; a token flood is counted."""
-    clock, bus = FakeClock(1_000_000_000), MemoryBus()
+    clock = FakeClock(1_000_000_000)
+    bus = MemoryBus(clock)
     a, b = _mpc("mpc-a", bus, clock), _mpc("mpc-b", bus, clock)
     commands: BoundedQueue[Received] = BoundedQueue(1000)
     bus.subscribe(keys.downlink("uav1", Downlink.COMMAND), commands, expect=(Command,))
@@ -222,7 +224,9 @@ def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goe
     flying = first[-1].replica
     assert {c.replica for c in first} == {flying}
     survivor = b if flying == "mpc-a" else a
-    (a if flying == "mpc-a" else b).token.close()  # its process is gone: the router withdraws the token
+    (
+        a if flying == "mpc-a" else b
+    ).membership.token.close()  # its process is gone: the router withdraws the token
     after = [c for seq in range(11, 16) for c in step(seq, [survivor])]
     assert len(after) == 5
     assert {(c.replica, c.term) for c in after} == {(survivor.replica, first[-1].term + 1)}
@@ -249,3 +253,35 @@ def test_a_replica_that_never_hears_its_own_commands_does_not_take_back_at_once_
     assert b.tick(t + 6 * MS) == []  # no "c silent for 3000 ms"
     b.on_state(uav, 60, 2, "c", t + 50 * MS)
     assert b.tick(t + 50 * MS + LEASE + MS) != []  # c really silent now: b takes over after the lease
+
+
+def test_a_standby_planner_continues_the_mission_where_the_one_it_replaces_left_it() -> None:
+    """Two planners on the in-memory bus: one publishes, the other follows its mission time from the
+    references; when the first one's token goes, the second publishes the same mission, continued."""
+    clock = FakeClock(1_000_000_000)
+    bus = MemoryBus(clock)
+    planners = [PlannerService(load_config(None, [f'planner.replica_id="{n}"']), bus, clock) for n in "pq"]
+    refs: BoundedQueue[Received] = BoundedQueue(1000)
+    bus.subscribe(keys.downlink("uav1", Downlink.REFERENCE), refs, expect=(Reference,))
+    drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+
+    def run(seconds: float, live: list[PlannerService]) -> list[Reference]:
+        for k in range(round(seconds / 0.05)):
+            drone.put(_state(k + 1, clock, 0, ""))
+            for planner in live:
+                planner.discover()
+                if k % 2 == 0:
+                    planner.publish()
+            clock.advance_s(0.05)
+        return [i.message for i in refs.drain() if isinstance(i.message, Reference)]
+
+    before = run(3.0, planners)
+    assert len({r.replica for r in before}) == 1  # one publishes, the other stands by
+    first = next(p for p in planners if p.replica == before[-1].replica)
+    second = next(p for p in planners if p is not first)
+    first.membership.token.close()  # its process is gone
+    after = run(1.0, [second])
+    assert {r.replica for r in after} == {second.replica}
+    assert after[0].term > before[-1].term
+    # the mission goes on: its time continues from where it was, it does not start again at 0
+    assert after[0].mission_t_s == pytest.approx(before[-1].mission_t_s + 0.1, abs=0.06)

@@ -114,3 +114,40 @@ def test_killing_hanging_and_adding_mpc_replicas_never_sends_the_drone_to_its_fa
     assert any("took over" in text for text in mpc_logs.values()), mpc_logs
     assert int(re.findall(r" fenced=(\d+)", log)[-1]) >= 5  # the stale terms were refused
     assert "refused a command from MPC replica" in log  # logged once (the hung replica may come first)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_killing_the_planner_replica_that_publishes_continues_the_mission_from_the_other(
+    tmp_path: Path,
+) -> None:
+    """Two planners; the one publishing the drone's references is SIGKILLed: the other continues the
+    same mission from where it was (no restart at mission time 0), and the drone never falls back."""
+    with edge_loop(tmp_path) as (config, zcfg, procs):
+        procs["planner-b"] = DynqosProcess(
+            ["edge", "planner"], config, env={"DYNQOS_PLANNER__REPLICA_ID": "planner-b"}
+        )
+        observer = Observer(zcfg)
+        try:
+            procs["onboard"] = DynqosProcess(["onboard", "--takeoff"], config)
+            _followed(observer, lambda s: s.mode == "offboard", 60, "offload")
+            observer.wait_until(lambda s: False, 4.0)
+            observer.collect()
+            publishing = observer.ref_log[-1].replica
+            before = observer.ref_log[-1].mission_t_s
+            victim = "planner-b" if publishing == "planner-b" else "planner"
+            procs[victim].proc.kill()
+            observer.wait_until(lambda s: False, 4.0)
+            observer.collect()
+            after = [r for r in observer.ref_log if r.replica and r.replica != publishing]
+            assert after, "the other planner never published"
+            went_on = f"{after[0].replica} went on at {after[0].mission_t_s:.2f} s"
+            print(f"planner {publishing} killed at mission time {before:.2f} s; {went_on}")
+            assert before < after[0].mission_t_s < before + 2.0  # continued, not restarted
+            assert after[-1].term > observer.ref_log[0].term
+        finally:
+            observer.bus.close()
+        log = procs.pop("onboard").stop()
+    assert "fallback PID" not in log, re.findall(r".*fallback PID.*", log)[:3]
+    setpoint_gap = max(float(g) for g in re.findall(r"max_setpoint_gap_ms=([\d.]+)", log))
+    assert setpoint_gap < 50

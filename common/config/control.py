@@ -122,14 +122,21 @@ class MpcConfig:
         _require(10 <= self.max_iter <= 100_000, "max_iter", "must be in 10..100000")
         _require(1 <= self.command_steps <= 60, "command_steps", "must be in 1..60")
         _require(0 <= self.max_compensation_s <= 2.5, "max_compensation_s", "must be in 0..2.5 s")
-        _require(self.replica_id == "" or re.fullmatch(r"[A-Za-z0-9_-]{1,64}", self.replica_id) is not None,
-                 "replica_id", "use 1 to 64 characters from A-Z a-z 0-9 _ - (or leave it empty)")  # fmt: skip
-        _require(0.005 <= self.takeover_after_s <= 1.0, "takeover_after_s", "must be in 0.005..1 s")
-        _require(0 <= self.holdoff_s <= 600, "holdoff_s", "must be in 0..600 s")
+        _check_replica(self.replica_id, self.takeover_after_s, self.holdoff_s, max_takeover_s=1.0)
         _require(1 <= self.shard_count <= 1024, "shard_count", "must be in 1..1024")
         _require(0 <= self.shard_index < self.shard_count, "shard_index", "must be in 0..shard_count-1")
         _require(0.5 <= self.idle_timeout_s <= 3600, "idle_timeout_s", "must be in 0.5..3600 s")
         _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
+
+
+def _check_replica(
+    replica_id: str, takeover_after_s: float, holdoff_s: float, *, max_takeover_s: float
+) -> None:
+    _require(replica_id == "" or re.fullmatch(r"[A-Za-z0-9_-]{1,64}", replica_id) is not None,
+             "replica_id", "use 1 to 64 characters from A-Z a-z 0-9 _ - (or leave it empty)")  # fmt: skip
+    _require(0.005 <= takeover_after_s <= max_takeover_s, "takeover_after_s",
+             f"must be in 0.005..{max_takeover_s:g} s")  # fmt: skip
+    _require(0 <= holdoff_s <= 600, "holdoff_s", "must be in 0..600 s")
 
 
 def _check_mission(m: PlannerConfig | DroneMissionConfig) -> None:
@@ -178,6 +185,11 @@ class PlannerConfig:
     samples: int = 60
     health_interval_s: float = 5.0
     drones: dict[str, DroneMissionConfig] = field(default_factory=dict)  # drone id -> its own mission
+    # Replicas (docs/reliability.md): as the MPC's; a standby takes a drone over when its holder has sent
+    # no reference for takeover_after_s (several publish periods: the MPC has `samples` ahead meanwhile).
+    replica_id: str = ""
+    takeover_after_s: float = 0.5
+    holdoff_s: float = 2.0
 
     def __post_init__(self) -> None:
         _check_mission(self)
@@ -185,6 +197,7 @@ class PlannerConfig:
         _require(0.5 <= self.publish_hz <= 100, "publish_hz", "must be in 0.5..100 Hz")
         _require(2 <= self.samples <= 400, "samples", "must be in 2..400")
         _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
+        _check_replica(self.replica_id, self.takeover_after_s, self.holdoff_s, max_takeover_s=10.0)
         for uav in self.drones:
             _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"drones.{uav}", "is not a drone id")
 

@@ -26,8 +26,8 @@ from dynqos.common import keys
 from dynqos.common.bus import Bus, Received
 from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.errors import ConfigError
-from dynqos.common.keys import Stream
-from dynqos.common.messages import State, SupervisorStatus
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.messages import Reference, State, SupervisorStatus
 from dynqos.common.modes import ControlSource
 from dynqos.common.queues import BoundedQueue
 from dynqos.experiment.processes import Processes
@@ -37,7 +37,7 @@ SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zen
 
 FaultKind = Literal[
     "mpc_kill", "router_kill", "coverage_loss", "downlink_loss", "fc_silence", "detector_flood", "background",
-    "capacity", "trace", "mpc_replica_kill", "mpc_replica_hang", "replica_join",
+    "capacity", "trace", "mpc_replica_kill", "mpc_replica_hang", "replica_join", "planner_replica_kill",
 ]  # fmt: skip
 FLOOD_FPS = 100.0  # several times what the detector can process
 FLOOD_MAX_FRAMES = 20_000
@@ -147,20 +147,29 @@ class FaultInjector:
         self.windows: list[FaultWindow] = []
         self._floods: dict[int, Flood] = {}
         self._states: BoundedQueue[Received] = BoundedQueue(64)  # the newest few (the oldest drop)
+        self._refs: BoundedQueue[Received] = BoundedQueue(64)
         self._joined = 0
         if watch_uav is not None:
             bus.subscribe(keys.uplink_any_flow(watch_uav, Stream.STATE), self._states, expect=(State,))
+            bus.subscribe(keys.downlink(watch_uav, Downlink.REFERENCE), self._refs, expect=(Reference,))
 
-    def _flying(self) -> tuple[str, str]:
-        """The MPC process flying the watched drone, and a note saying how it was chosen."""
-        latest = [i.message for i in self._states.drain() if isinstance(i.message, State)]
-        name = latest[-1].command_replica if latest else ""
+    def _serving(self, service: str) -> tuple[str, str]:
+        """The process of `service` (mpc, planner) serving the watched drone: the MPC replica its latest
+        State says it follows, the planner replica that sent its latest Reference; and a note."""
+        if service == "mpc":
+            states = [i.message for i in self._states.drain() if isinstance(i.message, State)]
+            name, term = (states[-1].command_replica, states[-1].command_term) if states else ("", 0)
+        else:
+            refs = [i.message for i in self._refs.drain() if isinstance(i.message, Reference)]
+            name, term = (refs[-1].replica, refs[-1].term) if refs else ("", 0)
         if name in self.procs.procs and name not in self.procs.down:
-            return name, f"{name} flew the drone (term {latest[-1].command_term})"
-        live = [n for n in self.procs.procs if n.startswith("mpc") and n not in self.procs.down]
+            return name, f"{name} served the drone (term {term})"
+        live = [n for n in self.procs.procs if n.split("-")[0] == service and n not in self.procs.down]
         if not live:
-            return "", "no MPC replica is running: nothing to act on"
-        return live[0], f"no live replica was seen flying the drone ({name or 'none'}): acted on {live[0]}"
+            return "", f"no {service} replica is running: nothing to act on"
+        return live[
+            0
+        ], f"no live {service} replica was seen serving the drone ({name or 'none'}): acted on {live[0]}"
 
     def _begin_replica_fault(self, window: FaultWindow) -> None:
         kind = window.fault.kind
@@ -170,9 +179,9 @@ class FaultInjector:
             self.procs.start(window.target, ["edge", "mpc", "--set", f'mpc.replica_id="{window.target}"'])
             window.notes.append(f"{window.target} joined")
             return
-        window.target, note = self._flying()
+        window.target, note = self._serving("planner" if kind == "planner_replica_kill" else "mpc")
         window.notes.append(note)
-        if window.target and kind == "mpc_replica_kill":
+        if window.target and kind in ("mpc_replica_kill", "planner_replica_kill"):
             self.procs.kill(window.target)
         elif window.target:
             self.procs.signal(window.target, signal.SIGSTOP)
@@ -196,7 +205,7 @@ class FaultInjector:
             self.cell_event({"kind": "capacity", "uplink_mbps": fault.uplink_mbps})
         elif kind == "trace":
             self.cell_event({"kind": "trace", "file": str(Path(fault.file).resolve()), "mean_mbps": 0.0})
-        elif kind in ("mpc_replica_kill", "mpc_replica_hang", "replica_join"):
+        elif kind in ("mpc_replica_kill", "mpc_replica_hang", "replica_join", "planner_replica_kill"):
             self._begin_replica_fault(window)
         log.info("fault: %s for %.1f s", kind, fault.duration_s)
         self.windows.append(window)
@@ -210,7 +219,7 @@ class FaultInjector:
             self.procs.restart("router")
         elif kind == "fc_silence":
             self.procs.signal("vehicle", signal.SIGCONT)
-        elif kind == "mpc_replica_kill" and window.target:
+        elif kind in ("mpc_replica_kill", "planner_replica_kill") and window.target:
             self.procs.restart(window.target)
         elif kind == "mpc_replica_hang" and window.target:
             self.procs.signal(window.target, signal.SIGCONT)

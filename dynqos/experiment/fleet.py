@@ -28,7 +28,7 @@ from dynqos.experiment.flight import (
     fly,
     fly_and_stop,
     post_json,
-    start_mpc_replicas,
+    start_replicas,
     wait_for_offload,
 )
 from dynqos.experiment.processes import Processes, free_port, free_udp_block
@@ -83,8 +83,8 @@ def run_fleet(
         for i, uav in enumerate(drones):
             args = ["sim", "vehicle", "--instance", str(i), "--duration", "3600"]
             procs.start(f"vehicle-{uav}", args, config=paths[uav])
-        procs.start("planner", ["edge", "planner"])
-        start_mpc_replicas(procs, scenario.mpc_replicas)
+        start_replicas(procs, "planner", scenario.planner_replicas)
+        start_replicas(procs, "mpc", scenario.mpc_replicas)
         # The detector is best effort (it drops the frames it cannot keep up with): on one machine it
         # runs below the control path, as it would on its own cores at a real edge.
         procs.start("detector", ["edge", "detector"], program=["nice", "-n", str(DETECTOR_NICE), procs.exe])

@@ -27,15 +27,15 @@ from dynqos.experiment.faults import FaultInjector, FaultWindow
 from dynqos.experiment.machine import read_cpu_times
 from dynqos.experiment.processes import Processes, resident_memory
 from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import UAV, Scenario, mpc_replica_names, world_path
+from dynqos.experiment.scenario import UAV, Scenario, replica_names, world_path
 
 log = logging.getLogger(__name__)
 
 
-def start_mpc_replicas(procs: Processes, count: int) -> None:
-    """The run's MPC processes, each named by its replica id (docs/reliability.md)."""
-    for name in mpc_replica_names(count):
-        procs.start(name, ["edge", "mpc", "--set", f'mpc.replica_id="{name}"'])
+def start_replicas(procs: Processes, service: str, count: int) -> None:
+    """The run's processes of an edge service (mpc, planner), each named by its replica id."""
+    for name in replica_names(service, count):
+        procs.start(name, ["edge", service, "--set", f'{service}.replica_id="{name}"'])
 
 
 RECORD_PERIOD_S = 0.1  # the recorder's sampling period

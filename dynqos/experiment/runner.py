@@ -25,7 +25,7 @@ from dynqos.experiment.flight import (
     fly_and_stop,
     post_json,
     start_mcap_recorder,
-    start_mpc_replicas,
+    start_replicas,
     wait_for_offload,
 )
 from dynqos.experiment.processes import Processes, free_port
@@ -89,8 +89,8 @@ def _start_edge_and_cell(
     procs.start("qos", ["edge", "qos"])
     start_mcap_recorder(procs, scenario, folder)
     procs.start("vehicle", ["sim", "vehicle", "--duration", "3600"])
-    procs.start("planner", ["edge", "planner"])
-    start_mpc_replicas(procs, scenario.mpc_replicas)
+    start_replicas(procs, "planner", scenario.planner_replicas)
+    start_replicas(procs, "mpc", scenario.mpc_replicas)
     procs.start("detector", ["edge", "detector"])
     port: int = cell["control_port"]
     return port

@@ -124,8 +124,10 @@ class Scenario:
     qos_policy: Literal["grant-all", "arbiter"] = "grant-all"  # who of the fleet gets priority
     arbiter_max_grants: int = -1  # the arbiter's budget: at most this many drones at once (-1: none)
     bg_weight: float = 1.0  # the background user's scheduling weight (a busy cell: several users' worth)
-    # MPC processes (docs/reliability.md, "Replicated MPC"): named mpc, mpc-1, mpc-2, ... (their replica ids)
+    # MPC and planner processes (docs/reliability.md, "Replicated MPC"): named mpc, mpc-1, ... and
+    # planner, planner-1, ... (their replica ids)
     mpc_replicas: int = 1
+    planner_replicas: int = 1
 
     @property
     def run_id(self) -> str:
@@ -153,11 +155,13 @@ class Scenario:
         self._check_fleet()
 
     def _check_run(self) -> None:
-        if not 1 <= self.mpc_replicas <= MAX_MPC_REPLICAS:
-            raise ConfigError("mpc_replicas", f"must be in 1..{MAX_MPC_REPLICAS}")
+        for name in ("mpc_replicas", "planner_replicas"):
+            if not 1 <= getattr(self, name) <= MAX_REPLICAS:
+                raise ConfigError(name, f"must be in 1..{MAX_REPLICAS}")
         for i, fault in enumerate(self.faults):
-            if fault.kind in REPLICA_FAULTS and self.mpc_replicas < 2:
-                raise ConfigError(f"faults[{i}].kind", f"{fault.kind} needs mpc_replicas >= 2 (a standby)")
+            needs = REPLICA_FAULTS.get(fault.kind)
+            if needs is not None and getattr(self, needs) < 2:
+                raise ConfigError(f"faults[{i}].kind", f"{fault.kind} needs {needs} >= 2 (a standby)")
         if self.qod_max_sessions < -1:
             raise ConfigError("qod_max_sessions", "must be -1 (no limit) or >= 0")
         if not 0.5 <= self.memory_sample_s <= 600:
@@ -192,13 +196,17 @@ class Scenario:
         return [d.id for d in self.drones] or [UAV]
 
 
-MAX_MPC_REPLICAS = 8
-REPLICA_FAULTS = ("mpc_replica_kill", "mpc_replica_hang")
+MAX_REPLICAS = 8
+# the faults that act on the replica serving the drone, and the setting that must give it a standby
+REPLICA_FAULTS = {
+    "mpc_replica_kill": "mpc_replicas", "mpc_replica_hang": "mpc_replicas",
+    "planner_replica_kill": "planner_replicas",
+}  # fmt: skip
 
 
-def mpc_replica_names(count: int) -> list[str]:
-    """The MPC processes of a run, which are also their replica ids: mpc, mpc-1, mpc-2, ..."""
-    return ["mpc", *(f"mpc-{i}" for i in range(1, count))]
+def replica_names(service: str, count: int) -> list[str]:
+    """A run's processes of an edge service, which are also their replica ids: mpc, mpc-1, mpc-2, ..."""
+    return [service, *(f"{service}-{i}" for i in range(1, count))]
 
 
 def world_path(world: str) -> str:

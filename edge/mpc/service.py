@@ -13,10 +13,6 @@ commands it sends, and take over when its token goes or it leaves a state unansw
 from __future__ import annotations
 
 import logging
-import os
-import re
-import socket
-import threading
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,9 +28,10 @@ from dynqos.common.messages import Command, Reference, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received
 from dynqos.edge import metrics
+from dynqos.edge.membership import Membership, default_replica_id
 from dynqos.edge.mpc.controller import DroneController
 from dynqos.edge.mpc.problem import SolveError
-from dynqos.edge.replicas import Assignment, Change, Role
+from dynqos.edge.replicas import Assignment, Role
 from dynqos.edge.service import Service, serve
 
 log = logging.getLogger(__name__)
@@ -49,17 +46,7 @@ class MpcCounters:
     references: int = 0
     other_shard: int = 0
     not_mine: int = 0  # states of drones this replica neither flies nor stands by for
-    membership_refused: int = 0  # token changes beyond MAX_MEMBERSHIP_EVENTS (a flood)
     solve_ms: list[float] = field(default_factory=list)
-
-
-MAX_MEMBERSHIP_EVENTS = 1024  # token changes waiting for the worker; a flood beyond is refused
-
-
-def default_replica_id() -> str:
-    """`<host>-<pid>`: unique on a machine and, under Kubernetes, across pods (the host is the pod)."""
-    host = re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname())[:40] or "host"
-    return f"{host}-{os.getpid()}"
 
 
 def shard_of(uav: str, shard_count: int) -> int:
@@ -82,14 +69,9 @@ class MpcService:
             self.replica, lease_ns=round(cfg.takeover_after_s * 1e9), holdoff_ns=round(cfg.holdoff_s * 1e9)
         )
         self.newest: dict[str, Received] = {}  # the newest state per drone we stand by for
-        self._membership: dict[str, bool] = {}  # token changes from zenoh's thread, for the worker
-        self._membership_lock = threading.Lock()
         # Replicas of one static shard (or all, unsharded) share its drones among themselves.
         group = "all" if cfg.shard_count == 1 else f"shard-{cfg.shard_index}-of-{cfg.shard_count}"
-        bus.watch_tokens(keys.replicas_of("mpc", group), self._on_token)
-        self.token = bus.declare_token(keys.replica_token("mpc", group, self.replica))
-        for key in bus.alive_tokens(keys.replicas_of("mpc", group), timeout_s=2.0):  # the live set first
-            self._on_token(key, True)
+        self.membership = Membership("mpc", group, self.assignment, bus)
         self.state_stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,))
         self.ref_stats = bus.subscribe(
             keys.downlink_all_drones(Downlink.REFERENCE), self.queue, expect=(Reference,)
@@ -100,35 +82,6 @@ class MpcService:
         )
         self.service = Service("mpc", config.mpc.health_interval_s)
         self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
-
-    def _on_token(self, key: str, alive: bool) -> None:
-        """zenoh's thread: note the change; the worker applies it (the assignment is not shared)."""
-        with self._membership_lock:
-            if key not in self._membership and len(self._membership) >= MAX_MEMBERSHIP_EVENTS:
-                self.counters.membership_refused += 1
-                return
-            self._membership[key] = alive
-
-    def _apply_membership(self) -> None:
-        with self._membership_lock:
-            changes, self._membership = self._membership, {}
-        for key, alive in changes.items():
-            replica = keys.replica_of_token(key)
-            live = len(self.assignment.members)
-            if alive and self.assignment.join(replica):
-                log.info("mpc %s: replica %s joined (%d live)", self.replica, replica, live + 1)
-            elif not alive and self.assignment.leave(replica):
-                log.info("mpc %s: replica %s left (%d live)", self.replica, replica, live - 1)
-            elif alive and replica not in self.assignment.members and replica != self.replica:
-                refused = self.assignment.counters.members_refused
-                if refused == 1 or refused % 1000 == 0:  # a flood is logged once, and counted
-                    log.warning("mpc %s: replica token %r refused (invalid or too many; %d so far)",
-                                self.replica, key[:120], refused)  # fmt: skip
-
-    def _log_change(self, change: Change | None) -> None:
-        if change is not None:
-            log.info("mpc %s: drone %s: %s (term %d, now %s)", self.replica, change.uav, change.reason,
-                     change.term, change.role.value)  # fmt: skip
 
     def _mine(self, uav: str) -> bool:
         cfg = self.config.mpc
@@ -146,7 +99,7 @@ class MpcService:
 
     def process(self, timeout_s: float = 0.1) -> int:
         """Handle what has arrived; returns how many commands were sent."""
-        self._apply_membership()
+        self.membership.apply()
         if self.newest:  # standing by: wake often enough to see a holder's lease run out in time
             timeout_s = min(timeout_s, self.config.mpc.takeover_after_s / 4)
         first = self.queue.get(timeout_s)
@@ -160,7 +113,7 @@ class MpcService:
             elif isinstance(message, State):
                 self._on_state(item, message, fresh)
         for change in self.assignment.tick(self.clock.now_ns()):
-            self._log_change(change)
+            self.membership.log_change(change)
             fresh.add(change.uav)  # a takeover answers the newest state at once
         sent = 0
         for uav in fresh & self.newest.keys():
@@ -182,7 +135,7 @@ class MpcService:
         change = self.assignment.on_command(
             message.uav, message.state_seq, message.term, message.replica, arrival_ns
         )
-        self._log_change(change)
+        self.membership.log_change(change)
         ctrl = self.controllers.get(message.uav)
         if ctrl is not None and message.replica != self.replica:
             ctrl.observe(message.state_stamp_ns, message.accel_mps2)
@@ -198,7 +151,7 @@ class MpcService:
             self.newest.pop(uav, None)
             return
         self.counters.states += 1
-        self._log_change(
+        self.membership.log_change(
             self.assignment.on_state(
                 uav, message.seq, message.command_term, message.command_replica, item.arrival_ns
             )
@@ -258,10 +211,8 @@ class MpcService:
         solve = np.array(c.solve_ms[-500:]) if c.solve_ms else np.zeros(1)
         rejected = self.state_stats.rejected + self.ref_stats.rejected + self.command_stats.rejected
         a = self.assignment
-        flying = sum(1 for uav in self.newest if a.role(uav) is Role.SERVE)
         return (
-            f"replica={self.replica} replicas={len(a.members)} flying={flying} "
-            f"standby={len(self.newest) - flying} takeovers={a.counters.takeovers} "
+            f"{self.membership.health(self.newest, 'flying')} "
             f"stepped_down={a.counters.stepped_down} tokens_refused={a.counters.members_refused} "
             f"shard={self.config.mpc.shard_index}/{self.config.mpc.shard_count} "
             f"drones={len(self.controllers)} states={c.states} commands={c.commands} stale={c.stale} "

@@ -2,6 +2,11 @@
 
 Each drone's mission clock starts when the planner first hears from it; References covering the MPC
 horizon (and some margin) are published at `publish_hz` on `dynqos/<uav>/ref`.
+
+Several planners may run, as replicas (edge/replicas.py, docs/reliability.md): one publishes each
+drone's references, the other stands by for it, follows its mission time from the references it
+hears, and takes over, continuing the mission where it was, when that replica's token goes or it has
+sent nothing for `takeover_after_s`.
 """
 
 from __future__ import annotations
@@ -17,7 +22,9 @@ from dynqos.common.messages import Reference, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received
 from dynqos.edge import metrics
+from dynqos.edge.membership import Membership, default_replica_id
 from dynqos.edge.planner.missions import Mission, load_waypoints
+from dynqos.edge.replicas import Assignment, Role
 from dynqos.edge.service import Service, serve
 
 log = logging.getLogger(__name__)
@@ -36,6 +43,20 @@ def mission_from_config(cfg: PlannerConfig, uav: str | None = None) -> Mission:
 
 class PlannerService:
     def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
+        self._init_mission(config, bus, clock)
+        cfg = self.cfg
+        self.assignment = Assignment(
+            cfg.replica_id or default_replica_id(), lease_ns=round(cfg.takeover_after_s * 1e9),
+            holdoff_ns=round(cfg.holdoff_s * 1e9), drone_arbitrates=False,
+        )  # fmt: skip
+        self.replica = self.assignment.me
+        self.membership = Membership("planner", "all", self.assignment, bus)
+        self.state_seq: dict[str, int] = {}  # the newest state seen per drone
+        self.ref_stats = bus.subscribe(
+            keys.downlink_all_drones(Downlink.REFERENCE), self.queue, expect=(Reference,), remote_only=True
+        )
+
+    def _init_mission(self, config: Config, bus: Bus, clock: Clock | None) -> None:
         self.config = config
         self.cfg = config.planner
         self.mission = mission_from_config(self.cfg)  # every drone's but those [planner.drones] names
@@ -52,37 +73,60 @@ class PlannerService:
         self.service = Service("planner", self.cfg.health_interval_s)
 
     def discover(self) -> None:
+        """New drones, other replicas' references (their mission time), and who publishes for whom."""
+        self.membership.apply()
         for item in self.queue.drain():
             message = item.message
-            if isinstance(message, State) and message.uav not in self.started_ns:
-                self.started_ns[message.uav] = item.arrival_ns
-                self.publishers[message.uav] = self.bus.publisher(
-                    keys.downlink(message.uav, Downlink.REFERENCE), Priority.INTERACTIVE_HIGH
-                )
-                mission = self.missions.get(message.uav, self.mission)
-                log.info(
-                    "planner: %s mission (centre %s) starts for %s",
-                    mission.kind,
-                    mission.center_m,
-                    message.uav,
-                )
+            if isinstance(message, State):
+                self._on_state(message, item.arrival_ns)
+            elif isinstance(message, Reference) and message.uav in self.started_ns:
+                seq = self.state_seq.get(message.uav, -1)
+                self.membership.log_change(self.assignment.on_command(
+                    message.uav, seq, message.term, message.replica, item.arrival_ns
+                ))  # fmt: skip
+                if message.replica == self.assignment.seats[message.uav].holder:
+                    # follow the mission where the publishing replica has it (to the arrival: ~1 ms)
+                    self.started_ns[message.uav] = item.arrival_ns - round(message.mission_t_s * 1e9)
+        for change in self.assignment.tick(self.clock.now_ns()):
+            self.membership.log_change(change)
+
+    def _on_state(self, message: State, arrival_ns: int) -> None:
+        uav = message.uav
+        if not self.assignment.mine(uav):
+            return
+        self.state_seq[uav] = message.seq
+        self.membership.log_change(self.assignment.on_state(uav, message.seq, 0, "", arrival_ns))
+        if uav not in self.started_ns:
+            self.started_ns[uav] = arrival_ns
+            self.publishers[uav] = self.bus.publisher(
+                keys.downlink(uav, Downlink.REFERENCE), Priority.INTERACTIVE_HIGH
+            )
+            mission = self.missions.get(uav, self.mission)
+            log.info("planner: %s mission (centre %s) starts for %s", mission.kind, mission.center_m, uav)
 
     def publish(self) -> None:
         now = self.clock.now_ns()
         for uav, start in self.started_ns.items():
+            if self.assignment.role(uav) is not Role.SERVE:
+                continue  # standing by: the replica flying it publishes
             t = (now - start) / 1e9
             mission = self.missions.get(uav, self.mission)
             pos, vel, yaw = mission.samples(t, self.dt_s, self.cfg.samples)
             self.seq += 1
             reference = Reference(
                 uav=uav, seq=self.seq, stamp_ns=now, dt_s=self.dt_s, pos_m=pos, vel_mps=vel, yaw_rad=yaw,
-                mission=mission.kind,
+                mission=mission.kind, mission_t_s=max(0.0, t), term=self.assignment.term(uav),
+                replica=self.replica,
             )  # fmt: skip
             self.publishers[uav].put(reference)
             self.sent += 1
 
     def health(self) -> str:
-        return f"drones={len(self.started_ns)} references={self.sent} rejected={self.stats.rejected}"
+        return (
+            f"{self.membership.health(self.started_ns, 'publishing')} "
+            f"drones={len(self.started_ns)} references={self.sent} "
+            f"rejected={self.stats.rejected + self.ref_stats.rejected}"
+        )
 
     def run(self) -> None:
         period = 1.0 / self.cfg.publish_hz
