@@ -3,6 +3,10 @@
 No clock sync is assumed between planner and receiver: sample 0 is taken as due when the Reference
 arrives. The MPC uses it for its horizon; the onboard daemon's fallback uses the last one received to
 continue the mission for as long as it covers.
+
+Which reference is newer: the higher planner term first (a replaced planner replica, back after a hang,
+is ignored), then, from one replica, the higher seq. Of two replicas on one term (a moment while they
+settle who keeps it, edge/replicas.py) the latest to arrive wins: both follow the same mission time.
 """
 
 from __future__ import annotations
@@ -15,6 +19,12 @@ from dynqos.common.messages import Reference
 Array = NDArray[np.float64]
 
 
+def newer(reference: Reference, than: Reference) -> bool:
+    if reference.term != than.term:
+        return reference.term > than.term
+    return reference.replica != than.replica or reference.seq > than.seq
+
+
 class ReferenceTrack:
     """The latest Reference, placed on the MPC's clock by its arrival time."""
 
@@ -25,7 +35,7 @@ class ReferenceTrack:
         self._yaw = np.zeros(0)
 
     def update(self, reference: Reference, arrival_ns: int) -> bool:
-        if self.reference is not None and reference.seq <= self.reference.seq:
+        if self.reference is not None and not newer(reference, self.reference):
             return False
         self.reference, self.arrival_ns = reference, arrival_ns
         self._states = np.hstack(

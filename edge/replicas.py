@@ -179,7 +179,14 @@ class Assignment:
             return None
         order = ranked(uav, self.members)
         holder = seat.holder
-        if holder is None or holder not in self.members:
+        if holder is None and not self.drone_arbitrates and len(self.members) > 1:
+            # Nobody told us who holds it (the drone does not say): give the peers a lease to speak up,
+            # so that a replica that (re)starts does not take a drone that another one serves.
+            waited = seat.unanswered_since_ns
+            if waited is None or now_ns - waited <= self.lease_ns:
+                return None
+            candidates, reason = order, f"no replica served it for {(now_ns - waited) / 1e6:.0f} ms"
+        elif holder is None or holder not in self.members:
             candidates, reason = order, f"holder {holder or '(none)'} is gone"
         elif order.index(holder) > order.index(self.me):
             if seat.displaced_ns is not None and now_ns - seat.displaced_ns < self.holdoff_ns:

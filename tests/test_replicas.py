@@ -5,6 +5,8 @@ commands seen, so every takeover rule is checked without processes."""
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 
 from dynqos.common import keys
@@ -14,6 +16,7 @@ from dynqos.common.config import load_config
 from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import Command, Reference, State
 from dynqos.common.queues import BoundedQueue
+from dynqos.common.reference import ReferenceTrack
 from dynqos.edge.mpc.service import MpcService
 from dynqos.edge.planner.service import PlannerService
 from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Role, ranked
@@ -285,3 +288,51 @@ def test_a_standby_planner_continues_the_mission_where_the_one_it_replaces_left_
     assert after[0].term > before[-1].term
     # the mission goes on: its time continues from where it was, it does not start again at 0
     assert after[0].mission_t_s == pytest.approx(before[-1].mission_t_s + 0.1, abs=0.06)
+
+    # The first one restarts (same id, a new process): it learns the holder from its references before
+    # it takes the drone back (it ranks first), and goes on from the same mission time.
+    restarted = PlannerService(load_config(None, [f'planner.replica_id="{first.replica}"']), bus, clock)
+    back = run(1.0, [second, restarted])
+    assert back[-1].replica == first.replica
+    assert back[-1].term > after[-1].term
+    times = [r.mission_t_s for r in before + after + back]
+    assert all(b >= a for a, b in itertools.pairwise(times)), "a planner restarted the mission"
+    # and a receiver (the MPC, the drone's fallback) takes every one of them as the newest
+    track = ReferenceTrack()
+    assert all(track.update(r, 0) for r in before + after + back)
+
+
+def _ref(term: int, replica_id: str, seq: int) -> Reference:
+    return Reference(uav="uav1", seq=seq, stamp_ns=0, dt_s=0.1, pos_m=((0.0, 0.0, -1.0),),
+                     vel_mps=((0.0, 0.0, 0.0),), yaw_rad=(0.0,), term=term, replica=replica_id)  # fmt: skip
+
+
+def test_a_receiver_takes_the_newest_planner_term_whatever_the_replicas_seq() -> None:
+    track = ReferenceTrack()
+    assert track.update(_ref(1, "p", 500), 0)
+    assert not track.update(_ref(1, "p", 499), 0)  # older, from the same replica
+    assert track.update(_ref(2, "q", 3), 0)  # a replica that took over counts from its own seq
+    assert not track.update(_ref(1, "p", 501), 0)  # the replaced one, back after a hang: ignored
+    assert track.update(_ref(2, "p", 502), 0)  # two on one term for a moment: the latest arrival
+    assert track.reference is not None
+    assert track.reference.replica == "p"
+
+
+def test_a_planner_that_starts_beside_a_peer_waits_a_lease_before_it_takes_an_unheard_drone() -> None:
+    uav = drone_ranked("a", "b", ("a", "b"))
+    a = Assignment("a", lease_ns=LEASE, holdoff_ns=HOLDOFF, drone_arbitrates=False)
+    a.join("b")
+    assert a.on_state(uav, 1, 0, "", 0) is None  # b may hold it: a has heard no reference yet
+    assert a.tick(LEASE) == []
+    change = a.on_command(uav, 1, 4, "b", LEASE)  # b's reference: b holds term 4
+    assert change is None
+    assert a.seats[uav].holder == "b"
+    taken = a.on_state(uav, 2, 0, "", LEASE + MS)  # a ranks first: it takes over from b, term 5
+    assert taken is not None
+    assert taken.term == 5
+    c = Assignment("a", lease_ns=LEASE, holdoff_ns=HOLDOFF, drone_arbitrates=False)
+    c.join("b")
+    c.on_state(uav, 1, 0, "", 0)
+    late = c.tick(LEASE + MS)  # nobody spoke for a lease: a takes it
+    assert [x.term for x in late] == [1]
+    assert "no replica served it" in late[0].reason

@@ -3,8 +3,10 @@ the one flying is hung (SIGSTOP); the drone never falls back to its PID (docs/re
 
 from __future__ import annotations
 
+import itertools
 import re
 import signal
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -122,7 +124,8 @@ def test_killing_the_planner_replica_that_publishes_continues_the_mission_from_t
     tmp_path: Path,
 ) -> None:
     """Two planners; the one publishing the drone's references is SIGKILLed: the other continues the
-    same mission from where it was (no restart at mission time 0), and the drone never falls back."""
+    same mission from where it was (no restart at mission time 0) and the drone follows it; the killed
+    one comes back, takes the drone back (it ranks first) and goes on from the same mission time."""
     with edge_loop(tmp_path) as (config, zcfg, procs):
         procs["planner-b"] = DynqosProcess(
             ["edge", "planner"], config, env={"DYNQOS_PLANNER__REPLICA_ID": "planner-b"}
@@ -137,6 +140,8 @@ def test_killing_the_planner_replica_that_publishes_continues_the_mission_from_t
             before = observer.ref_log[-1].mission_t_s
             victim = "planner-b" if publishing == "planner-b" else "planner"
             procs[victim].proc.kill()
+            killed_ns = time.monotonic_ns()
+            procs.pop(victim).stop()  # reaped
             observer.wait_until(lambda s: False, 4.0)
             observer.collect()
             after = [r for r in observer.ref_log if r.replica and r.replica != publishing]
@@ -145,9 +150,28 @@ def test_killing_the_planner_replica_that_publishes_continues_the_mission_from_t
             print(f"planner {publishing} killed at mission time {before:.2f} s; {went_on}")
             assert before < after[0].mission_t_s < before + 2.0  # continued, not restarted
             assert after[-1].term > observer.ref_log[0].term
+            # the drone flies the new planner's references (past the old ones' horizon), not the old
+            _tracks(observer, killed_ns + 1_500_000_000, "after the kill")
+
+            env = {"DYNQOS_PLANNER__REPLICA_ID": publishing}  # the same replica, back
+            procs[victim] = DynqosProcess(["edge", "planner"], config, env=env)
+            back_ns = time.monotonic_ns()
+            observer.wait_until(lambda s: False, 6.0)
+            observer.collect()
+            times = [r.mission_t_s for r in observer.ref_log]
+            assert all(b >= a for a, b in itertools.pairwise(times)), "a planner restarted the mission"
+            _tracks(observer, back_ns, "after the restart")
         finally:
             observer.bus.close()
         log = procs.pop("onboard").stop()
     assert "fallback PID" not in log, re.findall(r".*fallback PID.*", log)[:3]
     setpoint_gap = max(float(g) for g in re.findall(r"max_setpoint_gap_ms=([\d.]+)", log))
     assert setpoint_gap < 50
+
+
+def _tracks(observer: Observer, since_ns: int, when: str) -> None:
+    """The drone stays on the latest published reference (a few tens of cm on the circle)."""
+    errors = observer.tracking_errors(since_ns)
+    assert len(errors) > 40, f"{when}: {len(errors)} states"
+    print(f"{when}: worst tracking error {max(errors) * 100:.0f} cm over {len(errors)} states")
+    assert max(errors) < 0.5, f"{when}: the drone left the mission by {max(errors):.2f} m"

@@ -12,6 +12,7 @@ sent nothing for `takeover_after_s`.
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 
 from dynqos.common import keys
@@ -68,7 +69,9 @@ class PlannerService:
         self.stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,))
         self.started_ns: dict[str, int] = {}
         self.publishers: dict[str, Publisher] = {}
-        self.seq = 0
+        # From the wall clock in ms, not 0: a restarted planner (the same replica, the same term) is
+        # newer than its last life to every receiver (common/reference.py), at up to 1000 references/s.
+        self.seq = time.time_ns() // 1_000_000
         self.sent = 0
         self.service = Service("planner", self.cfg.health_interval_s)
 
