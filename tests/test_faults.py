@@ -212,7 +212,10 @@ def test_outcome_says_what_the_drone_saw_and_did_while_a_fault_lasted() -> None:
         replace(_status(12 * s, 20.0), state="q6", camera_rate_factor=0.5, rtt_samples_ms=(30.0,)),
         replace(_status(13 * s, 20.0), rtt_samples_ms=(500.0,)),  # after it ended: not counted
     ]
-    got = outcome(window, [], statuses, next_start_ns=None)
+    errors = [(9 * s, 3.0), (10 * s, 0.02), (11 * s, 0.4), (22 * s + 1, 0.9)]  # before, in, in, settled
+    got = outcome(window, [], statuses, next_start_ns=None, tracking_errors=errors)
+    assert got["max_tracking_error_m"] == 0.4
+    assert outcome(window, [], statuses, next_start_ns=None)["max_tracking_error_m"] is None
     assert got["rtt_ms_during"]["mean"] == pytest.approx(37.5)
     assert got["states_s_during"] == {"q1": 1.0, "q6": 1.0}
     assert got["camera_slowed_after_s"] == pytest.approx(1.0)
@@ -268,7 +271,7 @@ def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
 def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> None:
     """The shipped replicas scenario: two MPC and two planner replicas; the MPC replica flying the drone
     killed, a third joining, the one flying hung for 2 s, the planner replica publishing killed. None of
-    them makes the drone fall back (docs/reliability.md)."""
+    them makes the drone fall back or leave its mission (docs/reliability.md)."""
     scenario = builtin_scenario("replicas")
     assert [f.kind for f in scenario.faults] == [
         "mpc_replica_kill", "replica_join", "mpc_replica_hang", "planner_replica_kill",
@@ -278,6 +281,7 @@ def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> 
     for fault in result["faults"]:
         assert not fault["fallback"], fault
         assert fault["max_setpoint_gap_ms"] < 50, fault
+        assert fault["max_tracking_error_m"] < 0.5, fault  # it kept flying the mission, not a stale end
     kill, join, hang, planner = result["faults"]
     assert "served the drone" in planner["notes"][0], planner
     assert "served the drone" in kill["notes"][0], kill  # it acted on the replica flying the drone

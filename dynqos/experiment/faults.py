@@ -292,11 +292,13 @@ def outcome(
     onboard_log: list[tuple[float, str]],
     status: Sequence[SupervisorStatus],
     next_start_ns: int | None,
+    tracking_errors: Sequence[tuple[int, float]] = (),
 ) -> dict[str, Any]:
     """What the fault did, measured from the drone's SupervisorStatus stream: whether control fell back,
     how long after the last valid command, the longest setpoint gap, and when control was back at the
-    edge. Its window runs from its start to SETTLE_S after it cleared, or to the next fault's start.
-    The onboard log only supplies the lines a reader will want to see beside the figures."""
+    edge; and from `tracking_errors` ((state stamp, distance to the published reference)) how far the
+    drone left its mission. Its window runs from its start to SETTLE_S after it cleared, or to the next
+    fault's start. The onboard log only supplies the lines a reader will want to see beside the figures."""
     fault = window.fault
     end_ns = window.end_ns if window.end_ns is not None else window.start_ns + to_ns(fault.duration_s)
     until_ns = end_ns + to_ns(SETTLE_S)
@@ -318,6 +320,7 @@ def outcome(
         edge = (s for s in seen if s.control_source is ControlSource.EDGE and s.control_changed_ns > since)
         back = next(edge, None)
     gaps = [s.setpoint_gap_ms for s in seen if s.setpoint_gap_ms is not None]
+    errors = [e for t, e in tracking_errors if window.start_ns <= t <= until_ns]
     during = [s for s in seen if s.stamp_ns <= end_ns]
     until_wall = window.start_wall + (until_ns - window.start_ns) / NS_PER_S
     lines = [m for t, m in onboard_log if window.start_wall <= t <= until_wall]
@@ -333,6 +336,7 @@ def outcome(
             None if fallback is None else round((fallback.control_changed_ns - window.start_ns) / NS_PER_S, 3)
         ),
         "max_setpoint_gap_ms": max(gaps) if gaps else None,
+        "max_tracking_error_m": max(errors) if errors else None,
         # None: never left the edge (no fallback), or not back within `settle` (see "recovered")
         "back_at_edge_after_clear_s": (
             None if back is None else round(max(0.0, (back.control_changed_ns - end_ns) / NS_PER_S), 3)

@@ -197,11 +197,13 @@ def _fault_lines(s: dict[str, Any]) -> list[str]:
         rtt = f.get("rtt_ms_during") or {}
         states = ", ".join(f"{k} {v:.1f}" for k, v in (f.get("states_s_during") or {}).items())
         slowed = f.get("camera_slowed_after_s")
+        worst = f.get("max_tracking_error_m")
         lines.append(
             f"- {f['kind']} at {f['at_s']:g} s for {f['duration_s']:g} s: RTT while it lasted mean "
             f"{fmt(rtt.get('mean'))}, p95 {fmt(rtt.get('p95'))} ms; states (s) {states or '-'}; camera "
             + ("never slowed" if slowed is None else f"slowed {slowed:.2f} s after it began")
             + f"; fallback {f['fallback']}"
+            + ("" if worst is None else f"; worst tracking error {worst:.2f} m")
         )
     return lines
 

@@ -154,7 +154,7 @@ def summarise(
         "setpoint_gap_max_ms": max(gaps) if gaps else None,
         "states_recorded": len(rec.states),
         "faults": [
-            outcome(w, log_times(onboard_log), statuses, nxt.start_ns if nxt else None)
+            outcome(w, log_times(onboard_log), statuses, nxt.start_ns if nxt else None, errors)
             for w, nxt in itertools.zip_longest(rec.faults, rec.faults[1:])
         ],
         "memory_mb": {name: memory_figures(samples) for name, samples in rec.memory_kb.items()},
