@@ -14,7 +14,7 @@ import logging
 import threading
 from collections.abc import Callable
 
-from dynqos.common import keys
+from dynqos.common import keys, mavsign
 from dynqos.common.bus import Bus, Priority, Received, SubscriptionStats
 from dynqos.common.camera import CameraSource
 from dynqos.common.clock import Clock, MonotonicClock, to_ns
@@ -112,6 +112,9 @@ class OnboardDaemon:
             fc_system_id=cfg.fc_system_id,
             fc_component_id=cfg.fc_component_id,
             fly_yaw=cfg.yaw == "command",
+            signing_key=mavsign.load_key(cfg.mavlink_signing_key) if cfg.mavlink_signing_key else None,
+            link_id=cfg.mavlink_link_id,
+            accept_unsigned=cfg.mavlink_accept_unsigned,
         )
         self.link.start()
         self.bus = bus or open_bus(self.config.zenoh, Role.DRONE, connect=self.endpoints(), clock=self.clock)
@@ -308,6 +311,9 @@ class OnboardDaemon:
         fields = self.core.health(bus_rejected=commands.rejected if commands else 0)
         fields["bad_downlink"] = sum(s.rejected for s in self.downlink_stats.values())
         fields["fc_setpoints"] = self.link.setpoints_sent if self.link else 0
+        if self.link is not None and self.link.signing_on:
+            counts = self.link.signing_counts()
+            fields["fc_signed_ok"], fields["fc_refused"] = counts["signed_ok"], counts["refused"]
         return " ".join(f"{k}={v}" for k, v in fields.items())
 
     def close(self) -> None:

@@ -8,12 +8,17 @@ The daemon does not rely on the FC's stream configuration: when it first hears t
 when the FC comes back after a silence) it asks for LOCAL_POSITION_NED and ATTITUDE_QUATERNION at the
 rate it needs with MAV_CMD_SET_MESSAGE_INTERVAL, as MAVSDK does. Only messages from the configured
 system id are read, so several vehicles can share one ground-station link.
+
+With a signing key every message out is signed (pymavlink) and a message in must be signed with it,
+with a timestamp above the last one of its stream; unsigned ones pass only if they are on PX4's list,
+or with `accept_unsigned` (common/mavsign.py). Refused messages are counted, never acted on.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from typing import Any
@@ -21,6 +26,7 @@ from typing import Any
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
+from dynqos.common import mavsign
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.errors import TransportError
 from dynqos.onboard.fc import FcState
@@ -53,6 +59,14 @@ def serial_device_and_baud(url: str, default_baud: int = 921600) -> tuple[str, i
     return url, default_baud
 
 
+def use_mavlink2() -> None:
+    """MAVLink 2 from the first byte on every link this process opens from now on. pymavlink starts a
+    link on MAVLink 1 and, at the first MAVLink 2 packet, swaps in a new parser that has lost the
+    signing key (and would accept that very packet unsigned); a signed link cannot start that way."""
+    os.environ["MAVLINK20"] = "1"
+    mavutil.set_dialect(mavutil.current_dialect)
+
+
 class FcLink:
     def __init__(
         self,
@@ -63,6 +77,9 @@ class FcLink:
         fc_system_id: int = 1,
         fc_component_id: int = 1,
         fly_yaw: bool = True,
+        signing_key: bytes | None = None,
+        link_id: int = 1,
+        accept_unsigned: bool = False,
     ) -> None:
         self.url = url
         # Without fly_yaw ([onboard] yaw = "free") the yaw is ignored and the FC keeps its own heading.
@@ -72,6 +89,8 @@ class FcLink:
         self.clock = clock or MonotonicClock()
         self.heartbeat_timeout_ns = round(heartbeat_timeout_s * 1e9)
         device, baud = serial_device_and_baud(url)
+        if signing_key is not None:
+            use_mavlink2()
         try:
             self.conn: Any = mavutil.mavlink_connection(
                 device,
@@ -82,6 +101,16 @@ class FcLink:
             )
         except Exception as exc:  # pymavlink raises OSError, ValueError and others for a bad URL
             raise TransportError(f"cannot open MAVLink connection {url!r}: {exc}") from None
+        self.signing_on = signing_key is not None
+        if signing_key is not None:
+
+            def unsigned_ok(_mav: Any, message_id: int) -> bool:
+                return accept_unsigned or mavsign.accepts_unsigned(message_id)
+
+            self.conn.setup_signing(
+                signing_key, sign_outgoing=True, allow_unsigned_callback=unsigned_ok,
+                initial_timestamp=mavsign.timestamp_now(), link_id=link_id,
+            )  # fmt: skip
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -260,6 +289,11 @@ class FcLink:
             )
         )
         self.setpoints_sent += 1
+
+    def signing_counts(self) -> dict[str, int]:
+        """Signed messages accepted and refused (a wrong key, a replay, or unsigned) since the start."""
+        signing = self.conn.mav.signing
+        return {"signed_ok": signing.goodsig_count, "refused": signing.reject_count}
 
     def close(self) -> None:
         self._stop.set()

@@ -34,6 +34,7 @@ READ_NO_SETTINGS = [
     ["demo"],
     ["run", "scenario.toml"],
     ["certs", "--out", "pki", "--drone", "uav1"],
+    ["signing-key", "--out", "fc.key"],
     ["health", "health.json"],
     ["bench", "--smoke"],
     ["version"],
@@ -125,6 +126,9 @@ def _cases(closed: int, closed2: int, taken: int, tmp: Path) -> list[tuple[list[
         (["health", "/nonexistent/health.json"], "no health file"),
         (["health", str(tmp)], "no health file"),  # a folder where the file should be
         (["certs", "--out", "/proc/dynqos-pki", "--drone", "uav1"], "cannot create /proc/dynqos-pki"),
+        (["signing-key", "--out", "/proc/dynqos/fc.key"], "cannot write the signing key /proc/dynqos/fc.key"),
+        (["onboard", "--set", 'onboard.mavlink_signing_key="/nonexistent/fc.key"'], "cannot read it"),
+        (["sim", "vehicle", "--set", f'vehicle.signing_key="{tmp}"'], "not a regular file"),
         (["demo", "--duration", "-3"], "duration"),
         (["demo", "--scenario", "baseline", "--out", str(tmp / "a-file")], "cannot make the run folder"),
     ]

@@ -99,15 +99,18 @@ def mpc_replica(name: str, config: Path) -> DynqosProcess:
 
 
 @contextlib.contextmanager
-def edge_loop(tmp_path: Path, mpcs: tuple[str, ...] = ("mpc",)) -> Iterator[LoopProcs]:
+def edge_loop(
+    tmp_path: Path, mpcs: tuple[str, ...] = ("mpc",), vehicle_env: dict[str, str] | None = None
+) -> Iterator[LoopProcs]:
     """Router, simulator, planner and the MPC processes `mpcs`; the test adds the onboard daemon. Each is
-    stopped at the end in the reverse order of its start (a SIGSTOPped one is resumed first)."""
+    stopped at the end in the reverse order of its start (a SIGSTOPped one is resumed first).
+    `vehicle_env`: settings for the simulator (DYNQOS_VEHICLE__...)."""
     zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
     config = loop_config(tmp_path, zcfg)
     procs: dict[str, DynqosProcess] = {}
     try:
         procs["router"] = DynqosProcess(["edge", "router"], config)
-        procs["vehicle"] = DynqosProcess(["sim", "vehicle", "--duration", "600"], config)
+        procs["vehicle"] = DynqosProcess(["sim", "vehicle", "--duration", "600"], config, env=vehicle_env)
         procs["planner"] = DynqosProcess(["edge", "planner"], config)
         for name in mpcs:
             procs[name] = mpc_replica(name, config)

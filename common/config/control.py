@@ -238,6 +238,12 @@ class OnboardConfig:
     # SITL is N+1), so that several vehicles can share a ground-station link.
     fc_system_id: int = 1
     fc_component_id: int = 1
+    # MAVLink 2 signing (docs/onboard.md, "Signing"): a key file ("" = off), this link's id, and whether
+    # the FC's unsigned messages are accepted anyway (PX4's HEARTBEAT, RADIO_STATUS, ADSB_VEHICLE and
+    # COLLISION always are).
+    mavlink_signing_key: str = ""
+    mavlink_link_id: int = 1
+    mavlink_accept_unsigned: bool = False
     # command: the FC turns to the yaw of the edge's (or the fallback's) setpoint; free: the yaw is
     # ignored and the FC keeps its own heading (how every setpoint went out before 9231a8f).
     yaw: Literal["command", "free"] = "command"
@@ -275,6 +281,7 @@ class OnboardConfig:
         _require(
             1 <= self.fc_component_id <= 255, "fc_component_id", "must be a MAVLink component id, 1..255"
         )
+        _require(0 <= self.mavlink_link_id <= 255, "mavlink_link_id", "must be a MAVLink link id, 0..255")
         for name in ("connect_default", "connect_priority"):
             if getattr(self, name):
                 _host_port(getattr(self, name), name)

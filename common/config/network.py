@@ -260,6 +260,8 @@ class VehicleSimConfig:
     lockstep: bool = False  # advance 20 ms per answer from the offboard peer instead of real time
     world_file: str = ""  # TOML/JSON world for contact checks; "" = the default arena
     start_m: tuple[float, float] = (0.0, 0.0)  # where it stands before take-off (north, east), local NED
+    # MAVLink 2 signing as PX4 does it with a key provisioned (sim/vehicle/mavlink.py); "" = off.
+    signing_key: str = ""
 
     def __post_init__(self) -> None:
         for name in ("offboard_bind_port", "offboard_remote_port", "gcs_bind_port", "gcs_remote_port"):

@@ -65,28 +65,7 @@ def add(commands: Commands) -> None:
     )
     health.set_defaults(handler=check_health, own_config="it reads only the health file")
 
-    certs = commands.add_parser(
-        "certs", parents=[own], description=CERTS,
-        help="make a development CA and mTLS certificates: the router, each edge service, each drone",
-    )  # fmt: skip
-    certs.add_argument("--out", metavar="DIR", required=True, help="folder for the PEM files")
-    certs.add_argument(
-        "--drone", metavar="ID", action="append", default=[], dest="drones", help="a drone id (repeatable)"
-    )
-    certs.add_argument(
-        "--router-host", metavar="NAME", action="append", default=[], dest="router_hosts",
-        help="a DNS name or IP the drones dial the router by (repeatable), e.g. dynqos-router.dynqos.svc",
-    )  # fmt: skip
-    certs.add_argument(
-        "--days", type=int, default=365, metavar="N", help="validity of new certificates (default 365 days)"
-    )
-    certs.add_argument(
-        "--ca-days", type=int, default=1825, metavar="N", help="validity of a new CA (default 1825 days)"
-    )
-    certs.add_argument(
-        "--force", action="store_true", help="issue every certificate again, even those still valid"
-    )
-    certs.set_defaults(handler=make_certs, own_config="it reads only its own options")
+    _add_keys(commands, own)
 
     for name, text in (
         (
@@ -116,6 +95,44 @@ def add(commands: Commands) -> None:
     version.set_defaults(handler=print_version, own_config="it reads nothing")
 
 
+def _add_keys(commands: Commands, own: argparse.ArgumentParser) -> None:
+    """`dynqos certs` and `dynqos signing-key`: the keys a deployment needs."""
+    certs = commands.add_parser(
+        "certs", parents=[own], description=CERTS,
+        help="make a development CA and mTLS certificates: the router, each edge service, each drone",
+    )  # fmt: skip
+    certs.add_argument("--out", metavar="DIR", required=True, help="folder for the PEM files")
+    certs.add_argument(
+        "--drone", metavar="ID", action="append", default=[], dest="drones", help="a drone id (repeatable)"
+    )
+    certs.add_argument(
+        "--router-host", metavar="NAME", action="append", default=[], dest="router_hosts",
+        help="a DNS name or IP the drones dial the router by (repeatable), e.g. dynqos-router.dynqos.svc",
+    )  # fmt: skip
+    certs.add_argument(
+        "--days", type=int, default=365, metavar="N", help="validity of new certificates (default 365 days)"
+    )
+    certs.add_argument(
+        "--ca-days", type=int, default=1825, metavar="N", help="validity of a new CA (default 1825 days)"
+    )
+    certs.add_argument(
+        "--force", action="store_true", help="issue every certificate again, even those still valid"
+    )
+    certs.set_defaults(handler=make_certs, own_config="it reads only its own options")
+
+    signing = commands.add_parser(
+        "signing-key", parents=[own],
+        help="make a MAVLink 2 signing key for the drone's flight-controller link (docs/onboard.md)",
+        description="Writes 32 random bytes as 64 hexadecimal characters to --out, a new file of mode 0600 "
+        "(never through a link). Give the same file to [onboard] mavlink_signing_key and, for the "
+        "simulator, [vehicle] signing_key; provision a real PX4 or ArduPilot with it over USB (MAVProxy: "
+        "signing setup). The key is never printed or logged.",
+    )  # fmt: skip
+    signing.add_argument("--out", metavar="FILE", required=True, help="the key file to write")
+    signing.add_argument("--force", action="store_true", help="replace an existing key file")
+    signing.set_defaults(handler=make_signing_key, own_config="it reads only its own options")
+
+
 def run_bench(args: argparse.Namespace, config: Config) -> int:
     from dynqos.bench.suite import run_suite
 
@@ -129,6 +146,13 @@ def check_health(args: argparse.Namespace, config: Config) -> int:
     if not 0 < args.max_age <= 3600:
         raise DynqosError(f"--max-age must be in (0, 3600] s, got {args.max_age}")
     print(check_health(Path(args.health_path), args.max_age))
+    return 0
+
+
+def make_signing_key(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.common.mavsign import write_key
+
+    print(f"wrote a MAVLink signing key to {write_key(args.out, force=args.force)} (mode 0600)")
     return 0
 
 

@@ -6,6 +6,12 @@ MAVProxy). Once a peer has sent something, replies go to the address it sent fro
 HEARTBEAT and SYS_STATUS and EXTENDED_SYS_STATE at 1 Hz, ATTITUDE_QUATERNION and LOCAL_POSITION_NED
 at 50 Hz. Datagrams that do not parse are counted and ignored.
 
+Signing, as PX4 does it once a key is provisioned: every message out is signed; a message in must be
+signed with the key and carry a timestamp above the last one of its (link, system, component), except
+HEARTBEAT, RADIO_STATUS, ADSB_VEHICLE and COLLISION (common/mavsign.py). Refused messages are counted
+(`unsigned_refused`, `bad_signature`: a wrong key or a replay), never acted on, and never redirect the
+replies. Without a key every message is accepted, signed or not, and nothing is signed.
+
 Clocking, as PX4 SITL offers it: real time (scaled by `speed`), or lock-step, where simulated time
 advances one telemetry period (20 ms) only after the peer has answered the last telemetry with a
 setpoint (as PX4's lock-step waits for actuator outputs). Commands sent before that setpoint act in
@@ -28,6 +34,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from dynqos.common import mavsign
 from dynqos.sim.vehicle.model import PHYSICS_HZ, STEP_NS, VehicleModel
 from dynqos.sim.vehicle.px4 import Mode, Result, Setpoint
 from dynqos.sim.vehicle.world import World, collision
@@ -78,6 +85,7 @@ class MavlinkVehicle:
         lockstep: bool = False,
         world: World | None = None,
         system_id: int = SYSTEM_ID,
+        signing_key: bytes | None = None,
     ) -> None:
         if not speed > 0:
             raise ValueError("speed must be > 0")
@@ -90,6 +98,14 @@ class MavlinkVehicle:
         self._peer_answered = False
         self.system_id = system_id  # PX4 SITL: instance N is system N + 1
         self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=COMPONENT_ID)
+        if signing_key is not None:
+            signing = self.mav.signing  # one state for what we send and what we accept (replays)
+            signing.secret_key = signing_key
+            signing.link_id = 0
+            signing.timestamp = mavsign.timestamp_now()
+            signing.sign_outgoing = True
+            signing.allow_unsigned_callback = lambda _mav, message_id: mavsign.accepts_unsigned(message_id)
+        self.signing_on = signing_key is not None
         self._selector = selectors.DefaultSelector()
         self._last_events = 0
         self.stopped = False
@@ -100,6 +116,8 @@ class MavlinkVehicle:
             "garbage": 0,
             "ignored": 0,
             "collisions": 0,
+            "unsigned_refused": 0,
+            "bad_signature": 0,
         }
 
     def open(self) -> None:
@@ -200,10 +218,17 @@ class MavlinkVehicle:
     def _handle_datagram(self, data: bytes, link: Link, sender: tuple[str, int]) -> None:
         parser = mavlink.MAVLink(None)
         parser.robust_parsing = True
+        parser.signing = self.mav.signing  # the key, and the last timestamp of every peer's stream
         try:
             messages = parser.parse_buffer(data) or []
         except Exception:  # pymavlink raises MAVError and others on garbage; never crash on input
             messages = []
+        refused = [m.get_type() == "BAD_DATA" and m.reason == "Invalid signature" for m in messages]
+        if any(refused):
+            self._refused([m for m, bad in zip(messages, refused, strict=True) if bad], sender)
+            messages = [m for m, bad in zip(messages, refused, strict=True) if not bad]
+            if not messages:
+                return
         # BAD_DATA failed its CRC; UNKNOWN_<id> has an id we cannot CRC-check: both are garbage here.
         good = [m for m in messages if m.get_type() != "BAD_DATA" and not m.get_type().startswith("UNKNOWN")]
         if not good:
@@ -217,6 +242,15 @@ class MavlinkVehicle:
             except Exception as exc:  # a malformed but parseable message must not stop the vehicle
                 self.counters["ignored"] += 1
                 log.warning("ignored %s: %s", message.get_type(), exc)
+
+    def _refused(self, refused: list[Any], sender: tuple[str, int]) -> None:
+        for message in refused:
+            kind = "bad_signature" if mavsign.signed_frame(message.data) else "unsigned_refused"
+            self.counters[kind] += 1
+            if self.counters["unsigned_refused"] + self.counters["bad_signature"] == 1:
+                what = "a badly signed or replayed" if kind == "bad_signature" else "an unsigned"
+                log.warning("vehicle: signing is on: refused %s message from %s:%d (counted from now on)",
+                            what, *sender[:2])  # fmt: skip
 
     def _handle(self, msg: Any, link: Link) -> None:
         kind = msg.get_type()

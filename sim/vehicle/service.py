@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 
+from dynqos.common import mavsign
 from dynqos.common.config import Config
 from dynqos.common.errors import DynqosError
 from dynqos.common.lifecycle import ready_line, stop_on_signals
@@ -51,8 +52,9 @@ def run(
              (v.host, instance_port(v.offboard_remote_port, n))),
         Link("gcs", (v.host, instance_port(v.gcs_bind_port, n)), (v.host, v.gcs_remote_port)),
     ]  # fmt: skip
+    key = mavsign.load_key(v.signing_key) if v.signing_key else None
     vehicle = MavlinkVehicle(
-        VehicleModel(v), links, speed=speed, lockstep=lockstep, world=world, system_id=n + 1
+        VehicleModel(v), links, speed=speed, lockstep=lockstep, world=world, system_id=n + 1, signing_key=key
     )
     try:
         vehicle.open()
@@ -70,6 +72,7 @@ def run(
         links={link.name: {"bind": link.bind[1], "remote": link.remote[1]} for link in links},
         clock="lockstep" if lockstep else "realtime",
         world=world_file or "default",
+        signing="on" if key is not None else "off",
     )
     try:
         vehicle.run(duration_s=duration_s)
