@@ -112,6 +112,7 @@ class OnboardDaemon:
             fc_system_id=cfg.fc_system_id,
             fc_component_id=cfg.fc_component_id,
             fly_yaw=cfg.yaw == "command",
+            flow_control=cfg.mavlink_flow_control,
             signing_key=mavsign.load_key(cfg.mavlink_signing_key) if cfg.mavlink_signing_key else None,
             link_id=cfg.mavlink_link_id,
             accept_unsigned=cfg.mavlink_accept_unsigned,

@@ -77,6 +77,7 @@ class FcLink:
         fc_system_id: int = 1,
         fc_component_id: int = 1,
         fly_yaw: bool = True,
+        flow_control: bool = False,
         signing_key: bytes | None = None,
         link_id: int = 1,
         accept_unsigned: bool = False,
@@ -101,6 +102,9 @@ class FcLink:
             )
         except Exception as exc:  # pymavlink raises OSError, ValueError and others for a bad URL
             raise TransportError(f"cannot open MAVLink connection {url!r}: {exc}") from None
+        if flow_control and hasattr(self.conn, "set_rtscts"):  # a serial port (docs/onboard.md)
+            self.conn.set_rtscts(True)
+        self.read_failures = 0  # in a row: a serial device that went away fails every read
         self.signing_on = signing_key is not None
         if signing_key is not None:
 
@@ -146,11 +150,23 @@ class FcLink:
                 )
             try:
                 msg = self.conn.recv_match(blocking=True, timeout=0.05)
-            except Exception as exc:  # a broken datagram must not end the link
-                log.debug("fc link: %s", exc)
+            except Exception as exc:  # a broken datagram, or a serial device gone: never the end
+                self._read_failed(exc)
                 continue
+            if self.read_failures:
+                log.info("fc link: reading %s again after %d failed reads", self.url, self.read_failures)
+                self.read_failures = 0
             if msg is not None:
                 self._handle(msg)
+
+    def _read_failed(self, exc: Exception) -> None:
+        """Logged once; from the third failure in a row, read again only every 50 ms (a vanished
+        serial device fails at once, every time). The FC's silence is the heartbeat timeout's to report."""
+        self.read_failures += 1
+        if self.read_failures == 1:
+            log.warning("fc link: cannot read %s: %s", self.url, exc)
+        if self.read_failures >= 3:
+            self._stop.wait(0.05)
 
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()

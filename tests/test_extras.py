@@ -107,6 +107,9 @@ def test_the_onboard_extra_runs_the_drone_without_matplotlib_scipy_or_osqp(
     bin_dir = _venv_with(wheel, "onboard", tmp_path)
     python = bin_dir / "python"
     assert _absent(python, ("matplotlib", "scipy", "osqp", "aiohttp", "jsonschema")) == "[]"
+    # a serial link to the flight controller (mavlink_url = "/dev/ttyACM0,921600") opens through pyserial
+    serial = _run(python, "-c", "import serial; print(serial.__version__)", timeout=60)
+    assert serial.returncode == 0, serial.stderr
     dynqos = bin_dir / "dynqos"
     helped = _run(dynqos, "onboard", "--help", timeout=60)
     assert helped.returncode == 0, helped.stderr

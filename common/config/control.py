@@ -241,6 +241,7 @@ class OnboardConfig:
     # MAVLink 2 signing (docs/onboard.md, "Signing"): a key file ("" = off), this link's id, and whether
     # the FC's unsigned messages are accepted anyway (PX4's HEARTBEAT, RADIO_STATUS, ADSB_VEHICLE and
     # COLLISION always are).
+    mavlink_flow_control: bool = False  # RTS/CTS on a serial mavlink_url (/dev/ttyACM0,921600)
     mavlink_signing_key: str = ""
     mavlink_link_id: int = 1
     mavlink_accept_unsigned: bool = False

@@ -241,6 +241,9 @@ class CellConfig:
         )  # fmt: skip
 
 
+SERIAL_BAUDS = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 921600, 1000000, 1500000)
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class VehicleSimConfig:
     """`dynqos sim vehicle`: the simulated quadrotor's MAVLink links (PX4 SITL's ports) and world."""
@@ -262,6 +265,11 @@ class VehicleSimConfig:
     start_m: tuple[float, float] = (0.0, 0.0)  # where it stands before take-off (north, east), local NED
     # MAVLink 2 signing as PX4 does it with a key provisioned (sim/vehicle/mavlink.py); "" = off.
     signing_key: str = ""
+    # The offboard link over a serial line instead of UDP (sim/vehicle/serial_link.py): "pty" makes a
+    # pseudo-terminal pair (its path is in the ready line), a path opens that device; "" = UDP.
+    offboard_serial: str = ""
+    serial_baud: int = 921600
+    serial_flow_control: bool = False  # RTS/CTS, on a real device
 
     def __post_init__(self) -> None:
         for name in ("offboard_bind_port", "offboard_remote_port", "gcs_bind_port", "gcs_remote_port"):
@@ -273,6 +281,11 @@ class VehicleSimConfig:
         _require(0.5 <= self.takeoff_alt_m <= 100, "takeoff_alt_m", "must be in 0.5..100 m")
         _require(0.1 <= self.offboard_loss_s <= 60, "offboard_loss_s", "must be in 0.1..60 s (COM_OF_LOSS_T)")
         _require(all(abs(c) <= 1e4 for c in self.start_m), "start_m", "must be within 10 km of the origin")
+        _require(
+            self.serial_baud in SERIAL_BAUDS,
+            "serial_baud",
+            f"must be one of {', '.join(map(str, SERIAL_BAUDS))}",
+        )
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

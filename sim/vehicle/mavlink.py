@@ -28,7 +28,7 @@ import math
 import selectors
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -37,6 +37,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from dynqos.common import mavsign
 from dynqos.sim.vehicle.model import PHYSICS_HZ, STEP_NS, VehicleModel
 from dynqos.sim.vehicle.px4 import Mode, Result, Setpoint
+from dynqos.sim.vehicle.serial_link import SerialLink
 from dynqos.sim.vehicle.world import World, collision
 
 log = logging.getLogger(__name__)
@@ -64,6 +65,7 @@ class Link:
     sock: socket.socket = field(init=False)
     received: int = 0
     garbage: int = 0
+    stream = False  # datagrams: each one holds whole messages
 
     def open(self) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -72,6 +74,38 @@ class Link:
         self.sock.setblocking(False)
         self.bind = self.sock.getsockname()
 
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def close(self) -> None:
+        self.sock.close()
+
+    def send(self, data: bytes) -> None:
+        with contextlib.suppress(OSError):  # nobody listening yet: UDP, like PX4
+            self.sock.sendto(data, self.remote)
+
+    def receive(self) -> list[tuple[bytes, tuple[str, int] | None]]:
+        """The datagrams waiting, each with its sender."""
+        out: list[tuple[bytes, tuple[str, int] | None]] = []
+        while True:
+            try:
+                data, sender = self.sock.recvfrom(65536)
+            except OSError:  # BlockingIOError: none left
+                return out
+            out.append((data, sender))
+
+    def parse(self, data: bytes, signing: Any) -> list[Any]:
+        """One datagram's messages, by a parser of its own (garbage in one never spills into the next)."""
+        parser = mavlink.MAVLink(None)
+        parser.robust_parsing = True
+        parser.signing = signing  # the key, and the last timestamp of every peer's stream
+        return parser.parse_buffer(data) or []
+
+    def answer(self, sender: tuple[str, int] | None) -> None:
+        """Reply where a real MAVLink peer is (called only for a datagram that parsed)."""
+        if sender is not None:
+            self.remote = sender
+
 
 class MavlinkVehicle:
     """Steps a VehicleModel in (scaled) real time and speaks MAVLink for it."""
@@ -79,7 +113,7 @@ class MavlinkVehicle:
     def __init__(
         self,
         model: VehicleModel,
-        links: list[Link],
+        links: Sequence[Link | SerialLink],
         *,
         speed: float = 1.0,
         lockstep: bool = False,
@@ -90,7 +124,7 @@ class MavlinkVehicle:
         if not speed > 0:
             raise ValueError("speed must be > 0")
         self.model = model
-        self.links = links
+        self.links = list(links)
         self.speed = speed
         self.lockstep = lockstep
         self.world = world
@@ -123,20 +157,19 @@ class MavlinkVehicle:
     def open(self) -> None:
         for link in self.links:
             link.open()
-            self._selector.register(link.sock, selectors.EVENT_READ, link)
+            self._selector.register(link.fileno(), selectors.EVENT_READ, link)
 
     def close(self) -> None:
         self._selector.close()
         for link in self.links:
-            link.sock.close()
+            link.close()
 
     # ---- outgoing ----------------------------------------------------------------------------------
 
-    def _send(self, message: Any, link: Link | None = None) -> None:
+    def _send(self, message: Any, link: Link | SerialLink | None = None) -> None:
         data = message.pack(self.mav)
         for target in [link] if link else self.links:
-            with contextlib.suppress(OSError):  # nobody listening yet: UDP, like PX4
-                target.sock.sendto(data, target.remote)
+            target.send(data)
 
     def _time_boot_ms(self) -> int:
         return self.model.now_ns // 1_000_000 & 0xFFFFFFFF
@@ -197,30 +230,22 @@ class MavlinkVehicle:
         self.stream_steps[int(message_id)] = steps
         return Result.ACCEPTED
 
-    def _ack(self, command: int, result: Result, link: Link) -> None:
+    def _ack(self, command: int, result: Result, link: Link | SerialLink) -> None:
         self._send(self.mav.command_ack_encode(command, int(result)), link)
 
     # ---- incoming ----------------------------------------------------------------------------------
 
     def poll(self, timeout_s: float) -> None:
         for key, _ in self._selector.select(timeout=max(0.0, timeout_s)):
-            link: Link = key.data
-            while True:
-                try:
-                    data, sender = link.sock.recvfrom(65536)
-                except (BlockingIOError, InterruptedError):
-                    break
-                except OSError:
-                    break
+            link: Link | SerialLink = key.data
+            for data, sender in link.receive():
                 link.received += 1
                 self._handle_datagram(data, link, sender)
 
-    def _handle_datagram(self, data: bytes, link: Link, sender: tuple[str, int]) -> None:
-        parser = mavlink.MAVLink(None)
-        parser.robust_parsing = True
-        parser.signing = self.mav.signing  # the key, and the last timestamp of every peer's stream
+    def _handle_datagram(self, data: bytes, link: Link | SerialLink, sender: tuple[str, int] | None) -> None:
+        """A datagram (UDP) or the bytes read (serial): whatever messages they complete."""
         try:
-            messages = parser.parse_buffer(data) or []
+            messages = link.parse(data, self.mav.signing)
         except Exception:  # pymavlink raises MAVError and others on garbage; never crash on input
             messages = []
         refused = [m.get_type() == "BAD_DATA" and m.reason == "Invalid signature" for m in messages]
@@ -232,10 +257,12 @@ class MavlinkVehicle:
         # BAD_DATA failed its CRC; UNKNOWN_<id> has an id we cannot CRC-check: both are garbage here.
         good = [m for m in messages if m.get_type() != "BAD_DATA" and not m.get_type().startswith("UNKNOWN")]
         if not good:
+            if link.stream and not messages:
+                return  # a serial read that completed no message yet: the rest is on its way
             link.garbage += 1
             self.counters["garbage"] += 1
             return
-        link.remote = sender  # answer a real MAVLink peer where it is (garbage never redirects us)
+        link.answer(sender)  # answer a real MAVLink peer where it is (garbage never redirects us)
         for message in good:
             try:
                 self._handle(message, link)
@@ -243,16 +270,17 @@ class MavlinkVehicle:
                 self.counters["ignored"] += 1
                 log.warning("ignored %s: %s", message.get_type(), exc)
 
-    def _refused(self, refused: list[Any], sender: tuple[str, int]) -> None:
+    def _refused(self, refused: list[Any], sender: tuple[str, int] | None) -> None:
         for message in refused:
             kind = "bad_signature" if mavsign.signed_frame(message.data) else "unsigned_refused"
             self.counters[kind] += 1
             if self.counters["unsigned_refused"] + self.counters["bad_signature"] == 1:
                 what = "a badly signed or replayed" if kind == "bad_signature" else "an unsigned"
-                log.warning("vehicle: signing is on: refused %s message from %s:%d (counted from now on)",
-                            what, *sender[:2])  # fmt: skip
+                origin = "the serial link" if sender is None else f"{sender[0]}:{sender[1]}"
+                log.warning("vehicle: signing is on: refused %s message from %s (counted from now on)",
+                            what, origin)  # fmt: skip
 
-    def _handle(self, msg: Any, link: Link) -> None:
+    def _handle(self, msg: Any, link: Link | SerialLink) -> None:
         kind = msg.get_type()
         fc, state, now = self.model.fc, self.model.state, self.model.now_ns
         if kind == "SET_POSITION_TARGET_LOCAL_NED":

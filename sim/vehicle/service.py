@@ -13,6 +13,7 @@ from dynqos.common.lifecycle import ready_line, stop_on_signals
 from dynqos.sim.vehicle import MAX_INSTANCE
 from dynqos.sim.vehicle.mavlink import Link, MavlinkVehicle
 from dynqos.sim.vehicle.model import VehicleModel
+from dynqos.sim.vehicle.serial_link import SerialLink
 from dynqos.sim.vehicle.world import default_world, load_world
 
 log = logging.getLogger(__name__)
@@ -47,11 +48,16 @@ def run(
     if not 0 <= instance <= MAX_INSTANCE:
         raise DynqosError(f"--instance must be in 0..{MAX_INSTANCE}, got {instance}")
     n = instance
-    links = [
-        Link("offboard", (v.host, instance_port(v.offboard_bind_port, n)),
-             (v.host, instance_port(v.offboard_remote_port, n))),
-        Link("gcs", (v.host, instance_port(v.gcs_bind_port, n)), (v.host, v.gcs_remote_port)),
-    ]  # fmt: skip
+    offboard: Link | SerialLink = Link(
+        "offboard",
+        (v.host, instance_port(v.offboard_bind_port, n)),
+        (v.host, instance_port(v.offboard_remote_port, n)),
+    )
+    if v.offboard_serial:
+        offboard = SerialLink(
+            "offboard", v.offboard_serial, baud=v.serial_baud, flow_control=v.serial_flow_control
+        )
+    links = [offboard, Link("gcs", (v.host, instance_port(v.gcs_bind_port, n)), (v.host, v.gcs_remote_port))]
     key = mavsign.load_key(v.signing_key) if v.signing_key else None
     vehicle = MavlinkVehicle(
         VehicleModel(v), links, speed=speed, lockstep=lockstep, world=world, system_id=n + 1, signing_key=key
@@ -59,7 +65,12 @@ def run(
     try:
         vehicle.open()
     except OSError as exc:
-        raise DynqosError(f"cannot bind the vehicle's MAVLink ports on {v.host}: {exc.strerror}") from None
+        where = (
+            f"open {v.offboard_serial}"
+            if v.offboard_serial
+            else f"bind the vehicle's MAVLink ports on {v.host}"
+        )
+        raise DynqosError(f"cannot {where}: {exc.strerror}") from None
 
     def stop() -> None:
         vehicle.stopped = True
@@ -69,7 +80,7 @@ def run(
         "vehicle",
         instance=n,
         system_id=n + 1,
-        links={link.name: {"bind": link.bind[1], "remote": link.remote[1]} for link in links},
+        links={link.name: _described(link) for link in links},
         clock="lockstep" if lockstep else "realtime",
         world=world_file or "default",
         signing="on" if key is not None else "off",
@@ -80,3 +91,10 @@ def run(
         vehicle.close()
         log.info("vehicle stopped: %s", vehicle.counters)
     return 0
+
+
+def _described(link: Link | SerialLink) -> dict[str, object]:
+    """A link in the ready line: its ports, or the serial device the peer opens."""
+    if isinstance(link, SerialLink):
+        return {"serial": link.path, "baud": link.baud}
+    return {"bind": link.bind[1], "remote": link.remote[1]}
