@@ -169,6 +169,10 @@ class OnboardDaemon:
             return self.sim_camera
         if cfg.camera == "files":
             return FilesCamera(cfg.files_dir, cfg.files_intrinsics)
+        if cfg.camera == "realsense":
+            from dynqos.onboard.realsense import RealSenseCamera
+
+            return RealSenseCamera(cfg.realsense_file, cfg.camera_width, cfg.camera_height, cfg.camera_fps)
         return DeviceCamera(cfg.device_index, cfg.camera_width, cfg.camera_height, cfg.files_intrinsics)
 
     def _fc_state(self) -> FcState | None:

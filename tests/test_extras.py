@@ -133,6 +133,21 @@ def test_the_onboard_extra_runs_the_drone_without_matplotlib_scipy_or_osqp(
             vehicle.stop()
 
 
+def test_the_realsense_extra_brings_librealsense_to_the_onboard_daemon(wheel: Path, tmp_path: Path) -> None:
+    """`dynqos[realsense]`: the drone's install plus pyrealsense2, which loads (libusb-1.0 from the
+    system) and, on a machine without a camera, says so in one line through the daemon's own source."""
+    bin_dir = _venv_with(wheel, "realsense", tmp_path)
+    probe = (
+        "from dynqos.common.errors import ConfigError\n"
+        "from dynqos.onboard.realsense import RealSenseCamera\n"
+        "try:\n    RealSenseCamera('', 640, 480, 15)\nexcept ConfigError as exc:\n    print(exc)\n"
+    )
+    opened = _run(bin_dir / "python", "-c", probe, timeout=120)
+    assert opened.returncode == 0, opened.stderr[-2000:]
+    assert "no RealSense device is connected" in opened.stdout
+    assert _absent(bin_dir / "python", ("osqp", "matplotlib")) == "[]"
+
+
 def test_the_edge_extra_starts_every_edge_service_the_qos_agent_with_camara_included(
     wheel: Path, tmp_path: Path
 ) -> None:

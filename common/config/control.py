@@ -253,7 +253,7 @@ class OnboardConfig:
     connect_default: str = ""  # host:port of the default flow ("" = zenoh edge_host:default_port)
     connect_priority: str = ""  # host:port of the priority flow ("" = zenoh edge_host:priority_port)
     qos: Literal["dynamic", "default", "priority"] = "dynamic"  # dynamic: the supervisor chooses
-    camera: Literal["sim", "files", "device", "none"] = "sim"
+    camera: Literal["sim", "files", "device", "realsense", "none"] = "sim"
     camera_fps: float = 15.0
     camera_width: int = 640
     camera_height: int = 480
@@ -263,6 +263,7 @@ class OnboardConfig:
     camera_pace_mbps: float = 0.0
     camera_part_bytes: int = 4096  # the size of one paced part
     files_dir: str = ""
+    realsense_file: str = ""  # camera = "realsense": a recording to play back; "" = the first live device
     files_intrinsics: tuple[float, float, float, float] = (518.0, 519.0, 325.5, 253.5)
     device_index: int = 0
     world_file: str = ""

@@ -1,0 +1,133 @@
+"""The RealSense source through real librealsense, no camera: a recording made in the test from the real
+RGB-D frames (tests/realsense_recording.py), played back as `[onboard] camera = "realsense"` plays it,
+checked against the same frames read directly (docs/onboard.md, "A RealSense depth camera")."""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from dynqos.common import keys
+from dynqos.common.camera import RawFrame
+from dynqos.common.errors import ConfigError
+from dynqos.common.keys import Stream
+from dynqos.common.messages import SupervisorStatus
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Received
+from dynqos.experiment.faults import log_times
+from dynqos.onboard.realsense import RealSenseCamera
+from dynqos.onboard.risk import Spaciousness
+from tests.procs import DynqosProcess
+from tests.realsense_recording import INTRINSICS, record
+from tests.test_onboard_loop import Observer, edge_loop
+
+pytestmark = [pytest.mark.timeout(120), pytest.mark.usefixtures("librealsense")]
+
+
+def _grab_all(camera: RealSenseCamera, expected: int) -> list[RawFrame]:
+    """Frames until `expected` came or the recording ended (grab waits at most 100 ms each time)."""
+    frames: list[RawFrame] = []
+    misses = 0
+    while len(frames) < expected and misses < 30:
+        frame = camera.grab(None)
+        if frame is None:
+            misses += 1
+        else:
+            frames.append(frame)
+    return frames
+
+
+def test_a_recording_plays_back_aligned_with_the_devices_scale_and_intrinsics(
+    shared_data: Path, tmp_path: Path
+) -> None:
+    recording = tmp_path / "rgbd.db3"
+    used = record(shared_data / "rgbd", recording, count=10)
+    camera = RealSenseCamera(str(recording), 640, 480, 15)
+    try:
+        frames = _grab_all(camera, len(used))
+        assert camera.depth_scale == pytest.approx(0.001)
+        assert camera.grab(None) is None  # the recording ended: nothing more, no error
+    finally:
+        camera.close()
+    assert len(frames) >= len(used) - 1, len(frames)  # playback may skip one at its start
+    spaciousness = Spaciousness(640, 480, INTRINSICS, stride=4)
+    matched = 0
+    for frame in frames:
+        assert frame.intrinsics == pytest.approx(INTRINSICS)  # the device's, as recorded
+        assert frame.depth_m is not None
+        # which source frame it is: the colour image is passed through unchanged
+        n = next(n for n in set(used) if np.array_equal(frame.rgb, _color(shared_data, n)))
+        raw_m = cv2.imread(str(shared_data / "rgbd" / f"depth_{n}.pgm"), cv2.IMREAD_UNCHANGED) * 0.001
+        same = np.isclose(frame.depth_m, raw_m, atol=1e-4).mean()
+        assert same > 0.95, same  # aligned to colour (same intrinsics here): all but the edges' pixels
+        direct, played = spaciousness(raw_m.astype(np.float32)), spaciousness(frame.depth_m)
+        assert direct is not None
+        assert played == pytest.approx(direct, rel=0.02)  # the risk input is the frames' own
+        matched += 1
+    assert matched == len(frames)
+
+
+def _color(shared_data: Path, n: int) -> np.ndarray:
+    return cv2.cvtColor(cv2.imread(str(shared_data / "rgbd" / f"color_{n}.png")), cv2.COLOR_BGR2RGB)
+
+
+def test_a_missing_recording_or_device_is_one_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="no such recording"):
+        RealSenseCamera(str(tmp_path / "absent.db3"), 640, 480, 15)
+    with pytest.raises(ConfigError, match="no RealSense device is connected"):
+        RealSenseCamera("", 640, 480, 15)  # this machine has none
+    junk = tmp_path / "junk.db3"
+    junk.write_bytes(b"not a recording")
+    with pytest.raises(ConfigError, match="cannot start the RealSense pipeline"):
+        RealSenseCamera(str(junk), 640, 480, 15)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_the_demo_drone_flies_with_its_risk_from_a_realsense_recording(
+    shared_data: Path, tmp_path: Path
+) -> None:
+    """The whole loop with `camera = "realsense"` playing a recording of the real frames through
+    librealsense (10 s at 5 fps, the daemon's camera rate here): every spaciousness the supervisor
+    reports is one of the frames' own (computed here from the same depth files), the edge detects on
+    the frames, and the drone is flown by the edge, with no fallback, after the recording has ended."""
+    recording = tmp_path / "rgbd.db3"
+    used = record(shared_data / "rgbd", recording, count=50, fps=5)
+    spaciousness = Spaciousness(640, 480, INTRINSICS, stride=4)
+    direct = []
+    for n in sorted(set(used)):
+        raw = cv2.imread(str(shared_data / "rgbd" / f"depth_{n}.pgm"), cv2.IMREAD_UNCHANGED)
+        direct.append(spaciousness((raw * 0.001).astype(np.float32)))
+    env = {"DYNQOS_ONBOARD__CAMERA": "realsense", "DYNQOS_ONBOARD__REALSENSE_FILE": str(recording)}
+    with edge_loop(tmp_path) as (config, zcfg, procs):
+        procs["detector"] = DynqosProcess(["edge", "detector"], config)
+        observer = Observer(zcfg)
+        statuses: BoundedQueue[Received] = BoundedQueue(10_000)
+        observer.bus.subscribe(keys.uplink_any_flow("uav1", Stream.STATUS), statuses)
+        try:
+            procs["onboard"] = DynqosProcess(["onboard", "--takeoff"], config, env=env)
+            assert observer.wait_until(lambda s: s.mode == "offboard", 60), "the drone never offloaded"
+            offboard_wall = time.time()
+            observer.wait_until(lambda s: False, 4.0)
+        finally:
+            observer.bus.close()
+        onboard = procs.pop("onboard").stop()
+    reported = [
+        i.message.spaciousness_m
+        for i in statuses.drain()
+        if isinstance(i.message, SupervisorStatus) and i.message.spaciousness_m is not None
+    ]
+    assert len(reported) >= 10, onboard[-2000:]
+    for value in reported:
+        assert any(value == pytest.approx(d, rel=0.02) for d in direct if d is not None), (value, direct)
+    assert "camera: RealSense" in onboard
+    detections = [int(v) for v in re.findall(r" detections=(\d+)", onboard)]
+    assert detections
+    assert detections[-1] >= 10  # the edge's detector answered frames from the recording
+    late = [m for t, m in log_times(onboard) if t >= offboard_wall and "fallback PID" in m]
+    assert late == []
