@@ -94,8 +94,10 @@ def test_the_demo_drone_flies_with_its_risk_from_a_realsense_recording(
 ) -> None:
     """The whole loop with `camera = "realsense"` playing a recording of the real frames through
     librealsense (10 s at 5 fps, the daemon's camera rate here): every spaciousness the supervisor
-    reports is one of the frames' own (computed here from the same depth files), the edge detects on
-    the frames, and the drone is flown by the edge, with no fallback, after the recording has ended."""
+    reports (its filtered s_k, a weighted mean of frames') lies within the range of the frames' own,
+    computed here from the same depth files (3.80 to 4.01 m for ../shared/data/rgbd, +-2%); the
+    edge detects on the frames; the drone is flown by the edge, with no fallback, after the recording
+    has ended."""
     recording = tmp_path / "rgbd.db3"
     used = record(shared_data / "rgbd", recording, count=50, fps=5)
     spaciousness = Spaciousness(640, 480, INTRINSICS, stride=4)
@@ -123,8 +125,9 @@ def test_the_demo_drone_flies_with_its_risk_from_a_realsense_recording(
         if isinstance(i.message, SupervisorStatus) and i.message.spaciousness_m is not None
     ]
     assert len(reported) >= 10, onboard[-2000:]
-    for value in reported:
-        assert any(value == pytest.approx(d, rel=0.02) for d in direct if d is not None), (value, direct)
+    known = [d for d in direct if d is not None]
+    low, high = min(known) * 0.98, max(known) * 1.02
+    assert all(low <= value <= high for value in reported), (min(reported), max(reported), known)
     assert "camera: RealSense" in onboard
     detections = [int(v) for v in re.findall(r" detections=(\d+)", onboard)]
     assert detections
