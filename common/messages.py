@@ -275,6 +275,7 @@ class SupervisorStatus(Message):
         "t_cam_ms": f.optional(_latency_ms),
         "t_cc_ms": f.optional(_latency_ms),
         "spaciousness_m": f.optional(f.real(0.0, 1e6)),
+        "depth_lost": f.boolean,
         "p_cam": _probability,
         "p_cc": _probability,
         "p_lat": _probability,
@@ -328,6 +329,7 @@ class SupervisorStatus(Message):
     uplink_bytes: int = 0  # every uplink message's bytes handed to zenoh since then (camera included)
     qos_grant: Grant = Grant.NONE  # what the network grants the priority flow (the agent's last word)
     qos_agent: bool = False  # a QoS agent answered recently (False: links only, no network request)
+    depth_lost: bool = False  # depth stopped for risk_stale_s: risk is NA and read as HR
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

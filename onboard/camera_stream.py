@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from dynqos.common.bus import Publisher
-from dynqos.common.camera import CameraSource, RawFrame
+from dynqos.common.camera import CameraSource, Pose, RawFrame
 from dynqos.common.clock import Clock
 from dynqos.common.config import OnboardConfig
 from dynqos.common.messages import CameraFrame
@@ -27,6 +27,8 @@ from dynqos.onboard.risk import Spaciousness
 from dynqos.onboard.tick import FrameSent
 
 log = logging.getLogger(__name__)
+
+NO_FRAME_WAIT_S = 0.01  # after a grab that gave nothing: no spinning on a camera that stopped
 
 
 @dataclass
@@ -83,6 +85,7 @@ class CameraStream:
         self.spaciousness: BoundedQueue[float] = BoundedQueue(8)
         self._risk: Spaciousness | None = None
         self._thread: threading.Thread | None = None
+        self.grab_failing = False
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
@@ -101,11 +104,27 @@ class CameraStream:
                 self.stop.wait(min(0.1, max(0.001, self.rate.wait_s(now))))  # the camera's frame rate
                 continue
             state = self.pose()
-            raw = self.camera.grab((state.pos_m, state.quat) if state else None)
+            raw = self._grab((state.pos_m, state.quat) if state else None)
             if raw is None:
+                self.stop.wait(NO_FRAME_WAIT_S)  # a camera that gives nothing is not asked again at once
                 continue
             seq += 1
             self._send_frame(raw, seq)
+
+    def _grab(self, pose: Pose | None) -> RawFrame | None:
+        """The source's next frame; a source that fails (a device unplugged) gives none this time, and
+        says so once until it gives frames again. The supervisor learns of it from the depth that stops."""
+        try:
+            raw = self.camera.grab(pose)
+        except Exception as exc:  # a driver's error must not end the camera thread, nor the flight
+            if not self.grab_failing:
+                log.warning("camera: the source failed: %s", exc)
+            self.grab_failing = True
+            return None
+        if raw is not None and self.grab_failing:
+            log.info("camera: the source gives frames again")
+            self.grab_failing = False
+        return raw
 
     def _send_frame(self, raw: RawFrame, seq: int) -> None:
         stamp = self.clock.now_ns()

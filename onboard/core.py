@@ -51,7 +51,8 @@ from dynqos.onboard.commands import CommandTracker
 from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint, Setpoint
 from dynqos.onboard.monitors import CameraLatencyMonitor
 from dynqos.onboard.pid import CascadedPid
-from dynqos.onboard.supervisor import Decision, Inputs, Supervisor, decision_fields
+from dynqos.onboard.supervisor import Decision, Inputs, Supervisor
+from dynqos.onboard.supervisor_status import decision_fields
 from dynqos.onboard.tick import LogEvent, Outgoing, TickInput, TickOutput
 
 # The setpoint period at [control] setpoint_hz's default; the daemon ticks at `setpoint_period_ns(config)`.
@@ -301,6 +302,12 @@ class OnboardCore:
             )
         if decision.note:
             self._log(logging.INFO, f"supervisor: {decision.state.value}: {decision.note}")
+        was_lost = self.decision is not None and self.decision.signals.depth_lost
+        if decision.signals.depth_lost and not was_lost:
+            stale_s = self.config.supervisor.risk_stale_s
+            self._log(logging.WARNING, f"onboard: no depth for {stale_s:g} s: risk unknown, read as high")
+        elif was_lost and not decision.signals.depth_lost:
+            self._log(logging.INFO, "onboard: depth is back: risk from the camera again")
         self.decision = decision
 
     def _flows(self) -> tuple[Flow, Flow, float]:

@@ -7,7 +7,10 @@ edge or the onboard fallback flies the drone, from three signals:
   latency and C&C RTT and P(t) = 1 / (1 + exp(mu (rho - t))) (paper eq. 1-3). HL when
   P_lat > th_lat, LL otherwise, NA while there is no evidence at all;
 - risk: the filtered spaciousness s_k = a s_{k-1} + b S_k; HR at or below 3 m, MR up to 5 m, LR
-  above; NA before the first depth sample (treated as MR: priority rather than throttling);
+  above; NA before the first depth sample (treated as MR: priority rather than throttling), and NA
+  again when depth has stopped for `risk_stale_s` (a camera gone, a recording ended), then read as
+  HR: a drone that has lost sight of its surroundings keeps its control traffic on the priority
+  flow and is not throttled; the filter starts again from the first sample when depth returns;
 - the command watchdog, which sends any state to qA at once (the one transition allowed outside
   Table I).
 
@@ -23,11 +26,9 @@ import random
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 from dynqos.common.clock import NS_PER_S
 from dynqos.common.config import SupervisorConfig
-from dynqos.common.messages import SupervisorStatus
 from dynqos.common.modes import ControlSource, Flow, SupervisorState
 from dynqos.common.stats import Ema, SlidingWindow
 
@@ -120,6 +121,7 @@ class Signals:
     p_lat: float | None
     p_cs: float | None
     priority_denied: bool = False
+    depth_lost: bool = False  # depth stopped for risk_stale_s: risk NA, read as HR
 
 
 @dataclass(frozen=True, slots=True)
@@ -196,6 +198,7 @@ class Supervisor:
         self._cam = SlidingWindow(config.window[0])
         self._cc = SlidingWindow(config.window[1])
         self._risk = Ema(config.risk_a, config.risk_b)
+        self._depth_ns: int | None = None  # the newest depth sample's tick
         self._rng = random.Random(config.seed)
         self._stochastic = config.mode == "stochastic"
         self.state = Q1
@@ -227,7 +230,7 @@ class Supervisor:
         rate = self._rate if state in RATE_ADAPTATION_STATES else 1.0
         return Actions(flow, rate, ControlSource.EDGE, flow)
 
-    def _signals(self, inputs: Inputs) -> Signals:
+    def _signals(self, inputs: Inputs, now_ns: int) -> Signals:
         cfg = self.config
         for sample in inputs.camera_latencies_ms:
             if math.isfinite(sample) and sample >= 0:
@@ -237,6 +240,10 @@ class Supervisor:
                 self._cc.push(sample)
         if inputs.spaciousness_m is not None and math.isfinite(inputs.spaciousness_m):
             self._risk.update(max(0.0, inputs.spaciousness_m))
+            self._depth_ns = now_ns
+        depth_lost = self._depth_ns is not None and now_ns - self._depth_ns > self._ns(cfg.risk_stale_s)
+        if depth_lost:
+            self._risk = Ema(cfg.risk_a, cfg.risk_b)  # what it held no longer describes the space
 
         t_cam = _effective(self._cam, inputs.camera_outstanding_ms)
         t_cc = _effective(self._cc, inputs.cc_outstanding_ms)
@@ -268,6 +275,7 @@ class Supervisor:
             p_lat,
             p_cs,
             inputs.priority_denied,
+            depth_lost,
         )
 
     def _update_timers(self, signals: Signals, now_ns: int) -> None:
@@ -333,7 +341,7 @@ class Supervisor:
             escalate = react  # waiting for priority to help is waiting for nothing
             persists = "HL on the priority flow the network refused"
         return _Firing(
-            risk=Risk.MR if signals.risk is Risk.NA else signals.risk,
+            risk=_read_risk(signals),
             hl=hl,
             react=react,
             escalate=escalate,
@@ -438,7 +446,7 @@ class Supervisor:
         return transition
 
     def step(self, inputs: Inputs, now_ns: int) -> Decision:
-        signals = self._signals(inputs)
+        signals = self._signals(inputs, now_ns)
         self._update_timers(signals, now_ns)
         if self.state is Q1 and now_ns - self._entered_ns >= self._ns(self.config.recover_max_s):
             self._recover_ns = self._ns(self.config.recover_s)  # calm for long: forget the backoff
@@ -453,42 +461,12 @@ class Supervisor:
 
     def _recovering(self, signals: Signals) -> bool:
         """Whether the recovery condition that started the probe still holds."""
-        return signals.latency is Latency.LL and (signals.risk is not Risk.HR or self.state not in (Q2, Q3))
+        high = _read_risk(signals) is Risk.HR
+        return signals.latency is Latency.LL and (not high or self.state not in (Q2, Q3))
 
 
-def decision_fields(decision: Decision, last: Transition | None) -> dict[str, Any]:
-    """The SupervisorStatus fields that describe a decision: state, signals, P values, last transition."""
-    s = decision.signals
-    return {
-        "state": decision.state,
-        "latency": s.latency.value,
-        "risk": s.risk.value,
-        "watchdog": s.watchdog,
-        "t_cam_ms": s.t_cam_ms,
-        "t_cc_ms": s.t_cc_ms,
-        "spaciousness_m": s.spaciousness_m,
-        "p_cam": s.p_cam or 0.0,
-        "p_cc": s.p_cc or 0.0,
-        "p_lat": s.p_lat or 0.0,
-        "p_cs": s.p_cs or 0.0,
-        "prev_state": last.source if last else decision.state,
-        "cause": (last.cause if last else "")[:200],
-        "changed_ns": last.stamp_ns if last else 0,
-    }
-
-
-def to_status(
-    decision: Decision, *, uav: str, seq: int, stamp_ns: int, last: Transition | None
-) -> SupervisorStatus:
-    """The status of a drone that does exactly what the decision's actions say."""
-    a = decision.actions
-    return SupervisorStatus(
-        uav=uav,
-        seq=seq,
-        stamp_ns=stamp_ns,
-        flow=a.flow,
-        camera_flow=a.camera_flow,
-        camera_rate_factor=a.camera_rate_factor,
-        control_source=a.control_source,
-        **decision_fields(decision, last),
-    )
+def _read_risk(signals: Signals) -> Risk:
+    """The risk the machine acts on: NA before any depth reads as MR, NA after depth stopped as HR."""
+    if signals.depth_lost:
+        return Risk.HR
+    return Risk.MR if signals.risk is Risk.NA else signals.risk

@@ -36,6 +36,7 @@ ABOVE = ("dynqos.experiment", "dynqos.reports", "dynqos.observers", "dynqos.benc
 CLI = "dynqos.cli"
 PURE = (
     "dynqos.onboard.supervisor",
+    "dynqos.onboard.supervisor_status",
     "dynqos.onboard.core",
     "dynqos.onboard.pid",
     "dynqos.onboard.takeoff",

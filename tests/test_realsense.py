@@ -93,11 +93,12 @@ def test_the_demo_drone_flies_with_its_risk_from_a_realsense_recording(
     shared_data: Path, tmp_path: Path
 ) -> None:
     """The whole loop with `camera = "realsense"` playing a recording of the real frames through
-    librealsense (10 s at 5 fps, the daemon's camera rate here): every spaciousness the supervisor
+    librealsense (10 s at 5 fps, the daemon's camera rate here), then the recording's end: every
+    spaciousness the supervisor
     reports (its filtered s_k, a weighted mean of frames') lies within the range of the frames' own,
     computed here from the same depth files (3.80 to 4.01 m for ../shared/data/rgbd, +-2%); the
-    edge detects on the frames; the drone is flown by the edge, with no fallback, after the recording
-    has ended."""
+    edge detects on the frames; the drone is flown by the edge, with no fallback; when the recording
+    has ended, the risk goes unknown after risk_stale_s, is logged once and read as high (q2)."""
     recording = tmp_path / "rgbd.db3"
     used = record(shared_data / "rgbd", recording, count=50, fps=5)
     spaciousness = Spaciousness(640, 480, INTRINSICS, stride=4)
@@ -115,15 +116,20 @@ def test_the_demo_drone_flies_with_its_risk_from_a_realsense_recording(
             procs["onboard"] = DynqosProcess(["onboard", "--takeoff"], config, env=env)
             assert observer.wait_until(lambda s: s.mode == "offboard", 60), "the drone never offloaded"
             offboard_wall = time.time()
-            observer.wait_until(lambda s: False, 4.0)
+            seen: list[SupervisorStatus] = []
+            deadline = time.monotonic() + 30  # the recording ends 10 s after the daemon started
+            while time.monotonic() < deadline:
+                item = statuses.get(1.0)
+                if item is not None and isinstance(item.message, SupervisorStatus):
+                    seen.append(item.message)
+                    if item.message.depth_lost and item.message.state.value == "q2":
+                        break
+            observer.wait_until(lambda s: False, 2.0)  # flying blind on the priority flow
         finally:
             observer.bus.close()
         onboard = procs.pop("onboard").stop()
-    reported = [
-        i.message.spaciousness_m
-        for i in statuses.drain()
-        if isinstance(i.message, SupervisorStatus) and i.message.spaciousness_m is not None
-    ]
+    seen += [i.message for i in statuses.drain() if isinstance(i.message, SupervisorStatus)]
+    reported = [m.spaciousness_m for m in seen if m.spaciousness_m is not None]
     assert len(reported) >= 10, onboard[-2000:]
     known = [d for d in direct if d is not None]
     low, high = min(known) * 0.98, max(known) * 1.02
@@ -134,3 +140,10 @@ def test_the_demo_drone_flies_with_its_risk_from_a_realsense_recording(
     assert detections[-1] >= 10  # the edge's detector answered frames from the recording
     late = [m for t, m in log_times(onboard) if t >= offboard_wall and "fallback PID" in m]
     assert late == []
+    # The recording ended: the risk went unknown after risk_stale_s, read as high: the priority flow.
+    blind = [m for m in seen if m.depth_lost]
+    assert blind, "depth never reported lost after the recording ended"
+    assert all(m.risk == "NA" and m.spaciousness_m is None for m in blind)
+    assert blind[-1].state.value == "q2"
+    assert blind[-1].flow.value == "priority"
+    assert "no depth for 2 s: risk unknown, read as high" in onboard

@@ -33,8 +33,8 @@ from dynqos.onboard.supervisor import (
     State,
     Supervisor,
     sigmoid,
-    to_status,
 )
+from dynqos.onboard.supervisor_status import to_status
 
 TICK_S = 0.05  # 20 Hz
 CONFIG = SupervisorConfig()
@@ -566,3 +566,42 @@ def test_failed_probes_do_not_slow_the_return_from_the_fallback() -> None:
     flight.run(0.5, link(20.0, 40.0, watchdog=True))
     assert flight.sup.state is QA
     assert flight.run_until(Q1, 5.0, UNLOADED) <= CONFIG.recover_s + 0.5
+
+
+def test_depth_that_stops_is_held_then_unknown_and_read_as_high_risk_until_it_returns() -> None:
+    """A camera gone or a recording ended: the last depth holds for risk_stale_s; then the risk is NA
+    (reported so, with depth_lost) and the machine reads it as HR: priority, no throttling. Depth back:
+    the filter starts from the new sample (not the old space) and q2 recovers as usual."""
+    flight = Flight()
+    flight.run(2.0, link(20.0, 40.0, space_m=8.0))
+    assert flight.sup.state is Q1
+    blind = link(20.0, 40.0, space_m=None)
+    held = flight.run(CONFIG.risk_stale_s - 0.1, blind)
+    assert held.signals.risk is Risk.LR  # still the last depth
+    assert not held.signals.depth_lost
+    assert flight.run_until(Q2, 1.0, blind) <= 0.2 + CONFIG.dwell_s
+    lost = flight.decisions[-1][1]
+    assert lost.signals.depth_lost
+    assert lost.signals.risk is Risk.NA
+    assert lost.signals.spaciousness_m is None
+    assert flight.sup.log[-1].cause == "HR: proactive priority"
+    status = to_status(lost, uav="uav1", seq=1, stamp_ns=flight.clock.now_ns(), last=flight.sup.log[-1])
+    assert status.risk == "NA"
+    assert status.depth_lost
+    assert decode(encode(status)) == status
+    flight.run(5.0, blind)
+    assert flight.sup.state is Q2  # blind: it stays on the priority flow, however calm the link
+    back = flight.run(TICK_S, link(20.0, 40.0, space_m=8.0))
+    assert not back.signals.depth_lost
+    assert back.signals.spaciousness_m == 8.0  # a fresh filter: the first sample, not a blend
+    flight.run_until(Q1, 10.0, link(20.0, 40.0, space_m=8.0))
+    assert flight.sup.log[-1].cause.startswith("LL holds and risk is no longer HR")
+
+
+def test_no_depth_ever_is_not_lost_depth() -> None:
+    """A drone without a depth camera never had depth to lose: NA, read as MR, never depth_lost."""
+    flight = Flight()
+    decision = flight.run(CONFIG.risk_stale_s + 2.0, link(20.0, 40.0, space_m=None))
+    assert decision.signals.risk is Risk.NA
+    assert not decision.signals.depth_lost
+    assert flight.sup.state is Q1

@@ -30,6 +30,9 @@ class SupervisorConfig:
     risk_medium_m: float = 5.0
     risk_a: float = 0.8
     risk_b: float = 0.2
+    # Depth that stops (a camera gone, a recording ended, frames stalled) is held this long; after it
+    # the risk is unknown and read as HR (docs/supervisor.md, "When depth stops").
+    risk_stale_s: float = 2.0
     dwell_s: float = 1.0
     persist_s: float = 0.1
     escalate_s: float = 3.0
@@ -56,6 +59,7 @@ class SupervisorConfig:
         _require(0.0 < self.risk_high_m < self.risk_medium_m, "risk_medium_m", "must exceed risk_high_m > 0")
         _require(0.0 <= self.risk_a < 1.0, "risk_a", "must be in [0, 1)")
         _require(0.0 < self.risk_b <= 1.0, "risk_b", "must be in (0, 1]")
+        _require(0.1 <= self.risk_stale_s <= 600, "risk_stale_s", "must be in 0.1..600 s")
         for name in ("dwell_s", "persist_s", "escalate_s", "recover_s", "probe_s", "rate_step_s"):
             _require(0.0 <= getattr(self, name) <= 600, name, "must be in 0..600 s")
         _require(1.0 <= self.recover_backoff <= 10.0, "recover_backoff", "must be in 1..10 (1 disables)")
