@@ -89,18 +89,7 @@ class OnboardDaemon:
     # ---- set-up ---------------------------------------------------------------------------------------
 
     def endpoints(self) -> list[str]:
-        z = self.config.zenoh
-        out = []
-        for override, build, port in (
-            (self.cfg.connect_default, default_flow_endpoint, z.default_port),
-            (self.cfg.connect_priority, priority_flow_endpoint, z.priority_port),
-        ):
-            if override:
-                host, _, p = override.rpartition(":")
-                out.append(build(z, host=host.strip("[]"), port=int(p)))
-            else:
-                out.append(build(z, port=port))
-        return out
+        return flow_endpoints(self.config)
 
     def open(self, bus: Bus | None = None) -> None:
         """Open the FC link and the bus (`bus`: one already open, e.g. an in-memory one in a test)."""
@@ -158,22 +147,7 @@ class OnboardDaemon:
         log.info("onboard %s: flows %s", self.uav, self.endpoints())
 
     def _camera_source(self) -> CameraSource | None:
-        cfg = self.cfg
-        if cfg.camera == "none" or cfg.camera_fps == 0:
-            return None
-        if cfg.camera == "sim":
-            if self.sim_camera is None:
-                raise ConfigError(
-                    "onboard.camera", '"sim" renders from the simulator, which this start did not hand over'
-                )
-            return self.sim_camera
-        if cfg.camera == "files":
-            return FilesCamera(cfg.files_dir, cfg.files_intrinsics)
-        if cfg.camera == "realsense":
-            from dynqos.onboard.realsense import RealSenseCamera
-
-            return RealSenseCamera(cfg.realsense_file, cfg.camera_width, cfg.camera_height, cfg.camera_fps)
-        return DeviceCamera(cfg.device_index, cfg.camera_width, cfg.camera_height, cfg.files_intrinsics)
+        return camera_source(self.config, self.sim_camera)
 
     def _fc_state(self) -> FcState | None:
         return self.link.state if self.link else None
@@ -326,6 +300,42 @@ class OnboardDaemon:
             self.bus.close()
         if self.link is not None:
             self.link.close()
+
+
+def flow_endpoints(config: Config) -> list[str]:
+    """The router's endpoints for the default and the priority flow, as this drone dials them."""
+    z, cfg = config.zenoh, config.onboard
+    out = []
+    for override, build, port in (
+        (cfg.connect_default, default_flow_endpoint, z.default_port),
+        (cfg.connect_priority, priority_flow_endpoint, z.priority_port),
+    ):
+        if override:
+            host, _, p = override.rpartition(":")
+            out.append(build(z, host=host.strip("[]"), port=int(p)))
+        else:
+            out.append(build(z, port=port))
+    return out
+
+
+def camera_source(config: Config, sim_camera: CameraSource | None) -> CameraSource | None:
+    """The configured camera (None: none); `sim_camera`, the simulator's, for camera = "sim"."""
+    cfg = config.onboard
+    if cfg.camera == "none" or cfg.camera_fps == 0:
+        return None
+    if cfg.camera == "sim":
+        if sim_camera is None:
+            raise ConfigError(
+                "onboard.camera", '"sim" renders from the simulator, which this start did not hand over'
+            )
+        return sim_camera
+    if cfg.camera == "files":
+        return FilesCamera(cfg.files_dir, cfg.files_intrinsics)
+    if cfg.camera == "realsense":
+        from dynqos.onboard.realsense import RealSenseCamera
+
+        return RealSenseCamera(cfg.realsense_file, cfg.camera_width, cfg.camera_height, cfg.camera_fps)
+    return DeviceCamera(cfg.device_index, cfg.camera_width, cfg.camera_height, cfg.files_intrinsics)
 
 
 def run(config: Config, *, takeoff: bool | None = None, camera: CameraSource | None = None) -> int:

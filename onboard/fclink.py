@@ -92,6 +92,7 @@ class FcLink:
         device, baud = serial_device_and_baud(url)
         if signing_key is not None:
             use_mavlink2()
+            logging.getLogger("pymavlink").setLevel(logging.WARNING)  # not a line per new signed stream
         try:
             self.conn: Any = mavutil.mavlink_connection(
                 device,
@@ -126,6 +127,7 @@ class FcLink:
         self._acks: dict[int, int] = {}
         self._ack_event = threading.Condition()
         self.setpoints_sent = 0
+        self.positions = 0  # LOCAL_POSITION_NED messages read: their rate is what the loop gets
         self.lost_reported = False
 
     # ---- reading ------------------------------------------------------------------------------------
@@ -174,6 +176,7 @@ class FcLink:
         if msg.get_srcSystem() != self.fc_system_id:
             return
         if kind == "LOCAL_POSITION_NED":
+            self.positions += 1
             values = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
             if all(math.isfinite(v) for v in values):
                 self.state = FcState(now, (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz), self._quat)

@@ -74,6 +74,11 @@ def add(commands: Commands) -> None:
         "onboard", parents=[common_options(1)], description=ONBOARD,
         help="the drone's daemon: MAVLink to the FC, uplink to the edge, supervisor, fallback PID",
     )  # fmt: skip
+    onboard.add_argument(
+        "action", nargs="?", choices=["check"],
+        help="check: the preflight (FC, signing, camera, router on both flows, QoS, systemd unit), one "
+        "line per item, exit 0 only if all pass; nothing is armed or sent (docs/onboard.md)",
+    )  # fmt: skip
     onboard.add_argument("--takeoff", action="store_true", help="arm, take off and start offloading")
     metrics_options(onboard)
     onboard.set_defaults(handler=run_onboard)
@@ -89,6 +94,10 @@ def run_edge(args: argparse.Namespace, config: Config) -> int:
 def run_onboard(args: argparse.Namespace, config: Config) -> int:
     from dynqos.onboard import daemon
 
+    if args.action == "check":
+        from dynqos.onboard import check
+
+        return check.run(config)
     config = with_metrics(args, config)
     camera = None
     if config.onboard.camera == "sim" and config.onboard.camera_fps > 0:

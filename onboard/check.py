@@ -1,0 +1,182 @@
+"""`dynqos onboard check`: the preflight a person runs on the drone before a flight, with the drone's own
+config. One line per item, PASS or FAIL and what was found; exit 0 only if every item passes.
+
+Items: the flight controller (heartbeat, mode, armed, the position rate it gives after being asked for
+50 Hz), MAVLink signing (on and every message checked, or off, said as a risk), the camera (frames,
+size, the fraction of valid depth), the edge router on each flow (a zenoh session opened as this drone,
+with its certificate where TLS is on), the QoS settings, and the systemd unit. Nothing is armed, no
+setpoint is sent, nothing is published. Not yet: the clock offset to the edge.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from dynqos.common.config import Config
+from dynqos.common.errors import DynqosError
+from dynqos.common.transport import Role, open_bus
+from dynqos.onboard.fclink import FcLink
+
+MIN_POSITION_HZ = 40.0  # the control loop needs a fresh state every 20 ms tick; some slack
+UNIT = "dynqos-onboard.service"
+
+
+@dataclass(frozen=True, slots=True)
+class Item:
+    name: str
+    ok: bool
+    detail: str
+
+    def line(self) -> str:
+        return f"{'PASS' if self.ok else 'FAIL'}  {self.name:<22} {self.detail}"
+
+
+def check_fc(config: Config, measure_s: float) -> list[Item]:
+    """The FC and its link's signing: heard within fc_timeout_s, then its position rate over measure_s."""
+    from dynqos.common import mavsign
+
+    cfg = config.onboard
+    key = mavsign.load_key(cfg.mavlink_signing_key) if cfg.mavlink_signing_key else None
+    link = FcLink(
+        cfg.mavlink_url, heartbeat_timeout_s=cfg.heartbeat_timeout_s, fc_system_id=cfg.fc_system_id,
+        fc_component_id=cfg.fc_component_id, flow_control=cfg.mavlink_flow_control, signing_key=key,
+        link_id=cfg.mavlink_link_id, accept_unsigned=cfg.mavlink_accept_unsigned,
+    )  # fmt: skip
+    try:
+        link.start()
+        if not link.wait_ready(cfg.fc_timeout_s):
+            fc = Item(
+                "flight controller", False, f"nothing heard on {cfg.mavlink_url} in {cfg.fc_timeout_s:g} s"
+            )
+            return [fc, _signing(link, key is not None)]
+        link.wait_ready(0.5)  # the stream request goes out once the FC is heard; let it take effect
+        before = link.positions
+        time.sleep(measure_s)  # a rate is counted over time
+        rate = (link.positions - before) / measure_s
+        main, sub = (link.custom_mode >> 16) & 0xFF, (link.custom_mode >> 24) & 0xFF
+        detail = (
+            f"system {cfg.fc_system_id}, mode {main}/{sub}, {'armed' if link.armed else 'disarmed'}, "
+            f"position {rate:.0f} Hz (need {MIN_POSITION_HZ:g})"
+        )
+        return [Item("flight controller", rate >= MIN_POSITION_HZ, detail), _signing(link, key is not None)]
+    finally:
+        link.close()
+
+
+def _signing(link: FcLink, on: bool) -> Item:
+    if not on:
+        return Item("MAVLink signing", True, "off: anyone on the link can command the FC (docs/onboard.md)")
+    counts = link.signing_counts()
+    checked, refused = counts["signed_ok"], counts["refused"]
+    if checked == 0 and refused == 0:
+        return Item("MAVLink signing", True, "on: nothing heard to check (see the flight controller)")
+    return Item("MAVLink signing", refused == 0, f"on: {checked} signed messages checked, {refused} refused")
+
+
+def check_camera(config: Config, measure_s: float) -> Item:
+    """Frames from the configured source over measure_s: count, size, valid depth."""
+    from dynqos.onboard.daemon import camera_source
+
+    cfg = config.onboard
+    if cfg.camera == "none" or cfg.camera_fps == 0:
+        return Item("camera", True, "none configured: no risk input (read as MR)")
+    if cfg.camera == "sim":
+        return Item("camera", True, "sim: rendered by the simulator, nothing to check on the drone")
+    try:
+        source = camera_source(config, None)
+    except DynqosError as exc:
+        return Item("camera", False, str(exc))
+    assert source is not None
+    frames, valid, size = 0, [], ""
+    asked = max(1, round(measure_s * cfg.camera_fps))
+    start = time.monotonic()
+    for k in range(asked):  # at the daemon's camera rate: does the source keep up with it?
+        time.sleep(max(0.0, start + k / cfg.camera_fps - time.monotonic()))
+        raw = source.grab(None)
+        if raw is None:
+            continue
+        frames += 1
+        size = f"{raw.rgb.shape[1]}x{raw.rgb.shape[0]}"
+        if raw.depth_m is not None:
+            valid.append(float(np.count_nonzero(raw.depth_m > 0)) / raw.depth_m.size)
+    close = getattr(source, "close", None)
+    if close is not None:
+        close()
+    got = f"{frames} of {asked} frames at {cfg.camera_fps:g} fps"
+    if frames < 0.8 * asked:
+        return Item("camera", False, f"{cfg.camera}: only {got}")
+    depth = (
+        f"valid depth {100 * min(valid):.0f}-{100 * max(valid):.0f}%" if valid else "no depth (no risk input)"
+    )
+    return Item("camera", bool(valid), f"{cfg.camera}: {got}, {size}, {depth}")
+
+
+def check_router(config: Config) -> list[Item]:
+    """A session opened as this drone to each flow's endpoint (its certificate where TLS is on)."""
+    from dynqos.onboard.daemon import flow_endpoints
+
+    items = []
+    for name, endpoint in zip(
+        ("router, default flow", "router, priority flow"), flow_endpoints(config), strict=True
+    ):
+        try:
+            bus = open_bus(config.zenoh, Role.DRONE, connect=[endpoint])
+        except DynqosError as exc:
+            why = str(exc).rsplit("): ", 1)[-1]
+            if why.startswith("Unable to connect"):
+                why = "nothing accepts a connection there"
+            items.append(Item(name, False, f"{endpoint.split('?')[0]}: {why[:120]}"))
+            continue
+        bus.close()
+        items.append(Item(name, True, f"{endpoint.split('?')[0]} reached as {config.drone.id}"))
+    return items
+
+
+def check_qos(config: Config) -> Item:
+    cfg = config.onboard
+    what = {"dynamic": "the supervisor chooses the flow", "default": "default flow only",
+            "priority": "priority flow only"}[cfg.qos]  # fmt: skip
+    return Item(
+        "QoS", True, f"qos = {cfg.qos}: {what}; command watchdog {config.supervisor.watchdog_s * 1000:.0f} ms"
+    )
+
+
+def check_unit(systemd_root: Path = Path("/run/systemd/system")) -> Item:
+    """The systemd unit's state where systemd runs; a unit not installed (a lab machine, the daemon
+    started by hand) is said, not failed; a unit that failed is a failure."""
+    if not systemd_root.is_dir() or shutil.which("systemctl") is None:  # sd_booted(): systemd is not PID 1
+        return Item("systemd unit", True, "systemd is not running here: the daemon is started by hand")
+
+    def systemctl(verb: str) -> str:
+        done = subprocess.run(
+            ["systemctl", verb, UNIT], capture_output=True, text=True, timeout=10, check=False
+        )
+        return done.stdout.strip()
+
+    enabled = systemctl("is-enabled")
+    if not enabled:
+        return Item("systemd unit", True, f"{UNIT} is not installed: the daemon is started by hand")
+    state = systemctl("is-active")
+    return Item("systemd unit", state != "failed", f"{UNIT}: {state}, {enabled}")
+
+
+def run(config: Config, measure_s: float = 2.0) -> int:
+    items = [
+        *check_fc(config, measure_s),
+        check_camera(config, measure_s),
+        *check_router(config),
+        check_qos(config),
+    ]
+    items.append(check_unit())
+    for item in items:
+        print(item.line(), flush=True)
+    failed = [i.name for i in items if not i.ok]
+    print(f"{'all' if not failed else len(items) - len(failed)} of {len(items)} passed"
+          + (f"; failed: {', '.join(failed)}" if failed else ""))  # fmt: skip
+    return 0 if not failed else 1

@@ -1,0 +1,87 @@
+"""`dynqos onboard check`, the preflight, against the demo's own processes (a router and the simulated
+vehicle, signing on) and the real RGB-D frames as the camera: it passes; then each part missing or
+wrong in turn, and the line that fails names it (docs/onboard.md, "Preflight")."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from dynqos.common import mavsign
+from dynqos.onboard.check import check_unit
+from tests.conftest import free_tcp_port
+from tests.procs import DYNQOS, DynqosProcess
+from tests.test_vehicle_mavlink import free_udp_port
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
+
+
+def _check(config: Path, *settings: str) -> tuple[int, dict[str, str]]:
+    """Exit code and each item's line (by name) of `dynqos onboard check`."""
+    args = [DYNQOS, "onboard", "check", "--config", str(config)]
+    for setting in settings:
+        args += ["--set", setting]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=90)
+    assert "Traceback" not in done.stderr, done.stderr[-2000:]
+    lines = [line for line in done.stdout.splitlines() if line.startswith(("PASS", "FAIL"))]
+    return done.returncode, {line[6:29].strip(): line for line in lines}
+
+
+def test_the_preflight_passes_against_the_demo_and_names_each_missing_part(
+    shared_data: Path, tmp_path: Path
+) -> None:
+    key = mavsign.write_key(tmp_path / "fc.key")
+    api = free_udp_port()
+    config = tmp_path / "drone.toml"
+    config.write_text(
+        f"[zenoh]\ndefault_port = {free_tcp_port()}\npriority_port = {free_tcp_port()}\n"
+        "connect_timeout_s = 1\n"
+        f"[vehicle]\noffboard_bind_port = 0\ngcs_bind_port = 0\noffboard_remote_port = {api}\n"
+        f'gcs_remote_port = {free_udp_port()}\nsigning_key = "{key}"\n'
+        f'[onboard]\nmavlink_url = "udpin:127.0.0.1:{api}"\nmavlink_signing_key = "{key}"\n'
+        f'camera = "files"\nfiles_dir = "{shared_data / "rgbd"}"\ncamera_fps = 10\nfc_timeout_s = 5\n'
+    )
+    color_only = tmp_path / "color-only"
+    color_only.mkdir()
+    (color_only / "color_1.png").write_bytes((shared_data / "rgbd" / "color_1.png").read_bytes())
+    router = DynqosProcess(["edge", "router"], config)
+    vehicle = DynqosProcess(["sim", "vehicle", "--duration", "170"], config)
+    try:
+        code, items = _check(config)
+        assert code == 0, items
+        assert set(items) == {"flight controller", "MAVLink signing", "camera", "router, default flow",
+                              "router, priority flow", "QoS", "systemd unit"}  # fmt: skip
+        assert all(line.startswith("PASS") for line in items.values()), items
+        assert "position 50 Hz" in items["flight controller"]
+        assert "0 refused" in items["MAVLink signing"]
+        assert "valid depth" in items["camera"]
+
+        code, items = _check(
+            config, f'onboard.mavlink_signing_key="{mavsign.write_key(tmp_path / "other.key")}"'
+        )
+        assert code == 1
+        assert items["flight controller"].startswith("FAIL")  # nothing it accepts: the FC is not heard
+        assert items["MAVLink signing"].startswith("FAIL")
+        assert "refused" in items["MAVLink signing"]
+
+        code, items = _check(config, f'onboard.files_dir="{color_only}"')
+        assert code == 1
+        assert items["camera"].startswith("FAIL")
+        assert "no depth" in items["camera"]
+        assert items["flight controller"].startswith("PASS")
+    finally:
+        vehicle.stop()
+        router.stop()
+    code, items = _check(config, "onboard.fc_timeout_s=1")  # neither the vehicle nor the router is up
+    assert code == 1
+    failed = {name for name, line in items.items() if line.startswith("FAIL")}
+    assert failed == {"flight controller", "router, default flow", "router, priority flow"}, items
+    assert "nothing accepts a connection there" in items["router, default flow"]
+
+
+def test_the_systemd_item_says_when_systemd_does_not_run(tmp_path: Path) -> None:
+    item = check_unit(tmp_path / "absent")
+    assert item.ok
+    assert "systemd is not running here" in item.detail
