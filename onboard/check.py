@@ -39,23 +39,18 @@ class Item:
 
 def check_fc(config: Config, measure_s: float) -> list[Item]:
     """The FC and its link's signing: heard within fc_timeout_s, then its position rate over measure_s."""
-    from dynqos.common import mavsign
+    from dynqos.onboard.daemon import fc_link
 
     cfg = config.onboard
-    key = mavsign.load_key(cfg.mavlink_signing_key) if cfg.mavlink_signing_key else None
-    link = FcLink(
-        cfg.mavlink_url, heartbeat_timeout_s=cfg.heartbeat_timeout_s, fc_system_id=cfg.fc_system_id,
-        fc_component_id=cfg.fc_component_id, flow_control=cfg.mavlink_flow_control, signing_key=key,
-        link_id=cfg.mavlink_link_id, accept_unsigned=cfg.mavlink_accept_unsigned,
-    )  # fmt: skip
+    link = fc_link(config)
+    signing = bool(cfg.mavlink_signing_key)
     try:
         link.start()
         if not link.wait_ready(cfg.fc_timeout_s):
             fc = Item(
                 "flight controller", False, f"nothing heard on {cfg.mavlink_url} in {cfg.fc_timeout_s:g} s"
             )
-            return [fc, _signing(link, key is not None)]
-        link.wait_ready(0.5)  # the stream request goes out once the FC is heard; let it take effect
+            return [fc, _signing(link, signing)]
         before = link.positions
         time.sleep(measure_s)  # a rate is counted over time
         rate = (link.positions - before) / measure_s
@@ -64,7 +59,7 @@ def check_fc(config: Config, measure_s: float) -> list[Item]:
             f"system {cfg.fc_system_id}, mode {main}/{sub}, {'armed' if link.armed else 'disarmed'}, "
             f"position {rate:.0f} Hz (need {MIN_POSITION_HZ:g})"
         )
-        return [Item("flight controller", rate >= MIN_POSITION_HZ, detail), _signing(link, key is not None)]
+        return [Item("flight controller", rate >= MIN_POSITION_HZ, detail), _signing(link, signing)]
     finally:
         link.close()
 

@@ -94,18 +94,7 @@ class OnboardDaemon:
     def open(self, bus: Bus | None = None) -> None:
         """Open the FC link and the bus (`bus`: one already open, e.g. an in-memory one in a test)."""
         cfg = self.cfg
-        self.link = FcLink(
-            cfg.mavlink_url,
-            clock=self.clock,
-            heartbeat_timeout_s=cfg.heartbeat_timeout_s,
-            fc_system_id=cfg.fc_system_id,
-            fc_component_id=cfg.fc_component_id,
-            fly_yaw=cfg.yaw == "command",
-            flow_control=cfg.mavlink_flow_control,
-            signing_key=mavsign.load_key(cfg.mavlink_signing_key) if cfg.mavlink_signing_key else None,
-            link_id=cfg.mavlink_link_id,
-            accept_unsigned=cfg.mavlink_accept_unsigned,
-        )
+        self.link = fc_link(self.config, self.clock)
         self.link.start()
         self.bus = bus or open_bus(self.config.zenoh, Role.DRONE, connect=self.endpoints(), clock=self.clock)
         for stream, (on_default, on_priority, drop) in STREAMS.items():
@@ -300,6 +289,23 @@ class OnboardDaemon:
             self.bus.close()
         if self.link is not None:
             self.link.close()
+
+
+def fc_link(config: Config, clock: Clock | None = None) -> FcLink:
+    """The link to the flight controller as [onboard] configures it (not started)."""
+    cfg = config.onboard
+    return FcLink(
+        cfg.mavlink_url,
+        clock=clock,
+        heartbeat_timeout_s=cfg.heartbeat_timeout_s,
+        fc_system_id=cfg.fc_system_id,
+        fc_component_id=cfg.fc_component_id,
+        fly_yaw=cfg.yaw == "command",
+        flow_control=cfg.mavlink_flow_control,
+        signing_key=mavsign.load_key(cfg.mavlink_signing_key) if cfg.mavlink_signing_key else None,
+        link_id=cfg.mavlink_link_id,
+        accept_unsigned=cfg.mavlink_accept_unsigned,
+    )
 
 
 def flow_endpoints(config: Config) -> list[str]:
