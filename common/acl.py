@@ -6,7 +6,8 @@ so a compromised detector, which parses camera frames from the network, cannot c
 Default deny, then:
 
 - a drone publishes only `dynqos/<id>/up/**` and receives only `dynqos/<id>/down/**` and
-  `dynqos/<id>/ref` (the fallback's `continue` mode reads the reference);
+  `dynqos/<id>/ref` (the fallback's `continue` mode reads the reference); it both publishes and
+  receives `dynqos/<id>/clock`, the preflight's clock probes that the router stamps;
 - an edge service publishes only its outputs and subscribes only to its inputs (`EDGE_ROLES`);
 - everyone may learn which keys are subscribed (egress declare_subscriber on `dynqos/**`): zenoh only
   sends a put where a subscriber was declared, so without this no publisher's data would go anywhere.
@@ -29,6 +30,7 @@ from dynqos.common.keys import (
     Stream,
     any_replica_of,
     check_uav_id,
+    clock_probe,
     downlink_all_drones,
     uplink_all_drones,
 )
@@ -144,8 +146,9 @@ def access_control_policy(drones: tuple[str, ...] | list[str]) -> dict[str, Any]
         check_uav_id(uav)
         if reserved_name(uav):
             raise ValueError(f"{uav!r} is an edge identity, not a drone id")
-        own_down = [f"{ROOT}/{uav}/down/**", f"{ROOT}/{uav}/ref"]
-        grant(f"drone-{uav}", uav, _reader_and_writer(uav, own_down, [f"{ROOT}/{uav}/up/**"]))
+        own_down = [f"{ROOT}/{uav}/down/**", f"{ROOT}/{uav}/ref", clock_probe(uav)]
+        own_up = [f"{ROOT}/{uav}/up/**", clock_probe(uav)]
+        grant(f"drone-{uav}", uav, _reader_and_writer(uav, own_down, own_up))
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -21,6 +21,7 @@ class RawFrame:
     rgb: NDArray[np.uint8]  # H x W x 3, RGB
     depth_m: NDArray[np.float32] | None  # H x W metres, 0 = no reading
     intrinsics: tuple[float, float, float, float]  # fx, fy, cx, cy in pixels
+    captured_ns: int | None = None  # on the daemon's clock, from the device's stamp (None: when grabbed)
 
 
 class CameraSource(Protocol):

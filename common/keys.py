@@ -12,6 +12,7 @@ declared on, so a receiver subscribes to both flows with one wildcard:
     dynqos/<uav>/up/<flow>/qos            drone -> QoS agent: priority wanted or not (QosRequest)
     dynqos/<uav>/down/qos                 QoS agent -> drone: the network's grant (QosGrant)
     dynqos/<uav>/down/qos/decision        QoS agent's arbiter -> drone and tools (QosDecision)
+    dynqos/<uav>/clock                    drone -> router -> drone: the preflight's clock probes
     dynqos/edge/replicas/<service>/<group>/<id>
                                           liveliness token of one replica of an edge service
 """
@@ -75,6 +76,12 @@ def downlink(uav: str, kind: Downlink) -> str:
 
 def downlink_all_drones(kind: Downlink) -> str:
     return f"{ROOT}/*/{Downlink(kind).value}"
+
+
+def clock_probe(uav: str) -> str:
+    """Where the preflight puts and hears its own probes, so that the router stamps them with its clock
+    (onboard/clock_offset.py); only that drone may use it."""
+    return f"{ROOT}/{check_uav_id(uav)}/clock"
 
 
 def replicas_of(service: str, group: str = "all") -> str:

@@ -115,13 +115,16 @@ def session_settings(
     connect: Sequence[str] | None = None,
     listen: Sequence[str] | None = None,
     check_files: bool = True,
+    client: bool = False,
 ) -> dict[str, Any]:
     """The zenoh settings for `role`, as `path/to/key: value` (what `dynqos config zenoh` prints).
 
     `check_files`: fail now, naming the key, if a TLS file is missing (rather than in zenoh's words).
+    `client`: a client session with the role's identity. A router forwards nothing between two peers
+    (it expects them to reach each other), so the preflight hears its own clock probes on a client.
     """
     connect, listen = endpoints(cfg, role, connect, listen)
-    mode = {Role.DRONE: "peer", Role.EDGE: "client", Role.ROUTER: "router"}[role]
+    mode = "client" if client else {Role.DRONE: "peer", Role.EDGE: "client", Role.ROUTER: "router"}[role]
     settings: dict[str, Any] = {
         "mode": mode,
         "connect/endpoints": list(connect),
@@ -198,10 +201,11 @@ def session_config(
     *,
     connect: Sequence[str] | None = None,
     listen: Sequence[str] | None = None,
+    client: bool = False,
 ) -> zenoh.Config:
     """A zenoh.Config for `role`; `connect`/`listen` replace the endpoints derived from cfg."""
     zcfg = zenoh.Config()
-    for key, value in session_settings(cfg, role, connect=connect, listen=listen).items():
+    for key, value in session_settings(cfg, role, connect=connect, listen=listen, client=client).items():
         zcfg.insert_json5(key, json.dumps(value))
     return zcfg
 
@@ -366,9 +370,10 @@ def open_session(
     *,
     connect: Sequence[str] | None = None,
     listen: Sequence[str] | None = None,
+    client: bool = False,
 ) -> zenoh.Session:
     """Open a zenoh session, turning zenoh's errors into one TransportError that names the endpoints."""
-    zcfg = session_config(cfg, role, connect=connect, listen=listen)
+    zcfg = session_config(cfg, role, connect=connect, listen=listen, client=client)
     try:
         return zenoh.open(zcfg)
     except zenoh.ZError as exc:
@@ -386,5 +391,6 @@ def open_bus(
     connect: Sequence[str] | None = None,
     listen: Sequence[str] | None = None,
     clock: Clock | None = None,
+    client: bool = False,
 ) -> ZenohBus:
-    return ZenohBus(open_session(cfg, role, connect=connect, listen=listen), clock)
+    return ZenohBus(open_session(cfg, role, connect=connect, listen=listen, client=client), clock)

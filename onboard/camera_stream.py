@@ -127,7 +127,10 @@ class CameraStream:
         return raw
 
     def _send_frame(self, raw: RawFrame, seq: int) -> None:
-        stamp = self.clock.now_ns()
+        """Stamped when the camera captured it where the source knows (onboard/frame_time.py), else now:
+        the camera latency the supervisor measures runs from that stamp to the detector's ack."""
+        now = self.clock.now_ns()
+        stamp = now if raw.captured_ns is None else min(raw.captured_ns, now)
         flow = self.control.flow  # one flow for every part of both halves of the frame
         self._send(
             self.rgb.pick(flow), seq, stamp, raw, "rgb", "jpeg", encode_rgb(raw.rgb, self.config.jpeg_quality)

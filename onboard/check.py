@@ -1,11 +1,12 @@
 """`dynqos onboard check`: the preflight a person runs on the drone before a flight, with the drone's own
 config. One line per item, PASS or FAIL and what was found; exit 0 only if every item passes.
 
-Items: the flight controller (heartbeat, mode, armed, the position rate it gives after being asked for
-50 Hz), MAVLink signing (on and every message checked, or off, said as a risk), the camera (frames,
+Items: the flight controller (heartbeat, mode, armed, the position and attitude rates it gives after
+being asked for 50 Hz), MAVLink signing (on and every message checked, or off, said as a risk), the camera (frames,
 size, the fraction of valid depth), the edge router on each flow (a zenoh session opened as this drone,
-with its certificate where TLS is on), the QoS settings, and the systemd unit. Nothing is armed, no
-setpoint is sent, nothing is published. Not yet: the clock offset to the edge.
+with its certificate where TLS is on), the wall-clock offset to the edge (onboard/clock_offset.py), the
+QoS settings, and the systemd unit. Nothing is armed, no setpoint is sent, nothing is published to any
+other process (the clock probes go to the router and back to this one).
 """
 
 from __future__ import annotations
@@ -20,10 +21,12 @@ import numpy as np
 
 from dynqos.common.config import Config
 from dynqos.common.errors import DynqosError
-from dynqos.common.transport import Role, open_bus
+from dynqos.common.keys import clock_probe
+from dynqos.common.transport import Role, ZenohBus, open_bus
+from dynqos.onboard import clock_offset
 from dynqos.onboard.fclink import FcLink
 
-MIN_POSITION_HZ = 40.0  # the control loop needs a fresh state every 20 ms tick; some slack
+MIN_POSITION_HZ = 40.0  # the control loop needs a fresh state (position, attitude) every 20 ms tick
 UNIT = "dynqos-onboard.service"
 
 
@@ -51,15 +54,17 @@ def check_fc(config: Config, measure_s: float) -> list[Item]:
                 "flight controller", False, f"nothing heard on {cfg.mavlink_url} in {cfg.fc_timeout_s:g} s"
             )
             return [fc, _signing(link, signing)]
-        before = link.positions
+        before = link.positions, link.attitudes
         time.sleep(measure_s)  # a rate is counted over time
-        rate = (link.positions - before) / measure_s
+        rate = (link.positions - before[0]) / measure_s
+        attitude = (link.attitudes - before[1]) / measure_s
         main, sub = (link.custom_mode >> 16) & 0xFF, (link.custom_mode >> 24) & 0xFF
         detail = (
             f"system {cfg.fc_system_id}, mode {main}/{sub}, {'armed' if link.armed else 'disarmed'}, "
-            f"position {rate:.0f} Hz (need {MIN_POSITION_HZ:g})"
+            f"position {rate:.0f} Hz, attitude {attitude:.0f} Hz (need {MIN_POSITION_HZ:g} each)"
         )
-        return [Item("flight controller", rate >= MIN_POSITION_HZ, detail), _signing(link, signing)]
+        ok = min(rate, attitude) >= MIN_POSITION_HZ
+        return [Item("flight controller", ok, detail), _signing(link, signing)]
     finally:
         link.close()
 
@@ -113,10 +118,12 @@ def check_camera(config: Config, measure_s: float) -> Item:
 
 
 def check_router(config: Config) -> list[Item]:
-    """A session opened as this drone to each flow's endpoint (its certificate where TLS is on)."""
+    """A session opened as this drone to each flow's endpoint (its certificate where TLS is on), and the
+    clock offset to the router of the default flow."""
     from dynqos.onboard.daemon import flow_endpoints
 
     items = []
+    clock = Item("clock offset to edge", False, "no router reached on the default flow to ask")
     for name, endpoint in zip(
         ("router, default flow", "router, priority flow"), flow_endpoints(config), strict=True
     ):
@@ -128,9 +135,41 @@ def check_router(config: Config) -> list[Item]:
                 why = "nothing accepts a connection there"
             items.append(Item(name, False, f"{endpoint.split('?')[0]}: {why[:120]}"))
             continue
-        bus.close()
+        try:
+            if not items:  # the default flow's router
+                clock = check_clock(config, bus, endpoint)
+        finally:
+            bus.close()
         items.append(Item(name, True, f"{endpoint.split('?')[0]} reached as {config.drone.id}"))
-    return items
+    return [*items, clock]
+
+
+def check_clock(config: Config, bus: ZenohBus, endpoint: str, timeout_s: float = 2.0) -> Item:
+    """The router's clock against this machine's, from probes through it (a second session hears them)."""
+    name = "clock offset to edge"
+    try:
+        receiver = open_bus(config.zenoh, Role.DRONE, connect=[endpoint], client=True)
+    except DynqosError as exc:
+        return Item(name, False, f"a second session to the router failed: {str(exc)[:120]}")
+    try:
+        probes, unstamped = clock_offset.probe(
+            bus.session, receiver.session, clock_probe(config.drone.id), timeout_s
+        )
+    finally:
+        receiver.close()
+    found = clock_offset.estimate(probes)
+    if found is None:
+        why = (
+            "the router stamps no samples (zenoh timestamping is off there)"
+            if unstamped
+            else f"no probe came back through the router in {timeout_s:g} s (its access control?)"
+        )
+        return Item(name, False, why)
+    detail = (
+        f"{found.offset_ms:+.1f} ms +- {found.error_ms:.1f} ms to the router's clock "
+        f"(need within {clock_offset.MAX_OFFSET_MS:g}; run NTP or chrony on both)"
+    )
+    return Item(name, abs(found.offset_ms) <= clock_offset.MAX_OFFSET_MS, detail)
 
 
 def check_qos(config: Config) -> Item:

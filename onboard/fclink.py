@@ -128,6 +128,7 @@ class FcLink:
         self._ack_event = threading.Condition()
         self.setpoints_sent = 0
         self.positions = 0  # LOCAL_POSITION_NED messages read: their rate is what the loop gets
+        self.attitudes = 0  # ATTITUDE_QUATERNION messages read: the attitude in each state
         self.lost_reported = False
 
     # ---- reading ------------------------------------------------------------------------------------
@@ -181,6 +182,7 @@ class FcLink:
             if all(math.isfinite(v) for v in values):
                 self.state = FcState(now, (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz), self._quat)
         elif kind == "ATTITUDE_QUATERNION":
+            self.attitudes += 1
             quat = (msg.q1, msg.q2, msg.q3, msg.q4)
             if all(math.isfinite(v) for v in quat):
                 self._quat = quat

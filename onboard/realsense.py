@@ -3,7 +3,8 @@ device or played back from a recording (`[onboard] realsense_file`).
 
 What a real depth camera gives that the `device` source cannot: depth, aligned to the colour image
 (`rs.align`), in metres by the device's own depth scale, with the device's own intrinsics (the colour
-stream's, since depth is aligned to it), not configured ones. A live device is asked for
+stream's, since depth is aligned to it), not configured ones, and the device's frame timestamps, put
+on the daemon's clock (onboard/frame_time.py) as the frame's capture time. A live device is asked for
 `camera_width` x `camera_height` at `camera_fps` for both streams, and refused in one line when it
 cannot give them. A recording plays at its recorded pace and ends; after its end `grab` gives
 nothing (the camera stream then sends nothing, as with a camera that stopped).
@@ -14,13 +15,16 @@ pyrealsense2 comes with the `realsense` extra and needs `libusb-1.0` from the sy
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from dynqos.common.camera import Pose, RawFrame
+from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.errors import ConfigError
+from dynqos.onboard.frame_time import DeviceTime
 
 log = logging.getLogger(__name__)
 
@@ -40,9 +44,11 @@ def _pyrealsense2() -> Any:
 
 
 class RealSenseCamera:
-    def __init__(self, file: str, width: int, height: int, fps: float) -> None:
+    def __init__(self, file: str, width: int, height: int, fps: float, clock: Clock | None = None) -> None:
         rs = _pyrealsense2()
         self.file = file
+        self.clock = clock or MonotonicClock()
+        self.device_time = DeviceTime()
         config = rs.config()
         if file:
             if not Path(file).is_file():
@@ -79,6 +85,7 @@ class RealSenseCamera:
         ok, frames = self.pipeline.try_wait_for_frames(WAIT_MS)
         if not ok:
             return None
+        arrival_ns, wall_ns = self.clock.now_ns(), time.time_ns()
         aligned = self.align.process(frames)
         depth, color = aligned.get_depth_frame(), aligned.get_color_frame()
         if not depth or not color:
@@ -87,7 +94,10 @@ class RealSenseCamera:
         depth_m = np.asanyarray(depth.get_data()).astype(np.float32) * np.float32(self.depth_scale)
         rgb = np.array(np.asanyarray(color.get_data()), dtype=np.uint8)  # a copy: the buffer is reused
         self.frames += 1
-        return RawFrame(rgb, depth_m, (float(i.fx), float(i.fy), float(i.ppx), float(i.ppy)))
+        domain = color.get_frame_timestamp_domain().name  # e.g. "hardware_clock", "global_time"
+        captured = self.device_time.captured_ns(color.get_timestamp(), domain, arrival_ns, wall_ns)
+        intrinsics = (float(i.fx), float(i.fy), float(i.ppx), float(i.ppy))
+        return RawFrame(rgb, depth_m, intrinsics, captured)
 
     def close(self) -> None:
         self.pipeline.stop()

@@ -34,9 +34,18 @@ def _profile(sensor: Any, kind: Any, fmt: Any, bpp: int, uid: int, size: tuple[i
     return sensor.add_video_stream(stream)
 
 
-def record(frames_dir: Path, out: Path, *, count: int, fps: int = 15) -> list[int]:
+def record(
+    frames_dir: Path,
+    out: Path,
+    *,
+    count: int,
+    fps: int = 15,
+    lag_ms: dict[int, float] | None = None,
+    stamps_ms: list[float] | None = None,
+) -> list[int]:
     """Write `count` frames (color_N.png + depth_N.pgm of `frames_dir`, in a loop) to `out` (.db3);
-    return the frame numbers used, in order."""
+    return the frame numbers used, in order. `lag_ms`: frame N's device stamp that much earlier than it
+    was handed over, as if it had waited in the driver; `stamps_ms` gets each frame's device stamp."""
     import pyrealsense2 as rs
 
     numbers = sorted(int(p.stem.split("_")[1]) for p in frames_dir.glob("depth_*.pgm"))
@@ -62,7 +71,7 @@ def record(frames_dir: Path, out: Path, *, count: int, fps: int = 15) -> list[in
     next_at = time.monotonic()
     for k in range(count):
         n = numbers[k % len(numbers)]
-        stamp_ms = time.time() * 1000.0
+        stamp_ms = time.time() * 1000.0 - (lag_ms or {}).get(n, 0.0)
         for sensor, profile, image, bpp in ((depth_sensor, depth, images[n][0], 2),
                                             (color_sensor, color, images[n][1], 3)):  # fmt: skip
             frame = rs.software_video_frame()
@@ -72,6 +81,8 @@ def record(frames_dir: Path, out: Path, *, count: int, fps: int = 15) -> list[in
             frame.frame_number, frame.profile = k + 1, profile.as_video_stream_profile()
             sensor.on_video_frame(frame)
         used.append(n)
+        if stamps_ms is not None:
+            stamps_ms.append(stamp_ms)
         next_at += 1.0 / fps
         time.sleep(max(0.0, next_at - time.monotonic()))  # the camera's pace: the recorder stamps on arrival
     for sensor in (depth_sensor, color_sensor):

@@ -52,11 +52,13 @@ def test_the_preflight_passes_against_the_demo_and_names_each_missing_part(
         code, items = _check(config)
         assert code == 0, items
         assert set(items) == {"flight controller", "MAVLink signing", "camera", "router, default flow",
-                              "router, priority flow", "QoS", "systemd unit"}  # fmt: skip
+                              "router, priority flow", "clock offset to edge", "QoS",
+                              "systemd unit"}  # fmt: skip
         assert all(line.startswith("PASS") for line in items.values()), items
-        assert "position 50 Hz" in items["flight controller"]
+        assert "position 50 Hz, attitude 50 Hz" in items["flight controller"]
         assert "0 refused" in items["MAVLink signing"]
         assert "valid depth" in items["camera"]
+        assert "ms to the router's clock" in items["clock offset to edge"]
 
         code, items = _check(
             config, f'onboard.mavlink_signing_key="{mavsign.write_key(tmp_path / "other.key")}"'
@@ -77,7 +79,8 @@ def test_the_preflight_passes_against_the_demo_and_names_each_missing_part(
     code, items = _check(config, "onboard.fc_timeout_s=1")  # neither the vehicle nor the router is up
     assert code == 1
     failed = {name for name, line in items.items() if line.startswith("FAIL")}
-    assert failed == {"flight controller", "router, default flow", "router, priority flow"}, items
+    assert failed == {"flight controller", "router, default flow", "router, priority flow",
+                      "clock offset to edge"}, items  # fmt: skip
     assert "nothing accepts a connection there" in items["router, default flow"]
 
 

@@ -72,6 +72,32 @@ def test_a_recording_plays_back_aligned_with_the_devices_scale_and_intrinsics(
     assert matched == len(frames)
 
 
+def test_the_devices_frame_stamps_become_the_capture_time(shared_data: Path, tmp_path: Path) -> None:
+    """Each frame's capture time is its device stamp on the daemon's clock (onboard/frame_time.py): the
+    offset between the two only ever falls (to the quickest frame's), where the arrival times, which
+    jitter both ways by milliseconds, would not; a frame stamped 60 ms late keeps that offset too."""
+    recording = tmp_path / "rgbd.db3"
+    stamps: list[float] = []
+    used = record(shared_data / "rgbd", recording, count=10, lag_ms={5: 60.0}, stamps_ms=stamps)
+    camera = RealSenseCamera(str(recording), 640, 480, 15)
+    offsets_ms: list[float] = []
+    k = -1
+    try:
+        for frame in _grab_all(camera, len(used)):
+            assert frame.captured_ns is not None
+            n = next(n for n in set(used) if np.array_equal(frame.rgb, _color(shared_data, n)))
+            if k >= 0 and used[k] == n:
+                continue  # a frame the playback gave twice (with the next one's depth)
+            k = next(j for j in range(k + 1, len(used)) if used[j] == n)  # which recorded frame
+            offsets_ms.append(frame.captured_ns / 1e6 - stamps[k])
+    finally:
+        camera.close()
+    assert len(offsets_ms) >= len(used) - 1, offsets_ms
+    steps = np.diff(offsets_ms)
+    assert (steps <= 0.001).all(), offsets_ms
+    assert offsets_ms[0] - offsets_ms[-1] < 30, offsets_ms  # the first frame came about as quickly
+
+
 def _color(shared_data: Path, n: int) -> np.ndarray:
     return cv2.cvtColor(cv2.imread(str(shared_data / "rgbd" / f"color_{n}.png")), cv2.COLOR_BGR2RGB)
 

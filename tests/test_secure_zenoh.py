@@ -30,7 +30,9 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from dynqos.common.certs import DevCa, make_dev_pki, write_atomically
 from dynqos.common.config import ZenohConfig, load_config
 from dynqos.common.errors import ConfigError, TransportError
+from dynqos.common.keys import clock_probe
 from dynqos.common.transport import Role, open_session
+from dynqos.onboard import clock_offset
 from tests.conftest import free_tcp_port
 from tests.procs import DYNQOS, DynqosProcess
 
@@ -162,6 +164,26 @@ def test_a_drone_reaches_only_its_own_keys(secure_router: Pki) -> None:
         ("dynqos/uav1/down/cmd", b"for uav1")
     ]
     assert at_mpc.qsize() == 0
+
+
+def test_a_drones_clock_probes_come_back_stamped_by_the_router_and_to_that_drone_only(
+    secure_router: Pki,
+) -> None:
+    """The preflight's clock offset (onboard/clock_offset.py) under the production ACL: uav1's probes
+    pass from its peer session to its client session, each with the router's stamp; uav2 hears none."""
+    sender = secure_router.open("uav1")
+    receiver = open_session(secure_router.as_("uav1"), Role.DRONE, client=True)
+    overhearing = open_session(secure_router.as_("uav2"), Role.DRONE, client=True)
+    secure_router.sessions += [receiver, overhearing]
+    overheard: Seen = queue.Queue()
+    _collect(overhearing, clock_probe("uav1"), overheard)  # declared, but refused by the router
+    probes, unstamped = clock_offset.probe(sender, receiver, clock_probe("uav1"), timeout_s=10)
+    assert len(probes) == clock_offset.PROBES
+    assert unstamped == 0
+    found = clock_offset.estimate(probes)
+    assert found is not None
+    assert abs(found.offset_ms) <= found.error_ms + 1.0  # one host, one clock: zero within the round trip
+    assert overheard.qsize() == 0
 
 
 @pytest.mark.parametrize("wide", ["dynqos/**", "**"])
