@@ -2,11 +2,11 @@
 config. One line per item, PASS or FAIL and what was found; exit 0 only if every item passes.
 
 Items: the flight controller (heartbeat, mode, armed, the position and attitude rates it gives after
-being asked for 50 Hz), MAVLink signing (on and every message checked, or off, said as a risk), the camera (frames,
-size, the fraction of valid depth), the edge router on each flow (a zenoh session opened as this drone,
-with its certificate where TLS is on), the wall-clock offset to the edge (onboard/clock_offset.py), the
-QoS settings, and the systemd unit. Nothing is armed, no setpoint is sent, nothing is published to any
-other process (the clock probes go to the router and back to this one).
+being asked for 50 Hz), MAVLink signing (on and every message checked, or off, said as a risk), the
+camera (frames, size, the fraction of valid depth), the edge router on each flow (a zenoh session
+opened as this drone, with its certificate where TLS is on), the wall-clock offset to the edge
+(onboard/clock_offset.py), the QoS settings, and the systemd unit. Nothing is armed, no setpoint is
+sent, nothing is published to any other process (the clock probes go to the router and back).
 """
 
 from __future__ import annotations

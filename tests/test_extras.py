@@ -165,3 +165,18 @@ def test_the_edge_extra_starts_every_edge_service_the_qos_agent_with_camara_incl
         lines = {role: _healthy_line(port, deadline) for role, port in ports.items()}
     assert lines["edge qos"].startswith("qos: drones=0 sessions=0"), lines
     assert set(lines) == {" ".join(r) for r in roles}
+    # the ROS 2 face needs the ros2 extra, and says so in one line before any network
+    ros2 = _run(bin_dir / "dynqos", "edge", "ros2", "--set", "zenoh.connect_timeout_s=0.5", timeout=60)
+    assert ros2.returncode == 2
+    assert ros2.stderr.strip() == (
+        "dynqos: error: 'edge' needs rosbags, which comes with the ros2 extra: pip install 'dynqos[ros2]'"
+    )
+
+
+def test_the_ros2_extra_starts_the_ros2_face_without_the_solver(wheel: Path, tmp_path: Path) -> None:
+    bin_dir = _venv_with(wheel, "ros2", tmp_path)
+    assert _absent(bin_dir / "python", ("osqp", "matplotlib", "zenoh_ros2_sdk")) == "[]"
+    config = _config(tmp_path / "ros2.toml", "[ros2]\nhealth_interval_s = 0.5\n")
+    with _started([["edge", "router"]], config), _started([["edge", "ros2"]], config, bin_dir) as ports:
+        line = _healthy_line(ports["edge ros2"], time.monotonic() + HEALTH_WAIT_S)
+    assert line.startswith("ros2: topics=0 published=0"), line

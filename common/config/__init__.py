@@ -13,6 +13,7 @@ from dynqos.common.config.control import (
     MpcConfig,
     OnboardConfig,
     PlannerConfig,
+    Ros2Config,
     SupervisorConfig,
 )
 from dynqos.common.config.loader import (
@@ -54,6 +55,7 @@ __all__ = [
     "OnboardConfig",
     "PlannerConfig",
     "QosConfig",
+    "Ros2Config",
     "SupervisorConfig",
     "VehicleSimConfig",
     "ZenohConfig",

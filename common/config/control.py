@@ -308,3 +308,24 @@ class OnboardConfig:
         _require(0.5 <= self.heartbeat_timeout_s <= 60, "heartbeat_timeout_s", "must be in 0.5..60 s")
         _require(0.1 <= self.status_hz <= 50, "status_hz", "must be in 0.1..50 Hz")
         _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
+
+
+ROS_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Ros2Config:
+    """`dynqos edge ros2`: the drones' topics for ROS 2 nodes, in rmw_zenoh's format (docs/ros2.md)."""
+
+    domain_id: int = 0  # ROS_DOMAIN_ID of the ROS 2 nodes that should see the topics
+    prefix: str = "dynqos"  # topics are /<prefix>/<uav>/...
+    frame_id: str = "map"  # the fixed ENU frame of poses and odometry
+    health_interval_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        _require(0 <= self.domain_id <= 232, "domain_id", "must be in 0..232 (ROS 2 domain ids)")
+        _require(ROS_NAME.fullmatch(self.prefix) is not None, "prefix",
+                 "must be a ROS name: a letter, then letters, digits or _")  # fmt: skip
+        _require(ROS_NAME.fullmatch(self.frame_id) is not None, "frame_id",
+                 "must be a ROS frame name: a letter, then letters, digits or _")  # fmt: skip
+        _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")

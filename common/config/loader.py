@@ -31,6 +31,7 @@ from dynqos.common.config.control import (
     MpcConfig,
     OnboardConfig,
     PlannerConfig,
+    Ros2Config,
     SupervisorConfig,
 )
 from dynqos.common.config.network import (
@@ -56,6 +57,7 @@ class Config:
     mpc: MpcConfig = field(default_factory=MpcConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
+    ros2: Ros2Config = field(default_factory=Ros2Config)
     onboard: OnboardConfig = field(default_factory=OnboardConfig)
     qos: QosConfig = field(default_factory=QosConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)

@@ -32,6 +32,11 @@ SERVICES = {  # name -> (its module, what it does)
         "dynqos.edge.detector.service",
         "the circle detector: acks every camera frame, detects circles in RGB, locates them with depth",
     ),
+    "ros2": (
+        "dynqos.edge.ros2.service",
+        "the ROS 2 face: each drone's pose, odometry, /tf and status as rmw_zenoh topics that ROS 2 nodes "
+        "see natively ([ros2] config; docs/ros2.md)",
+    ),
     "qos": (
         "dynqos.edge.qos.agent",
         "the QoS agent: turns the drones' requests for priority into what the network needs ([qos] "
@@ -53,7 +58,7 @@ ONBOARD = (
 
 def add(commands: Commands) -> None:
     edge = commands.add_parser(
-        "edge", help="edge services: router, mpc, planner, detector, qos", parents=[common_options(1)]
+        "edge", help="edge services: router, mpc, planner, detector, ros2, qos", parents=[common_options(1)]
     )
     services = edge.add_subparsers(dest="edge_command", metavar="SERVICE", required=True)
     for name, (_, text) in SERVICES.items():

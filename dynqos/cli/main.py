@@ -29,6 +29,7 @@ EXTRA_OF_MODULE = {
     "aiohttp": "edge",
     "matplotlib": "demo",
     "jsonschema": "demo",
+    "rosbags": "ros2",
 }
 
 

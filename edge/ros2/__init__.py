@@ -1,0 +1,1 @@
+"""ROS 2 sees dynqos natively: its topics in rmw_zenoh's wire format (docs/ros2.md)."""
