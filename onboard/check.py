@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -144,6 +146,57 @@ def check_router(config: Config) -> list[Item]:
     return [*items, clock]
 
 
+def _router_ns(sample: Any) -> int | None:
+    stamp = sample.timestamp
+    if stamp is None:
+        return None
+    seconds: float = stamp.get_time().timestamp()  # a datetime, to the microsecond
+    return round(seconds * 1e6) * 1000
+
+
+def probe_clock(
+    sender: Any, receiver: Any, key: str, timeout_s: float
+) -> tuple[list[clock_offset.Probe], int]:
+    """PROBES probes put by `sender` and received by `receiver` (two zenoh sessions), a probe every
+    PROBE_EVERY_S until all came or timeout_s passed (onboard/clock_offset.py); also how many arrived
+    without a router stamp."""
+    lock = threading.Lock()
+    sent: dict[int, int] = {}
+    probes: list[clock_offset.Probe] = []
+    unstamped = [0]
+    done = threading.Event()
+
+    def on_sample(sample: Any) -> None:
+        received = time.time_ns()
+        router = _router_ns(sample)
+        with lock:
+            index = int(sample.payload.to_bytes() or b"-1")
+            if index not in sent:
+                return
+            if router is None:
+                unstamped[0] += 1
+            else:
+                probes.append(clock_offset.Probe(sent.pop(index), router, received))
+            if len(probes) >= clock_offset.PROBES:
+                done.set()
+
+    subscriber = receiver.declare_subscriber(key, on_sample)
+    try:
+        deadline = time.monotonic() + timeout_s
+        index = 0
+        # a retry loop, not a wait for the subscription to travel: probes before it arrived are lost
+        while not done.is_set() and time.monotonic() < deadline:
+            with lock:
+                sent[index] = time.time_ns()
+            sender.put(key, str(index).encode())
+            index += 1
+            done.wait(clock_offset.PROBE_EVERY_S)
+    finally:
+        subscriber.undeclare()
+    with lock:
+        return list(probes), unstamped[0]
+
+
 def check_clock(config: Config, bus: ZenohBus, endpoint: str, timeout_s: float = 2.0) -> Item:
     """The router's clock against this machine's, from probes through it (a second session hears them)."""
     name = "clock offset to edge"
@@ -152,7 +205,7 @@ def check_clock(config: Config, bus: ZenohBus, endpoint: str, timeout_s: float =
     except DynqosError as exc:
         return Item(name, False, f"a second session to the router failed: {str(exc)[:120]}")
     try:
-        probes, unstamped = clock_offset.probe(
+        probes, unstamped = probe_clock(
             bus.session, receiver.session, clock_probe(config.drone.id), timeout_s
         )
     finally:

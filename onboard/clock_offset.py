@@ -10,14 +10,12 @@ logical clock, which runs on its host's wall clock (zenoh's `timestamping`, on f
 The drone puts a probe from one session and receives it on a second session, both through the router,
 and takes, as NTP does, the router's stamp against the midpoint of its own send and receive times; of
 several probes the one with the shortest round trip counts, and half that round trip bounds the error.
+Pure: the probing itself is the preflight's (onboard/check.py).
 """
 
 from __future__ import annotations
 
-import threading
-import time
 from dataclasses import dataclass
-from typing import Any
 
 MAX_OFFSET_MS = 50.0  # more than two control ticks: logs lined up by wall time would misplace events
 PROBES = 5
@@ -44,51 +42,3 @@ def estimate(probes: list[Probe]) -> Offset | None:
     best = min(probes, key=lambda p: p.received_ns - p.sent_ns)
     midpoint = (best.sent_ns + best.received_ns) / 2
     return Offset((best.router_ns - midpoint) / 1e6, (best.received_ns - best.sent_ns) / 2e6)
-
-
-def _router_ns(sample: Any) -> int | None:
-    stamp = sample.timestamp
-    if stamp is None:
-        return None
-    seconds: float = stamp.get_time().timestamp()  # a datetime, to the microsecond
-    return round(seconds * 1e6) * 1000
-
-
-def probe(sender: Any, receiver: Any, key: str, timeout_s: float) -> tuple[list[Probe], int]:
-    """PROBES probes put by `sender` and received by `receiver` (two zenoh sessions), a probe every
-    PROBE_EVERY_S until all came or timeout_s passed; also how many arrived without a router stamp."""
-    lock = threading.Lock()
-    sent: dict[int, int] = {}
-    probes: list[Probe] = []
-    unstamped = [0]
-    done = threading.Event()
-
-    def on_sample(sample: Any) -> None:
-        received = time.time_ns()
-        router = _router_ns(sample)
-        with lock:
-            index = int(sample.payload.to_bytes() or b"-1")
-            if index not in sent:
-                return
-            if router is None:
-                unstamped[0] += 1
-            else:
-                probes.append(Probe(sent.pop(index), router, received))
-            if len(probes) >= PROBES:
-                done.set()
-
-    subscriber = receiver.declare_subscriber(key, on_sample)
-    try:
-        deadline = time.monotonic() + timeout_s
-        index = 0
-        # a retry loop, not a wait for the subscription to travel: probes before it arrived are lost
-        while not done.is_set() and time.monotonic() < deadline:
-            with lock:
-                sent[index] = time.time_ns()
-            sender.put(key, str(index).encode())
-            index += 1
-            done.wait(PROBE_EVERY_S)
-    finally:
-        subscriber.undeclare()
-    with lock:
-        return list(probes), unstamped[0]

@@ -10,6 +10,8 @@ import queue
 from collections.abc import Iterator
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import zenoh
 from zenoh_ros2_sdk import get_topic_info, get_topic_names_and_types
@@ -17,7 +19,7 @@ from zenoh_ros2_sdk import get_topic_info, get_topic_names_and_types
 from dynqos.common import keys
 from dynqos.common.config import load_config
 from dynqos.common.keys import Flow, Stream
-from dynqos.common.messages import State, SupervisorStatus
+from dynqos.common.messages import CameraFrame, State, SupervisorStatus
 from dynqos.common.transport import Priority, Role, default_flow_endpoint, open_bus
 from dynqos.edge.ros2 import codec, wire
 from tests.conftest import free_tcp_port
@@ -28,10 +30,11 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 STATES = 40
 
 
-@pytest.fixture
-def edge(tmp_path: Path) -> Iterator[tuple[Path, int]]:
+@pytest.fixture(scope="module")
+def edge(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, int]]:
+    """One router and one bridge for the module: the SDK's discovery keeps its first router's session."""
     port = free_tcp_port()
-    config = tmp_path / "edge.toml"
+    config = tmp_path_factory.mktemp("ros2") / "edge.toml"
     config.write_text(
         f'[zenoh]\ndefault_port = {port}\npriority_port = {free_tcp_port()}\n[ros2]\nprefix = "fleet"\n'
     )
@@ -135,6 +138,79 @@ def test_a_drones_pose_reaches_ros2_clients_counted_with_attachments_and_tokens(
         assert values["state"] == "qA"
         assert values["control"] == "fallback"
         assert values["rtt_ms"] == "180.2"
+    finally:
+        drone.close()
+        ros_side.close()
+
+
+def _first(got: queue.Queue[zenoh.Sample], send: object, tries: int = 50) -> zenoh.Sample:
+    """Send (`send()`) until a sample arrives: the bridge declares a topic's publisher on the first
+    message, and a subscriber it has not yet heard of can miss that one (bounded: `tries` x 0.2 s)."""
+    for _ in range(tries):
+        send()  # type: ignore[operator]
+        try:
+            return got.get(timeout=0.2)
+        except queue.Empty:
+            continue
+    raise AssertionError("nothing reached the ROS 2 side")
+
+
+def test_a_paced_camera_image_reaches_ros2_as_the_same_jpeg_with_its_camera_info(
+    edge: tuple[Path, int],
+) -> None:
+    config_path, port = edge
+    config = load_config(config_path)
+    rng = np.random.default_rng(7)
+    image = rng.integers(0, 255, size=(120, 160, 3), dtype=np.uint8)
+    ok, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+    assert ok
+    jpeg = encoded.tobytes()
+    half = len(jpeg) // 2
+    got: queue.Queue[zenoh.Sample] = queue.Queue()
+    info_got: queue.Queue[zenoh.Sample] = queue.Queue()
+    listener = zenoh.Config()
+    listener.insert_json5("mode", '"client"')
+    listener.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    listener.insert_json5("scouting/multicast/enabled", "false")
+    ros_side = zenoh.open(listener)
+    drone = open_bus(config.zenoh, Role.DRONE, connect=[default_flow_endpoint(config.zenoh)])
+    try:
+        base = "/fleet/uav7/camera"
+        image_key = wire.topic_key(
+            0, f"{base}/compressed", codec.COMPRESSED_IMAGE, codec.type_hash(codec.COMPRESSED_IMAGE)
+        )
+        info_key = wire.topic_key(
+            0, f"{base}/camera_info", codec.CAMERA_INFO, codec.type_hash(codec.CAMERA_INFO)
+        )
+        ros_side.declare_subscriber(image_key, got.put)
+        ros_side.declare_subscriber(info_key, info_got.put)
+        camera = drone.publisher(keys.uplink("uav7", Flow.DEFAULT, Stream.CAMERA_RGB), Priority.DATA)
+        assert camera.wait_matched(10)
+        seq = [0]
+
+        def send_in_two_parts() -> None:
+            seq[0] += 1
+            for part, payload in enumerate((jpeg[:half], jpeg[half:])):
+                camera.put(CameraFrame(
+                    uav="uav7", seq=seq[0], stamp_ns=seq[0], kind="rgb", encoding="jpeg", width=160,
+                    height=120,
+                    intrinsics=(200.0, 201.0, 80.0, 60.0), payload=payload, part=part, parts=2,
+                ))  # fmt: skip
+
+        sample = _first(got, send_in_two_parts)
+        picture = codec.decode(codec.COMPRESSED_IMAGE, sample.payload.to_bytes())
+        assert picture.format == "jpeg"
+        assert bytes(picture.data) == jpeg  # joined from its parts, passed on as it came
+        assert picture.header.frame_id == "uav7/camera_optical"
+        wire.Attachment.decode(sample.attachment.to_bytes())
+        info = codec.decode(codec.CAMERA_INFO, info_got.get(timeout=10).payload.to_bytes())
+        assert (info.width, info.height) == (160, 120)
+        assert list(info.k) == [200.0, 0.0, 80.0, 0.0, 201.0, 60.0, 0.0, 0.0, 1.0]
+        endpoint = get_topic_info(
+            f"{base}/compressed", domain_id=0, router_port=port, timeout=2.0, verbose=True
+        )
+        assert endpoint is not None
+        assert endpoint.publishers[0].qos == "2::,1:,:,:,,"  # best effort, the newest image only
     finally:
         drone.close()
         ros_side.close()

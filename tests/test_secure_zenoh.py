@@ -33,6 +33,7 @@ from dynqos.common.errors import ConfigError, TransportError
 from dynqos.common.keys import clock_probe
 from dynqos.common.transport import Role, open_session
 from dynqos.onboard import clock_offset
+from dynqos.onboard.check import probe_clock
 from tests.conftest import free_tcp_port
 from tests.procs import DYNQOS, DynqosProcess
 
@@ -177,7 +178,7 @@ def test_a_drones_clock_probes_come_back_stamped_by_the_router_and_to_that_drone
     secure_router.sessions += [receiver, overhearing]
     overheard: Seen = queue.Queue()
     _collect(overhearing, clock_probe("uav1"), overheard)  # declared, but refused by the router
-    probes, unstamped = clock_offset.probe(sender, receiver, clock_probe("uav1"), timeout_s=10)
+    probes, unstamped = probe_clock(sender, receiver, clock_probe("uav1"), timeout_s=10)
     assert len(probes) == clock_offset.PROBES
     assert unstamped == 0
     found = clock_offset.estimate(probes)

@@ -34,8 +34,8 @@ SERVICES = {  # name -> (its module, what it does)
     ),
     "ros2": (
         "dynqos.edge.ros2.service",
-        "the ROS 2 face: each drone's pose, odometry, /tf and status as rmw_zenoh topics that ROS 2 nodes "
-        "see natively ([ros2] config; docs/ros2.md)",
+        "the ROS 2 face: each drone's pose, odometry, /tf, camera and status as rmw_zenoh topics that "
+        "ROS 2 nodes see natively ([ros2] config; docs/ros2.md)",
     ),
     "qos": (
         "dynqos.edge.qos.agent",

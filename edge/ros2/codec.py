@@ -28,6 +28,8 @@ POSE = "geometry_msgs/msg/PoseStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
 PATH = "nav_msgs/msg/Path"
 TF = "tf2_msgs/msg/TFMessage"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
 OK, WARN, ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
 
@@ -175,3 +177,29 @@ def diagnostics(
         values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values.items()],
     )  # fmt: skip
     return encode(t[DIAGNOSTICS](header=_header(stamp_ns, ""), status=[status]))
+
+
+def compressed_image(stamp_ns: int, frame: str, image_format: str, data: bytes) -> bytes:
+    """The encoded image as it came (JPEG), not decoded and encoded again."""
+    message = STORE.types[COMPRESSED_IMAGE](
+        header=_header(stamp_ns, frame), format=image_format, data=np.frombuffer(data, dtype=np.uint8)
+    )
+    return encode(message)
+
+
+def camera_info(
+    stamp_ns: int, frame: str, width: int, height: int, intrinsics: tuple[float, float, float, float]
+) -> bytes:
+    """A pinhole camera without distortion (what the drone reports: fx, fy, cx, cy)."""
+    fx, fy, cx, cy = intrinsics
+    t = STORE.types
+    message = t[CAMERA_INFO](
+        header=_header(stamp_ns, frame), height=height, width=width, distortion_model="plumb_bob",
+        d=np.zeros(5), k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=np.float64),
+        r=np.eye(3).ravel(), p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], dtype=np.float64),
+        binning_x=0, binning_y=0,
+        roi=t["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
+    )  # fmt: skip
+    return encode(message)

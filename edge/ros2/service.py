@@ -1,10 +1,11 @@
-"""`dynqos edge ros2`: each drone's pose, odometry, /tf and supervisor status as ROS 2 topics in
+"""`dynqos edge ros2`: each drone's pose, odometry, /tf, camera and supervisor status as ROS 2 topics in
 rmw_zenoh's format, so that ROS 2 nodes on the same router see them with `ros2 topic list/echo` and no
 bridge of their own (docs/ros2.md).
 
-It is an edge client of the router like the other services: it subscribes to the drones' states and
-statuses (discovering drones as they appear), and for each drone declares, once, a publisher and a
-liveliness token per topic under `/<prefix>/<uav>/`, beside one node token (`/<prefix>/dynqos_edge`).
+It is an edge client of the router like the other services: it subscribes to the drones' states,
+statuses and RGB images (discovering drones as they appear; an image paced in parts is joined first),
+and for each drone declares, once, a publisher and a liveliness token per topic under
+`/<prefix>/<uav>/`, beside one node token (`/<prefix>/dynqos_edge`).
 Every sample carries rmw_zenoh's attachment (sequence from 1, source time, the publisher's GID).
 
 Stamps: a drone stamps its state with its own monotonic clock, which means nothing to ROS; the header
@@ -25,9 +26,10 @@ import zenoh
 from dynqos.common import keys
 from dynqos.common.config import Config
 from dynqos.common.keys import Stream
-from dynqos.common.messages import State, SupervisorStatus
+from dynqos.common.messages import CameraFrame, State, SupervisorStatus
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Received, ZenohBus
+from dynqos.edge.detector.assembler import FrameAssembler
 from dynqos.edge.ros2 import codec, wire
 from dynqos.edge.ros2.wire import Entity, Node, Qos, Reliability
 from dynqos.edge.service import Service, serve
@@ -38,6 +40,7 @@ NODE_NAME = "dynqos_edge"
 POSE_QOS = Qos(Reliability.RELIABLE, depth=10)  # a pose is small and every one counts to a follower
 STATUS_QOS = Qos(Reliability.RELIABLE, depth=10)
 TF_QOS = Qos(Reliability.RELIABLE, depth=100)  # tf2's own listener default
+CAMERA_QOS = Qos(Reliability.BEST_EFFORT, depth=1)  # ROS's sensor-data profile: the newest image only
 LEVEL = {"qA": codec.ERROR}  # the fallback flies: an error to a ROS monitor; q4-q6 adapting: a warning
 
 
@@ -70,7 +73,9 @@ class Ros2Face:
         self.stats = [
             bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,)),
             bus.subscribe(keys.uplink_all_drones(Stream.STATUS), self.queue, expect=(SupervisorStatus,)),
+            bus.subscribe(keys.uplink_all_drones(Stream.CAMERA_RGB), self.queue, expect=(CameraFrame,)),
         ]
+        self.assembler = FrameAssembler(max_frames=16, max_bytes=16 * 1024 * 1024)
         zid = str(self.session.info.zid())
         self.node = Node(self.cfg.domain_id, zid, 0, f"/{self.cfg.prefix}", NODE_NAME)
         self.node_token = self.session.liveliness().declare_token(self.node.token())
@@ -128,12 +133,29 @@ class Ros2Face:
         self.topic(f"/{self.cfg.prefix}/{uav}/status", codec.DIAGNOSTICS, STATUS_QOS).publish(payload)
         self.published += 1
 
+    def on_image(self, uav: str, frame: CameraFrame) -> None:
+        whole = self.assembler.add(frame)
+        if whole is None or whole.encoding != "jpeg":
+            return
+        now = time.time_ns()
+        optical = f"{uav}/camera_optical"
+        base = f"/{self.cfg.prefix}/{uav}/camera"
+        self.topic(f"{base}/compressed", codec.COMPRESSED_IMAGE, CAMERA_QOS).publish(
+            codec.compressed_image(now, optical, "jpeg", whole.payload)
+        )
+        self.topic(f"{base}/camera_info", codec.CAMERA_INFO, CAMERA_QOS).publish(
+            codec.camera_info(now, optical, whole.width, whole.height, whole.intrinsics)
+        )
+        self.published += 2
+
     def handle(self, item: Received) -> None:
         uav = keys.parse(item.key).uav
         if isinstance(item.message, State):
             self.on_state(uav, item.message)
         elif isinstance(item.message, SupervisorStatus):
             self.on_status(uav, item.message)
+        elif isinstance(item.message, CameraFrame):
+            self.on_image(uav, item.message)
 
     def health(self) -> str:
         received = sum(s.received for s in self.stats)
