@@ -46,6 +46,7 @@ PURE = (
     "dynqos.edge.qos.profiles",
     "dynqos.edge.replicas",
     "dynqos.edge.ros2.codec",
+    "dynqos.edge.ros2.translate",
     "dynqos.edge.ros2.wire",
     "dynqos.onboard.frame_time",
     "dynqos.onboard.clock_offset",

@@ -89,6 +89,11 @@ def add(commands: Commands) -> None:
             observe.add_argument("--record", metavar="FILE.mcap", help="also record to this MCAP file")
         else:
             observe.add_argument("--out", metavar="FILE.mcap", required=True, help="the MCAP file to write")
+            observe.add_argument(
+                "--ros2", action="store_true",
+                help="write ROS 2 messages (ros2msg schemas, cdr), the topics of `dynqos edge ros2`, for "
+                "`ros2 bag` and Foxglove's ROS 2 support; needs the ros2 extra (docs/ros2.md)",
+            )  # fmt: skip
         observe.set_defaults(handler=observe_flight)
 
     version = commands.add_parser("version", help="print the version", parents=[own])
@@ -178,6 +183,10 @@ def make_certs(args: argparse.Namespace, config: Config) -> int:
 def observe_flight(args: argparse.Namespace, config: Config) -> int:
     from dynqos.observers import observer
 
+    if getattr(args, "ros2", False):
+        from dynqos.observers import ros2_recording
+
+        return ros2_recording.run(config, Path(args.out), uav=args.uav, camera=not args.no_camera)
     view = args.command == "view"
     record = Path(args.record) if view and args.record else (None if view else Path(args.out))
     return observer.run(

@@ -29,19 +29,14 @@ from dynqos.common.keys import Stream
 from dynqos.common.messages import CameraFrame, State, SupervisorStatus
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Received, ZenohBus
-from dynqos.edge.detector.assembler import FrameAssembler
 from dynqos.edge.ros2 import codec, wire
-from dynqos.edge.ros2.wire import Entity, Node, Qos, Reliability
+from dynqos.edge.ros2.translate import Translator
+from dynqos.edge.ros2.wire import Entity, Node, Qos
 from dynqos.edge.service import Service, serve
 
 log = logging.getLogger(__name__)
 
 NODE_NAME = "dynqos_edge"
-POSE_QOS = Qos(Reliability.RELIABLE, depth=10)  # a pose is small and every one counts to a follower
-STATUS_QOS = Qos(Reliability.RELIABLE, depth=10)
-TF_QOS = Qos(Reliability.RELIABLE, depth=100)  # tf2's own listener default
-CAMERA_QOS = Qos(Reliability.BEST_EFFORT, depth=1)  # ROS's sensor-data profile: the newest image only
-LEVEL = {"qA": codec.ERROR}  # the fallback flies: an error to a ROS monitor; q4-q6 adapting: a warning
 
 
 @dataclass
@@ -75,7 +70,7 @@ class Ros2Face:
             bus.subscribe(keys.uplink_all_drones(Stream.STATUS), self.queue, expect=(SupervisorStatus,)),
             bus.subscribe(keys.uplink_all_drones(Stream.CAMERA_RGB), self.queue, expect=(CameraFrame,)),
         ]
-        self.assembler = FrameAssembler(max_frames=16, max_bytes=16 * 1024 * 1024)
+        self.translator = Translator(self.cfg.prefix, self.cfg.frame_id)
         zid = str(self.session.info.zid())
         self.node = Node(self.cfg.domain_id, zid, 0, f"/{self.cfg.prefix}", NODE_NAME)
         self.node_token = self.session.liveliness().declare_token(self.node.token())
@@ -103,59 +98,11 @@ class Ros2Face:
         log.info("ros2: publishing %s (%s)", name, ros_type)
         return topic
 
-    def on_state(self, uav: str, state: State) -> None:
-        now = time.time_ns()
-        frame, body = self.cfg.frame_id, f"{uav}/base_link"
-        base = f"/{self.cfg.prefix}/{uav}"
-        self.topic(f"{base}/pose", codec.POSE, POSE_QOS).publish(
-            codec.pose_stamped(now, frame, state.pos_m, state.quat)
-        )
-        self.topic(f"{base}/odom", codec.ODOMETRY, POSE_QOS).publish(
-            codec.odometry(now, frame, body, state.pos_m, state.vel_mps, state.quat)
-        )
-        self.topic("/tf", codec.TF, TF_QOS).publish(
-            codec.transform(now, frame, body, state.pos_m, state.quat)
-        )
-        self.published += 3
-
-    def on_status(self, uav: str, status: SupervisorStatus) -> None:
-        state = status.state.value
-        level = LEVEL.get(state, codec.WARN if state in ("q4", "q5", "q6") else codec.OK)
-        values = {
-            "state": state, "flow": status.flow.value, "control": status.control_source.value,
-            "risk": status.risk, "latency": status.latency,
-            "camera_rate_factor": f"{status.camera_rate_factor:g}", "rtt_ms": _ms(status.rtt_ms),
-            "camera_latency_ms": _ms(status.camera_latency_ms), "qos_grant": status.qos_grant.value,
-            "depth_lost": str(status.depth_lost).lower(),
-        }  # fmt: skip
-        message = f"{state} on the {status.flow.value} flow, {status.control_source.value} flies"
-        payload = codec.diagnostics(time.time_ns(), f"dynqos/{uav}/supervisor", uav, level, message, values)
-        self.topic(f"/{self.cfg.prefix}/{uav}/status", codec.DIAGNOSTICS, STATUS_QOS).publish(payload)
-        self.published += 1
-
-    def on_image(self, uav: str, frame: CameraFrame) -> None:
-        whole = self.assembler.add(frame)
-        if whole is None or whole.encoding != "jpeg":
-            return
-        now = time.time_ns()
-        optical = f"{uav}/camera_optical"
-        base = f"/{self.cfg.prefix}/{uav}/camera"
-        self.topic(f"{base}/compressed", codec.COMPRESSED_IMAGE, CAMERA_QOS).publish(
-            codec.compressed_image(now, optical, "jpeg", whole.payload)
-        )
-        self.topic(f"{base}/camera_info", codec.CAMERA_INFO, CAMERA_QOS).publish(
-            codec.camera_info(now, optical, whole.width, whole.height, whole.intrinsics)
-        )
-        self.published += 2
-
     def handle(self, item: Received) -> None:
         uav = keys.parse(item.key).uav
-        if isinstance(item.message, State):
-            self.on_state(uav, item.message)
-        elif isinstance(item.message, SupervisorStatus):
-            self.on_status(uav, item.message)
-        elif isinstance(item.message, CameraFrame):
-            self.on_image(uav, item.message)
+        for sample in self.translator.translate(uav, item.message, time.time_ns()):
+            self.topic(sample.topic, sample.ros_type, sample.qos).publish(sample.payload)
+            self.published += 1
 
     def health(self) -> str:
         received = sum(s.received for s in self.stats)
@@ -172,10 +119,6 @@ class Ros2Face:
             for topic in self.topics.values():
                 topic.close()
             self.node_token.undeclare()  # type: ignore[no-untyped-call]
-
-
-def _ms(value: float | None) -> str:
-    return "" if value is None else f"{value:.1f}"
 
 
 def _register(worker: Any, metrics: Any) -> None:
