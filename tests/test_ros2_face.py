@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 import queue
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import cv2
@@ -68,11 +68,7 @@ def test_a_drones_pose_reaches_ros2_clients_counted_with_attachments_and_tokens(
     config_path, port = edge
     config = load_config(config_path)
     got: queue.Queue[zenoh.Sample] = queue.Queue()
-    listener = zenoh.Config()
-    listener.insert_json5("mode", '"client"')
-    listener.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    listener.insert_json5("scouting/multicast/enabled", "false")
-    ros_side = zenoh.open(listener)
+    ros_side = _ros_client(port)
     drone = open_bus(config.zenoh, Role.DRONE, connect=[default_flow_endpoint(config.zenoh)])
     try:
         pose_key = wire.topic_key(0, "/fleet/uav7/pose", codec.POSE, codec.type_hash(codec.POSE))
@@ -122,15 +118,7 @@ def test_a_drones_pose_reaches_ros2_clients_counted_with_attachments_and_tokens(
         )  # fmt: skip
         # the subscriber to the status topic may not be known to the bridge's publisher, declared with it:
         # the status is sent until one arrives (bounded)
-        sample = None
-        for _ in range(50):
-            status_pub.put(status)
-            try:
-                sample = got.get(timeout=0.2)
-                break
-            except queue.Empty:
-                continue
-        assert sample is not None, "no status reached the ROS 2 side"
+        sample = _first(got, lambda: status_pub.put(status))
         (diagnostic,) = codec.decode(codec.DIAGNOSTICS, sample.payload.to_bytes()).status
         assert diagnostic.level == codec.ERROR
         assert diagnostic.hardware_id == "uav7"
@@ -143,11 +131,20 @@ def test_a_drones_pose_reaches_ros2_clients_counted_with_attachments_and_tokens(
         ros_side.close()
 
 
-def _first(got: queue.Queue[zenoh.Sample], send: object, tries: int = 50) -> zenoh.Sample:
+def _ros_client(port: int) -> zenoh.Session:
+    """A bare zenoh client of the router: the ROS 2 side, reading the rmw_zenoh keys directly."""
+    listener = zenoh.Config()
+    listener.insert_json5("mode", '"client"')
+    listener.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    listener.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(listener)
+
+
+def _first(got: queue.Queue[zenoh.Sample], send: Callable[[], None], tries: int = 50) -> zenoh.Sample:
     """Send (`send()`) until a sample arrives: the bridge declares a topic's publisher on the first
     message, and a subscriber it has not yet heard of can miss that one (bounded: `tries` x 0.2 s)."""
     for _ in range(tries):
-        send()  # type: ignore[operator]
+        send()
         try:
             return got.get(timeout=0.2)
         except queue.Empty:
@@ -168,11 +165,7 @@ def test_a_paced_camera_image_reaches_ros2_as_the_same_jpeg_with_its_camera_info
     half = len(jpeg) // 2
     got: queue.Queue[zenoh.Sample] = queue.Queue()
     info_got: queue.Queue[zenoh.Sample] = queue.Queue()
-    listener = zenoh.Config()
-    listener.insert_json5("mode", '"client"')
-    listener.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    listener.insert_json5("scouting/multicast/enabled", "false")
-    ros_side = zenoh.open(listener)
+    ros_side = _ros_client(port)
     drone = open_bus(config.zenoh, Role.DRONE, connect=[default_flow_endpoint(config.zenoh)])
     try:
         base = "/fleet/uav7/camera"
