@@ -36,6 +36,7 @@ from dynqos.onboard.metrics import DroneMetrics
 from dynqos.onboard.systemd import SystemdNotifier
 from dynqos.onboard.takeoff import Do, ExitAction, TakeoffSequencer, on_exit
 from dynqos.onboard.tick import TickInput, TickOutput
+from dynqos.onboard.uplink import Uplink
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +81,7 @@ class OnboardDaemon:
         self.beat: Callable[[str], None] | None = None  # /healthz's record of the health line
         self.camera: CameraStream | None = None
         self.publishers: dict[Stream, FlowPublishers] = {}
+        self.uplink = Uplink(self.stop)  # the tick's publications, put on the wire off the tick thread
         self.commands: BoundedQueue[Received] = BoundedQueue(256)
         self.camera_replies: BoundedQueue[Received] = BoundedQueue(512)  # acks and detections
         self.references: BoundedQueue[Received] = BoundedQueue(16)
@@ -208,7 +210,7 @@ class OnboardDaemon:
         elif out.setpoint is not None:
             link.send_position(out.setpoint.pos_m, out.setpoint.yaw_rad)
         for item in out.publish:
-            self.publishers[item.stream].pick(item.flow).put(item.message)
+            self.uplink.put(item.flow, self.publishers[item.stream].pick(item.flow), item.message)
             if self.metrics is not None and isinstance(item.message, SupervisorStatus):
                 self.metrics.observe(item.message)
         if self.camera is not None:
@@ -225,6 +227,7 @@ class OnboardDaemon:
 
     def run(self) -> None:
         """The control loop, until stop is set; then hold (or land) and close."""
+        self.uplink.start()
         if self.camera is not None:
             self.camera.start()
         if self.takeoff_requested:
@@ -243,6 +246,7 @@ class OnboardDaemon:
             now = self.clock.now_ns()
             if now >= next_health:
                 next_health = now + health_ns
+                self.uplink.report()
                 line = self.health()
                 log.info("onboard health: %s", line)
                 self.notifier.notify(f"STATUS={line}")
@@ -257,6 +261,7 @@ class OnboardDaemon:
         self.notifier.notify("STOPPING=1")
         if self.camera is not None:
             self.camera.join(timeout_s=5)
+        self.uplink.join(timeout_s=1)
         self._on_exit()
 
     def _on_exit(self) -> None:
@@ -278,6 +283,7 @@ class OnboardDaemon:
         commands = self.downlink_stats.get(Downlink.COMMAND)
         fields = self.core.health(bus_rejected=commands.rejected if commands else 0)
         fields["bad_downlink"] = sum(s.rejected for s in self.downlink_stats.values())
+        fields["uplink_dropped"] = self.uplink.dropped
         fields["fc_setpoints"] = self.link.setpoints_sent if self.link else 0
         if self.link is not None and self.link.signing_on:
             counts = self.link.signing_counts()

@@ -7,13 +7,16 @@ from __future__ import annotations
 
 import json
 import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from dynqos.bench.loadgen import Sink, send_paced
 from tests.procs import DynqosProcess
 
-__all__ = ["CellProcess", "Sink", "send_paced"]
+__all__ = ["CellProcess", "Sink", "ZenohThroughCell", "send_paced", "zenoh_through_cell"]
 
 
 class CellProcess(DynqosProcess):
@@ -55,3 +58,54 @@ class CellProcess(DynqosProcess):
 
     def __exit__(self, *_exc: object) -> None:
         self.stop()
+
+
+@dataclass
+class ZenohThroughCell:
+    """A router, the cell and two zenoh sessions: the edge's on the router, the drone's through the
+    cell's two flow bearers (`<uav>-default`, `<uav>-priority`)."""
+
+    cell: CellProcess
+    drone: Any  # ZenohBus
+    edge: Any
+
+
+@contextmanager
+def zenoh_through_cell(tmp_path: Path, uav: str, cell_keys: str = "") -> Iterator[ZenohThroughCell]:
+    """`cell_keys`: more `[cell]` lines (a smaller UE buffer, a scale)."""
+    from dynqos.common.config import ZenohConfig
+    from dynqos.common.transport import Role, default_flow_endpoint, open_bus, priority_flow_endpoint
+    from tests.conftest import free_tcp_port
+
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    toml = f"""
+[drone]
+id = "{uav}"
+[zenoh]
+default_port = {zcfg.default_port}
+priority_port = {zcfg.priority_port}
+[cell]
+control_port = 0
+default_listen_port = 0
+priority_listen_port = 0
+{cell_keys}
+"""
+    router = open_bus(zcfg, Role.ROUTER)
+    try:
+        with CellProcess(tmp_path, toml) as cell:
+            edge = open_bus(zcfg, Role.EDGE)
+            drone = open_bus(
+                zcfg,
+                Role.DRONE,
+                connect=[
+                    default_flow_endpoint(zcfg, port=cell.port(f"{uav}-default")),
+                    priority_flow_endpoint(zcfg, port=cell.port(f"{uav}-priority")),
+                ],
+            )
+            try:
+                yield ZenohThroughCell(cell, drone, edge)
+            finally:
+                drone.close()
+                edge.close()
+    finally:
+        router.close()

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.cellrig import CellProcess, Sink, send_paced
+from tests.cellrig import CellProcess, Sink, send_paced, zenoh_through_cell
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
@@ -183,61 +183,28 @@ def test_downlink_loss_holds_the_downlink_and_keeps_the_uplink(tmp_path: Path) -
 
 def test_zenoh_flow_links_pass_through_their_two_bearers(tmp_path: Path) -> None:
     from dynqos.common import keys
-    from dynqos.common.config import ZenohConfig
     from dynqos.common.keys import Flow, Stream
     from dynqos.common.messages import State
     from dynqos.common.queues import BoundedQueue
-    from dynqos.common.transport import Priority, Received, Role, default_flow_endpoint, open_bus
-    from dynqos.common.transport import priority_flow_endpoint as prio_endpoint
-    from tests.conftest import free_tcp_port
+    from dynqos.common.transport import Priority, Received
 
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
-    toml = f"""
-[drone]
-id = "uav7"
-[zenoh]
-default_port = {zcfg.default_port}
-priority_port = {zcfg.priority_port}
-[cell]
-control_port = 0
-default_listen_port = 0
-priority_listen_port = 0
-"""
-    router = open_bus(zcfg, Role.ROUTER)
-    try:
-        with CellProcess(tmp_path, toml) as cell:
-            edge = open_bus(zcfg, Role.EDGE)
-            drone = open_bus(
-                zcfg,
-                Role.DRONE,
-                connect=[
-                    default_flow_endpoint(zcfg, port=cell.port("uav7-default")),
-                    prio_endpoint(zcfg, port=cell.port("uav7-priority")),
-                ],
-            )
-            try:
-                assert sorted(link.priorities or (0, 0) for link in drone.links()) == [(1, 3), (4, 7)]
-                queue: BoundedQueue[Received] = BoundedQueue(100)
-                edge.subscribe(keys.uplink_any_flow("uav7", Stream.STATE), queue)
-                publisher = drone.publisher(
-                    keys.uplink("uav7", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME
-                )
-                assert publisher.wait_matched(10)
-                before = cell.counters()["bearers"]
-                sent = time.monotonic_ns()
-                for seq in range(20):
-                    state = State(uav="uav7", seq=seq, stamp_ns=sent, pos_m=(0, 0, -1), vel_mps=(0, 0, 0),
-                                  quat=(1, 0, 0, 0))  # fmt: skip
-                    publisher.put(state)
-                got = [queue.get(timeout_s=10) for _ in range(20)]
-                assert all(item is not None for item in got)
-                one_way_ms = (got[0].arrival_ns - sent) / 1e6  # type: ignore[union-attr]
-                after = cell.counters()["bearers"]
-            finally:
-                drone.close()
-                edge.close()
-    finally:
-        router.close()
+    with zenoh_through_cell(tmp_path, "uav7") as rig:
+        cell, drone, edge = rig.cell, rig.drone, rig.edge
+        assert sorted(link.priorities or (0, 0) for link in drone.links()) == [(1, 3), (4, 7)]
+        queue: BoundedQueue[Received] = BoundedQueue(100)
+        edge.subscribe(keys.uplink_any_flow("uav7", Stream.STATE), queue)
+        publisher = drone.publisher(keys.uplink("uav7", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+        assert publisher.wait_matched(10)
+        before = cell.counters()["bearers"]
+        sent = time.monotonic_ns()
+        for seq in range(20):
+            state = State(uav="uav7", seq=seq, stamp_ns=sent, pos_m=(0, 0, -1), vel_mps=(0, 0, 0),
+                          quat=(1, 0, 0, 0))  # fmt: skip
+            publisher.put(state)
+        got = [queue.get(timeout_s=10) for _ in range(20)]
+        assert all(item is not None for item in got)
+        one_way_ms = (got[0].arrival_ns - sent) / 1e6  # type: ignore[union-attr]
+        after = cell.counters()["bearers"]
     assert after["uav7-priority"]["offered_bytes"] - before["uav7-priority"]["offered_bytes"] > 20 * 50
     assert after["uav7-default"]["offered_bytes"] - before["uav7-default"]["offered_bytes"] < 20 * 50
     assert after["uav7-priority"]["weight"] == 4.0

@@ -210,7 +210,8 @@ def test_outcome_says_what_the_drone_saw_and_did_while_a_fault_lasted() -> None:
         replace(_status(10 * s, 20.0), rtt_samples_ms=(20.0, 40.0)),
         replace(_status(11 * s, 20.0), state="q6", camera_rate_factor=0.5, rtt_samples_ms=(60.0,)),
         replace(_status(12 * s, 20.0), state="q6", camera_rate_factor=0.5, rtt_samples_ms=(30.0,)),
-        replace(_status(13 * s, 20.0), rtt_samples_ms=(500.0,)),  # after it ended: not counted
+        # after it ended: not counted as during it, but the window's last signals
+        replace(_status(13 * s, 20.0), rtt_samples_ms=(500.0,), latency="HL", t_cam_ms=80.0),
     ]
     errors = [(9 * s, 3.0), (10 * s, 0.02), (11 * s, 0.4), (22 * s + 1, 0.9)]  # before, in, in, settled
     got = outcome(window, [], statuses, next_start_ns=None, tracking_errors=errors)
@@ -219,6 +220,11 @@ def test_outcome_says_what_the_drone_saw_and_did_while_a_fault_lasted() -> None:
     assert got["rtt_ms_during"]["mean"] == pytest.approx(37.5)
     assert got["states_s_during"] == {"q1": 1.0, "q6": 1.0}
     assert got["camera_slowed_after_s"] == pytest.approx(1.0)
+    # Why a drone not back at the edge is not: the last signals the window saw (here after the fault).
+    assert got["at_window_end"] == {
+        "state": "q1", "latency": "HL", "t_cam_ms": 80.0, "t_cc_ms": None, "p_cam": 0.0, "p_cc": 0.0,
+        "risk": "LR",
+    }  # fmt: skip
 
 
 def _check(result: dict[str, Any], kinds_with_fallback: set[str]) -> None:

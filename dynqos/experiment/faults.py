@@ -275,6 +275,19 @@ def _while_it_lasted(during: list[SupervisorStatus], start_ns: int) -> dict[str,
     }
 
 
+def _signals(status: SupervisorStatus) -> dict[str, Any]:
+    """What the supervisor saw in its last status of the window: why a drone not yet back is not."""
+    return {
+        "state": status.state.value,
+        "latency": status.latency,
+        "t_cam_ms": status.t_cam_ms,
+        "t_cc_ms": status.t_cc_ms,
+        "p_cam": status.p_cam,
+        "p_cc": status.p_cc,
+        "risk": status.risk,
+    }
+
+
 def log_times(text: str) -> list[tuple[float, str]]:
     """(wall time, message) of each line of a dynqos log (`%(asctime)s LEVEL name: message`)."""
     out = []
@@ -342,6 +355,7 @@ def outcome(
             None if back is None else round(max(0.0, (back.control_changed_ns - end_ns) / NS_PER_S), 3)
         ),
         "recovered": fallback is None or back is not None,
+        "at_window_end": _signals(seen[-1]) if seen else None,
         **_while_it_lasted(during, window.start_ns),
         "log": notable[:4],
         "notes": window.notes,
