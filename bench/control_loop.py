@@ -1,7 +1,8 @@
 """Benchmark: what the runtime adds to the control loop, beside bare zenoh in the same run.
 
 Path measured: the drone's session (a peer with the two flow links, as the onboard daemon opens it)
-publishes a State on the priority flow; the router forwards it to `dynqos edge mpc`, which solves and
+publishes a State on the priority flow, handed over as the daemon's tick does it (to the uplink's
+queue, put by its sender thread: onboard/uplink.py); the router forwards it to `dynqos edge mpc`, which solves and
 answers with a Command; the drone wakes on it. Floor, on the very same session, links and router: a
 bare zenoh-python responder (`bench/zenoh_echo.py`, its own process) answering a payload of the
 State's size with one of the Command's size, same priority and express setting. The two alternate in
@@ -18,6 +19,7 @@ from __future__ import annotations
 import queue
 import statistics
 import sys
+import threading
 import time
 from typing import Any
 
@@ -31,6 +33,7 @@ from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import Command, State, encode
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, ZenohBus, ZenohPublisher, open_bus
+from dynqos.onboard.uplink import Uplink
 
 UAV = "uav1"
 BLOCK = 50
@@ -65,6 +68,9 @@ class Loop:
         self.ping = bus.session.declare_publisher(PING, priority=zenoh.Priority.REAL_TIME, express=True)
         self.pongs: queue.SimpleQueue[int] = queue.SimpleQueue()
         self._pong_sub = bus.session.declare_subscriber(PONG, lambda _s: self.pongs.put(0))
+        self.stop = threading.Event()
+        self.uplink = Uplink(self.stop)
+        self.uplink.start()
         self.seq = 0
         self.ping_bytes = len(encode(_state(1)))
         self.hold_ms: list[float] = []
@@ -78,7 +84,7 @@ class Loop:
     def ours(self) -> float:
         self.seq += 1
         start = time.perf_counter()
-        self.state_pub.put(_state(self.seq))
+        self.uplink.put(Flow.PRIORITY, self.state_pub, _state(self.seq))
         while True:
             item = self.commands.get(TIMEOUT_S)
             if item is None:
@@ -121,6 +127,8 @@ def run(round_trips: int) -> dict[str, Any]:
                 for measure in order:
                     target = ours if measure == loop.ours else bare
                     target.extend(measure() for _ in range(BLOCK))
+            loop.stop.set()
+            loop.uplink.join(timeout_s=5)
         finally:
             bus.close()
     ours_s, bare_s = _summary(ours), _summary(bare)
