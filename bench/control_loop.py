@@ -1,14 +1,14 @@
 """Benchmark: what the runtime adds to the control loop, beside bare zenoh in the same run.
 
 Path measured: the drone's session (a peer with the two flow links, as the onboard daemon opens it)
-publishes a State on the priority flow, handed over as the daemon's tick does it (to the uplink's
-queue, put by its sender thread: onboard/uplink.py); the router forwards it to `dynqos edge mpc`, which solves and
-answers with a Command; the drone wakes on it. Floor, on the very same session, links and router: a
-bare zenoh-python responder (`bench/zenoh_echo.py`, its own process) answering a payload of the
-State's size with one of the Command's size, same priority and express setting. The two alternate in
-blocks so that drift in the machine's load hits both. The MPC's own time per answer is what it
-reports in each Command (`edge_hold_ns`: arrival to publish). Target: our p50 within 1.5x of the
-floor's p50 plus the MPC's p50.
+publishes a State on the priority flow, handed over as the daemon's tick does it (to the uplink's queue,
+put by its sender thread: onboard/uplink.py); the router forwards it to `dynqos edge mpc`, which solves
+and answers with a Command; the drone wakes on it. Floor, on the very same session, links and router: a
+bare zenoh-python responder (`bench/zenoh_echo.py`, its own process) answering a payload of the State's
+size with one of the Command's size, same priority and express setting. The two alternate in blocks so
+that drift in the machine's load hits both. The MPC's own time per answer is what it reports in each
+Command (`edge_hold_ns`: arrival to publish). Target: our p50 within 1.5x of the floor's p50 plus the
+MPC's p50.
 
 Run: dynqos bench control_loop (suite settings), or with its own options:
   python -m dynqos.bench.control_loop [--round-trips 2000] [--quick] [--out FILE]

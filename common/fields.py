@@ -1,13 +1,20 @@
 """Field validators for messages: each checks one value and returns it normalised (lists -> tuples,
 ints -> floats where a float is meant). They raise MessageError naming the field, nothing else.
+
+Each validator also records the msgspec type that accepts exactly what it accepts (`wire_type`), so
+that `common/fastdecode.py` can decode and validate a message in C; the checks here stay the reference
+(construction, and every message the fast path refuses), and a differential test holds the two equal.
 """
 
 from __future__ import annotations
 
 import enum
 import math
+import sys
 from collections.abc import Callable, Collection
-from typing import Any, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
+
+import msgspec
 
 from dynqos.common.errors import KeyExprError, MessageError
 from dynqos.common.keys import check_uav_id
@@ -16,6 +23,23 @@ Validator = Callable[[str, Any], Any]
 E = TypeVar("E", bound=enum.Enum)
 
 INT64_MAX = 2**63 - 1
+FLOAT_MAX = sys.float_info.max  # a finite bound on both sides keeps inf and NaN out of msgspec's floats
+
+_WIRE: dict[Validator, Any] = {}
+
+
+def wire_type(check: Validator) -> Any:
+    """The msgspec type that accepts what `check` accepts (KeyError for a validator without one)."""
+    return _WIRE[check]
+
+
+def _typed(check: Validator, tp: Any) -> Validator:
+    _WIRE[check] = tp
+    return check
+
+
+def _float(lo: float, hi: float) -> Any:
+    return Annotated[float, msgspec.Meta(ge=max(lo, -FLOAT_MAX), le=min(hi, FLOAT_MAX))]
 
 
 def uav_id(name: str, value: Any) -> str:
@@ -23,6 +47,10 @@ def uav_id(name: str, value: Any) -> str:
         return check_uav_id(value)
     except KeyExprError as exc:
         raise MessageError(name, str(exc)) from None
+
+
+# \Z, not $: msgspec searches with `re`, where $ also matches before a final newline
+_typed(uav_id, Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_-]{1,32}\Z")])
 
 
 def integer(lo: int = 0, hi: int = INT64_MAX) -> Validator:
@@ -33,7 +61,7 @@ def integer(lo: int = 0, hi: int = INT64_MAX) -> Validator:
             raise MessageError(name, f"{value} is outside [{lo}, {hi}]")
         return value
 
-    return check
+    return _typed(check, Annotated[int, msgspec.Meta(ge=lo, le=hi)])
 
 
 def real(lo: float = -math.inf, hi: float = math.inf) -> Validator:
@@ -47,13 +75,16 @@ def real(lo: float = -math.inf, hi: float = math.inf) -> Validator:
             raise MessageError(name, f"{number:g} is outside [{lo:g}, {hi:g}]")
         return number
 
-    return check
+    return _typed(check, _float(lo, hi))
 
 
 def boolean(name: str, value: Any) -> bool:
     if not isinstance(value, bool):
         raise MessageError(name, f"expected true or false, got {type(value).__name__}")
     return value
+
+
+_typed(boolean, bool)
 
 
 def text(max_len: int) -> Validator:
@@ -64,7 +95,7 @@ def text(max_len: int) -> Validator:
             raise MessageError(name, f"string of {len(value)} characters exceeds {max_len}")
         return value
 
-    return check
+    return _typed(check, Annotated[str, msgspec.Meta(max_length=max_len)])
 
 
 def choice(options: Collection[str]) -> Validator:
@@ -76,7 +107,7 @@ def choice(options: Collection[str]) -> Validator:
             raise MessageError(name, f"{shown!r} is not one of {sorted(allowed)}")
         return value
 
-    return check
+    return _typed(check, Literal[tuple(sorted(allowed))])
 
 
 def member(kind: type[E]) -> Validator:
@@ -90,7 +121,7 @@ def member(kind: type[E]) -> Validator:
             shown = value[:40] if isinstance(value, str) else type(value).__name__
             raise MessageError(name, f"{shown!r} is not one of {allowed}") from None
 
-    return check
+    return _typed(check, kind)
 
 
 def blob(max_len: int) -> Validator:
@@ -101,14 +132,14 @@ def blob(max_len: int) -> Validator:
             raise MessageError(name, f"{len(value)} bytes exceed the limit of {max_len}")
         return bytes(value) if not isinstance(value, bytes) else value
 
-    return check
+    return _typed(check, Annotated[bytes, msgspec.Meta(max_length=max_len)])
 
 
 def optional(inner: Validator) -> Validator:
     def check(name: str, value: Any) -> Any:
         return None if value is None else inner(name, value)
 
-    return check
+    return _typed(check, wire_type(inner) | None)
 
 
 def sequence(item: Validator, min_len: int = 0, max_len: int = 1 << 16) -> Validator:
@@ -122,7 +153,8 @@ def sequence(item: Validator, min_len: int = 0, max_len: int = 1 << 16) -> Valid
         except MessageError:  # rare: check again, naming the element (f-strings per item cost)
             return tuple(item(f"{name}[{i}]", v) for i, v in enumerate(value))
 
-    return check
+    items: Any = tuple[wire_type(item), ...]  # type: ignore[misc]
+    return _typed(check, Annotated[items, msgspec.Meta(min_length=min_len, max_length=max_len)])
 
 
 def vector(length: int, lo: float = -math.inf, hi: float = math.inf) -> Validator:
@@ -141,4 +173,4 @@ def vector(length: int, lo: float = -math.inf, hi: float = math.inf) -> Validato
             return tuple(value)
         return slow(name, value)  # type: ignore[no-any-return]
 
-    return check
+    return _typed(check, tuple[(_float(lo, hi),) * length])  # type: ignore[misc]

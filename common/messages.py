@@ -16,6 +16,7 @@ import msgpack
 
 from dynqos.common import fields as f
 from dynqos.common.errors import DecodeError, MessageError
+from dynqos.common.fastdecode import FastDecoder
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 
 SCHEMA_VERSION = 1
@@ -418,10 +419,14 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 }
 
 
+_FIELD_NAMES = {cls: tuple(field.name for field in fields(cls)) for cls in MESSAGE_TYPES.values()}
+_FAST = FastDecoder(MESSAGE_TYPES, SCHEMA_VERSION)
+
+
 def encode(message: Message) -> bytes:
     body: dict[str, Any] = {"t": message.TYPE, "v": SCHEMA_VERSION}
-    for field in fields(message):
-        body[field.name] = getattr(message, field.name)
+    for name in _FIELD_NAMES[type(message)]:
+        body[name] = getattr(message, name)
     packed: bytes = msgpack.packb(body, use_bin_type=True)
     return packed
 
@@ -447,7 +452,17 @@ def _unpack(data: Any) -> Any:
 
 
 def decode(data: Any) -> Message:
-    """Bytes -> a validated message. Raises DecodeError naming the field, and nothing else."""
+    """Bytes -> a validated message. Raises DecodeError naming the field, and nothing else. Valid
+    messages are decoded in C (common/fastdecode.py); the rest by `decode_checked`, which names why."""
+    if isinstance(data, (bytes, bytearray, memoryview)) and len(data) <= MAX_MESSAGE_BYTES:
+        message: Message | None = _FAST.decode(data)
+        if message is not None:
+            return message
+    return decode_checked(data)
+
+
+def decode_checked(data: Any) -> Message:
+    """The reference decoder: msgpack, then every field's validator in Python."""
     body = _unpack(data)
     if not isinstance(body, dict):
         raise DecodeError("<payload>", f"expected a map, got {type(body).__name__}")
@@ -460,7 +475,7 @@ def decode(data: Any) -> Message:
         raise DecodeError(
             "v", f"schema version {str(version)[:20]!r} is not supported (expected {SCHEMA_VERSION})"
         )
-    expected = {field.name for field in fields(cls)}
+    expected = set(_FIELD_NAMES[cls])
     for name in body:
         if name not in expected:
             raise DecodeError(name, f"unknown field in {cls.TYPE}")
