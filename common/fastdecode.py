@@ -22,6 +22,9 @@ import msgspec
 from dynqos.common import fields as f
 from dynqos.common.errors import MessageError
 
+# Types convert() takes as they are: without this it would read a str given for a bytes field as base64.
+_NATIVE = (bytes, bytearray, memoryview)
+
 
 def _struct(cls: type[Any], version: int) -> type[msgspec.Struct]:
     """The struct for `cls`: its tag `t`, the version `v`, and each field with the type its validator
@@ -46,11 +49,28 @@ class FastDecoder:
     def __init__(self, message_types: dict[str, type[Any]], version: int) -> None:
         structs = {_struct(cls, version): cls for cls in message_types.values()}
         self._class_of: dict[type[msgspec.Struct], type[Any]] = structs
+        self._struct_of = {cls: struct for struct, cls in structs.items()}
+        self._version = version
         self._names = {
             struct: tuple(field.name for field in dataclasses.fields(cls)) for struct, cls in structs.items()
         }
         union = Union[tuple(structs)]  # type: ignore[valid-type]  # noqa: UP007 (a union built at run time)
         self._decoder = msgspec.msgpack.Decoder(union)
+
+    def normalise(self, message: Any) -> bool:
+        """Check and normalise a message being constructed, in C (lists to tuples, ints to floats,
+        values to enum members); False where anything is off, and its fields are then untouched (the
+        Python validators run and name the field)."""
+        kind = self._struct_of[type(message)]
+        values = {name: getattr(message, name) for name in self._names[kind]}
+        values["v"] = self._version
+        try:
+            struct = msgspec.convert(values, kind, builtin_types=_NATIVE)
+        except Exception:  # ValidationError; a value msgspec does not take (numpy scalars) goes slow
+            return False
+        for name in self._names[kind]:
+            object.__setattr__(message, name, getattr(struct, name))
+        return True
 
     def decode(self, data: bytes | bytearray | memoryview) -> Any | None:
         """The message, or None where anything is wrong (the reference decoder then says what)."""

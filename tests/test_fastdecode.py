@@ -7,15 +7,18 @@ as the same message, value for value and type for type.
 
 from __future__ import annotations
 
+from dataclasses import fields
 from typing import Any
 
 import msgpack
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dynqos.common import messages as m
-from dynqos.common.errors import DecodeError
+from dynqos.common.errors import DecodeError, MessageError
+from dynqos.common.modes import Flow, Grant
 from tests.test_messages import any_message
 
 # What a broken or hostile sender may put in a field: every msgpack type, edge values included.
@@ -86,3 +89,34 @@ def test_a_refused_message_still_names_its_field() -> None:
     with pytest.raises(DecodeError) as refused:
         m.decode(msgpack.packb(body))
     assert refused.value.field == "kind"
+
+
+# What a caller may hand a constructor beside wire values: numpy scalars, enum members, bytearrays.
+arguments = st.one_of(
+    values,
+    st.floats(-10, 10).map(np.float64),
+    st.sampled_from([Flow.PRIORITY, Grant.AVAILABLE, bytearray(b"ab"), memoryview(b"cd"), (1, 2, 3)]),
+    st.sampled_from([[0.5, 1, True], "", "dGV4dA==", "1", "1.5", 1.0, 2**63, -1]),  # coercions to refuse
+)
+
+
+def _construct(cls: type[m.Message], kwargs: dict[str, Any], *, fast: bool) -> tuple[str, Any]:
+    m.FAST_CONSTRUCTION = fast
+    try:
+        return "ok", m.encode(cls(**kwargs))
+    except MessageError as exc:
+        return "refused", exc.field
+    finally:
+        m.FAST_CONSTRUCTION = True
+
+
+@settings(max_examples=2500)
+@given(any_message, st.data())
+def test_construction_in_c_accepts_refuses_and_normalises_as_the_validators_do(
+    message: m.Message, data: st.DataObject
+) -> None:
+    kwargs = {field.name: getattr(message, field.name) for field in fields(message)}
+    for name in data.draw(st.lists(st.sampled_from(sorted(kwargs)), max_size=3, unique=True)):
+        old = kwargs[name]
+        kwargs[name] = data.draw(st.just(list(old)) if isinstance(old, tuple) else arguments)
+    assert _construct(type(message), kwargs, fast=True) == _construct(type(message), kwargs, fast=False)
