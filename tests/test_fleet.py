@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -81,27 +82,41 @@ def test_each_drone_of_a_fleet_gets_its_own_vehicle_bearers_mission_and_identity
         assert loaded.onboard.camera_width >= 64
 
 
-@pytest.mark.slow
-@pytest.mark.integration
-@pytest.mark.timeout(600)
-def test_a_short_arbitrated_fleet_flight_keeps_the_high_risk_drones_loop(tmp_path: Path) -> None:
-    """fleet-arbiter, shortened: four drones, two of them in high-risk zones, one busy cell and room for
-    two grants. The high-risk drones hold priority and keep their RTT and rate under load; the others
-    are denied and adapt; no drone's setpoints pause over 100 ms; no QoD session is left."""
-    out = tmp_path / "run"
+def _fly_fleet(out: Path) -> dict[str, Any]:
     result = subprocess.run(
         [DYNQOS, "demo", "--scenario", "fleet-arbiter", "--duration", "30", "--out", str(out)],
-        capture_output=True, text=True, timeout=540, check=False,
+        capture_output=True, text=True, timeout=270, check=False,
     )  # fmt: skip
-    assert result.returncode == 0, result.stderr[-3000:]
-    summary = json.loads((out / "fleet-arbiter" / "summary.json").read_text())
-    assert summary["ok"] is True, summary["failure"]
+    summary: dict[str, Any] = json.loads((out / "fleet-arbiter" / "summary.json").read_text())
+    assert result.returncode == (0 if summary["ok"] else 1), result.stderr[-3000:]
+    return summary
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+@pytest.mark.timeout(600)  # a starved first flight is flown again
+def test_a_short_arbitrated_fleet_flight_keeps_the_high_risk_drones_loop(tmp_path: Path) -> None:
+    """fleet-arbiter, shortened: four drones, two of them in high-risk zones, one busy cell and room for
+    two grants. The fleet fits the machine (not starved); the high-risk drones hold
+    priority and keep their RTT within the scenario's 1.2x and their full camera rate under load; the
+    others are denied and adapt; no drone's setpoints pause over 100 ms; no QoD session is left."""
+    out = tmp_path / "run"
+    summary = _fly_fleet(out)
+    if summary["failure"].startswith("starved"):  # something else took the cores: one more flight
+        print(f"starved the first time ({summary['machine']}): flying again")
+        out = tmp_path / "again"
+        summary = _fly_fleet(out)
+    assert summary["ok"] is True, summary["failure"]  # a starved flight is not ok
+    # The fleet's target is at most 70% busy (docs/fleet.md measures it over `--repeat 5`: 57-71%); a
+    # 30 s flight on a CI machine gets five points more, and the starved rule above bounds the peaks.
+    assert summary["machine"]["busy_share"] <= 0.75, summary["machine"]
+    assert all(summary["checks"].values()), (summary["checks"], summary["drones"])  # the scenario's bar
+    assert set(summary["checks"]) == {
+        "high_risk_rtt_within_1_2x", "high_risk_delivered_95pct", "setpoint_gaps_within_100ms",
+    }  # fmt: skip
     assert set(summary["drones"]) == {"uav1", "uav2", "uav3", "uav4"}
     for uav, drone in summary["drones"].items():
         assert set(drone) >= DRONE_KEYS, (uav, DRONE_KEYS - set(drone))
-        # 100 ms is the scenario's bar (docs/fleet.md has the measured gaps); fifteen processes on two
-        # cores have paused a daemon for up to 113 ms, so the test's bound leaves room for that.
-        assert drone["setpoint_gap_max_ms"] < 150, uav
     assert set(summary["arbiter"]) >= {"grants", "denials", "revocations"}
     assert summary["arbiter"]["grants"] >= 2
     assert summary["arbiter"]["denials"] >= 1
@@ -112,15 +127,11 @@ def test_a_short_arbitrated_fleet_flight_keeps_the_high_risk_drones_loop(tmp_pat
     assert len(high) == 2
     denied_rtt = min(d["rtt_ms"]["loaded"]["mean"] for d in low.values())
     for uav, drone in high.items():
-        rtt = drone["rtt_ms"]
-        # the arbiter kept their loop: near their own baseline, and well below the denied drones'
-        base, loaded = rtt["baseline"]["mean"], rtt["loaded"]["mean"]
-        why = (uav, base, loaded, drone["cell_queue_ms"], drone["camera_fps"])  # CPU stall or cell queue
-        assert loaded <= 1.5 * base, why
-        # Below the denied drones' (0.8x in the stored runs, docs/fleet.md). Not a margin: when the two
-        # cores are the bottleneck every drone's RTT is CPU-bound (a CI run on 2026-11-23 had baselines of
-        # 29 ms, twice the usual, and the denied drones at 31 ms), and the cell's queues no longer decide.
-        assert loaded < denied_rtt, (*why, denied_rtt)
+        # the arbiter kept their loop (its 1.2x is in `checks` above): below the denied drones' RTT and at
+        # the full camera rate
+        loaded = drone["rtt_ms"]["loaded"]["mean"]
+        assert loaded < denied_rtt, (uav, loaded, denied_rtt, drone["cell_queue_ms"])
+        assert drone["camera_fps"]["loaded"] >= 0.9 * drone["camera_fps"]["configured"], uav
         assert drone["uav_delivered_mbps"] >= 0.95 * drone["uav_admitted_mbps"], uav
         assert drone["granted_time_s"] > 0.5 * summary["duration_s"], uav
     for uav, drone in low.items():

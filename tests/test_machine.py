@@ -11,6 +11,7 @@ from dynqos.experiment.machine import (
     CpuTimes,
     busy_share,
     describe,
+    judge,
     machine_figures,
     parse_cpu_line,
     read_cpu_times,
@@ -64,3 +65,10 @@ def test_a_flight_with_headroom_is_not_starved_and_one_without_is() -> None:
     assert "STARVED" not in describe(calm)
     assert machine_figures(_flight([])) is None
     assert describe(None) == "machine: not measured (no /proc/stat)"
+    # A starved flight is not a result: not ok, and its failure says why; a calm one keeps its verdict.
+    ok, failure = judge(True, "", busy)
+    assert not ok
+    assert failure.startswith("starved: the machine was above 85% busy for 4 of 24 s")
+    assert judge(True, "", calm) == (True, "")
+    assert judge(False, "the MPC crashed", busy) == (False, "the MPC crashed")  # the first cause stays
+    assert judge(True, "", None) == (True, "")

@@ -10,7 +10,8 @@ A flight is marked `starved` when more than `STARVED_SECONDS` of its seconds wer
 that load a woken process regularly finds every core taken, and on two cores its wait (a scheduler
 slice, milliseconds) is a sizeable part of a 16 ms round trip. A few such seconds (start of the load,
 a plot) are noise; more say the figures are the CPU's. Steal time (the hypervisor's) counts as busy: the
-cores were not ours then.
+cores were not ours then. A starved flight is not a result: its summary's `ok` is false and its
+`failure` says so (`judge`), though every figure is still written for reading.
 """
 
 from __future__ import annotations
@@ -92,3 +93,16 @@ def describe(figures: dict[str, Any] | None) -> str:
     if figures["starved"]:
         text += "; STARVED: the processes waited for cores, so these figures are partly the CPU's"
     return text
+
+
+def judge(ok: bool, failure: str, figures: dict[str, Any] | None) -> tuple[bool, str]:
+    """A flight's `ok` and `failure` once the machine is taken into account: a flight that was otherwise
+    fine but starved is not ok, and says why and what to do."""
+    if ok and figures is not None and figures["starved"]:
+        above, sampled = figures["seconds_above_85"], figures["seconds_sampled"]
+        return False, (
+            f"starved: the machine was above {100 * STARVED_SHARE:.0f}% busy for {above} of {sampled} s, "
+            "so the latencies are partly the CPU's; fly it again with less running on this machine, or on "
+            "more cores"
+        )
+    return ok, failure

@@ -13,7 +13,7 @@ from typing import Any
 
 from dynqos.common.messages import QosDecision, SupervisorStatus
 from dynqos.experiment.faults import time_in_states
-from dynqos.experiment.machine import describe, machine_figures
+from dynqos.experiment.machine import describe, judge, machine_figures
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import Scenario, run_id
 from dynqos.onboard.supervisor import PRIORITY_STATES as SUPERVISOR_PRIORITY_STATES
@@ -98,6 +98,8 @@ def summarise_fleet(
     ok: bool,
     failure: str,
 ) -> dict[str, Any]:
+    machine = machine_figures(rec.cpu_times)
+    ok, failure = judge(ok, failure, machine)
     drones = {uav: _drone(scenario, rec, uav, recs[uav], onboard_logs.get(uav, ""), ok) for uav in recs}
     end_ns = max((s.stamp_ns for r in recs.values() for _, s in r.states), default=rec.t0_ns)
     loaded_start = rec.bg_on_ns if rec.bg_on_ns is not None else rec.t0_ns
@@ -147,7 +149,7 @@ def summarise_fleet(
         | {"open_at_end": len(qod.get("sessions", []))},
         "checks": checks,
         "cpu_s": rec.cpu_s,
-        "machine": machine_figures(rec.cpu_times),
+        "machine": machine,
         "memory_mb": {name: max(s[1] for s in samples) / 1024 for name, samples in memory},
         "anon_memory_mb": {name: max(s[2] for s in samples) / 1024 for name, samples in memory},
         "ok": ok,

@@ -13,7 +13,7 @@ from dynqos.common.geometry import yaw_of
 from dynqos.common.messages import SupervisorStatus
 from dynqos.common.modes import SupervisorState
 from dynqos.experiment.faults import log_times, outcome, time_in_states
-from dynqos.experiment.machine import machine_figures
+from dynqos.experiment.machine import judge, machine_figures
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import Scenario
 from dynqos.reports.measures import reference_errors, rmse, stats, tracking_errors
@@ -90,6 +90,8 @@ def _samples(statuses: list[SupervisorStatus], every: str, last: str) -> list[tu
 def summarise(
     scenario: Scenario, rec: Recording, onboard_log: str, *, ok: bool, failure: str
 ) -> dict[str, Any]:
+    machine = machine_figures(rec.cpu_times)
+    ok, failure = judge(ok, failure, machine)
     t0 = rec.t0_ns
     end_ns = max([s.stamp_ns for _, s in rec.states], default=t0)
     settle_ns = t0 + round(scenario.settle_s * 1e9)
@@ -159,7 +161,7 @@ def summarise(
         ],
         "memory_mb": {name: memory_figures(samples) for name, samples in rec.memory_kb.items()},
         "cpu_s": rec.cpu_s,  # each process's CPU seconds over its whole life (start-up included)
-        "machine": machine_figures(rec.cpu_times),  # how busy all cores were over the recorded flight
+        "machine": machine,  # how busy all cores were over the recorded flight
         "ok": ok,
         "failure": failure,
     }
