@@ -340,12 +340,15 @@ class Supervisor:
         if signals.priority_denied and self.state in (Q2, Q3):
             escalate = react  # waiting for priority to help is waiting for nothing
             persists = "HL on the priority flow the network refused"
+        # The anti-flap back-off is about the flows (q1 <-> q3/q4); it does not keep a drone in its
+        # fallback once the link is back: qA returns after the plain recovery time.
+        recover_ns = self._ns(cfg.recover_s) if self.state is QA else self._recover_ns
         return _Firing(
             risk=_read_risk(signals),
             hl=hl,
             react=react,
             escalate=escalate,
-            recover=self._fires(self._held(self._ll_since_ns, now_ns, self._recover_ns), ll, p_ll),
+            recover=self._fires(self._held(self._ll_since_ns, now_ns, recover_ns), ll, p_ll),
             persists=persists,
         )
 

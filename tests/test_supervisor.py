@@ -271,6 +271,18 @@ def test_repeated_bounces_lengthen_the_recovery_time() -> None:
     assert flight.run_until(Q1, 40.0, UNLOADED) < stays[1]
 
 
+def test_the_flows_back_off_never_keeps_a_drone_in_its_fallback() -> None:
+    flight = Flight()
+    flight.run(2.0, UNLOADED)
+    for _ in range(3):  # three quick returns to q1: the next one waits 8 s
+        flight.run_until(Q3, 3.0, LOADED)
+        flight.run_until(Q1, 40.0, UNLOADED)
+    flight.run(0.2, lambda _t: Inputs(watchdog_expired=True))
+    assert flight.sup.state is QA
+    # The link is back: control returns to the edge after the plain recovery time, not the backed-off one.
+    assert flight.run_until(Q1, 40.0, UNLOADED) <= CONFIG.recover_s + CONFIG.dwell_s + 0.1
+
+
 def test_watchdog_sends_any_state_to_qa_in_the_same_tick_and_qa_waits_for_the_link() -> None:
     for reach, profile in ((Q1, UNLOADED), (Q3, LOADED), (Q2, link(20.0, 40.0, space_m=1.0))):
         flight = Flight()
