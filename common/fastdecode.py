@@ -68,8 +68,7 @@ class FastDecoder:
             struct = msgspec.convert(values, kind, builtin_types=_NATIVE)
         except Exception:  # ValidationError; a value msgspec does not take (numpy scalars) goes slow
             return False
-        for name in self._names[kind]:
-            object.__setattr__(message, name, getattr(struct, name))
+        self._fill(message, struct)
         return True
 
     def decode(self, data: bytes | bytearray | memoryview) -> Any | None:
@@ -78,12 +77,15 @@ class FastDecoder:
             struct = self._decoder.decode(data)
         except Exception:  # ValidationError, DecodeError, and e.g. UnicodeDecodeError from a bad tag
             return None
-        kind = type(struct)
-        message = object.__new__(self._class_of[kind])
-        for name in self._names[kind]:  # validated above: set without the per-field checks
-            object.__setattr__(message, name, getattr(struct, name))
+        message = object.__new__(self._class_of[type(struct)])
+        self._fill(message, struct)
         try:
             message._check()
         except MessageError:
             return None
         return message
+
+    def _fill(self, message: Any, struct: msgspec.Struct) -> None:
+        """Set each field of `message` from the validated `struct`, without the per-field checks."""
+        for name in self._names[type(struct)]:
+            object.__setattr__(message, name, getattr(struct, name))

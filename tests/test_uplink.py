@@ -9,6 +9,7 @@ behind it, and a BLOCK put on a side thread shows that the link is blocked.
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -72,16 +73,11 @@ def _back_up(rig: ZenohThroughCell, loss_s: float) -> threading.Event:
         returned.set()
 
     filler = b"\0" * FILL_BYTES
-    deadline = threading.Event()
-    timer = threading.Timer(FILL_MAX_S, deadline.set)
-    timer.start()
-    try:
-        for _ in range(FILL_MAX_PUTS):
-            if deadline.is_set():
-                break
-            bulk.put_bytes(filler)
-    finally:
-        timer.cancel()
+    deadline = time.monotonic() + FILL_MAX_S
+    for _ in range(FILL_MAX_PUTS):
+        if time.monotonic() > deadline:
+            break
+        bulk.put_bytes(filler)
     threading.Thread(target=blocking_put, daemon=True).start()
     return returned
 
