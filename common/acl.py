@@ -66,10 +66,12 @@ EDGE_ROLES: dict[str, EdgeRole] = {
     "detector": EdgeRole(
         reads=(uplink_all_drones(Stream.CAMERA_RGB), uplink_all_drones(Stream.CAMERA_DEPTH)),
         writes=(downlink_all_drones(Downlink.CAMERA_ACK), downlink_all_drones(Downlink.DETECTIONS)),
+        tokens=(any_replica_of("detector"),),  # detectors share the drones (edge/membership.py, LiveSet)
     ),
     "qos": EdgeRole(
         reads=(uplink_all_drones(Stream.QOS),),
         writes=(downlink_all_drones(Downlink.QOS_GRANT), downlink_all_drones(Downlink.QOS_DECISION)),
+        tokens=(any_replica_of("qos"),),  # one agent active, the others standing by (edge/qos/leadership.py)
     ),
 }
 EDGE_PREFIX = "edge-"

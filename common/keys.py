@@ -15,6 +15,8 @@ declared on, so a receiver subscribes to both flows with one wildcard:
     dynqos/<uav>/clock                    drone -> router -> drone: the preflight's clock probes
     dynqos/edge/replicas/<service>/<group>/<id>
                                           liveliness token of one replica of an edge service
+    dynqos/edge/replicas/qos/<group>/active/<id>
+                                          held by the QoS agent that holds the operator sessions
 """
 
 from __future__ import annotations
@@ -97,6 +99,16 @@ def replica_token(service: str, group: str, replica: str) -> str:
 def any_replica_of(service: str) -> str:
     """Every token of an edge service's replicas, in any group (what its ACL rules cover)."""
     return f"{ROOT}/edge/replicas/{service}/**"
+
+
+def qos_active(group: str, replica: str) -> str:
+    """The token of the QoS agent that is active (edge/qos/leadership.py); one chunk deeper than the
+    members' tokens, so `replicas_of("qos", group)` does not match it."""
+    return f"{ROOT}/edge/replicas/qos/{group}/active/{replica}"
+
+
+def qos_actives(group: str) -> str:
+    return f"{ROOT}/edge/replicas/qos/{group}/active/*"
 
 
 def replica_of_token(key: str) -> str:

@@ -1,5 +1,6 @@
 """The I/O shell of edge/replicas.py: one replica's liveliness token, and the live set as zenoh reports
-it, handed to the pure Assignment on the service's own worker thread.
+it, handed to the pure Assignment on the service's own worker thread; and `LiveSet`, the same tokens
+for a best-effort service that needs no standby.
 
 The token is declared, the live set queried (so that a replica does not serve before it knows its
 peers) and then watched. Changes arrive on zenoh's thread and wait, bounded, in a map the worker
@@ -17,7 +18,7 @@ from collections.abc import Collection
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus
-from dynqos.edge.replicas import Assignment, Change, Role
+from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Change, Role, ranked, valid_replica_id
 
 log = logging.getLogger(__name__)
 
@@ -82,3 +83,57 @@ class Membership:
             f"replica={self.replica} replicas={len(a.members)} {serving_word}={serving} "
             f"standby={len(drones) - serving} takeovers={a.counters.takeovers}"
         )
+
+
+class LiveSet:
+    """The live replicas of a best-effort service (the detector): no standby, no terms; each drone is
+    served by the first-ranked live replica (rendezvous order), and by another as soon as that one's
+    token goes. zenoh's thread replaces the set whole; readers take it without a lock."""
+
+    def __init__(self, service: str, replica: str, bus: Bus) -> None:
+        if not valid_replica_id(replica):
+            raise ValueError(f"replica id {replica[:80]!r} is invalid: use 1 to 64 of A-Z a-z 0-9 _ -")
+        self.service = service
+        self.me = replica
+        self.refused = 0  # tokens with an invalid name or beyond MAX_REPLICAS
+        self._lock = threading.Lock()
+        # the live set, and per drone whether this replica serves it for that set: replaced together
+        self._state: tuple[frozenset[str], dict[str, bool]] = (frozenset({replica}), {})
+        bus.watch_tokens(keys.replicas_of(service), self._on_token)
+        self.token = bus.declare_token(keys.replica_token(service, "all", replica))
+        for key in bus.alive_tokens(keys.replicas_of(service), timeout_s=2.0):
+            self._on_token(key, True)
+
+    def _on_token(self, key: str, alive: bool) -> None:
+        replica = keys.replica_of_token(key)
+        with self._lock:
+            members = set(self._state[0])
+            if alive and replica not in members:
+                if not valid_replica_id(replica) or len(members) >= MAX_REPLICAS:
+                    self.refused += 1
+                    return
+                members.add(replica)
+            elif not alive and replica in members and replica != self.me:
+                members.discard(replica)
+            else:
+                return
+            self._state = (frozenset(members), {})
+        log.info("%s %s: replica %s %s (%d live)", self.service, self.me, replica,
+                 "joined" if alive else "left", len(members))  # fmt: skip
+
+    def serves(self, uav: str) -> bool:
+        """Whether this replica serves `uav` now (cached per drone until the set changes)."""
+        members, cache = self._state
+        first = cache.get(uav)
+        if first is None:
+            if len(cache) >= 4096:  # drone ids from the wire: bounded
+                cache.clear()
+            first = cache[uav] = ranked(uav, members)[0] == self.me
+        return first
+
+    @property
+    def members(self) -> frozenset[str]:
+        return self._state[0]
+
+    def close(self) -> None:
+        self.token.close()

@@ -83,6 +83,11 @@ def qos(agent: QosAgent, m: ProcessMetrics) -> None:
             {action.value: n for action, n in agent.decisions.items()},
         )  # fmt: skip
         yield counter("dynqos_qos_errors", "Operator API errors", agent.errors)
+        yield gauge("dynqos_qos_active", "1 while this agent holds the sessions, 0 standing by",
+                    int(agent.leadership.is_active))  # fmt: skip
+        yield counter(
+            "dynqos_qos_takeovers", "Times this agent became the active one", agent.leadership.takeovers
+        )
         calls = agent.client.calls if agent.client is not None else 0
         yield counter("dynqos_qos_api_calls", "Operator API calls", calls)
         yield from bus_families(agent.bus)

@@ -69,7 +69,13 @@ def test_kustomize_renders_valid_manifests(folder: str) -> None:
         "dynqos-router", "dynqos-mpc", "dynqos-planner", "dynqos-detector", "dynqos-qos",
     }  # fmt: skip
     (qos,) = [w for w in workloads if w["metadata"]["name"] == "dynqos-qos"]
-    assert (qos["spec"]["replicas"], qos["spec"]["strategy"]["type"]) == (1, "Recreate")  # never two agents
+    # a rolling update starts the new agent first: it stands by, and the old one hands it the sessions
+    assert qos["spec"]["strategy"] == {
+        "type": "RollingUpdate",
+        "rollingUpdate": {"maxSurge": 1, "maxUnavailable": 0},
+    }
+    (qos_env,) = qos["spec"]["template"]["spec"]["containers"][0]["env"]
+    assert qos_env["name"] == "DYNQOS_QOS__REPLICA_ID"
     for workload in workloads:
         assert workload["metadata"]["namespace"] == "dynqos"
         pod = workload["spec"]["template"]["spec"]
@@ -140,6 +146,13 @@ def test_production_overlay_turns_on_mtls_access_control_and_mpc_replicas(tmp_pa
     assert planner["spec"]["replicas"] == 2
     (planner_env,) = planner["spec"]["template"]["spec"]["containers"][0]["env"]
     assert planner_env["name"] == "DYNQOS_PLANNER__REPLICA_ID"
+    qos = workloads["dynqos-qos"]
+    assert qos["spec"]["replicas"] == 2  # one active, one standing by (docs/qos.md)
+    assert "podAntiAffinity" in qos["spec"]["template"]["spec"]["affinity"]
+    (qos_budget,) = [
+        d for d in docs if d["kind"] == "PodDisruptionBudget" and d["metadata"]["name"] == "dynqos-qos"
+    ]
+    assert qos_budget["spec"]["maxUnavailable"] == 1
     resources = container["resources"]
     assert resources["requests"] == resources["limits"]  # the Guaranteed QoS class: never CFS-throttled
     assert str(resources["limits"]["cpu"]).isdigit()  # whole CPUs (the static CPU manager pins them)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Iterator
 from dataclasses import replace
@@ -290,3 +291,67 @@ def test_health_file_and_probe(edge: tuple[Path, ZenohConfig, list[DynqosProcess
         assert out.returncode == 2
         assert why in out.stderr
         assert out.stderr.count("\n") == 1
+
+
+def _acked_once_each(zcfg: ZenohConfig, uavs: list[str], frames: int, first_seq: int) -> dict[str, list[int]]:
+    """`frames` small RGB frames per drone, one at a time (each waits for its ack): the frame seqs
+    acked, per drone, with any duplicate ack a second detector would send collected too."""
+    image = np.full((48, 64, 3), 128, np.uint8)
+    jpeg = cv2.imencode(".jpg", image)[1].tobytes()
+    bus = drone_bus(zcfg)
+    acked: dict[str, list[int]] = {uav: [] for uav in uavs}
+    try:
+        acks: BoundedQueue[Received] = BoundedQueue(1000)
+        pubs = {}
+        for uav in uavs:
+            bus.subscribe(keys.downlink(uav, Downlink.CAMERA_ACK), acks, expect=(CameraAck,))
+            pubs[uav] = bus.publisher(keys.uplink(uav, Flow.DEFAULT, Stream.CAMERA_RGB), Priority.DATA)
+            assert pubs[uav].wait_matched(20)
+        for seq in range(first_seq, first_seq + frames):
+            for uav, pub in pubs.items():
+                frame = CameraFrame(
+                    uav=uav, seq=seq, stamp_ns=time.monotonic_ns(), kind="rgb", encoding="jpeg", width=64,
+                    height=48, intrinsics=(50.0, 50.0, 32.0, 24.0), payload=jpeg,
+                )  # fmt: skip
+                pub.put(frame)
+                item = acks.get(10)
+                assert item is not None, f"{uav} frame {seq}: no ack"
+                assert isinstance(item.message, CameraAck)
+                acked[item.message.uav].append(item.message.frame_seq)
+        late = acks.get(0.5)  # a second ack of the last frames would be here by now
+        while late is not None:
+            assert isinstance(late.message, CameraAck)
+            acked[late.message.uav].append(late.message.frame_seq)
+            late = acks.get_nowait()
+    finally:
+        bus.close()
+    return acked
+
+
+def test_two_detectors_share_the_drones_and_one_takes_all_when_the_other_goes(
+    edge: tuple[Path, ZenohConfig, list[DynqosProcess]],
+) -> None:
+    """Each drone's frames are acked by exactly one detector (no duplicate acks); each detector serves
+    the drones it ranks first for; killed, the other serves them all (edge/membership.py, LiveSet)."""
+    from dynqos.edge.replicas import ranked
+
+    config, zcfg, procs = edge
+    names = ("det-a", "det-b")
+    for name in names:
+        env = {"DYNQOS_DETECTOR__REPLICA_ID": name, "DYNQOS_DETECTOR__HEALTH_INTERVAL_S": "0.5"}
+        procs.append(DynqosProcess(["edge", "detector"], config, env=env))
+    detectors = dict(zip(names, procs[-2:], strict=True))
+    uavs = [f"uav{i}" for i in range(1, 9)]
+    served = {name: [u for u in uavs if ranked(u, names)[0] == name] for name in names}
+    assert all(served.values()), served  # eight drones: each detector ranks first for some
+    acked = _acked_once_each(zcfg, uavs, frames=3, first_seq=1)
+    assert acked == {uav: [1, 2, 3] for uav in uavs}  # once each, none twice
+    logs = {}
+    detectors["det-a"].proc.kill()  # its token goes with its session
+    logs["det-a"] = detectors["det-a"].stop()
+    acked = _acked_once_each(zcfg, uavs, frames=3, first_seq=4)
+    assert acked == {uav: [4, 5, 6] for uav in uavs}
+    logs["det-b"] = detectors["det-b"].stop()
+    assert "replica det-a left (1 live)" in logs["det-b"]
+    acks_b = [int(n) for n in re.findall(r" acks=(\d+)", logs["det-b"])]
+    assert acks_b[-1] == 3 * len(served["det-b"]) + 3 * len(uavs)  # its drones, then all

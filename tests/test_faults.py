@@ -16,7 +16,8 @@ from dynqos.common import keys
 from dynqos.common.bus import MemoryBus, Priority
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import Downlink, Flow, Stream
-from dynqos.common.messages import Reference, State, SupervisorStatus
+from dynqos.common.messages import QosGrant, Reference, State, SupervisorStatus
+from dynqos.common.modes import Grant
 from dynqos.experiment.faults import Fault, FaultInjector, FaultWindow, log_times, outcome, time_in_states
 from dynqos.experiment.processes import Processes
 from dynqos.experiment.runner import run_scenario
@@ -62,7 +63,12 @@ def test_replica_faults_need_a_standby() -> None:
         Scenario(name="x", duration_s=10, bg_start_s=-1, mpc_replicas=9)
     with pytest.raises(ConfigError, match="planner_replicas >= 2"):
         Scenario(name="x", duration_s=10, bg_start_s=-1, faults=(Fault(at_s=1, kind="planner_replica_kill"),))
-    assert builtin_scenario("replicas").mpc_replicas == 2
+    with pytest.raises(ConfigError, match="qos_agents >= 2"):
+        Scenario(name="x", duration_s=10, bg_start_s=-1, faults=(Fault(at_s=1, kind="qos_agent_kill"),))
+    with pytest.raises(ConfigError, match="qos_agents"):
+        Scenario(name="x", duration_s=10, bg_start_s=-1, qos_agents=0)
+    replicas = builtin_scenario("replicas")
+    assert (replicas.mpc_replicas, replicas.planner_replicas, replicas.qos_agents) == (2, 2, 2)
 
 
 SLEEPER = [sys.executable, "-c", "import time; print('{}', flush=True); time.sleep(120)"]
@@ -107,6 +113,24 @@ def test_replica_faults_act_on_the_replica_the_drone_says_flies_it(tmp_path: Pat
         assert (planner.target, planner.notes) == ("planner-1", ["planner-1 served the drone (term 2)"])
         assert procs.procs["planner-1"].poll() is not None
         assert procs.procs["planner"].poll() is None
+        # The QoS agent holding the active token is the one killed; the grant told after it is measured.
+        for name in ("qos", "qos-1"):
+            procs.start(name, [], program=SLEEPER)
+        grants = bus.publisher(keys.downlink("uav1", Downlink.QOS_GRANT), Priority.INTERACTIVE_HIGH)
+        grants.put(QosGrant(uav="uav1", seq=7, grant=Grant.AVAILABLE, backend="camara", session_id="s1"))
+        token = bus.declare_token(keys.qos_active("all", "qos-1"))
+        agent = injector.begin(Fault(at_s=7, kind="qos_agent_kill", duration_s=1))
+        token.close()  # it died with its process
+        assert (agent.target, agent.notes) == ("qos-1", ["qos-1 was the active agent"])
+        assert procs.procs["qos-1"].poll() is not None
+        assert procs.procs["qos"].poll() is None
+        grants.put(QosGrant(uav="uav1", seq=1, grant=Grant.AVAILABLE, backend="camara", session_id="s1"))
+        injector.end(agent)
+        assert agent.grant is not None
+        assert agent.grant["before"] == agent.grant["after"] == "available"
+        assert agent.grant["same_session"]
+        assert 0 <= agent.grant["served_after_s"] < 1.0
+        assert procs.procs["qos-1"].poll() is None  # restarted
     finally:
         procs.stop_all()
         bus.close()
@@ -283,15 +307,25 @@ def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> 
     them makes the drone fall back or leave its mission (docs/reliability.md)."""
     scenario = builtin_scenario("replicas")
     assert [f.kind for f in scenario.faults] == [
-        "mpc_replica_kill", "replica_join", "mpc_replica_hang", "planner_replica_kill",
+        "mpc_replica_kill", "replica_join", "mpc_replica_hang", "planner_replica_kill", "background",
+        "qos_agent_kill",
     ]  # fmt: skip
     result = _fly_with_headroom(scenario, tmp_path)
     _check(result, set())
     for fault in result["faults"]:
         assert not fault["fallback"], fault
         assert fault["max_tracking_error_m"] < 0.5, fault  # it kept flying the mission, not a stale end
-    kill, join, hang, planner = result["faults"]
+    kill, join, hang, planner, _background, agent = result["faults"]
     assert "served the drone" in planner["notes"][0], planner
+    # the standby QoS agent told the drone its grant within 2 s, with the session it adopted
+    assert agent["notes"][0].endswith("was the active agent"), agent
+    grant = agent["grant"]
+    assert grant["before"] == "available", grant  # the background load: the drone held a session
+    assert grant["after"] == "available", grant
+    assert grant["same_session"], grant
+    assert grant["served_after_s"] < 2.0, grant
+    sessions = result["qos_network"]["sessions"]
+    assert (sessions["conflicts"], sessions["open_at_end"]) == (0, 0), sessions
     assert "served the drone" in kill["notes"][0], kill  # it acted on the replica flying the drone
     assert "served the drone" in hang["notes"][0], hang
     assert join["notes"] == ["mpc-join1 joined"]

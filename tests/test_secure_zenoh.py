@@ -527,3 +527,27 @@ def test_mpc_replicas_find_each_other_and_nobody_else_can_pose_as_one(secure_rou
     assert seen.empty()
     for token in impostors:
         token.close()
+
+
+def test_only_a_qos_agent_can_claim_to_be_the_active_agent(secure_router: Pki) -> None:
+    """QoS agents' tokens (edge/qos/leadership.py): an active token declared by a drone or by the MPC
+    never reaches an agent, so nobody else can make the standby think an agent is active (and stay
+    idle) or gone; an edge-qos identity's reaches it (the sentinel, declared last)."""
+    from dynqos.common import keys
+    from dynqos.common.transport import ZenohBus
+
+    watcher, agent = ZenohBus(secure_router.open("edge-qos")), ZenohBus(secure_router.open("edge-qos"))
+    seen: queue.Queue[tuple[str, bool]] = queue.Queue()
+    watcher.watch_tokens(keys.qos_actives("all"), lambda key, alive: seen.put((key, alive)))
+    impostors = [
+        ZenohBus(secure_router.open(name)).declare_token(keys.qos_active("all", name))
+        for name in ("uav1", "edge-mpc")
+    ]
+    mine = agent.declare_token(keys.qos_active("all", "qos-b"))
+    assert seen.get(timeout=10) == (keys.qos_active("all", "qos-b"), True)
+    assert watcher.alive_tokens(keys.qos_actives("all"), timeout_s=2.0) == [keys.qos_active("all", "qos-b")]
+    mine.close()
+    assert seen.get(timeout=10) == (keys.qos_active("all", "qos-b"), False)
+    assert seen.empty()
+    for token in impostors:
+        token.close()

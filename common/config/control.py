@@ -220,6 +220,8 @@ class DetectorConfig:
     blur_px: int = 5
     max_circles: int = 16
     health_interval_s: float = 5.0
+    # Several detectors share the drones (docs/edge.md); replica_id names this one (empty: <host>-<pid>).
+    replica_id: str = ""
 
     def __post_init__(self) -> None:
         _require(0.5 <= self.dp <= 4, "dp", "must be in 0.5..4")
@@ -230,6 +232,8 @@ class DetectorConfig:
                  "need 1 <= min_radius_px < max_radius_px <= 4000")  # fmt: skip
         _require(self.blur_px in (0, 3, 5, 7, 9), "blur_px", "must be 0, 3, 5, 7 or 9")
         _require(1 <= self.max_circles <= 64, "max_circles", "must be in 1..64")
+        _require(self.replica_id == "" or re.fullmatch(r"[A-Za-z0-9_-]{1,64}", self.replica_id) is not None,
+                 "replica_id", "use 1 to 64 characters from A-Z a-z 0-9 _ - (or leave it empty)")  # fmt: skip
         _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
 
 

@@ -205,6 +205,9 @@ class QosConfig:
     health_interval_s: float = 5.0
     # Who gets priority: every drone that asks, or (arbiter) the neediest within [qos.arbiter]'s budget.
     policy: Literal["grant-all", "arbiter"] = "grant-all"
+    # Several agents may run; one holds the sessions, the others stand by (docs/qos.md). replica_id
+    # names this one (empty: <host>-<pid>).
+    replica_id: str = ""
     camara: CamaraConfig = field(default_factory=CamaraConfig)
     arbiter: ArbiterConfig = field(default_factory=ArbiterConfig)
 
@@ -218,6 +221,8 @@ class QosConfig:
                  "must exceed request_interval_s")  # fmt: skip
         _require(self.agent_timeout_s > self.grant_interval_s, "agent_timeout_s",
                  "must exceed grant_interval_s")  # fmt: skip
+        _require(self.replica_id == "" or re.fullmatch(r"[A-Za-z0-9_-]{1,64}", self.replica_id) is not None,
+                 "replica_id", "use 1 to 64 characters from A-Z a-z 0-9 _ - (or leave it empty)")  # fmt: skip
         if self.backend == "camara":
             _require(bool(self.camara.api_root), "camara.api_root", 'is required with backend = "camara"')
         # With links the network prioritises whoever uses the priority port: a revoked grant could not

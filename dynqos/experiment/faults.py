@@ -27,7 +27,7 @@ from dynqos.common.bus import Bus, Received
 from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import Reference, State, SupervisorStatus
+from dynqos.common.messages import QosGrant, Reference, State, SupervisorStatus
 from dynqos.common.modes import ControlSource
 from dynqos.common.queues import BoundedQueue
 from dynqos.experiment.processes import Processes
@@ -38,6 +38,7 @@ SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zen
 FaultKind = Literal[
     "mpc_kill", "router_kill", "coverage_loss", "downlink_loss", "fc_silence", "detector_flood", "background",
     "capacity", "trace", "mpc_replica_kill", "mpc_replica_hang", "replica_join", "planner_replica_kill",
+    "qos_agent_kill",
 ]  # fmt: skip
 FLOOD_FPS = 100.0  # several times what the detector can process
 FLOOD_MAX_FRAMES = 20_000
@@ -76,6 +77,7 @@ class FaultWindow:
     end_ns: int | None = None
     notes: list[str] = field(default_factory=list)
     target: str = ""  # the process a replica fault acted on
+    grant: dict[str, Any] | None = None  # qos_agent_kill: the drone's grant before and after
 
 
 class Flood:
@@ -148,10 +150,12 @@ class FaultInjector:
         self._floods: dict[int, Flood] = {}
         self._states: BoundedQueue[Received] = BoundedQueue(64)  # the newest few (the oldest drop)
         self._refs: BoundedQueue[Received] = BoundedQueue(64)
+        self._grants: BoundedQueue[Received] = BoundedQueue(64)
         self._joined = 0
         if watch_uav is not None:
             bus.subscribe(keys.uplink_any_flow(watch_uav, Stream.STATE), self._states, expect=(State,))
             bus.subscribe(keys.downlink(watch_uav, Downlink.REFERENCE), self._refs, expect=(Reference,))
+            bus.subscribe(keys.downlink(watch_uav, Downlink.QOS_GRANT), self._grants, expect=(QosGrant,))
 
     def _serving(self, service: str) -> tuple[str, str]:
         """The process of `service` (mpc, planner) serving the watched drone: the MPC replica its latest
@@ -170,6 +174,51 @@ class FaultInjector:
         return live[
             0
         ], f"no live {service} replica was seen serving the drone ({name or 'none'}): acted on {live[0]}"
+
+    def _active_agent(self) -> tuple[str, str]:
+        """The QoS agent process holding the active token (edge/qos/leadership.py), and a note."""
+        tokens = self.bus.alive_tokens(keys.qos_actives("all"), timeout_s=2.0)
+        active = sorted(keys.replica_of_token(k) for k in tokens)
+        running = [a for a in active if a in self.procs.procs and a not in self.procs.down]
+        if not running:
+            return "", f"no running QoS agent holds the active token ({', '.join(active) or 'none'})"
+        return running[0], f"{running[0]} was the active agent"
+
+    def _begin_agent_kill(self, window: FaultWindow) -> None:
+        grants = [i.message for i in self._grants.drain() if isinstance(i.message, QosGrant)]
+        before = grants[-1] if grants else None
+        window.grant = {
+            "before": before.grant.value if before else None,
+            "session_before": before.session_id if before else "",
+        }
+        window.target, note = self._active_agent()
+        window.notes.append(note)
+        if window.target:
+            self.procs.kill(window.target)
+
+    def _end_agent_kill(self, window: FaultWindow) -> None:
+        """The first grant the drone was told after the kill (the standby's), and when."""
+        assert window.grant is not None
+        after = next(
+            (
+                i
+                for i in self._grants.drain()
+                if isinstance(i.message, QosGrant) and i.arrival_ns > window.start_ns
+            ),
+            None,
+        )
+        if after is None:
+            window.notes.append("no grant was told while the fault lasted")
+            window.grant |= {"after": None, "served_after_s": None, "same_session": False}
+        else:
+            assert isinstance(after.message, QosGrant)
+            window.grant |= {
+                "after": after.message.grant.value,
+                "served_after_s": round((after.arrival_ns - window.start_ns) / NS_PER_S, 3),
+                "same_session": after.message.session_id == window.grant["session_before"],
+            }
+        if window.target:
+            self.procs.restart(window.target)
 
     def _begin_replica_fault(self, window: FaultWindow) -> None:
         kind = window.fault.kind
@@ -207,6 +256,8 @@ class FaultInjector:
             self.cell_event({"kind": "trace", "file": str(Path(fault.file).resolve()), "mean_mbps": 0.0})
         elif kind in ("mpc_replica_kill", "mpc_replica_hang", "replica_join", "planner_replica_kill"):
             self._begin_replica_fault(window)
+        elif kind == "qos_agent_kill":
+            self._begin_agent_kill(window)
         log.info("fault: %s for %.1f s", kind, fault.duration_s)
         self.windows.append(window)
         return window
@@ -223,6 +274,8 @@ class FaultInjector:
             self.procs.restart(window.target)
         elif kind == "mpc_replica_hang" and window.target:
             self.procs.signal(window.target, signal.SIGCONT)
+        elif kind == "qos_agent_kill":
+            self._end_agent_kill(window)
         elif kind == "detector_flood":
             flood = self._floods.pop(id(window))
             window.notes.append(f"{flood.close()} flood frames sent")
@@ -359,4 +412,5 @@ def outcome(
         **_while_it_lasted(during, window.start_ns),
         "log": notable[:4],
         "notes": window.notes,
+        **({"grant": window.grant} if window.grant is not None else {}),
     }

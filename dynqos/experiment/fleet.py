@@ -74,10 +74,11 @@ def run_fleet(
     def fly() -> None:
         procs.start("router", ["edge", "router"])
         cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
-        write_config(shared_path, scenario, with_cell(shared, cell, sink_port=free_port()))
+        sink_port = free_port() if scenario.qos_agents == 1 else 0  # several agents poll (scenario.py)
+        write_config(shared_path, scenario, with_cell(shared, cell, sink_port=sink_port))
         for uav, config in drones.items():
             write_config(paths[uav], scenario, with_cell(config, cell))
-        procs.start("qos", ["edge", "qos"])
+        start_replicas(procs, "qos", scenario.qos_agents)
         # No MCAP recorder here: four drones already take this 2-core machine to its limit, and a fifth
         # subscriber of every state perturbed the fleet's figures in CI (docs/observability.md).
         for i, uav in enumerate(drones):

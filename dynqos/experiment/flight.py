@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 
 
 def start_replicas(procs: Processes, service: str, count: int) -> None:
-    """The run's processes of an edge service (mpc, planner), each named by its replica id."""
+    """The run's processes of an edge service (mpc, planner, qos), each named by its replica id."""
     for name in replica_names(service, count):
         procs.start(name, ["edge", service, "--set", f'{service}.replica_id="{name}"'])
 

@@ -85,8 +85,9 @@ def _start_edge_and_cell(
     on SIGTERM are gone from the cell's final qod.json."""
     procs.start("router", ["edge", "router"])
     cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
-    write_config(config_path, scenario, with_cell(config, cell, sink_port=free_port()))
-    procs.start("qos", ["edge", "qos"])
+    sink_port = free_port() if scenario.qos_agents == 1 else 0
+    write_config(config_path, scenario, with_cell(config, cell, sink_port=sink_port))
+    start_replicas(procs, "qos", scenario.qos_agents)
     start_mcap_recorder(procs, scenario, folder)
     procs.start("vehicle", ["sim", "vehicle", "--duration", "3600"])
     start_replicas(procs, "planner", scenario.planner_replicas)

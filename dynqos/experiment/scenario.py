@@ -128,6 +128,10 @@ class Scenario:
     # planner, planner-1, ... (their replica ids)
     mpc_replicas: int = 1
     planner_replicas: int = 1
+    # QoS agents (docs/qos.md, "Several agents"): qos, qos-1, ...; one active, the others standing by.
+    # With more than one, no agent takes the operator's notifications (they would share one address):
+    # each polls its sessions.
+    qos_agents: int = 1
 
     @property
     def run_id(self) -> str:
@@ -155,7 +159,7 @@ class Scenario:
         self._check_fleet()
 
     def _check_run(self) -> None:
-        for name in ("mpc_replicas", "planner_replicas"):
+        for name in ("mpc_replicas", "planner_replicas", "qos_agents"):
             if not 1 <= getattr(self, name) <= MAX_REPLICAS:
                 raise ConfigError(name, f"must be in 1..{MAX_REPLICAS}")
         for i, fault in enumerate(self.faults):
@@ -200,7 +204,7 @@ MAX_REPLICAS = 8
 # the faults that act on the replica serving the drone, and the setting that must give it a standby
 REPLICA_FAULTS = {
     "mpc_replica_kill": "mpc_replicas", "mpc_replica_hang": "mpc_replicas",
-    "planner_replica_kill": "planner_replicas",
+    "planner_replica_kill": "planner_replicas", "qos_agent_kill": "qos_agents",
 }  # fmt: skip
 
 

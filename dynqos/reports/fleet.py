@@ -145,7 +145,9 @@ def summarise_fleet(
         "drones_delivered_mbps": cell["uav_delivered_mbps"],
         "drones": drones,
         "arbiter": arbiter,
-        "qod_sessions": {k: qod.get(k, 0) for k in ("created", "extended", "deleted", "refused", "expired")}
+        "qod_sessions": {
+            k: qod.get(k, 0) for k in ("created", "extended", "deleted", "refused", "expired", "conflicts")
+        }
         | {"open_at_end": len(qod.get("sessions", []))},
         "checks": checks,
         "cpu_s": rec.cpu_s,

@@ -251,7 +251,9 @@ def _qos_network(
     out["grant_at_end"] = statuses[-1].qos_grant.value if statuses else None
     out["agent_heard"] = any(s.qos_agent for s in statuses)
     if qod is not None:
-        out["sessions"] = {k: qod.get(k, 0) for k in ("created", "extended", "deleted", "refused", "expired")}
+        out["sessions"] = {
+            k: qod.get(k, 0) for k in ("created", "extended", "deleted", "refused", "expired", "conflicts")
+        }
         out["sessions"]["open_at_end"] = len(qod.get("sessions", []))
     return out
 

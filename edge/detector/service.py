@@ -3,6 +3,10 @@
 The ack goes out before any processing (for a paced image, once its last part is in), so the drone
 measures the network, not the detector. Frames the detector cannot keep up with are dropped, the
 newest kept (one slot per drone and kind). Zenoh callbacks only queue; one thread acks, one detects.
+
+Several detectors share the drones by drone (best effort, no standby): each holds a liveliness token,
+and a drone's frames are acked and searched by the first-ranked live detector only (edge/membership.py,
+`LiveSet`); the others drop them unread. When a detector's token goes, its drones move at once.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from dynqos.common.transport import Bus, Priority, Publisher, Received
 from dynqos.edge import metrics
 from dynqos.edge.detector.assembler import FrameAssembler
 from dynqos.edge.detector.circles import decode_depth, decode_rgb, find_circles, locate
+from dynqos.edge.membership import LiveSet, default_replica_id
 from dynqos.edge.service import Service, serve
 
 log = logging.getLogger(__name__)
@@ -43,12 +48,16 @@ class DetectorService:
         self.depth_stats = bus.subscribe(
             keys.uplink_all_drones(Stream.CAMERA_DEPTH), self.acks, expect=(CameraFrame,)
         )
+        self.replicas = LiveSet("detector", self.cfg.replica_id or default_replica_id(), bus)
         self.assembler = FrameAssembler()
         self._latest: dict[tuple[str, str], Received] = {}
         self._latest_lock = threading.Condition()
         self._ack_pubs: dict[str, Publisher] = {}
         self._det_pubs: dict[str, Publisher] = {}
-        self.counters = {"frames": 0, "acks": 0, "detections": 0, "dropped": 0, "bad_frames": 0, "circles": 0}
+        self.counters = {
+            "frames": 0, "acks": 0, "detections": 0, "dropped": 0, "bad_frames": 0, "circles": 0,
+            "others": 0,  # parts of frames of drones another detector serves
+        }  # fmt: skip
         self.detect_ms: list[float] = []
         self.service = Service("detector", self.cfg.health_interval_s)
         self.detect_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
@@ -70,6 +79,9 @@ class DetectorService:
         for item in [first, *self.acks.drain()]:
             part = item.message
             if not isinstance(part, CameraFrame):
+                continue
+            if not self.replicas.serves(part.uav):
+                self.counters["others"] += 1
                 continue
             frame = self.assembler.add(part)  # a paced image is acked once its last part is in
             if frame is None:
@@ -133,7 +145,8 @@ class DetectorService:
         rejected = self.rgb_stats.rejected + self.depth_stats.rejected
         counts = " ".join(f"{k}={v}" for k, v in self.counters.items())
         parts = f"incomplete={self.assembler.incomplete} inconsistent={self.assembler.inconsistent}"
-        return f"{counts} {parts} rejected={rejected} detect_ms_p50={ms[len(ms) // 2]:.1f}"
+        replicas = f"replica={self.replicas.me} replicas={len(self.replicas.members)}"
+        return f"{counts} {parts} rejected={rejected} detect_ms_p50={ms[len(ms) // 2]:.1f} {replicas}"
 
     def run(self) -> None:
         worker = threading.Thread(target=self._detect_loop, name="detector", daemon=True)
@@ -142,6 +155,7 @@ class DetectorService:
             self.ack_pending(0.1)
             self.service.maybe_health(self.health)
         worker.join(timeout=5)
+        self.replicas.close()
         log.info("detector: stopped; %s", self.health())
 
     def _detect_loop(self) -> None:

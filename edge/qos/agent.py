@@ -15,8 +15,11 @@ With `[qos] policy = "arbiter"` (camara only) a drone gets a session only while 
 `dynqos/<uav>/down/qos/decision`.
 
 One asyncio task per drone: a slow or failing API call for one drone never holds up another, and
-nothing here is on the drone's control path. On start the sessions a crashed agent left behind are
-found (retrieve-sessions per configured device) and deleted; on SIGTERM every session it holds is.
+nothing here is on the drone's control path. Several agents may run: one is active and holds the
+sessions, the others follow the drones' requests and stand by (edge/qos/leadership.py). An agent that
+becomes active asks the operator for each configured device's sessions (retrieve-sessions): it adopts
+the session of a drone it has heard from, and deletes the others (left by a crashed agent). On SIGTERM
+the active agent deletes every session it holds.
 """
 
 from __future__ import annotations
@@ -24,11 +27,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
-import ipaddress
 import logging
 import signal
 import threading
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,10 +38,8 @@ from aiohttp import web
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus, Priority, Publisher, Received
-from dynqos.common.camara import load_private_key, read_headers, read_secret, tls_context
 from dynqos.common.clock import NS_PER_S, Clock, MonotonicClock, to_ns
-from dynqos.common.config import CamaraConfig, Config
-from dynqos.common.errors import ConfigError
+from dynqos.common.config import Config
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.lifecycle import ready_line, serving_metrics
 from dynqos.common.messages import QosDecision, QosGrant, QosRequest
@@ -47,39 +47,22 @@ from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Role, open_bus
 from dynqos.edge import metrics as edge_metrics
-from dynqos.edge.qos import profiles
+from dynqos.edge.membership import default_replica_id
 from dynqos.edge.qos.arbiter import Action, Arbiter, Decision, Need
-from dynqos.edge.qos.calls import OperatorCalls
-from dynqos.edge.qos.client import QodClient, QodError
+from dynqos.edge.qos.calls import OperatorCalls, checked_profile, preflight
+from dynqos.edge.qos.client import QodClient
 from dynqos.edge.qos.grants import DroneGrant
+from dynqos.edge.qos.leadership import AgentRole, Leadership
+from dynqos.edge.qos.peers import AgentPeers
 from dynqos.edge.qos.sink import SinkGuard, serve_sink
 from dynqos.edge.service import Service
 
 log = logging.getLogger(__name__)
 
 SHUTDOWN_S = 10.0  # deleting every session on SIGTERM ends within this
+SETTLE_S = 0.5  # after start, before an agent takes over: peers starting with it declare their tokens
+HANDOVER_S = 2.0  # a stopping active agent waits this long for a standby to take its sessions over
 FORGET_AFTER = 10  # a silent drone with no session is forgotten after this many drone timeouts
-
-
-def preflight(config: Config) -> None:
-    """What the operator settings need, checked before any network is opened: an IP address for the
-    application server (the network identifies the flow by address) and a readable client secret."""
-    if config.qos.backend != "camara":
-        return
-    server = config.qos.camara.application_server or config.zenoh.edge_host
-    try:
-        ipaddress.ip_network(server, strict=False)
-    except ValueError:
-        raise ConfigError(
-            "qos.camara.application_server",
-            f"{server!r} is not an IP address: the network identifies the flow by address",
-        ) from None
-    read_headers(config.qos.camara.headers_file)
-    tls_context(config.qos.camara.ca_file, config.qos.camara.tls_cert_file, config.qos.camara.tls_key_file)
-    if config.qos.camara.token_url:
-        read_secret(config.qos.camara.client_secret_file)
-        if config.qos.camara.client_key_file:
-            load_private_key(config.qos.camara.client_key_file)
 
 
 @dataclass(eq=False)
@@ -121,6 +104,14 @@ class QosAgent:
         self.seq = 0
         self.arbiter = Arbiter(config.qos.arbiter) if config.qos.policy == "arbiter" else None
         self.decisions = {action: 0 for action in Action}
+        self.leadership = Leadership(
+            config.qos.replica_id or default_replica_id(),
+            now_ns=self.clock.now_ns(),
+            settle_ns=to_ns(SETTLE_S),
+        )
+        self.peers: AgentPeers | None = None
+        self.serving = False  # active, with the sessions it found adopted: drones are served and told
+        self.settled = asyncio.Event()  # its first role is decided (it says it is ready only then)
         preflight(config)
 
     # ---- the process --------------------------------------------------------------------------------------
@@ -143,19 +134,28 @@ class QosAgent:
                 self.calls = OperatorCalls(
                     self.client, self.camara, self.port, self.server, self.clock, self.sink_guard
                 )
-                await self.calls.clean_leftovers()
                 if self.camara.sink_listen:
                     sink = await serve_sink(
                         self.camara.sink, self.camara.sink_listen, self._notified, self.sink_guard
                     )
             forward.start()
+            self.peers = AgentPeers(self.bus, "all", self.leadership, loop)
+            stack.callback(self.peers.close)
+            await loop.run_in_executor(None, self.peers.query)
+            lead = loop.create_task(self._lead())
+            settled = loop.create_task(self.settled.wait())
+            await asyncio.wait({lead, settled}, return_when=asyncio.FIRST_COMPLETED)
+            if lead.done():  # it failed before the first role was decided: say why
+                settled.cancel()
+                lead.result()
             if self.arbiter is not None:
                 stack.push_async_callback(
                     _cancel, asyncio.get_running_loop().create_task(self._arbitrate_loop())
                 )
+            lead_ = self.leadership
             log.info(
-                "qos agent: backend %s, policy %s, priority port %d, ready",
-                self.qos.backend, self.qos.policy, self.port,
+                "qos agent %s: backend %s, policy %s, priority port %d, %s, ready (%d agent(s) live)",
+                lead_.me, self.qos.backend, self.qos.policy, self.port, lead_.role.value, len(lead_.members),
             )  # fmt: skip
             if ready is not None:
                 ready()
@@ -165,6 +165,7 @@ class QosAgent:
                     await asyncio.wait_for(self.stopping.wait(), self.qos.health_interval_s)
                 self.service.maybe_health(self.health)
             self.service.stop.set()
+            await _cancel(lead)  # no takeover while stopping
             await self._shut_down()
             if sink is not None:
                 await sink.cleanup()
@@ -195,8 +196,9 @@ class QosAgent:
         record.need = Need(
             risk=message.risk, latency_excess=message.latency_excess, offered_mbps=message.offered_mbps
         )
-        self._arbitrate()
-        record.wake.set()
+        if self.serving:
+            self._arbitrate()
+            record.wake.set()
 
     def _new_record(self, uav: str) -> DroneRecord:
         downlink = functools.partial(self.bus.publisher, priority=Priority.INTERACTIVE_HIGH)
@@ -207,7 +209,8 @@ class QosAgent:
         )
         if self.arbiter is not None:
             record.grant.admit(False, "waiting for the arbiter")
-        record.task = asyncio.get_running_loop().create_task(self._drone(record))
+        if self.serving:  # a standby only follows the drone's requests
+            record.task = asyncio.get_running_loop().create_task(self._drone(record))
         return record
 
     # ---- the arbiter (policy "arbiter") ---------------------------------------------------------------
@@ -220,7 +223,7 @@ class QosAgent:
             wait_s = min(0.5, max(0.001, (self.arbiter.next_change_ns(now) - now) / NS_PER_S))
             with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
                 await asyncio.wait_for(self.stopping.wait(), wait_s)
-            if not self.stopping.is_set():
+            if not self.stopping.is_set() and self.serving:
                 self._arbitrate()
 
     def _arbitrate(self) -> None:
@@ -321,9 +324,84 @@ class QosAgent:
             )
         )  # fmt: skip
 
+    # ---- which agent is active (edge/qos/leadership.py) --------------------------------------------
+
+    async def _lead(self) -> None:
+        """Apply the other agents' token changes; take over or stand by when the rules say so."""
+        peers, lead = self.peers, self.leadership
+        assert peers is not None
+        while not self.stopping.is_set():
+            peers.apply()
+            now = self.clock.now_ns()
+            change = lead.decide(now)
+            if change is not None and change.role is AgentRole.ACTIVE:
+                await self._take_over(change.reason)
+            elif change is not None:
+                await self._stand_by(change.reason)
+            if not self.serving:
+                self._prune(now)
+            if lead.next_deadline_ns(now) is None:
+                self.settled.set()
+            deadline = lead.next_deadline_ns(now)
+            timeout = 1.0 if deadline is None else max(0.001, (deadline - now) / NS_PER_S)
+            with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
+                await asyncio.wait_for(peers.changed.wait(), timeout)
+
+    async def _take_over(self, reason: str) -> None:
+        """Become the active agent: hold the active token first (a peer that also took over sees it and
+        steps down), adopt the sessions the operator holds for the drones heard from, delete the rest,
+        then serve every drone."""
+        assert self.peers is not None
+        self.peers.claim()
+        log.info("qos agent %s: active: %s", self.leadership.me, reason)
+        if self.calls is not None:
+            now = self.clock.now_ns()
+            heard = {uav for uav, record in self.drones.items() if not record.grant.silent(now)}
+            found = await self.calls.adopt(heard)
+            now = self.clock.now_ns()
+            for uav, record in self.drones.items():
+                record.grant.handed_over()
+                if uav in found:
+                    record.grant.observed(self.calls.session(found[uav]), now)
+        self.serving = True
+        loop = asyncio.get_running_loop()
+        for record in self.drones.values():
+            if record.task is None:
+                record.task = loop.create_task(self._drone(record))
+        self._arbitrate()
+
+    async def _stand_by(self, reason: str) -> None:
+        """Another agent is active (and ranks first): stop serving, hand it the sessions (it finds them
+        at the operator), and hold no active token."""
+        assert self.peers is not None
+        log.warning("qos agent %s: standing by: %s", self.leadership.me, reason)
+        self.serving = False
+        tasks = [r.task for r in self.drones.values() if r.task is not None]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        for record in self.drones.values():
+            record.task = None
+            record.grant.handed_over()
+        self.peers.release()
+
+    def _prune(self, now: int) -> None:
+        """A standby forgets the drones silent for long (the active agent's tasks do that for it)."""
+        gone = [
+            u
+            for u, r in self.drones.items()
+            if now - r.grant.heard_ns > FORGET_AFTER * to_ns(self.qos.drone_timeout_s)
+        ]
+        for uav in gone:
+            self._forget(uav)
+
     async def _shut_down(self) -> None:
         """Let each drone's call in flight finish (a create cancelled mid-way would leave a session we
-        never heard of), delete every session held, then sweep the devices for any left anyway."""
+        never heard of); hand the sessions to a standby if one takes over within HANDOVER_S (a rolling
+        update moves them without a gap), else delete every session held, then sweep the devices for
+        any left anyway. A standby holds none and deletes nothing: the sessions are the active agent's."""
+        if not self.leadership.is_active:
+            return
         for record in self.drones.values():
             record.wake.set()
         tasks = [r.task for r in self.drones.values() if r.task is not None]
@@ -332,8 +410,9 @@ class QosAgent:
             for task in late:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
+        if self.peers is not None and await self.peers.hand_over(self.clock, HANDOVER_S):
+            return
         held = [r.grant for r in self.drones.values() if r.grant.session is not None]
-
         if self.calls is not None:
             calls = self.calls
             with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
@@ -361,6 +440,10 @@ class QosAgent:
 
     def health(self) -> str:
         sessions = sum(r.grant.session is not None for r in self.drones.values())
+        lead = self.leadership
+        role = (
+            f"agent={lead.me} role={lead.role.value} agents={len(lead.members)} takeovers={lead.takeovers} "
+        )
         calls = f" api_calls={self.client.calls} retries={self.client.retries}" if self.client else ""
         arbiter = ""
         if self.arbiter is not None:
@@ -377,36 +460,9 @@ class QosAgent:
                 f"replayed={c['replayed']}"
             )
         return (
-            f"drones={len(self.drones)} sessions={sessions} errors={self.errors} "
+            f"{role}drones={len(self.drones)} sessions={sessions} errors={self.errors} "
             f"leftovers_cleaned={self.cleaned}{calls}{arbiter}{sink} rejected={self.stats.rejected}"
         )
-
-
-async def checked_profile(client: QodClient, camara: CamaraConfig) -> CamaraConfig:
-    """The settings once the operator's QoS Profiles API has been read (edge/qos/profiles.py): the same,
-    or with the duration fitted into the profile's range. A profile that is not offered or not ACTIVE
-    stops the agent before it serves; an API that does not answer leaves the settings unchecked."""
-    try:
-        answer = await client.retrieve_profiles()
-    except QodError as exc:
-        log.warning(
-            "qos agent: the QoS Profiles API at %s did not answer (%s): profile %s and duration %d s are "
-            "not checked", client.profiles_root, exc, camara.qos_profile, camara.duration_s,
-        )  # fmt: skip
-        return camara
-    try:
-        fitted = profiles.fit(answer, camara.qos_profile, camara.duration_s)
-    except profiles.ProfileError as exc:
-        raise ConfigError("qos.camara.qos_profile", f"{exc}, says {client.profiles_root}") from None
-    log.info("qos agent: %s", fitted.note)
-    if fitted.duration_s == camara.duration_s:
-        return camara
-    return replace(
-        camara,
-        duration_s=fitted.duration_s,  # the margins stay inside the shorter session
-        extend_before_s=min(camara.extend_before_s, fitted.duration_s / 2),
-        renew_before_s=min(camara.renew_before_s, fitted.duration_s / 4),
-    )
 
 
 async def _cancel(task: asyncio.Task[None]) -> None:

@@ -5,13 +5,18 @@ which call is due, this makes it and reports the outcome back."""
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import logging
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from typing import Any
 
+from dynqos.common.camara import load_private_key, read_headers, read_secret, tls_context
 from dynqos.common.clock import NS_PER_S, Clock
-from dynqos.common.config import CamaraConfig
+from dynqos.common.config import CamaraConfig, Config
+from dynqos.common.errors import ConfigError
+from dynqos.edge.qos import profiles
 from dynqos.edge.qos.client import SUBJECT, QodClient, QodError, SessionInfo
 from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
 from dynqos.edge.qos.sink import SinkGuard
@@ -213,20 +218,35 @@ class OperatorCalls:
 
     # ---- start and stop -------------------------------------------------------------------------------
 
-    async def clean_leftovers(self, whose: str = "left by an earlier agent") -> None:
-        """Sessions for our priority port that a crashed agent left: found per device, deleted."""
+    async def adopt(self, heard: set[str], whose: str = "left by an earlier agent") -> dict[str, SessionInfo]:
+        """The sessions for our priority port the operator holds, per configured device: a drone in
+        `heard` keeps its live one (returned, to be followed as if this agent had made it: an agent that
+        takes over creates no duplicate); every other one is deleted (an ended one, a second one, or a
+        drone nobody hears: left by a crashed agent)."""
         assert self.client is not None
+        adopted: dict[str, SessionInfo] = {}
         for uav, device in self.camara.devices.items():
             try:
                 with self.as_drone(uav):
-                    leftovers = await self.ours(device.as_api())
-                for info in leftovers:
+                    found = await self.ours(device.as_api())
+                for info in found:
+                    if uav in heard and uav not in adopted and info.qos_status != "UNAVAILABLE":
+                        adopted[uav] = info
+                        log.info(
+                            "qos agent: %s session %s adopted (%s)", uav, info.session_id, info.qos_status
+                        )
+                        continue
                     with self.as_drone(uav):
                         await self.client.delete(info.session_id)
                     self.cleaned += 1
                     log.warning("qos agent: deleted %s's session %s %s", uav, info.session_id, whose)
             except QodError as exc:
-                log.warning("qos agent: cannot check %s for leftover sessions (%s)", uav, exc)
+                log.warning("qos agent: cannot check %s for sessions (%s)", uav, exc)
+        return adopted
+
+    async def clean_leftovers(self, whose: str = "left by an earlier agent") -> None:
+        """Every session for our priority port, found per device, deleted."""
+        await self.adopt(set(), whose)
 
     async def release(self, grant: DroneGrant) -> None:
         """Delete the session `grant` holds (the agent is stopping); a 404 means it is gone already."""
@@ -240,3 +260,51 @@ class OperatorCalls:
             if exc.status != 404:
                 log.error("qos agent: could not delete %s's session %s: %s", grant.uav, session_id, exc)
         grant.deleted(self.clock.now_ns())
+
+
+async def checked_profile(client: QodClient, camara: CamaraConfig) -> CamaraConfig:
+    """The settings once the operator's QoS Profiles API has been read (edge/qos/profiles.py): the same,
+    or with the duration fitted into the profile's range. A profile that is not offered or not ACTIVE
+    stops the agent before it serves; an API that does not answer leaves the settings unchecked."""
+    try:
+        answer = await client.retrieve_profiles()
+    except QodError as exc:
+        log.warning(
+            "qos agent: the QoS Profiles API at %s did not answer (%s): profile %s and duration %d s are "
+            "not checked", client.profiles_root, exc, camara.qos_profile, camara.duration_s,
+        )  # fmt: skip
+        return camara
+    try:
+        fitted = profiles.fit(answer, camara.qos_profile, camara.duration_s)
+    except profiles.ProfileError as exc:
+        raise ConfigError("qos.camara.qos_profile", f"{exc}, says {client.profiles_root}") from None
+    log.info("qos agent: %s", fitted.note)
+    if fitted.duration_s == camara.duration_s:
+        return camara
+    return replace(
+        camara,
+        duration_s=fitted.duration_s,  # the margins stay inside the shorter session
+        extend_before_s=min(camara.extend_before_s, fitted.duration_s / 2),
+        renew_before_s=min(camara.renew_before_s, fitted.duration_s / 4),
+    )
+
+
+def preflight(config: Config) -> None:
+    """What the operator settings need, checked before any network is opened: an IP address for the
+    application server (the network identifies the flow by address) and a readable client secret."""
+    if config.qos.backend != "camara":
+        return
+    server = config.qos.camara.application_server or config.zenoh.edge_host
+    try:
+        ipaddress.ip_network(server, strict=False)
+    except ValueError:
+        raise ConfigError(
+            "qos.camara.application_server",
+            f"{server!r} is not an IP address: the network identifies the flow by address",
+        ) from None
+    read_headers(config.qos.camara.headers_file)
+    tls_context(config.qos.camara.ca_file, config.qos.camara.tls_cert_file, config.qos.camara.tls_key_file)
+    if config.qos.camara.token_url:
+        read_secret(config.qos.camara.client_secret_file)
+        if config.qos.camara.client_key_file:
+            load_private_key(config.qos.camara.client_key_file)

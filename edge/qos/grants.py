@@ -246,6 +246,13 @@ class DroneGrant:
         if not self.wants(now_ns) and not self.misconfigured:
             self.refused, self.reason = False, ""
 
+    def handed_over(self) -> None:
+        """Whatever this agent knew of the session is not its own any more (another agent holds the
+        sessions) or is about to be replaced by what the operator says (this one took over)."""
+        self.session = None
+        self.capped = ""
+        self._next_read_ns = self._next_extend_ns = self._next_delete_ns = 0
+
     def denied(self, reason: str, now_ns: int, retry_after_ns: int = 0) -> None:
         """The operator refused (400/403/404/422): no session; ask again after the back-off (or the
         operator's Retry-After, up to the ceiling, when it is longer)."""
