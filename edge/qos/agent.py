@@ -442,7 +442,7 @@ class QosAgent:
         sessions = sum(r.grant.session is not None for r in self.drones.values())
         lead = self.leadership
         role = (
-            f"agent={lead.me} role={lead.role.value} agents={len(lead.members)} takeovers={lead.takeovers} "
+            f" agent={lead.me} role={lead.role.value} agents={len(lead.members)} takeovers={lead.takeovers}"
         )
         calls = f" api_calls={self.client.calls} retries={self.client.retries}" if self.client else ""
         arbiter = ""
@@ -460,8 +460,8 @@ class QosAgent:
                 f"replayed={c['replayed']}"
             )
         return (
-            f"{role}drones={len(self.drones)} sessions={sessions} errors={self.errors} "
-            f"leftovers_cleaned={self.cleaned}{calls}{arbiter}{sink} rejected={self.stats.rejected}"
+            f"drones={len(self.drones)} sessions={sessions} errors={self.errors} "
+            f"leftovers_cleaned={self.cleaned}{calls}{arbiter}{sink} rejected={self.stats.rejected}{role}"
         )
 
 
