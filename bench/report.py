@@ -42,3 +42,24 @@ def bench_parser(doc: str | None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, help="also write the JSON result to this file")
     return parser
+
+
+def flight_args(
+    doc: str | None, argv: list[str] | None, *, seeds_from: int, duration_s: float, quick_s: float
+) -> tuple[int, float, Path | None]:
+    """The command line of a benchmark that flies a scenario once per seed: (runs, recorded seconds per
+    run, --out); `--quick` (smoke mode) is one run of `quick_s`."""
+    parser = bench_parser(doc)
+    last = "N" if seeds_from == 1 else "N-1"
+    parser.add_argument("--seeds", type=int, default=3, help=f"runs, seeds {seeds_from}..{last} (default 3)")
+    parser.add_argument(
+        "--duration",
+        type=float,
+        default=duration_s,
+        help=f"recorded flight per run (default {duration_s:g} s)",
+    )
+    parser.add_argument("--quick", action="store_true", help=f"smoke mode: one {quick_s:g} s run")
+    args = parser.parse_args(argv)
+    if not 1 <= args.seeds <= 20 or not 10 <= args.duration <= 600:
+        parser.error("--seeds must be in 1..20 and --duration in 10..600 s")
+    return (1, quick_s, args.out) if args.quick else (args.seeds, args.duration, args.out)

@@ -76,6 +76,10 @@ HEADLINES: dict[str, Headline] = {
         "switch_median_s": _get(r["switch_s"], "median"),
         "recovery_median_s": _get(r["recovery_s"], "median"),
     },
+    "fleet_flight": lambda r: {
+        "busy_share_max": r["busy_share"]["max"],
+        "cpu_s_total_median": r["cpu_s_total"]["median"],
+    },
 }
 NAMES = tuple(HEADLINES)
 

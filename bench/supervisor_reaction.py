@@ -26,7 +26,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from dynqos.bench.report import bench_parser, emit, judged, provenance
+from dynqos.bench.report import emit, flight_args, judged, provenance
 from dynqos.bench.suite import spread
 from dynqos.experiment.runner import run_scenario
 from dynqos.experiment.scenario import builtin_scenario
@@ -147,15 +147,9 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = bench_parser(__doc__)
-    parser.add_argument("--seeds", type=int, default=3, help="runs, seeds 1..N (default 3)")
-    parser.add_argument("--duration", type=float, default=26.0, help="recorded flight per run (default 26 s)")
-    parser.add_argument("--quick", action="store_true", help="smoke mode: one 10 s run")
-    args = parser.parse_args(argv)
-    if not 1 <= args.seeds <= 20 or not 10 <= args.duration <= 600:
-        parser.error("--seeds must be in 1..20 and --duration in 10..600 s")
-    result = run(1, 10.0) if args.quick else run(args.seeds, args.duration)
-    return emit(result, markdown(result), args.out, verdict(result))
+    seeds, duration_s, out = flight_args(__doc__, argv, seeds_from=1, duration_s=26.0, quick_s=10.0)
+    result = run(seeds, duration_s)
+    return emit(result, markdown(result), out, verdict(result))
 
 
 if __name__ == "__main__":

@@ -116,3 +116,14 @@ def test_recovery_time_from_an_rtt_series() -> None:
     assert recovery_s(series, 5.0, 20.0) == pytest.approx(1.5)
     assert recovery_s(series[:60], 5.0, 20.0) is None  # never back before the end
     assert spread([3.0, None, 1.0, 2.0]) == {"median": 2.0, "min": 1.0, "max": 3.0}
+
+
+def test_the_fleet_flight_measured_the_machine_and_every_process(smoke: tuple[dict[str, Any], str]) -> None:
+    fleet = _result(smoke, "fleet_flight")
+    (run,) = fleet["runs"]
+    assert 0 < run["busy_share"] <= run["busy_share_max_1s"] <= 1
+    assert {"router", "cell", "qos", "mpc", "planner", "detector", "onboard-uav1", "onboard-uav4"} <= set(
+        run["cpu_s"]
+    )
+    assert run["cpu_s_total"] == pytest.approx(sum(run["cpu_s"].values()), abs=0.05)
+    assert fleet["busy_share"]["max"] == run["busy_share"]
