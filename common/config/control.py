@@ -8,7 +8,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Literal
 
-from dynqos.common.config.validate import _host_port, _require
+from dynqos.common.config.validate import _check_replica_id, _host_port, _require
 from dynqos.common.keys import UAV_ID_PATTERN
 
 
@@ -136,8 +136,7 @@ class MpcConfig:
 def _check_replica(
     replica_id: str, takeover_after_s: float, holdoff_s: float, *, max_takeover_s: float
 ) -> None:
-    _require(replica_id == "" or re.fullmatch(r"[A-Za-z0-9_-]{1,64}", replica_id) is not None,
-             "replica_id", "use 1 to 64 characters from A-Z a-z 0-9 _ - (or leave it empty)")  # fmt: skip
+    _check_replica_id(replica_id)
     _require(0.005 <= takeover_after_s <= max_takeover_s, "takeover_after_s",
              f"must be in 0.005..{max_takeover_s:g} s")  # fmt: skip
     _require(0 <= holdoff_s <= 600, "holdoff_s", "must be in 0..600 s")
@@ -232,8 +231,7 @@ class DetectorConfig:
                  "need 1 <= min_radius_px < max_radius_px <= 4000")  # fmt: skip
         _require(self.blur_px in (0, 3, 5, 7, 9), "blur_px", "must be 0, 3, 5, 7 or 9")
         _require(1 <= self.max_circles <= 64, "max_circles", "must be in 1..64")
-        _require(self.replica_id == "" or re.fullmatch(r"[A-Za-z0-9_-]{1,64}", self.replica_id) is not None,
-                 "replica_id", "use 1 to 64 characters from A-Z a-z 0-9 _ - (or leave it empty)")  # fmt: skip
+        _check_replica_id(self.replica_id)
         _require(0.5 <= self.health_interval_s <= 3600, "health_interval_s", "must be in 0.5..3600 s")
 
 

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
 from dynqos.common.camara import AGENT_SCOPE
-from dynqos.common.config.validate import _host_port, _require
+from dynqos.common.config.validate import _check_replica_id, _host_port, _require
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import UAV_ID_PATTERN
 
@@ -221,8 +221,7 @@ class QosConfig:
                  "must exceed request_interval_s")  # fmt: skip
         _require(self.agent_timeout_s > self.grant_interval_s, "agent_timeout_s",
                  "must exceed grant_interval_s")  # fmt: skip
-        _require(self.replica_id == "" or re.fullmatch(r"[A-Za-z0-9_-]{1,64}", self.replica_id) is not None,
-                 "replica_id", "use 1 to 64 characters from A-Z a-z 0-9 _ - (or leave it empty)")  # fmt: skip
+        _check_replica_id(self.replica_id)
         if self.backend == "camara":
             _require(bool(self.camara.api_root), "camara.api_root", 'is required with backend = "camara"')
         # With links the network prioritises whoever uses the priority port: a revoked grant could not

@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import re
+
 from dynqos.common.errors import ConfigError
 
 
 def _require(condition: bool, key: str, reason: str) -> None:
     if not condition:
         raise ConfigError(key, reason)
+
+
+def _check_replica_id(replica_id: str) -> None:
+    """An edge replica's id (its liveliness token's last chunk); empty: <host>-<pid> at start."""
+    _require(replica_id == "" or re.fullmatch(r"[A-Za-z0-9_-]{1,64}", replica_id) is not None,
+             "replica_id", "use 1 to 64 characters from A-Z a-z 0-9 _ - (or leave it empty)")  # fmt: skip
 
 
 def _host_port(text: str, key: str) -> tuple[str, int]:
