@@ -21,9 +21,9 @@ import pytest
 from aiohttp import web
 
 from dynqos.common.config import CamaraConfig, CellConfig, ZenohConfig
-from dynqos.edge.qos.agent import checked_profile
 from dynqos.edge.qos.calls import settings_at_fault
 from dynqos.edge.qos.client import QodClient, QodError, retry_after_s
+from dynqos.edge.qos.profile_watch import ProfileWatch
 from dynqos.sim.network import operator_schema as schema
 from dynqos.sim.network.service import run_cell
 from tests import camara_spec
@@ -511,7 +511,7 @@ def test_the_agents_profile_check_and_the_profiles_api_fit_the_official_document
     async def main() -> None:
         async with emulated_operator(qod_max_duration_s=20, qod_inactive_profiles=("QOS_M",)) as op:
             async with QodClient(op.camara(duration_s=600, extend_before_s=30)) as client:
-                fitted = await checked_profile(client, client.cfg)
+                fitted = await ProfileWatch(client, client.cfg).start()
             assert (fitted.duration_s, fitted.extend_before_s, fitted.renew_before_s) == (20, 10.0, 2.0)
             root = f"http://127.0.0.1:{op.port}/qos-profiles/v1/qos-profiles"
             async with aiohttp.ClientSession() as http:

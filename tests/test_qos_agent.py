@@ -32,6 +32,7 @@ from tests.procs import DYNQOS, DynqosProcess
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
 
 UAV = "uav1"
+ADDRESSES = 'api_version = "1.2.0"\napplication_server_addresses = ["127.0.0.1", "127.0.0.2"]\n'
 
 
 @dataclass
@@ -53,6 +54,24 @@ class Rig:
     def granted(self) -> bool:
         return bool(self.counters()["bearers"][f"{UAV}-priority"]["granted"])
 
+    def event(self, **event: Any) -> str:
+        """A timeline event applied now through the cell's control API."""
+        request = urllib.request.Request(
+            f"http://127.0.0.1:{self.cell_port}/events", json.dumps(event).encode(), method="POST"
+        )
+        with urllib.request.urlopen(request, timeout=5) as r:
+            applied: str = json.loads(r.read())["applied"]
+            return applied
+
+
+# [qos.camara] keys every rig sets, unless its own lines set them
+CAMARA_DEFAULTS = (
+    "duration_s = 4",
+    "extend_before_s = 2",
+    "poll_interval_s = 0.05",
+    "retry_after_denied_s = 0.5",
+)
+
 
 def write_config(
     path: Path, zcfg: ZenohConfig, cell_port: int, backend: str, cell: str = "", camara: str = ""
@@ -63,9 +82,10 @@ def write_config(
         f"qod_setup_s = 0.1\n{cell}"
         f'[qos]\nbackend = "{backend}"\nhold_down_s = 0.5\ngrant_interval_s = 0.2\nagent_timeout_s = 1.0\n'
         "drone_timeout_s = 2.0\nrequest_interval_s = 0.2\nhealth_interval_s = 1.0\n"
-        f'[qos.camara]\napi_root = "http://127.0.0.1:{cell_port}/quality-on-demand/v1"\nduration_s = 4\n'
-        f"extend_before_s = 2\npoll_interval_s = 0.05\nretry_after_denied_s = 0.5\n{camara}"
-        f'[qos.camara.devices]\n{UAV} = {{ phoneNumber = "+46700000001" }}\n'
+        f'[qos.camara]\napi_root = "http://127.0.0.1:{cell_port}/quality-on-demand/v1"\n'
+        + "".join(f"{line}\n" for line in CAMARA_DEFAULTS if line.split(" =")[0] + " =" not in camara)
+        + camara
+        + f'[qos.camara.devices]\n{UAV} = {{ phoneNumber = "+46700000001" }}\n'
     )
 
 
@@ -260,6 +280,130 @@ def test_camara_a_duration_past_the_profiles_maximum_is_fitted_before_the_first_
     drone.until(False, Grant.NONE, also=lambda: rig.sessions() == [])
     log = rig.procs.pop("agent").stop()
     assert "profile QOS_E is ACTIVE, 1..3 s: asking for 3 s, not 4" in log
+
+
+@pytest.mark.parametrize(
+    ("rig", "flight_s"),
+    [
+        (("camara", "qod_max_duration_s = 6\n", "renew_before_s = 1\n"), 15.0),
+        pytest.param(
+            ("camara", "qod_profile_max_duration_s = { QOS_E = 20 }\n", "duration_s = 600\n"),
+            60.0,
+            marks=[pytest.mark.slow, pytest.mark.timeout(150)],
+        ),
+    ],
+    indirect=["rig"],
+    ids=["cap-6s", "cap-20s-60s-flight"],
+)
+def test_camara_an_operator_that_caps_sessions_gets_renewals_not_an_extend_storm(
+    rig: Rig, drone: Drone, flight_s: float
+) -> None:
+    """An operator capping each session at its profile's maxDuration (6 s; 20 s in the slow case, the
+    agent asking for 600 s and fitting it to 20 by the profile): each session is extended at most once
+    more than the cap allows, replaced shortly before it ends, and the drone holds an AVAILABLE grant
+    nearly all the time it wants one. Before the cap was recognised, each capped extend was due again
+    at once (about 1000 calls in 20 s)."""
+    drone.until(True, Grant.AVAILABLE)
+    start = time.monotonic()
+    since, state, available_s = start, Grant.AVAILABLE, 0.0
+    while time.monotonic() - start < flight_s:
+        drone.ask(True)
+        item = drone.grants.get(0.2)
+        while item is not None:
+            assert isinstance(item.message, QosGrant)
+            now = time.monotonic()
+            available_s += (now - since) if state is Grant.AVAILABLE else 0.0
+            since, state = now, item.message.grant
+            item = drone.grants.get_nowait()
+    wanted_s = time.monotonic() - start
+    available_s += (time.monotonic() - since) if state is Grant.AVAILABLE else 0.0
+    counters = rig.counters()["qod"]
+    cap_s = 6.0 if flight_s < 60 else 20.0
+    assert counters["created"] >= wanted_s // cap_s, counters  # renewed, not left to expire once
+    assert counters["extended"] <= 2 * counters["created"], counters  # as asked, then one capped
+    assert available_s >= 0.95 * wanted_s, (available_s, wanted_s)
+    drone.until(False, Grant.NONE, also=lambda: rig.sessions() == [])
+    log = rig.procs.pop("agent").stop()
+    assert "before it ends" in log
+    assert "renewing" in log
+
+
+@pytest.mark.parametrize("rig", [("camara", "", "profile_recheck_s = 1\n")], indirect=True)
+def test_camara_a_profile_the_operator_makes_inactive_mid_flight_stops_new_sessions_until_it_is_back(
+    rig: Rig, drone: Drone
+) -> None:
+    """The operator makes QOS_E INACTIVE while a drone holds a session: the session runs on; once it is
+    released, asking again is told UNAVAILABLE naming the profile, with no create made; when the
+    operator makes it ACTIVE again the drone gets a session without the agent being restarted."""
+    drone.until(True, Grant.AVAILABLE)
+    assert "INACTIVE" in rig.event(kind="qod_profile", profile="QOS_E", status="INACTIVE")
+    drone.until(False, Grant.NONE, also=lambda: rig.sessions() == [])
+    told = drone.until(True, Grant.UNAVAILABLE)
+    assert "QOS_E is INACTIVE" in told.reason
+    assert "qos_profile" in told.reason
+    rejected_before = rig.counters()["qod"]["rejected"]
+    started = time.monotonic()
+    while time.monotonic() - started < 2.5:  # more than two re-reads: still no create
+        drone.until(True, Grant.UNAVAILABLE)
+    assert rig.counters()["qod"]["created"] == 1
+    assert rig.counters()["qod"]["rejected"] == rejected_before  # no create was tried while INACTIVE
+    rig.event(kind="qod_profile", profile="QOS_E", status="ACTIVE")
+    drone.until(True, Grant.AVAILABLE, timeout_s=5.0)
+    assert rig.counters()["qod"]["created"] == 2
+    log = rig.procs.pop("agent").stop()
+    assert sum("no new sessions" in line for line in log.splitlines()) == 1, log[-3000:]
+    assert "the operator's profile changed: profile QOS_E is ACTIVE" in log
+
+
+@pytest.mark.parametrize("rig", [("camara", "", "profile_recheck_s = 3600\n")], indirect=True)
+def test_camara_a_create_refused_for_a_withdrawn_profile_reads_the_profiles_again_at_once(
+    rig: Rig, drone: Drone
+) -> None:
+    """The operator stops offering QOS_E between two sessions (no periodic re-read due): the next create
+    is a 422 QOS_PROFILE_NOT_APPLICABLE, the agent reads the profiles again at once, finds it gone, and
+    tells the drone so, without asking again."""
+    drone.until(True, Grant.AVAILABLE)
+    drone.until(False, Grant.NONE, also=lambda: rig.sessions() == [])
+    rig.event(kind="qod_profile", profile="QOS_E", status="WITHDRAWN")
+    told = drone.until(True, Grant.UNAVAILABLE)
+    assert "profile QOS_E is not offered" in told.reason
+    started = time.monotonic()
+    while time.monotonic() - started < 2.0:  # retry_after_denied_s is 0.5 s: a back-off would ask again
+        drone.until(True, Grant.UNAVAILABLE)
+    assert rig.counters()["qod"]["rejected"] == 1
+    log = rig.procs.pop("agent").stop()
+    assert "QOS_PROFILE_NOT_APPLICABLE" in log
+    assert "the profile had changed" in log
+
+
+@pytest.mark.parametrize(
+    ("rig", "served"),
+    [
+        (("camara", 'qod_api_version = "1.2.0"\n', ADDRESSES), True),
+        (("camara", "", ADDRESSES), False),
+    ],
+    indirect=["rig"],
+    ids=["operator-1.2.0", "operator-1.1.0"],
+)
+def test_camara_the_edge_named_by_an_address_list_is_served_by_a_1_2_operator_and_refused_by_1_1(
+    rig: Rig, drone: Drone, served: bool
+) -> None:
+    """QoD 1.2.0 names the application server by a list of single addresses (an edge router reachable
+    at two addresses); an operator serving 1.1.0 answers that body 400, which is the agent's settings
+    to fix: told once, not asked again."""
+    if served:
+        drone.until(True, Grant.AVAILABLE, also=rig.granted)
+        (session,) = rig.sessions()
+        assert session["applicationServer"] == {"ipAddresses": ["127.0.0.1", "127.0.0.2"]}
+        return
+    told = drone.until(True, Grant.UNAVAILABLE)
+    assert "INVALID_ARGUMENT" in told.reason
+    assert "api_version" in told.reason
+    started = time.monotonic()
+    while time.monotonic() - started < 2.0:  # the drone keeps asking; retry_after_denied_s is 0.5 s
+        drone.until(True, Grant.UNAVAILABLE)
+    assert rig.counters()["qod"]["rejected"] == 1  # one create, not asked again
+    assert rig.counters()["qod"]["created"] == 0
 
 
 @pytest.mark.parametrize("mode", ["client-secret", "private-key-jwt", "three-legged"])
@@ -475,6 +619,7 @@ class RefusingOperator(ScriptedOperator):
         (422, "UNNECESSARY_IDENTIFIER", "[qos.camara.devices]"),
         (400, "QUALITY_ON_DEMAND.DURATION_OUT_OF_RANGE", "duration_s"),
         (403, "PERMISSION_DENIED", "scopes"),
+        (400, "INVALID_ARGUMENT", "api_version"),
     ],
 )
 def test_camara_settings_the_operator_refuses_are_one_error_line_and_no_retry_storm(

@@ -320,3 +320,51 @@ def test_an_operators_retry_after_is_honoured_up_to_the_ceiling() -> None:
     assert g.next_op(749 * S) is None
     g.request(True, 5, 750 * S)
     assert g.next_op(750 * S) is Op.POLL
+
+
+def test_a_withdrawn_profile_creates_nothing_keeps_the_session_held_and_asks_at_once_when_back() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.observed(available(60 * S), 0)
+    g.profile_withdrawn("profile QOS_E is INACTIVE")
+    assert g.grant(S) is Grant.AVAILABLE  # the session already made runs on
+    assert next_op(g, S) is None
+    g.request(True, 2, 60 * S)
+    g.observed(Session("s1", QodStatus.UNAVAILABLE, "DURATION_EXPIRED", 60 * S), 60 * S)
+    assert next_op(g, 60 * S) is Op.DELETE
+    g.deleted(60 * S)
+    assert next_op(g, 60 * S) is None  # no successor while the profile cannot start one
+    assert (g.grant(60 * S), g.why()) == (Grant.UNAVAILABLE, "profile QOS_E is INACTIVE")
+    g.request(False, 2, 61 * S)
+    g.request(True, 3, 62 * S)  # a new episode is told the same, and creates nothing
+    assert (next_op(g, 62 * S), g.grant(62 * S), g.why()) == (
+        None,
+        Grant.UNAVAILABLE,
+        "profile QOS_E is INACTIVE",
+    )
+    g.profile_withdrawn("")
+    assert next_op(g, 62 * S) is Op.CREATE  # at once, not after a back-off
+    assert g.grant(62 * S) is Grant.REQUESTED
+
+
+def test_a_refusal_of_the_settings_outlasts_the_profile_coming_back() -> None:
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, 0)
+    g.refused_settings("fix [qos.camara.devices]")
+    g.profile_withdrawn("profile QOS_E is INACTIVE")
+    g.profile_withdrawn("")
+    assert (next_op(g, S), g.why()) == (None, "fix [qos.camara.devices]")
+
+
+def test_settings_fitted_to_a_shorter_profile_move_the_extend_and_renew_margins() -> None:
+    def due(g: DroneGrant, at_s: int) -> Op | None:
+        g.request(True, at_s, at_s * S)
+        return next_op(g, at_s * S)
+
+    before, fitted = DroneGrant("uav1", CAMARA, 0), DroneGrant("uav1", CAMARA, 0)  # extend 10 s before
+    fitted.retime(replace(CAMARA.camara, duration_s=8, extend_before_s=4, renew_before_s=1))
+    for g in (before, fitted):
+        g.request(True, 0, 0)
+        g.observed(available(20 * S), 0)
+    assert (due(before, 11), due(fitted, 11)) == (Op.EXTEND, None)  # 9 s left
+    assert due(fitted, 16) is Op.EXTEND

@@ -125,7 +125,16 @@ class CellEventConfig:
     """A timeline event; which fields it needs depends on `kind` (see docs/cell.md)."""
 
     at_s: float
-    kind: Literal["background", "capacity", "trace", "coverage_loss", "downlink_loss", "weight", "qod_end"]
+    kind: Literal[
+        "background",
+        "capacity",
+        "trace",
+        "coverage_loss",
+        "downlink_loss",
+        "weight",
+        "qod_end",
+        "qod_profile",
+    ]
     user: str = ""  # background: which background user
     bearer: str = ""  # weight: which bearer; coverage_loss with drop_connections: "" = all
     offered_mbps: float = -1.0  # background
@@ -136,6 +145,11 @@ class CellEventConfig:
     drop_connections: bool = False  # coverage_loss: also reset the TCP connections
     weight: float = 0.0  # weight
     uav: str = ""  # qod_end: whose QoD sessions the network ends ("" = every drone's)
+    # qod_profile: the operator changes one of its profiles: its status (ACTIVE, INACTIVE, or WITHDRAWN:
+    # no longer listed) and, when > 0, its maxDuration
+    profile: str = ""
+    status: Literal["", "ACTIVE", "INACTIVE", "WITHDRAWN"] = ""
+    max_duration_s: int = 0
 
     def __post_init__(self) -> None:
         _require(0 <= self.at_s <= 86400, "at_s", "must be in 0..86400 s")
@@ -151,8 +165,13 @@ class CellEventConfig:
         elif self.kind == "weight":
             _require(bool(self.bearer), "bearer", "a weight event names its bearer")
             _require(0 < self.weight <= 1000, "weight", "a weight event needs a weight in (0, 1000]")
+        elif self.kind == "qod_profile":
+            _require(bool(self.profile), "profile", "a qod_profile event names its profile")
+            _require(bool(self.status) or self.max_duration_s > 0, "status",
+                     "a qod_profile event sets a status or a max_duration_s (or both)")  # fmt: skip
         if self.kind == "trace":
             _require(self.mean_mbps >= 0, "mean_mbps", "must be >= 0")
+        _require(0 <= self.max_duration_s <= 86400, "max_duration_s", "must be in 0..86400 s")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -184,6 +203,8 @@ class CellConfig:
     qod_profile_max_duration_s: dict[str, int] = field(default_factory=dict)
     qod_profiles: tuple[str, ...] = ("QOS_E", "QOS_S", "QOS_M", "QOS_L")  # what the operator offers
     qod_inactive_profiles: tuple[str, ...] = ()  # listed by its QoS Profiles API as INACTIVE: no sessions
+    # the QoD version it serves: 1.2.0 also takes applicationServer.ipAddresses (a list of addresses)
+    qod_api_version: Literal["1.1.0", "1.2.0"] = "1.1.0"
     qod_auth: bool = False  # require OAuth2 client-credential tokens ([qos.camara] client_id/secret file)
     qod_token_ttl_s: float = 3600.0
     trace: str = ""

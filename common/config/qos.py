@@ -107,11 +107,17 @@ class CamaraConfig:
     # offered or not ACTIVE, fit duration_s into its min..max (docs/qos.md, "Profiles first")
     check_profile: bool = True
     profiles_root: str = ""  # e.g. https://api.operator.example/qos-profiles/v1 ("" = beside api_root)
+    # ... and again this often, and at once when a create is refused as if the profile had changed
+    profile_recheck_s: float = 300.0
     duration_s: int = 600  # requested per session; extended while priority is still wanted
     extend_before_s: float = 30.0  # extend when the session has less than this left
     # A session the operator capped (an extend did not move its end) is replaced this long before it ends
     renew_before_s: float = 2.0
     application_server: str = ""  # the edge address the network sees ("" = [zenoh] edge_host)
+    # The QoD version the operator serves. With 1.2.0 the server may instead be named by a list of single
+    # addresses (applicationServer.ipAddresses), e.g. an edge router reachable at two sites
+    api_version: Literal["1.1.0", "1.2.0"] = "1.1.0"
+    application_server_addresses: tuple[str, ...] = ()
     sink: str = ""  # notifications URL given to the operator ("" = polling only)
     sink_listen: str = ""  # host:port the agent serves that URL on ("" = no listener)
     poll_interval_s: float = 0.2  # how often a REQUESTED session is read until it settles
@@ -132,8 +138,10 @@ class CamaraConfig:
         _require(0 <= self.extend_before_s < self.duration_s, "extend_before_s", "must be in 0..duration_s")
         _require(0 <= self.renew_before_s < self.duration_s, "renew_before_s", "must be in 0..duration_s")
         _require(0.01 <= self.poll_interval_s <= 60, "poll_interval_s", "must be in 0.01..60 s")
+        _require(1 <= self.profile_recheck_s <= 86400, "profile_recheck_s", "must be in 1..86400 s")
         _require(0.05 <= self.timeout_s <= 60, "timeout_s", "must be in 0.05..60 s")
         _require(0.1 <= self.retry_after_denied_s <= 3600, "retry_after_denied_s", "must be in 0.1..3600 s")
+        self._check_addresses()
         if self.sink_listen:
             _host_port(self.sink_listen, "sink_listen")
         if self.token_url:
@@ -158,6 +166,21 @@ class CamaraConfig:
                 _require(bool(device.phoneNumber), f"devices.{uav}", "needs a phoneNumber with three_legged")
         for uav in self.devices:
             _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"devices.{uav}", "is not a drone id")
+
+    def _check_addresses(self) -> None:
+        addresses = self.application_server_addresses
+        if not addresses:
+            return
+        key = "application_server_addresses"
+        _require(self.api_version == "1.2.0", key, 'needs api_version = "1.2.0" (1.1.0 has no address list)')
+        _require(not self.application_server, key, "is instead of application_server, not with it")
+        _require(len(addresses) <= 16 and len(set(addresses)) == len(addresses), key,
+                 "must be at most 16 different addresses")  # fmt: skip
+        for address in addresses:
+            try:
+                ipaddress.ip_address(address)
+            except ValueError:
+                raise ConfigError(key, f"{address!r} is not a single IP address (no mask)") from None
 
 
 def _loopback(url: str) -> bool:

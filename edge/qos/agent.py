@@ -30,16 +30,16 @@ import functools
 import logging
 import signal
 import threading
-from dataclasses import dataclass, field
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from aiohttp import web
 
 from dynqos.common import keys
-from dynqos.common.bus import Bus, Priority, Publisher, Received
+from dynqos.common.bus import Bus, Priority, Received
 from dynqos.common.clock import NS_PER_S, Clock, MonotonicClock, to_ns
-from dynqos.common.config import Config
+from dynqos.common.config import CamaraConfig, Config
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.lifecycle import ready_line, serving_metrics
 from dynqos.common.messages import QosDecision, QosGrant, QosRequest
@@ -49,11 +49,13 @@ from dynqos.common.transport import Role, open_bus
 from dynqos.edge import metrics as edge_metrics
 from dynqos.edge.membership import default_replica_id
 from dynqos.edge.qos.arbiter import Action, Arbiter, Decision, Need
-from dynqos.edge.qos.calls import OperatorCalls, checked_profile, preflight
+from dynqos.edge.qos.calls import OperatorCalls, preflight
 from dynqos.edge.qos.client import QodClient
 from dynqos.edge.qos.grants import DroneGrant
 from dynqos.edge.qos.leadership import AgentRole, Leadership
 from dynqos.edge.qos.peers import AgentPeers
+from dynqos.edge.qos.profile_watch import ProfileWatch
+from dynqos.edge.qos.record import DroneRecord
 from dynqos.edge.qos.sink import SinkGuard, serve_sink
 from dynqos.edge.service import Service
 
@@ -63,25 +65,6 @@ SHUTDOWN_S = 10.0  # deleting every session on SIGTERM ends within this
 SETTLE_S = 0.5  # after start, before an agent takes over: peers starting with it declare their tokens
 HANDOVER_S = 2.0  # a stopping active agent waits this long for a standby to take its sessions over
 FORGET_AFTER = 10  # a silent drone with no session is forgotten after this many drone timeouts
-
-
-@dataclass(eq=False)
-class DroneRecord:
-    """Everything the agent keeps of one drone, so that forgetting it is one step: its grant rules, the
-    event that wakes its task, the task, its publishers, its latest need and the arbiter's refusal."""
-
-    grant: DroneGrant
-    publisher: Publisher  # its grants
-    decisions: Publisher | None = None  # the arbiter's decisions about it (policy "arbiter")
-    wake: asyncio.Event = field(default_factory=asyncio.Event)
-    task: asyncio.Task[None] | None = None
-    need: Need = field(default_factory=Need)  # from its latest request
-    refusal: str = ""  # why the arbiter does not admit it ("": no reason said)
-
-    def close(self) -> None:
-        self.publisher.close()
-        if self.decisions is not None:
-            self.decisions.close()
 
 
 class QosAgent:
@@ -97,6 +80,7 @@ class QosAgent:
         self.drones: dict[str, DroneRecord] = {}  # everything kept of a drone, forgotten in one step
         self.client: QodClient | None = None
         self.calls: OperatorCalls | None = None  # with backend "camara", once the client is open
+        self.profile: ProfileWatch | None = None  # the operator's profile as last read (check_profile)
         self.sink_guard = SinkGuard()  # what the operator's notifications must carry
         self.port = config.zenoh.priority_port
         self.server = self.camara.application_server or config.zenoh.edge_host
@@ -130,9 +114,18 @@ class QosAgent:
             if self.qos.backend == "camara":
                 self.client = await stack.enter_async_context(QodClient(self.camara))
                 if self.camara.check_profile:
-                    self.camara = await checked_profile(self.client, self.camara)
+                    self.profile = ProfileWatch(self.client, self.camara)
+                    self._use(await self.profile.start())
+                    self.profile.listeners.append(self._profile_changed)
+                    stack.push_async_callback(_cancel, loop.create_task(self.profile.watch()))
                 self.calls = OperatorCalls(
-                    self.client, self.camara, self.port, self.server, self.clock, self.sink_guard
+                    self.client,
+                    self.camara,
+                    self.port,
+                    self.server,
+                    self.clock,
+                    self.sink_guard,
+                    self.profile,
                 )
                 if self.camara.sink_listen:
                     sink = await serve_sink(
@@ -172,6 +165,22 @@ class QosAgent:
         forward.join(timeout=2)
         log.info("qos agent: stopped; %s", self.health())
 
+    def _use(self, camara: CamaraConfig) -> None:
+        """The operator settings fitted to its profile, for the calls and each drone's grant rules."""
+        self.camara = camara
+        self.qos = replace(self.qos, camara=camara)
+        if self.calls is not None:
+            self.calls.camara = camara
+
+    def _profile_changed(self) -> None:
+        """The operator's profile changed (edge/qos/profile_watch.py): every drone follows it."""
+        assert self.profile is not None
+        self._use(self.profile.camara)
+        for record in self.drones.values():
+            record.grant.retime(self.camara)
+            record.grant.profile_withdrawn(self.profile.withdrawn)
+            record.wake.set()
+
     def _forward(self, loop: asyncio.AbstractEventLoop) -> None:
         """zenoh delivers on its own threads into a bounded queue; this hands each request to the loop."""
         while not self.service.stop.is_set():
@@ -209,6 +218,8 @@ class QosAgent:
         )
         if self.arbiter is not None:
             record.grant.admit(False, "waiting for the arbiter")
+        if self.profile is not None:
+            record.grant.profile_withdrawn(self.profile.withdrawn)
         if self.serving:  # a standby only follows the drone's requests
             record.task = asyncio.get_running_loop().create_task(self._drone(record))
         return record

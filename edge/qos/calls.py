@@ -9,16 +9,15 @@ import ipaddress
 import logging
 import time
 from collections.abc import Iterator
-from dataclasses import replace
 from typing import Any
 
 from dynqos.common.camara import load_private_key, read_headers, read_secret, tls_context
 from dynqos.common.clock import NS_PER_S, Clock
 from dynqos.common.config import CamaraConfig, Config
 from dynqos.common.errors import ConfigError
-from dynqos.edge.qos import profiles
 from dynqos.edge.qos.client import SUBJECT, QodClient, QodError, SessionInfo
 from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
+from dynqos.edge.qos.profile_watch import ProfileWatch
 from dynqos.edge.qos.sink import SinkGuard
 
 log = logging.getLogger(__name__)
@@ -38,6 +37,17 @@ SETTINGS_AT_FAULT = {
     "PERMISSION_DENIED": "[qos.camara] client_id and its scopes (the token does not allow this call)",
     "INVALID_TOKEN_CONTEXT": "[qos.camara] the authentication mode (the token does not fit the request)",
     "TOKEN": f"[qos.camara] client_id and {CREDENTIAL} (the token endpoint refused them)",
+    # a create the operator cannot read: the same body again cannot help (a version it does not serve)
+    "INVALID_ARGUMENT": "[qos.camara] api_version, application_server and [qos.camara.devices] (the "
+    "operator refused the request's form)",
+}
+
+
+# A create refused with one of these may mean the operator changed the profile since it was read.
+PROFILE_CHANGED = {
+    "QUALITY_ON_DEMAND.QOS_PROFILE_NOT_APPLICABLE",
+    "QUALITY_ON_DEMAND.DURATION_OUT_OF_RANGE",
+    "DURATION_OUT_OF_RANGE",
 }
 
 
@@ -59,15 +69,18 @@ class OperatorCalls:
         server: str,
         clock: Clock,
         sink_guard: SinkGuard | None = None,
+        profile: ProfileWatch | None = None,
     ) -> None:
         """`port`: the zenoh priority port the sessions name; `server`: the edge address the network sees;
-        `sink_guard`: the credential each session gives the operator for its notifications."""
+        `sink_guard`: the credential each session gives the operator for its notifications; `profile`:
+        the operator's profile as last read (None: not checked)."""
         self.client = client
         self.sink_guard = sink_guard
         self.camara = camara
         self.port = port
         self.server = server
         self.clock = clock
+        self.profile = profile
         self.errors = 0
         self.cleaned = 0
         self._logged: set[tuple[str, int, str]] = set()
@@ -91,6 +104,7 @@ class OperatorCalls:
         client = self.client
         assert client is not None
         device = self.camara.devices.get(grant.uav)
+        asked_s = self.camara.duration_s  # what a create asks for: the profile may change meanwhile
         try:
             if op is Op.RENEW:  # one session per device (409 otherwise): the capped one goes first
                 assert grant.session is not None
@@ -131,15 +145,18 @@ class OperatorCalls:
                 info = await client.get(grant.session.session_id)
             grant.observed(self.session(info), self.clock.now_ns())
         except QodError as exc:
-            await self._failed(op, grant, exc)
+            await self._failed(op, grant, exc, asked_s)
 
-    async def _failed(self, op: Op, grant: DroneGrant, exc: QodError) -> None:
+    async def _failed(self, op: Op, grant: DroneGrant, exc: QodError, asked_s: int = 0) -> None:
         now = self.clock.now_ns()
         self.errors += 1
         reason = f"{op.value}: {exc.status or 'no answer'} {exc.code}: {exc.message}"
         if exc.correlator:
             reason += f" (x-correlator {exc.correlator})"
         setting = settings_at_fault(exc)
+        doubted = exc.code in PROFILE_CHANGED and op is Op.CREATE
+        if doubted and await self._profile_changed(grant, reason, asked_s):
+            return
         if setting is not None and op is Op.CREATE:
             why = f"{reason}; fix {setting}: not asked again until the agent restarts"
             log.error("qos agent: %s: the operator refused our settings: %s", grant.uav, why)
@@ -159,6 +176,18 @@ class OperatorCalls:
                 grant.failed(op, reason, now, retry_after_ns)
             else:
                 grant.denied(reason, now, retry_after_ns)
+
+    async def _profile_changed(self, grant: DroneGrant, reason: str, asked_s: int) -> bool:
+        """A create (asking for `asked_s`) refused as if the profile had changed: read it again. True when
+        it had (the watch's listener moves every drone to the new settings: this one asks again at once,
+        or waits for the profile to be ACTIVE again), False when it had not (this drone's settings)."""
+        if self.profile is None:
+            return False
+        await self.profile.reread()
+        if not self.profile.withdrawn and self.profile.camara.duration_s == asked_s:
+            return False
+        log.warning("qos agent: %s: %s; the profile had changed", grant.uav, reason)
+        return True
 
     async def _resolve_conflict(self, grant: DroneGrant) -> None:
         """409 on create: a session for this flow exists (ours from before a restart, or ended and not
@@ -191,10 +220,12 @@ class OperatorCalls:
         return [s for s in await self.client.retrieve(named) if self.port in s.server_ports()]
 
     def _session_body(self, device: dict[str, Any]) -> dict[str, Any]:
+        listed = self.camara.application_server_addresses  # 1.2.0: the server by its addresses
         address = "ipv6Address" if ":" in self.server else "ipv4Address"
+        server = {"ipAddresses": list(listed)} if listed else {address: self.server}
         body: dict[str, Any] = {
             **({} if self.camara.three_legged else {"device": device}),  # three-legged: the token names it
-            "applicationServer": {address: self.server},
+            "applicationServer": server,
             "applicationServerPorts": {"ports": [self.port]},
             "qosProfile": self.camara.qos_profile,
             "duration": self.camara.duration_s,
@@ -262,49 +293,25 @@ class OperatorCalls:
         grant.deleted(self.clock.now_ns())
 
 
-async def checked_profile(client: QodClient, camara: CamaraConfig) -> CamaraConfig:
-    """The settings once the operator's QoS Profiles API has been read (edge/qos/profiles.py): the same,
-    or with the duration fitted into the profile's range. A profile that is not offered or not ACTIVE
-    stops the agent before it serves; an API that does not answer leaves the settings unchecked."""
-    try:
-        answer = await client.retrieve_profiles()
-    except QodError as exc:
-        log.warning(
-            "qos agent: the QoS Profiles API at %s did not answer (%s): profile %s and duration %d s are "
-            "not checked", client.profiles_root, exc, camara.qos_profile, camara.duration_s,
-        )  # fmt: skip
-        return camara
-    try:
-        fitted = profiles.fit(answer, camara.qos_profile, camara.duration_s)
-    except profiles.ProfileError as exc:
-        raise ConfigError("qos.camara.qos_profile", f"{exc}, says {client.profiles_root}") from None
-    log.info("qos agent: %s", fitted.note)
-    if fitted.duration_s == camara.duration_s:
-        return camara
-    return replace(
-        camara,
-        duration_s=fitted.duration_s,  # the margins stay inside the shorter session
-        extend_before_s=min(camara.extend_before_s, fitted.duration_s / 2),
-        renew_before_s=min(camara.renew_before_s, fitted.duration_s / 4),
-    )
-
-
 def preflight(config: Config) -> None:
     """What the operator settings need, checked before any network is opened: an IP address for the
-    application server (the network identifies the flow by address) and a readable client secret."""
+    application server (the network identifies the flow by address; a 1.2.0 address list is checked
+    with the config) and credential files that load (each error names its key)."""
+    camara = config.qos.camara
     if config.qos.backend != "camara":
         return
-    server = config.qos.camara.application_server or config.zenoh.edge_host
+    server = camara.application_server or config.zenoh.edge_host
     try:
-        ipaddress.ip_network(server, strict=False)
+        if not camara.application_server_addresses:
+            ipaddress.ip_network(server, strict=False)
     except ValueError:
         raise ConfigError(
             "qos.camara.application_server",
             f"{server!r} is not an IP address: the network identifies the flow by address",
         ) from None
-    read_headers(config.qos.camara.headers_file)
-    tls_context(config.qos.camara.ca_file, config.qos.camara.tls_cert_file, config.qos.camara.tls_key_file)
-    if config.qos.camara.token_url:
-        read_secret(config.qos.camara.client_secret_file)
-        if config.qos.camara.client_key_file:
-            load_private_key(config.qos.camara.client_key_file)
+    read_headers(camara.headers_file)
+    tls_context(camara.ca_file, camara.tls_cert_file, camara.tls_key_file)
+    if camara.token_url:
+        read_secret(camara.client_secret_file)
+        if camara.client_key_file:
+            load_private_key(camara.client_key_file)

@@ -19,6 +19,9 @@ back; `grant` is what the drone is told. Rules a user relies on live here, each 
 - an answer that says the agent's own settings are wrong (an identifier the operator will not take, a
   duration out of the profile's range, a profile it does not offer, credentials without the scope) is
   not asked again: the drone is told UNAVAILABLE with the setting to fix, for as long as the agent runs;
+- while the operator's QoS Profiles API says the profile cannot start a session (withdrawn, INACTIVE),
+  no session is created and a wanting drone is told UNAVAILABLE with that reason; a session it holds
+  runs on; once the profile is ACTIVE again the drone asks at once;
 - an operator's Retry-After is honoured up to `RETRY_AFTER_CEILING_NS`;
 - a drone the arbiter does not admit (policy "arbiter", edge/qos/arbiter.py) is told UNAVAILABLE with the
   arbiter's reason, and a session it holds is deleted at once: a revocation frees the budget now.
@@ -30,7 +33,7 @@ import enum
 from dataclasses import dataclass
 
 from dynqos.common.clock import NS_PER_S, to_ns
-from dynqos.common.config import QosConfig
+from dynqos.common.config import CamaraConfig, QosConfig
 from dynqos.common.modes import Grant
 
 MAX_BACKOFF_FACTOR = 8
@@ -90,6 +93,7 @@ class DroneGrant:
         self.reason = ""
         self.refused = False  # the last attempt was refused or failed: UNAVAILABLE until the next succeeds
         self.misconfigured = ""  # the operator refused our settings: never asked again (the reason)
+        self.withdrawn = ""  # the profile cannot start a session now (the reason): no create until it can
         self._unwanted_since_ns: int | None = now_ns
         self._retry_at_ns = 0
         self._failures = 0
@@ -121,7 +125,7 @@ class DroneGrant:
         if want and not self.wanted and not self.misconfigured:  # a new episode: asks at once
             self._failures = 0
             self._retry_at_ns = 0
-            self.refused, self.reason = False, ""
+            self.refused, self.reason = (True, self.withdrawn) if self.withdrawn else (False, "")
         if want:
             self._unwanted_since_ns = None
         elif self._unwanted_since_ns is None:
@@ -151,7 +155,8 @@ class DroneGrant:
             return None
         s = self.session
         if s is None:
-            return Op.CREATE if wants and now_ns >= self._retry_at_ns and not self.misconfigured else None
+            may_create = not self.misconfigured and not self.withdrawn
+            return Op.CREATE if wants and now_ns >= self._retry_at_ns and may_create else None
         revoked = not self.admitted
         if s.status is QodStatus.UNAVAILABLE or revoked or (not wants and self._released(now_ns)):
             return Op.DELETE if now_ns >= self._next_delete_ns else None
@@ -243,7 +248,9 @@ class DroneGrant:
         self.session = None
         self.capped = ""
         self._next_delete_ns = 0
-        if not self.wants(now_ns) and not self.misconfigured:
+        if self.withdrawn and not self.misconfigured:
+            self.refused, self.reason = True, self.withdrawn
+        elif not self.wants(now_ns) and not self.misconfigured:
             self.refused, self.reason = False, ""
 
     def handed_over(self) -> None:
@@ -259,6 +266,24 @@ class DroneGrant:
         self.refused, self.reason = True, reason
         self._back_off(now_ns)
         self._retry_at_ns = max(self._retry_at_ns, now_ns + min(retry_after_ns, RETRY_AFTER_CEILING_NS))
+
+    def profile_withdrawn(self, reason: str) -> None:
+        """What the operator's QoS Profiles API says of the profile now: `reason` why it cannot start a
+        session ("" = it can again, and a wanting drone asks at once)."""
+        was, self.withdrawn = self.withdrawn, reason
+        if self.misconfigured or reason == was:
+            return
+        if reason and self.session is None:
+            self.refused, self.reason = True, reason
+        elif not reason:
+            self._failures, self._retry_at_ns = 0, 0
+            if self.session is None:
+                self.refused, self.reason = False, ""
+
+    def retime(self, camara: CamaraConfig) -> None:
+        """The margins of settings fitted to the operator's profile (a shorter maxDuration shrinks them)."""
+        self._extend_ns = to_ns(camara.extend_before_s)
+        self._renew_ns = to_ns(camara.renew_before_s)
 
     def refused_settings(self, reason: str) -> None:
         """The operator refused the agent's own settings for this drone: never asked again."""

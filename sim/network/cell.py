@@ -402,8 +402,8 @@ class CellEmulator:
         for bearer in self.bearers:
             if bearer.name in effect.drop_bearers:
                 bearer.drop_connections()
-        if effect.end_qod is not None and self.operator is not None:
-            self.notify(self.operator.end_sessions(effect.end_qod))
+        if self.operator is not None and (effect.end_qod is not None or effect.profile is not None):
+            self.notify(self.operator.apply(effect))
             self.refresh_grants()
         text = describe(event)
         log.info("cell event at %.2f s: %s", (now - self.start_ns) / 1e9, text)

@@ -30,6 +30,7 @@ class Effect:
     drop_bearers: tuple[str, ...] = ()  # close these bearers' connections (a coverage loss that drops them)
     load_trace: tuple[str, float] | None = None  # (file, mean Mbit/s): load it and hand it to `set_trace`
     end_qod: str | None = None  # the operator ends the sessions of this drone ("" = every drone's)
+    profile: CellEventConfig | None = None  # the operator changes a profile (status, maxDuration)
 
 
 class CellCore:
@@ -167,10 +168,10 @@ class CellCore:
             self._shares = None
         elif kind == "trace":
             return Effect(load_trace=(event.file, event.mean_mbps))
-        elif kind == "qod_end":
+        elif kind in ("qod_end", "qod_profile"):
             if not self.qod:
-                raise ConfigError("kind", "qod_end needs [cell] qod = true")
-            return Effect(end_qod=event.uav)
+                raise ConfigError("kind", f"{kind} needs [cell] qod = true")
+            return Effect(end_qod=event.uav) if kind == "qod_end" else Effect(profile=event)
         return Effect()
 
     def _lose(self, event: CellEventConfig, now_ns: int) -> Effect:
@@ -195,5 +196,10 @@ def describe(event: CellEventConfig) -> str:
         "downlink_loss": f"downlink lost for {event.duration_s:g} s (uplink unaffected)",
         "weight": f"bearer {event.bearer} weight {event.weight:g}",
         "qod_end": f"the network ends the QoD sessions of {event.uav or 'every drone'}",
+        "qod_profile": f"the operator's profile {event.profile}: "
+        + ", ".join(
+            ([event.status] if event.status else [])
+            + ([f"maxDuration {event.max_duration_s} s"] if event.max_duration_s else [])
+        ),
     }
     return fields[event.kind]

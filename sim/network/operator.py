@@ -20,9 +20,11 @@ from datetime import datetime, timezone
 from typing import Any
 
 from dynqos.common.camara import EVENT_TYPE, ports_named
-from dynqos.common.config import CellConfig
+from dynqos.common.config import CellConfig, CellEventConfig
+from dynqos.sim.network.cell_core import Effect
 from dynqos.sim.network.operator_schema import (
     CREATE_SESSION_STRICT,
+    CREATE_SESSION_STRICT_1_2,
     EXTEND_SESSION_STRICT,
     RETRIEVE_SESSIONS_STRICT,
     problem,
@@ -132,11 +134,20 @@ def _device_matches(given: dict[str, Any], known: dict[str, Any]) -> bool:
     return False
 
 
+def _same_address(given: Any, address: ipaddress.IPv4Address | ipaddress.IPv6Address) -> bool:
+    try:
+        return ipaddress.ip_address(str(given)) == address
+    except ValueError:
+        return False
+
+
 def _server_matches(server: dict[str, Any], host: str) -> bool:
     try:
         address = ipaddress.ip_address(host)
     except ValueError:
         return True  # a host name: the emulator cannot tell; accept
+    if "ipAddresses" in server:  # 1.2.0: a list of single addresses
+        return any(_same_address(a, address) for a in server["ipAddresses"])
     for key in ("ipv4Address", "ipv6Address"):
         if key in server:
             try:
@@ -159,12 +170,22 @@ class Operator:
     sessions: dict[str, Session] = field(default_factory=dict)
     counters: QodCounters = field(default_factory=QodCounters)
     source: str = "dynqos-sim-cell"
+    # its profiles now ([cell] qod_profiles and the rest at start; a qod_profile event changes them)
+    offered: list[str] = field(default_factory=list)
+    inactive: set[str] = field(default_factory=set)
+    caps: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.offered = list(dict.fromkeys((*self.cell.qod_profiles, *self.cell.qod_inactive_profiles)))
+        self.inactive = set(self.cell.qod_inactive_profiles)
+        self.caps = dict(self.cell.qod_profile_max_duration_s)
 
     # ---- the API ----------------------------------------------------------------------------------------
 
     def create(self, body: Any, subject: str = "") -> tuple[Answer, list[Notification]]:
         """`subject`: the drone a three-legged token names ("": a two-legged token)."""
-        bad = problem(CREATE_SESSION_STRICT, body)
+        strict = CREATE_SESSION_STRICT_1_2 if self.cell.qod_api_version == "1.2.0" else CREATE_SESSION_STRICT
+        bad = problem(strict, body)
         if bad is not None:
             return self._reject(400, "INVALID_ARGUMENT", bad), []
         uav, refused = self._identified(body, subject)
@@ -173,11 +194,8 @@ class Operator:
         server = body["applicationServer"]
         if not _server_matches(server, self.servers.get(uav, "")):
             return self._reject(400, "INVALID_ARGUMENT", f"this device has no flow to {server}"), []
-        if (
-            body["qosProfile"] not in self.cell.qod_profiles
-            or body["qosProfile"] in self.cell.qod_inactive_profiles
-        ):
-            profiles = ", ".join(self.cell.qod_profiles)
+        if body["qosProfile"] not in self.offered or body["qosProfile"] in self.inactive:
+            profiles = ", ".join(p for p in self.offered if p not in self.inactive)
             why = f"profile {body['qosProfile']} is not offered here (offered: {profiles})"
             return self._reject(422, "QUALITY_ON_DEMAND.QOS_PROFILE_NOT_APPLICABLE", why), []
         now = self.monotonic()
@@ -282,17 +300,36 @@ class Operator:
         return {
             "name": name,
             "description": "dynqos emulated cell: the priority bearer's scheduling weight while AVAILABLE",
-            "status": "INACTIVE" if name in self.cell.qod_inactive_profiles else "ACTIVE",
+            "status": "INACTIVE" if name in self.inactive else "ACTIVE",
             "minDuration": {"value": 1, "unit": "Seconds"},
             "maxDuration": {"value": self.max_duration_s(name), "unit": "Seconds"},
         }
 
     def max_duration_s(self, profile: str) -> int:
         """What a session of `profile` may last, extensions included."""
-        return self.cell.qod_profile_max_duration_s.get(profile, self.cell.qod_max_duration_s)
+        return self.caps.get(profile, self.cell.qod_max_duration_s)
 
     def _listed(self) -> list[str]:
-        return list(dict.fromkeys((*self.cell.qod_profiles, *self.cell.qod_inactive_profiles)))
+        return self.offered
+
+    def apply(self, effect: Effect) -> list[Notification]:
+        """What a timeline event asks of the operator: end sessions, or change a profile."""
+        if effect.profile is not None:
+            self.change_profile(effect.profile)
+        return self.end_sessions(effect.end_qod) if effect.end_qod is not None else []
+
+    def change_profile(self, event: CellEventConfig) -> None:
+        """A timeline's qod_profile event: the profile's status (WITHDRAWN: no longer listed; ACTIVE
+        lists it again) and its maxDuration. Sessions already made keep theirs."""
+        name = event.profile
+        if event.status == "WITHDRAWN":
+            self.offered = [p for p in self.offered if p != name]
+        elif event.status:
+            if name not in self.offered:
+                self.offered.append(name)
+            (self.inactive.add if event.status == "INACTIVE" else self.inactive.discard)(name)
+        if event.max_duration_s:
+            self.caps[name] = event.max_duration_s
 
     # ---- the network --------------------------------------------------------------------------------------
 

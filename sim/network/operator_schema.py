@@ -65,6 +65,31 @@ APPLICATION_SERVER: dict[str, Any] = {
         "ipv6Address": {"type": "string"},
     },
 }
+# Quality-on-Demand 1.2.0 (camaraproject/QualityOnDemand r4.1, 1.2.0-rc.3: ApplicationServer,
+# ApplicationServerIpAddressList, ApplicationServerIpAddressSubnets): the server is named either by a
+# list of single addresses or by the subnets of 1.1.0, one form or the other (oneOf), each closed.
+_SINGLE_IP = {
+    "anyOf": [{"type": "string", "pattern": _IPV4}, {"type": "string", "pattern": r"^[0-9a-fA-F:.]+$"}]
+}
+APPLICATION_SERVER_1_2: dict[str, Any] = {
+    "oneOf": [
+        {
+            "type": "object",
+            "required": ["ipAddresses"],
+            "additionalProperties": False,
+            "properties": {
+                "ipAddresses": {
+                    "type": "array",
+                    "minItems": 1,
+                    "maxItems": 16,
+                    "uniqueItems": True,
+                    "items": _SINGLE_IP,
+                },
+            },
+        },
+        {**APPLICATION_SERVER, "maxProperties": 2, "additionalProperties": False},
+    ]
+}
 QOS_PROFILE: dict[str, Any] = {
     "type": "string",
     "minLength": 3,
@@ -161,6 +186,10 @@ def _closed(schema: Any, keep_open: tuple[Any, ...]) -> Any:
 # What the emulated operator takes: the request objects, closed. The sink credential stays open (its
 # fields depend on credentialType, and the emulator reads only the token from it).
 CREATE_SESSION_STRICT: dict[str, Any] = _closed(CREATE_SESSION, (SINK_CREDENTIAL,))
+CREATE_SESSION_STRICT_1_2: dict[str, Any] = {
+    **CREATE_SESSION_STRICT,
+    "properties": {**CREATE_SESSION_STRICT["properties"], "applicationServer": APPLICATION_SERVER_1_2},
+}
 EXTEND_SESSION_STRICT: dict[str, Any] = _closed(EXTEND_SESSION, ())
 RETRIEVE_SESSIONS_STRICT: dict[str, Any] = _closed(RETRIEVE_SESSIONS, ())
 
