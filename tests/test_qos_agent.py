@@ -641,3 +641,52 @@ def test_camara_settings_the_operator_refuses_are_one_error_line_and_no_retry_st
     refused = [line for line in "".join(stopped_stderr).splitlines() if "refused our settings" in line]
     assert len(refused) == 1, "".join(stopped_stderr)[-2000:]
     assert setting in refused[0]
+
+
+@pytest.mark.parametrize("mode", ["wrong-secret", "foreign-key"])
+def test_camara_credentials_the_token_endpoint_refuses_stop_the_agent_before_it_serves(
+    tmp_path: Path, mode: str
+) -> None:
+    """A client secret or a signing key the operator does not know: the agent's first call (the profile
+    read) is refused a token; the agent says so in one line naming the setting and exits 2, having asked
+    for one token, instead of serving drones that could only be refused."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import rsa
+
+    pem = {}
+    for who in ("registered", "agent"):
+        key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
+        pem[who] = tmp_path / f"{who}.pem"
+        pem[who].write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                               serialization.NoEncryption()))  # fmt: skip
+    (tmp_path / "secret").write_text("s3cret\n")
+    (tmp_path / "guess").write_text("guessed\n")
+    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    cell_port = free_tcp_port()
+    token = f'token_url = "http://127.0.0.1:{cell_port}/oauth2/token"\nclient_id = "dynqos-edge"\n'
+    credential = {"cell": "secret", "agent": "guess"} if mode == "wrong-secret" else None
+    for who in ("cell", "agent"):
+        if credential is not None:
+            line = f'client_secret_file = "{tmp_path / credential[who]}"\n'
+        else:
+            line = f'client_key_file = "{pem["registered" if who == "cell" else "agent"]}"\n'
+        write_config(tmp_path / f"{who}.toml", zcfg, cell_port, "camara", "qod_auth = true\n", token + line)
+    procs: dict[str, DynqosProcess] = {}
+    try:
+        procs["router"] = DynqosProcess(["edge", "router"], tmp_path / "cell.toml")
+        procs["cell"] = DynqosProcess(["sim", "cell"], tmp_path / "cell.toml")
+        agent = subprocess.run(
+            [DYNQOS, "edge", "qos", "--config", str(tmp_path / "agent.toml")],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert agent.returncode == 2, agent.stderr[-2000:]
+        assert agent.stdout == ""  # never said ready
+        errors = [line for line in agent.stderr.splitlines() if "qos.camara.client_id" in line]
+        assert len(errors) == 1, agent.stderr[-2000:]
+        assert "client_secret_file, client_key_file" in errors[0]
+        assert "Traceback" not in agent.stderr
+        qod = Rig(tmp_path / "cell.toml", zcfg, cell_port, procs).counters()["qod"]
+        assert (qod["tokens_refused"], qod["tokens_issued"]) == (1, 0)
+    finally:
+        for proc in reversed(list(procs.values())):
+            proc.stop()

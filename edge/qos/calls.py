@@ -15,7 +15,7 @@ from dynqos.common.camara import load_private_key, read_headers, read_secret, tl
 from dynqos.common.clock import NS_PER_S, Clock
 from dynqos.common.config import CamaraConfig, Config
 from dynqos.common.errors import ConfigError
-from dynqos.edge.qos.client import SUBJECT, QodClient, QodError, SessionInfo
+from dynqos.edge.qos.client import CREDENTIAL, SUBJECT, QodClient, QodError, SessionInfo
 from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
 from dynqos.edge.qos.profile_watch import ProfileWatch
 from dynqos.edge.qos.sink import SinkGuard
@@ -23,7 +23,6 @@ from dynqos.edge.qos.sink import SinkGuard
 log = logging.getLogger(__name__)
 
 
-CREDENTIAL = "its credential (client_secret_file, client_key_file or headers_file)"
 # Answers that say the agent's own settings are wrong, not the network's state: asking again cannot help.
 # CAMARA error codes (quality-on-demand v1.1.0, CAMARA Commonalities) and the setting each one points at.
 SETTINGS_AT_FAULT = {

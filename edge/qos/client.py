@@ -48,6 +48,7 @@ BACKOFF_S = 0.1  # first back-off; doubles, with full jitter
 # The drone a call is for, with `three_legged`: its login hint, set by the agent around that drone's calls
 SUBJECT: contextvars.ContextVar[str] = contextvars.ContextVar("qod_subject", default="")
 ASSERTION_LIFETIME_S = 300  # a client assertion is good for this long (and used once)
+CREDENTIAL = "its credential (client_secret_file, client_key_file or headers_file)"  # as errors name it
 TOKEN_MARGIN_S = 30.0  # a token is refreshed this long (at most a quarter of its life) before it expires
 
 
@@ -190,7 +191,9 @@ class QodClient:
             status, answer, retry_after = await self._once(method, url, body, deadline, correlator)
             if status in expect:
                 return answer
-            if status == 401 and self.cfg.token_url and not refreshed:
+            # the token endpoint refused the credential: asking it again now would be refused too
+            token_refused = isinstance(answer, dict) and answer.get("code") == "TOKEN"
+            if status == 401 and self.cfg.token_url and not refreshed and not token_refused:
                 refreshed = True
                 self._tokens.pop(SUBJECT.get(), None)  # the API no longer takes it: get a new one, once more
                 continue

@@ -15,7 +15,7 @@ from typing import Any
 from dynqos.common.config import CamaraConfig
 from dynqos.common.errors import ConfigError
 from dynqos.edge.qos import profiles
-from dynqos.edge.qos.client import QodClient, QodError
+from dynqos.edge.qos.client import CREDENTIAL, QodClient, QodError
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +51,12 @@ class ProfileWatch:
         """The first read, before the agent serves: a profile that is not offered or not ACTIVE stops
         the agent (ConfigError naming the setting); an API that does not answer leaves the settings
         unchecked, said once."""
-        answer = await self._answer()
+        try:
+            answer = await self._answer()
+        except QodError as exc:  # the token endpoint refused the client: nothing the agent does can work
+            raise ConfigError(
+                "qos.camara.client_id", f"{exc}: fix client_id and {CREDENTIAL} (or token_url)"
+            ) from None
         if answer is None:
             return self.camara
         try:
@@ -108,6 +113,8 @@ class ProfileWatch:
         try:
             return await self.client.retrieve_profiles()
         except QodError as exc:
+            if self.reads == 1 and exc.code == "TOKEN":
+                raise
             if self.reads == 1:
                 log.warning(
                     "qos agent: the QoS Profiles API at %s did not answer (%s): profile %s and duration "

@@ -112,6 +112,8 @@ class ControlApi:
         self.pending: set[asyncio.Task[None]] = set()
         self.notified = 0
         self.notify_failures = 0
+        self.tokens_issued = 0
+        self.tokens_refused = 0  # a client that keeps asking with refused credentials shows here
         self.http: ClientSession | None = None
         self.app = web.Application(client_max_size=MAX_BODY_BYTES, middlewares=[self._errors])
         r = self.app.router
@@ -258,6 +260,8 @@ class ControlApi:
                 **vars(self.operator.counters),
                 "notified": self.notified,
                 "notify_failures": self.notify_failures,
+                "tokens_issued": self.tokens_issued,
+                "tokens_refused": self.tokens_refused,
                 "sessions": self.operator.open_sessions(),
             }
         return web.json_response(counters)
@@ -316,6 +320,14 @@ class ControlApi:
         return _json(self.op.profile(request.match_info["name"]))
 
     async def token(self, request: web.Request) -> web.Response:
+        answer = await self._token(request)
+        if answer.status == 200:
+            self.tokens_issued += 1
+        else:
+            self.tokens_refused += 1
+        return answer
+
+    async def _token(self, request: web.Request) -> web.Response:
         """OAuth2: client credentials, the client authenticated by its secret or a client assertion
         (private_key_jwt); or the JWT-bearer grant for one device (three-legged: the assertion's `sub` is
         the device's `tel:` login hint). The token carries the scopes asked (all when none is asked)."""
