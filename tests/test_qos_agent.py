@@ -238,6 +238,20 @@ def test_camara_an_operator_that_refuses_is_an_unavailable_grant_with_its_reason
     assert rig.counters()["qod"]["refused"] >= 1
 
 
+def refused_at_start(config: Path, key: str) -> str:
+    """Start the agent with `config`, expecting it to refuse before it serves: exit 2, no ready line, no
+    traceback, and one error line naming `key`, returned."""
+    agent = subprocess.run(
+        [DYNQOS, "edge", "qos", "--config", str(config)], capture_output=True, text=True, timeout=60
+    )
+    assert agent.returncode == 2, agent.stderr[-2000:]
+    assert agent.stdout == ""  # never said ready
+    assert "Traceback" not in agent.stderr
+    errors = [line for line in agent.stderr.splitlines() if key in line]
+    assert len(errors) == 1, agent.stderr[-2000:]
+    return errors[0]
+
+
 def test_camara_a_profile_the_operator_does_not_offer_stops_the_agent_before_it_serves(
     tmp_path: Path,
 ) -> None:
@@ -253,16 +267,7 @@ def test_camara_a_profile_the_operator_does_not_offer_stops_the_agent_before_it_
                           ("QOS_M", "QOS_M is INACTIVE")):  # fmt: skip
             text = config.read_text().replace("[qos.camara]\n", f'[qos.camara]\nqos_profile = "{name}"\n', 1)
             (tmp_path / f"{name}.toml").write_text(text)
-            agent = subprocess.run(
-                [DYNQOS, "edge", "qos", "--config", str(tmp_path / f"{name}.toml")],
-                capture_output=True, text=True, timeout=60,
-            )  # fmt: skip
-            assert agent.returncode == 2, agent.stderr[-2000:]
-            assert agent.stdout == ""  # never said ready
-            errors = [line for line in agent.stderr.splitlines() if "qos.camara.qos_profile" in line]
-            assert len(errors) == 1, agent.stderr[-2000:]
-            assert why in errors[0]
-            assert "Traceback" not in agent.stderr
+            assert why in refused_at_start(tmp_path / f"{name}.toml", "qos.camara.qos_profile")
         assert Rig(config, zcfg, cell_port, procs).counters()["qod"]["created"] == 0
     finally:
         for proc in reversed(list(procs.values())):
@@ -675,16 +680,8 @@ def test_camara_credentials_the_token_endpoint_refuses_stop_the_agent_before_it_
     try:
         procs["router"] = DynqosProcess(["edge", "router"], tmp_path / "cell.toml")
         procs["cell"] = DynqosProcess(["sim", "cell"], tmp_path / "cell.toml")
-        agent = subprocess.run(
-            [DYNQOS, "edge", "qos", "--config", str(tmp_path / "agent.toml")],
-            capture_output=True, text=True, timeout=60,
-        )  # fmt: skip
-        assert agent.returncode == 2, agent.stderr[-2000:]
-        assert agent.stdout == ""  # never said ready
-        errors = [line for line in agent.stderr.splitlines() if "qos.camara.client_id" in line]
-        assert len(errors) == 1, agent.stderr[-2000:]
-        assert "client_secret_file, client_key_file" in errors[0]
-        assert "Traceback" not in agent.stderr
+        error = refused_at_start(tmp_path / "agent.toml", "qos.camara.client_id")
+        assert "client_secret_file, client_key_file" in error
         qod = Rig(tmp_path / "cell.toml", zcfg, cell_port, procs).counters()["qod"]
         assert (qod["tokens_refused"], qod["tokens_issued"]) == (1, 0)
     finally:
