@@ -6,6 +6,7 @@ Each role's `run(config, ...)` (beside the role's code) uses these; the CLI only
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import dataclasses
 import json
@@ -38,6 +39,19 @@ def stop_on_signals(name: str, stop: Callable[[], None]) -> None:
 
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
+
+
+def stop_loop_on_signals(name: str, loop: asyncio.AbstractEventLoop, stop: Callable[[], None]) -> None:
+    """For an asyncio process: SIGTERM and SIGINT call `stop` inside `loop` (where an asyncio.Event may be
+    set) and log which came; where the loop cannot take signals (not the main thread), nothing."""
+
+    def handler(sig: signal.Signals) -> None:
+        log.info("%s: %s received, stopping", name, sig.name)
+        stop()
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, handler, sig)
 
 
 @contextlib.contextmanager

@@ -238,3 +238,33 @@ def test_a_headers_file_is_name_value_lines_and_a_bad_one_names_its_line_not_its
     with pytest.raises(ConfigError, match="names no header"):
         read_headers(str(tmp_path / "empty"))
     assert read_headers("") == {}
+
+
+def test_every_section_checks_its_declared_ranges_however_it_is_built() -> None:
+    """A range is declared once on its field (common/config/validate.py In) and holds for a section made
+    in code as for one read from a file; every section is @checked, so a declared range cannot be
+    silently skipped."""
+    import dataclasses
+
+    from dynqos.common import config as config_module
+    from dynqos.common.config import CamaraConfig, CellConfig, ControlConfig
+    from dynqos.common.config.validate import declared
+
+    with pytest.raises(ConfigError, match=r"duration_s: must be in 1\.\.10000000 s"):
+        CamaraConfig(duration_s=0)
+    with pytest.raises(ConfigError, match=r"priority_weight: must be in \(0, 1000\]"):
+        CellConfig(priority_weight=0.0)
+    with pytest.raises(ConfigError, match="setpoint_hz"):
+        ControlConfig(setpoint_hz=2.0)  # the open end
+    assert ControlConfig(setpoint_hz=1000).setpoint_hz == 1000  # the closed one
+    sections = [
+        obj
+        for obj in vars(config_module).values()
+        if isinstance(obj, type) and dataclasses.is_dataclass(obj) and obj.__name__.endswith("Config")
+    ]
+    assert len(sections) >= 15
+    unchecked = [
+        s.__name__ for s in sections if s.__post_init__.__qualname__ != "checked.<locals>.__post_init__"
+    ]
+    assert unchecked == [], "sections without @checked"
+    assert sum(len(declared(s)) for s in sections) >= 90  # the ranges, declared on their fields

@@ -42,11 +42,13 @@ from dynqos.common.config.network import (
     ZenohConfig,
 )
 from dynqos.common.config.qos import QosConfig
+from dynqos.common.config.validate import checked
 
 T = TypeVar("T")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class Config:
     drone: DroneConfig = field(default_factory=DroneConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)

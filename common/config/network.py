@@ -5,15 +5,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
 
 from dynqos.common.acl import reserved_name
-from dynqos.common.config.validate import _host_port, _require
+from dynqos.common.config.validate import In, _host_port, _require, checked
 from dynqos.common.errors import ConfigError, KeyExprError
 from dynqos.common.keys import UAV_ID_PATTERN, check_uav_id
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class DroneConfig:
     id: str = "uav1"
 
@@ -25,18 +26,19 @@ class DroneConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class ZenohConfig:
     """How sessions reach the edge router. The two flows are two links to two router ports."""
 
     edge_host: str = "127.0.0.1"
-    default_port: int = 7447
-    priority_port: int = 7448
+    default_port: Annotated[int, In(1, 65535, "must be a TCP port in 1..65535")] = 7447
+    priority_port: Annotated[int, In(1, 65535, "must be a TCP port in 1..65535")] = 7448
     router_listen_host: str = "127.0.0.1"
-    max_links: int = 4
+    max_links: Annotated[int, In(2, 64, "must be in 2..64 (two flows need two links)")] = 4
     shared_memory: bool = False
-    priority_dscp: int = 0xB8
+    priority_dscp: Annotated[int, In(0, 0xFF, "must be a TOS byte in 0..255")] = 0xB8
     bulk_sndbuf_bytes: int = 65536
-    connect_timeout_s: float = 5.0
+    connect_timeout_s: Annotated[float, In(0.1, 600, "must be in 0.1..600 s")] = 5.0
     # Production: mutual TLS on both flows, and on the router an access-control policy by certificate
     # common name (drone id; edge-mpc, edge-planner, edge-detector, edge-qos for the edge services).
     # See docs/security.md and `dynqos certs`.
@@ -52,17 +54,12 @@ class ZenohConfig:
     def __post_init__(self) -> None:
         _require(bool(self.edge_host.strip()), "edge_host", "must not be empty")
         _require(bool(self.router_listen_host.strip()), "router_listen_host", "must not be empty")
-        for name in ("default_port", "priority_port"):
-            _require(1 <= getattr(self, name) <= 65535, name, "must be a TCP port in 1..65535")
         _require(self.default_port != self.priority_port, "priority_port", "must differ from default_port")
-        _require(2 <= self.max_links <= 64, "max_links", "must be in 2..64 (two flows need two links)")
-        _require(0 <= self.priority_dscp <= 0xFF, "priority_dscp", "must be a TOS byte in 0..255")
         _require(
             self.bulk_sndbuf_bytes == 0 or 4096 <= self.bulk_sndbuf_bytes <= 64 * 1024 * 1024,
             "bulk_sndbuf_bytes",
             "must be 0 (kernel default) or 4096..67108864",
         )
-        _require(0.1 <= self.connect_timeout_s <= 600, "connect_timeout_s", "must be in 0.1..600 s")
         if self.tls:
             for name in ("tls_ca", "tls_cert", "tls_key"):
                 _require(bool(getattr(self, name)), name, "must name a PEM file when tls = true")
@@ -79,14 +76,17 @@ class ZenohConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class BearerConfig:
     """One bearer (QoS flow) of the emulated cell: a TCP listener forwarding to an edge router port."""
 
     name: str
     target: str
-    listen_port: int = 0  # 0: any free port, reported on the emulator's ready line
-    weight: float = 1.0
-    ue_buffer_bytes: int = 0  # 0: the cell's ue_buffer_bytes
+    listen_port: Annotated[int, In(0, 65535, "must be 0..65535")] = (
+        0  # 0: any free port, reported on the emulator's ready line
+    )
+    weight: Annotated[float, In(0, 1000, "must be in (0, 1000]", lo_open=True)] = 1.0
+    ue_buffer_bytes: Annotated[int, In(0, 1 << 30, "must be 0..1 GiB")] = 0  # 0: the cell's ue_buffer_bytes
     # The drone whose UE this bearer belongs to ("" = none). With [cell] qod = true a bearer of a drone
     # has its `weight` only while a QoD session for that drone's device and this bearer's target port
     # is AVAILABLE, and weight 1 otherwise (docs/qos.md).
@@ -97,9 +97,6 @@ class BearerConfig:
         _require(bool(self.name) and self.name.replace("-", "").replace("_", "").isalnum(), "name",
                  "must be letters, digits, - or _")  # fmt: skip
         _host_port(self.target, "target")
-        _require(0 <= self.listen_port <= 65535, "listen_port", "must be 0..65535")
-        _require(0 < self.weight <= 1000 and math.isfinite(self.weight), "weight", "must be in (0, 1000]")
-        _require(0 <= self.ue_buffer_bytes <= 1 << 30, "ue_buffer_bytes", "must be 0..1 GiB")
 
     @property
     def target_host_port(self) -> tuple[str, int]:
@@ -107,24 +104,24 @@ class BearerConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class BackgroundConfig:
     """A virtual background user: it takes capacity at its offered rate; no bytes move."""
 
     name: str
-    weight: float = 1.0
-    offered_mbps: float = 0.0
+    weight: Annotated[float, In(0, 1000, "must be in (0, 1000]", lo_open=True)] = 1.0
+    offered_mbps: Annotated[float, In(0, 1e5, "must be in 0..100000")] = 0.0
 
     def __post_init__(self) -> None:
         _require(bool(self.name), "name", "must not be empty")
-        _require(0 < self.weight <= 1000, "weight", "must be in (0, 1000]")
-        _require(0 <= self.offered_mbps <= 1e5, "offered_mbps", "must be in 0..100000")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class CellEventConfig:
     """A timeline event; which fields it needs depends on `kind` (see docs/cell.md)."""
 
-    at_s: float
+    at_s: Annotated[float, In(0, 86400, "must be in 0..86400 s")]
     kind: Literal[
         "background",
         "capacity",
@@ -149,10 +146,9 @@ class CellEventConfig:
     # no longer listed) and, when > 0, its maxDuration
     profile: str = ""
     status: Literal["", "ACTIVE", "INACTIVE", "WITHDRAWN"] = ""
-    max_duration_s: int = 0
+    max_duration_s: Annotated[int, In(0, 86400, "must be in 0..86400 s")] = 0
 
     def __post_init__(self) -> None:
-        _require(0 <= self.at_s <= 86400, "at_s", "must be in 0..86400 s")
         if self.kind == "background":
             _require(bool(self.user), "user", "a background event names its background user")
             _require(
@@ -171,34 +167,42 @@ class CellEventConfig:
                      "a qod_profile event sets a status or a max_duration_s (or both)")  # fmt: skip
         if self.kind == "trace":
             _require(self.mean_mbps >= 0, "mean_mbps", "must be >= 0")
-        _require(0 <= self.max_duration_s <= 86400, "max_duration_s", "must be in 0..86400 s")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class CellConfig:
     """The emulated 5G cell (docs/cell.md). `scale` divides every rate."""
 
-    uplink_mbps: float = 81.3
-    downlink_mbps: float = 1400.0
-    tti_ms: float = 1.0
-    base_delay_up_ms: float = 10.0
-    base_delay_down_ms: float = 10.0
-    jitter_ms: float = 0.5
-    scale: float = 1.0
-    ue_buffer_bytes: int = 1_000_000
+    uplink_mbps: Annotated[float, In(0, 1e5, "must be in 0..100000")] = 81.3
+    downlink_mbps: Annotated[float, In(0, 1e6, "must be in (0, 1000000]", lo_open=True)] = 1400.0
+    tti_ms: Annotated[float, In(0.1, 100, "must be in 0.1..100 ms")] = 1.0
+    base_delay_up_ms: Annotated[float, In(0, 10_000, "must be in 0..10000 ms")] = 10.0
+    base_delay_down_ms: Annotated[float, In(0, 10_000, "must be in 0..10000 ms")] = 10.0
+    jitter_ms: Annotated[float, In(0, 10_000, "must be in 0..10000 ms")] = 0.5
+    scale: Annotated[float, In(0, 1e4, "must be in (0, 10000]", lo_open=True)] = 1.0
+    ue_buffer_bytes: Annotated[int, In(1500, 1 << 30, "must be 1500..1 GiB")] = 1_000_000
     listen_host: str = "127.0.0.1"
-    default_listen_port: int = 17447
-    priority_listen_port: int = 17448
-    priority_weight: float = 4.0
-    record_interval_s: float = 0.1
-    control_port: int = -1  # -1: no control API; 0: any free port
+    default_listen_port: Annotated[int, In(0, 65535, "must be 0..65535")] = 17447
+    priority_listen_port: Annotated[int, In(0, 65535, "must be 0..65535")] = 17448
+    priority_weight: Annotated[float, In(0, 1000, "must be in (0, 1000]", lo_open=True)] = 4.0
+    record_interval_s: Annotated[float, In(0.01, 60, "must be in 0.01..60 s")] = 0.1
+    control_port: Annotated[
+        int, In(-1, 65535, "must be -1 (off), 0 (any) or a port")
+    ] = -1  # -1: no control API; 0: any free port
     # The cell as an operator (docs/qos.md): with qod = true a drone's priority bearer gets its weight only
     # while a CAMARA Quality-on-Demand session grants it (the control port serves the QoD API); false is a
     # network with a static policy for the priority port (the `links` backend's assumption).
     qod: bool = False
-    qod_max_sessions: int = -1  # sessions AVAILABLE at once (-1: no limit; 0: the operator grants none)
-    qod_setup_s: float = 0.05  # REQUESTED -> AVAILABLE (or UNAVAILABLE when refused) after this long
-    qod_max_duration_s: int = 86400  # a session's duration (with extensions) is capped here
+    qod_max_sessions: Annotated[
+        int, In(-1, math.inf, "must be -1 (no limit) or >= 0")
+    ] = -1  # sessions AVAILABLE at once (-1: no limit; 0: the operator grants none)
+    qod_setup_s: Annotated[float, In(0, 60, "must be in 0..60 s")] = (
+        0.05  # REQUESTED -> AVAILABLE (or UNAVAILABLE when refused) after this long
+    )
+    qod_max_duration_s: Annotated[int, In(1, 10**7, "must be in 1..10000000 s")] = (
+        86400  # a session's duration (with extensions) is capped here
+    )
     # per profile, a cap of its own (its QoS Profiles API's maxDuration); the others have qod_max_duration_s
     qod_profile_max_duration_s: dict[str, int] = field(default_factory=dict)
     qod_profiles: tuple[str, ...] = ("QOS_E", "QOS_S", "QOS_M", "QOS_L")  # what the operator offers
@@ -206,39 +210,22 @@ class CellConfig:
     # the QoD version it serves: 1.2.0 also takes applicationServer.ipAddresses (a list of addresses)
     qod_api_version: Literal["1.1.0", "1.2.0"] = "1.1.0"
     qod_auth: bool = False  # require OAuth2 client-credential tokens ([qos.camara] client_id/secret file)
-    qod_token_ttl_s: float = 3600.0
+    qod_token_ttl_s: Annotated[float, In(1, 86400, "must be in 1..86400 s")] = 3600.0
     trace: str = ""
-    trace_mean_mbps: float = 0.0
+    trace_mean_mbps: Annotated[float, In(0, math.inf, "must be >= 0")] = 0.0
     seed: int = 0
     bearers: tuple[BearerConfig, ...] = ()  # empty: the drone's two flows (see bearer_list)
     background: tuple[BackgroundConfig, ...] = (BackgroundConfig(name="bg"),)
     events: tuple[CellEventConfig, ...] = ()
 
     def __post_init__(self) -> None:
-        _require(0 <= self.uplink_mbps <= 1e5, "uplink_mbps", "must be in 0..100000")
-        _require(0 < self.downlink_mbps <= 1e6, "downlink_mbps", "must be in (0, 1000000]")
-        _require(0.1 <= self.tti_ms <= 100, "tti_ms", "must be in 0.1..100 ms")
-        for name in ("base_delay_up_ms", "base_delay_down_ms", "jitter_ms"):
-            _require(0 <= getattr(self, name) <= 10_000, name, "must be in 0..10000 ms")
-        _require(0 < self.scale <= 1e4, "scale", "must be in (0, 10000]")
-        _require(1500 <= self.ue_buffer_bytes <= 1 << 30, "ue_buffer_bytes", "must be 1500..1 GiB")
         _require(bool(self.listen_host), "listen_host", "must not be empty")
-        for name in ("default_listen_port", "priority_listen_port"):
-            _require(0 <= getattr(self, name) <= 65535, name, "must be 0..65535")
-        _require(0 < self.priority_weight <= 1000, "priority_weight", "must be in (0, 1000]")
-        _require(0.01 <= self.record_interval_s <= 60, "record_interval_s", "must be in 0.01..60 s")
-        _require(-1 <= self.control_port <= 65535, "control_port", "must be -1 (off), 0 (any) or a port")
-        _require(self.trace_mean_mbps >= 0, "trace_mean_mbps", "must be >= 0")
-        _require(self.qod_max_sessions >= -1, "qod_max_sessions", "must be -1 (no limit) or >= 0")
-        _require(0 <= self.qod_setup_s <= 60, "qod_setup_s", "must be in 0..60 s")
-        _require(1 <= self.qod_max_duration_s <= 10**7, "qod_max_duration_s", "must be in 1..10000000 s")
         for name, cap in self.qod_profile_max_duration_s.items():
             key = f"qod_profile_max_duration_s.{name}"
             _require(
                 name in (*self.qod_profiles, *self.qod_inactive_profiles), key, "is not an offered profile"
             )
             _require(1 <= cap <= 10**7, key, "must be in 1..10000000 s")
-        _require(1 <= self.qod_token_ttl_s <= 86400, "qod_token_ttl_s", "must be in 1..86400 s")
         names = [b.name for b in self.bearers]
         _require(len(set(names)) == len(names), "bearers", "bearer names must be unique")
         users = [b.name for b in self.background]
@@ -266,21 +253,22 @@ SERIAL_BAUDS = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 92160
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class VehicleSimConfig:
     """`dynqos sim vehicle`: the simulated quadrotor's MAVLink links (PX4 SITL's ports) and world."""
 
     host: str = "127.0.0.1"
-    offboard_bind_port: int = 14580
-    offboard_remote_port: int = 14540
-    gcs_bind_port: int = 18570
-    gcs_remote_port: int = 14550
-    speed: float = 1.0
+    offboard_bind_port: Annotated[int, In(0, 65535, "must be 0..65535 (0: any free port)")] = 14580
+    offboard_remote_port: Annotated[int, In(0, 65535, "must be 0..65535 (0: any free port)")] = 14540
+    gcs_bind_port: Annotated[int, In(0, 65535, "must be 0..65535 (0: any free port)")] = 18570
+    gcs_remote_port: Annotated[int, In(0, 65535, "must be 0..65535 (0: any free port)")] = 14550
+    speed: Annotated[float, In(0.01, 100, "must be in 0.01..100 (x real time)")] = 1.0
     wind_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    gust_std_mps: float = 0.0
-    gust_tau_s: float = 2.0  # the gusts' correlation time
+    gust_std_mps: Annotated[float, In(0, 10, "must be in 0..10 m/s")] = 0.0
+    gust_tau_s: Annotated[float, In(0.05, 600, "must be in 0.05..600 s")] = 2.0  # the gusts' correlation time
     seed: int = 0
-    takeoff_alt_m: float = 2.5
-    offboard_loss_s: float = 1.0
+    takeoff_alt_m: Annotated[float, In(0.5, 100, "must be in 0.5..100 m")] = 2.5
+    offboard_loss_s: Annotated[float, In(0.1, 60, "must be in 0.1..60 s (COM_OF_LOSS_T)")] = 1.0
     lockstep: bool = False  # advance 20 ms per answer from the offboard peer instead of real time
     world_file: str = ""  # TOML/JSON world for contact checks; "" = the default arena
     start_m: tuple[float, float] = (0.0, 0.0)  # where it stands before take-off (north, east), local NED
@@ -293,14 +281,7 @@ class VehicleSimConfig:
     serial_flow_control: bool = False  # RTS/CTS, on a real device
 
     def __post_init__(self) -> None:
-        for name in ("offboard_bind_port", "offboard_remote_port", "gcs_bind_port", "gcs_remote_port"):
-            _require(0 <= getattr(self, name) <= 65535, name, "must be 0..65535 (0: any free port)")
-        _require(0.01 <= self.speed <= 100, "speed", "must be in 0.01..100 (x real time)")
         _require(all(abs(w) <= 30 for w in self.wind_mps), "wind_mps", "components must be within 30 m/s")
-        _require(0 <= self.gust_std_mps <= 10, "gust_std_mps", "must be in 0..10 m/s")
-        _require(0.05 <= self.gust_tau_s <= 600, "gust_tau_s", "must be in 0.05..600 s")
-        _require(0.5 <= self.takeoff_alt_m <= 100, "takeoff_alt_m", "must be in 0.5..100 m")
-        _require(0.1 <= self.offboard_loss_s <= 60, "offboard_loss_s", "must be in 0.1..60 s (COM_OF_LOSS_T)")
         _require(all(abs(c) <= 1e4 for c in self.start_m), "start_m", "must be within 10 km of the origin")
         _require(
             self.serial_baud in SERIAL_BAUDS,
@@ -310,14 +291,17 @@ class VehicleSimConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class MetricsConfig:
     """Prometheus metrics and a health endpoint of a long-running process (docs/observability.md)."""
 
-    port: int = 0  # /metrics and /healthz on this TCP port; 0 = off (the default, the drone's too)
+    port: Annotated[int, In(0, 65535, "must be 0 (off) or a TCP port in 1..65535")] = (
+        0  # /metrics and /healthz on this TCP port; 0 = off (the default, the drone's too)
+    )
     host: str = "127.0.0.1"  # where they listen; 0.0.0.0 in a pod, so that Prometheus can scrape it
-    stale_after_s: float = 30.0  # /healthz answers 503 when the last health line is older than this
+    stale_after_s: Annotated[float, In(1.0, 3600, "must be in 1..3600 s")] = (
+        30.0  # /healthz answers 503 when the last health line is older than this
+    )
 
     def __post_init__(self) -> None:
-        _require(0 <= self.port <= 65535, "port", "must be 0 (off) or a TCP port in 1..65535")
         _require(bool(self.host.strip()), "host", "must not be empty")
-        _require(1.0 <= self.stale_after_s <= 3600, "stale_after_s", "must be in 1..3600 s")

@@ -7,23 +7,25 @@ import ipaddress
 import re
 import urllib.parse
 from dataclasses import asdict, dataclass, field
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from dynqos.common.camara import AGENT_SCOPE
-from dynqos.common.config.validate import _check_replica_id, _host_port, _require
+from dynqos.common.config.validate import In, _check_replica_id, _host_port, _require, checked
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import UAV_ID_PATTERN
 
 _PHONE_NUMBER = re.compile(r"\+[1-9][0-9]{4,14}")
+SECONDS_3600 = In(0, 3600, "must be in 0..3600 s")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class DeviceIpv4Config:
     """CAMARA DeviceIpv4Addr: the public address, with the private address or the public port."""
 
     publicAddress: str = ""
     privateAddress: str = ""
-    publicPort: int = 0
+    publicPort: Annotated[int, In(0, 65535, "must be a port in 1..65535 (0: not given)")] = 0
 
     def __post_init__(self) -> None:
         for name in ("publicAddress", "privateAddress"):
@@ -33,7 +35,6 @@ class DeviceIpv4Config:
                     ipaddress.IPv4Address(value)
                 except ValueError:
                     raise ConfigError(name, f"{value!r} is not an IPv4 address") from None
-        _require(0 <= self.publicPort <= 65535, "publicPort", "must be a port in 1..65535 (0: not given)")
         if self.privateAddress or self.publicPort:
             _require(
                 bool(self.publicAddress), "publicAddress", "is required with privateAddress or publicPort"
@@ -44,6 +45,7 @@ class DeviceIpv4Config:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class DeviceConfig:
     """A drone's identity on the operator's network: a CAMARA `device` object (at least one identifier)."""
 
@@ -80,6 +82,7 @@ class DeviceConfig:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class CamaraConfig:
     """[qos.camara]: a CAMARA Quality-on-Demand API (v1.1.0) the agent asks for QoS sessions."""
 
@@ -108,8 +111,10 @@ class CamaraConfig:
     check_profile: bool = True
     profiles_root: str = ""  # e.g. https://api.operator.example/qos-profiles/v1 ("" = beside api_root)
     # ... and again this often, and at once when a create is refused as if the profile had changed
-    profile_recheck_s: float = 300.0
-    duration_s: int = 600  # requested per session; extended while priority is still wanted
+    profile_recheck_s: Annotated[float, In(1, 86400, "must be in 1..86400 s")] = 300.0
+    duration_s: Annotated[int, In(1, 10**7, "must be in 1..10000000 s")] = (
+        600  # requested per session; extended while priority is still wanted
+    )
     extend_before_s: float = 30.0  # extend when the session has less than this left
     # A session the operator capped (an extend did not move its end) is replaced this long before it ends
     renew_before_s: float = 2.0
@@ -120,9 +125,15 @@ class CamaraConfig:
     application_server_addresses: tuple[str, ...] = ()
     sink: str = ""  # notifications URL given to the operator ("" = polling only)
     sink_listen: str = ""  # host:port the agent serves that URL on ("" = no listener)
-    poll_interval_s: float = 0.2  # how often a REQUESTED session is read until it settles
-    timeout_s: float = 2.0  # every HTTP call ends within this
-    retry_after_denied_s: float = 10.0  # a denied drone asks again after this (doubling, up to 8x)
+    poll_interval_s: Annotated[float, In(0.01, 60, "must be in 0.01..60 s")] = (
+        0.2  # how often a REQUESTED session is read until it settles
+    )
+    timeout_s: Annotated[float, In(0.05, 60, "must be in 0.05..60 s")] = (
+        2.0  # every HTTP call ends within this
+    )
+    retry_after_denied_s: Annotated[float, In(0.1, 3600, "must be in 0.1..3600 s")] = (
+        10.0  # a denied drone asks again after this (doubling, up to 8x)
+    )
     devices: dict[str, DeviceConfig] = field(default_factory=dict)  # drone id -> its device
 
     def __post_init__(self) -> None:
@@ -134,13 +145,8 @@ class CamaraConfig:
             _require(plain_http_ok, name, "must be https:// (plain http only to 127.0.0.0/8, ::1, localhost)")
         _require(len(self.qos_profile) >= 3 and re.fullmatch(r"[A-Za-z0-9_.-]{3,256}", self.qos_profile)
                  is not None, "qos_profile", "must be 3..256 of A-Z a-z 0-9 _ . -")  # fmt: skip
-        _require(1 <= self.duration_s <= 10**7, "duration_s", "must be in 1..10000000 s")
         _require(0 <= self.extend_before_s < self.duration_s, "extend_before_s", "must be in 0..duration_s")
         _require(0 <= self.renew_before_s < self.duration_s, "renew_before_s", "must be in 0..duration_s")
-        _require(0.01 <= self.poll_interval_s <= 60, "poll_interval_s", "must be in 0.01..60 s")
-        _require(1 <= self.profile_recheck_s <= 86400, "profile_recheck_s", "must be in 1..86400 s")
-        _require(0.05 <= self.timeout_s <= 60, "timeout_s", "must be in 0.05..60 s")
-        _require(0.1 <= self.retry_after_denied_s <= 3600, "retry_after_denied_s", "must be in 0.1..3600 s")
         self._check_addresses()
         if self.sink_listen:
             _host_port(self.sink_listen, "sink_listen")
@@ -194,38 +200,55 @@ def _loopback(url: str) -> bool:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class ArbiterConfig:
     """[qos.arbiter]: the budget and the timers of `policy = "arbiter"` (edge/qos/arbiter.py,
     docs/fleet.md)."""
 
-    max_grants: int = -1  # at most this many drones hold priority at once (-1: no limit by count)
-    max_share: float = 1.0  # ...and together offer at most this share of uplink_mbps (1: no limit)
-    uplink_mbps: float = 0.0  # the cell's uplink the share is of (what the operator contracts)
-    min_hold_s: float = 3.0  # a grant is revoked for higher latency alone only after this long
-    rotate_after_s: float = 30.0  # drones of equal need take turns this often
+    max_grants: Annotated[
+        int, In(-1, 10_000, "must be -1 (no limit) or 0..10000")
+    ] = -1  # at most this many drones hold priority at once (-1: no limit by count)
+    max_share: Annotated[float, In(0, 1, "must be in (0, 1]", lo_open=True)] = (
+        1.0  # ...and together offer at most this share of uplink_mbps (1: no limit)
+    )
+    uplink_mbps: Annotated[float, In(0, 1e6, "must be in 0..1000000 Mbit/s")] = (
+        0.0  # the cell's uplink the share is of (what the operator contracts)
+    )
+    min_hold_s: Annotated[float, In(0, 3600, "must be in 0..3600 s")] = (
+        3.0  # a grant is revoked for higher latency alone only after this long
+    )
+    rotate_after_s: Annotated[float, In(0.1, 3600, "must be in 0.1..3600 s")] = (
+        30.0  # drones of equal need take turns this often
+    )
 
     def __post_init__(self) -> None:
-        _require(-1 <= self.max_grants <= 10_000, "max_grants", "must be -1 (no limit) or 0..10000")
-        _require(0 < self.max_share <= 1, "max_share", "must be in (0, 1]")
-        _require(0 <= self.uplink_mbps <= 1e6, "uplink_mbps", "must be in 0..1000000 Mbit/s")
         _require(self.max_share == 1 or self.uplink_mbps > 0, "uplink_mbps",
                  "is required (> 0) when max_share is below 1")  # fmt: skip
-        _require(0 <= self.min_hold_s <= 3600, "min_hold_s", "must be in 0..3600 s")
-        _require(0.1 <= self.rotate_after_s <= 3600, "rotate_after_s", "must be in 0.1..3600 s")
         _require(self.rotate_after_s >= self.min_hold_s, "rotate_after_s", "must be at least min_hold_s")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+@checked
 class QosConfig:
     """[qos]: how the network is asked for the priority flow (`dynqos edge qos`, docs/qos.md)."""
 
     backend: Literal["links", "camara"] = "links"
-    hold_down_s: float = 5.0  # release a session only after the drone left priority this long
-    request_interval_s: float = 1.0  # the drone repeats its request this often
-    drone_timeout_s: float = 5.0  # the agent treats a drone it has not heard from this long as gone
-    agent_timeout_s: float = 3.0  # the drone reports "no agent" after this long without a grant
-    grant_interval_s: float = 1.0  # the agent repeats each drone's grant this often
-    health_interval_s: float = 5.0
+    hold_down_s: Annotated[float, SECONDS_3600] = (
+        5.0  # release a session only after the drone left priority this long
+    )
+    request_interval_s: Annotated[float, In(0.05, 3600, "must be in 0.05..3600 s")] = (
+        1.0  # the drone repeats its request this often
+    )
+    drone_timeout_s: Annotated[float, SECONDS_3600] = (
+        5.0  # the agent treats a drone it has not heard from this long as gone
+    )
+    agent_timeout_s: Annotated[float, SECONDS_3600] = (
+        3.0  # the drone reports "no agent" after this long without a grant
+    )
+    grant_interval_s: Annotated[float, In(0.05, 3600, "must be in 0.05..3600 s")] = (
+        1.0  # the agent repeats each drone's grant this often
+    )
+    health_interval_s: Annotated[float, SECONDS_3600] = 5.0
     # Who gets priority: every drone that asks, or (arbiter) the neediest within [qos.arbiter]'s budget.
     policy: Literal["grant-all", "arbiter"] = "grant-all"
     # Several agents may run; one holds the sessions, the others stand by (docs/qos.md). replica_id
@@ -235,11 +258,6 @@ class QosConfig:
     arbiter: ArbiterConfig = field(default_factory=ArbiterConfig)
 
     def __post_init__(self) -> None:
-        for name in ("hold_down_s", "request_interval_s", "drone_timeout_s", "agent_timeout_s",
-                     "grant_interval_s", "health_interval_s"):  # fmt: skip
-            _require(0 <= getattr(self, name) <= 3600, name, "must be in 0..3600 s")
-        _require(self.request_interval_s >= 0.05, "request_interval_s", "must be >= 0.05 s")
-        _require(self.grant_interval_s >= 0.05, "grant_interval_s", "must be >= 0.05 s")
         _require(self.drone_timeout_s > self.request_interval_s, "drone_timeout_s",
                  "must exceed request_interval_s")  # fmt: skip
         _require(self.agent_timeout_s > self.grant_interval_s, "agent_timeout_s",

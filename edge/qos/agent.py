@@ -28,7 +28,6 @@ import asyncio
 import contextlib
 import functools
 import logging
-import signal
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -41,7 +40,7 @@ from dynqos.common.bus import Bus, Priority, Received
 from dynqos.common.clock import NS_PER_S, Clock, MonotonicClock, to_ns
 from dynqos.common.config import CamaraConfig, Config
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.lifecycle import ready_line, serving_metrics
+from dynqos.common.lifecycle import ready_line, serving_metrics, stop_loop_on_signals
 from dynqos.common.messages import QosDecision, QosGrant, QosRequest
 from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
@@ -105,9 +104,7 @@ class QosAgent:
 
     async def main(self, ready: Any = None) -> None:
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            with contextlib.suppress(NotImplementedError, RuntimeError):
-                loop.add_signal_handler(sig, self.stopping.set)
+        stop_loop_on_signals("qos agent", loop, self.stopping.set)
         forward = threading.Thread(target=self._forward, args=(loop,), name="qos-requests", daemon=True)
         sink: web.AppRunner | None = None
         async with contextlib.AsyncExitStack() as stack:

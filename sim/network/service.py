@@ -7,7 +7,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import signal
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -19,7 +18,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from dynqos.common.camara import load_private_key, read_headers, read_secret
 from dynqos.common.config import BearerConfig, CellConfig, Config
 from dynqos.common.errors import ConfigError, DynqosError
-from dynqos.common.lifecycle import serving_metrics
+from dynqos.common.lifecycle import serving_metrics, stop_loop_on_signals
 from dynqos.common.metrics import ProcessMetrics, counter, gauge
 from dynqos.sim.network.cell import CellEmulator
 from dynqos.sim.network.control_api import ControlApi, Tap
@@ -107,9 +106,7 @@ async def run_cell(
                     "cell.control_port", f"cannot listen on 127.0.0.1:{cell.control_port} ({exc.strerror})"
                 ) from None
             emulator.notify = control.send
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            with contextlib.suppress(NotImplementedError, RuntimeError):
-                emulator.loop.add_signal_handler(sig, emulator.stopped.set)
+        stop_loop_on_signals("cell", emulator.loop, emulator.stopped.set)
         info = {
             "ready": True,
             "bearers": {
