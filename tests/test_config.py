@@ -268,3 +268,32 @@ def test_every_section_checks_its_declared_ranges_however_it_is_built() -> None:
     ]
     assert unchecked == [], "sections without @checked"
     assert sum(len(declared(s)) for s in sections) >= 90  # the ranges, declared on their fields
+
+
+def test_a_scenario_sets_any_setting_by_section_over_what_it_derives(tmp_path: Path) -> None:
+    """[scenario.config.<section>] carries dynqos settings as a config file writes them: they reach the
+    flight's config over the scenario's own (the breeze it flies in, its camera parts), are checked
+    when the scenario is read, and a key that became a setting says where it went."""
+    from dynqos.common.config import ZenohConfig
+    from dynqos.experiment.scenario import load_scenario, scenario_config
+
+    path = write(
+        tmp_path,
+        "[scenario]\nname = 'windy'\n[scenario.config.vehicle]\nwind_mps = [3.0, 1.0, 0.0]\n"
+        "[scenario.config.supervisor]\nth_lat = 0.6\n[scenario.config.onboard]\ncamera_part_bytes = 2048\n",
+    )
+    built = scenario_config(load_scenario(path), zenoh=ZenohConfig(), fc_port=15000, gcs_port=16000)
+    assert built.vehicle.wind_mps == (3.0, 1.0, 0.0)
+    assert built.vehicle.gust_std_mps == 0.5  # the scenario's own, not overridden
+    assert built.supervisor.th_lat == 0.6
+    assert built.onboard.camera_part_bytes == 2048
+    assert built.supervisor.seed == 0  # what the scenario derives itself still holds
+    bad = write(tmp_path, "[scenario]\nname = 'x'\n[scenario.config.cell]\njitter_ms = -1\n", "bad.toml")
+    with pytest.raises(ConfigError, match=r"scenario\.config\.cell\.jitter_ms: must be in 0\.\.10000 ms"):
+        load_scenario(bad)
+    unknown = write(tmp_path, "[scenario]\nname = 'x'\n[scenario.config.cel]\nx = 1\n", "unknown.toml")
+    with pytest.raises(ConfigError, match=r"scenario\.config\.cel: unknown key"):
+        load_scenario(unknown)
+    moved = write(tmp_path, "[scenario]\nname = 'x'\ngust_std_mps = 1.0\n", "moved.toml")
+    with pytest.raises(ConfigError, match=r"\[scenario\.config\.vehicle\] gust_std_mps"):
+        load_scenario(moved)

@@ -21,6 +21,7 @@ from dynqos.common.config.loader import (
     build,
     environment_overrides,
     load_config,
+    overlaid,
     to_dict,
     to_toml,
 )
@@ -62,6 +63,7 @@ __all__ = [
     "build",
     "environment_overrides",
     "load_config",
+    "overlaid",
     "to_dict",
     "to_toml",
 ]

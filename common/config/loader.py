@@ -98,6 +98,8 @@ def _convert(tp: Any, value: Any, key: str) -> Any:
         if not isinstance(value, dict):
             raise ConfigError(key, f"expected a table, got {type(value).__name__}")
         return {str(k): _convert(value_type, v, f"{key}.{k}") for k, v in value.items()}
+    if tp is Any:  # a table handed on as it is (a scenario's settings, checked by the Config they build)
+        return value
     if origin in (Union, types.UnionType):
         raise ConfigError(key, "unsupported type")  # pragma: no cover - no optional settings yet
     if origin is tuple:
@@ -239,6 +241,22 @@ def load_config(
 def _related(a: str, b: str) -> bool:
     """One key path is the other or lies inside it (`qos` and `qos.camara.api_root`)."""
     return a == b or a.startswith(b + ".") or b.startswith(a + ".")
+
+
+def overlaid(config: Config, table: Mapping[str, Any]) -> Config:
+    """`config` with the settings of `table` (nested by section, as a file writes them) over it, checked
+    as a file's are; a ConfigError names the key inside `table`."""
+    merged = tomllib.loads(to_toml(config))
+
+    def merge(into: dict[str, Any], settings: Mapping[str, Any], path: str) -> None:
+        for key, value in settings.items():
+            if isinstance(value, Mapping) and isinstance(into.get(key), dict):
+                merge(into[key], value, f"{path}{key}.")
+            else:
+                into[key] = value
+
+    merge(merged, table, "")
+    return build(Config, merged)
 
 
 def to_dict(config: Config) -> dict[str, Any]:

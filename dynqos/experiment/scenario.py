@@ -26,6 +26,7 @@ from dynqos.common.config import (
     VehicleSimConfig,
     ZenohConfig,
     build,
+    overlaid,
     to_toml,
 )
 from dynqos.common.errors import ConfigError
@@ -96,18 +97,11 @@ class Scenario:
     # The camera's bytes are paced at this rate (before scale; 0: each image in one burst): above what
     # the drone offers, below what the priority bearer drains under load (81.3 x 4/5 = 65 Mbit/s).
     camera_pace_mbps: float = 62.0
-    # The size of one paced part: a C&C message queued behind a part waits for it to drain at the drone's
-    # scaled share, so a fleet (a smaller share each) paces smaller parts (docs/fleet.md).
-    camera_part_bytes: int = 4096
-    wind_mps: float = 0.5  # a steady breeze from the north...
-    gust_std_mps: float = 0.5  # ...with gusts, so that control delay shows in the tracking
-    gust_tau_s: float = 0.5  # short gusts: many per window, so windows compare alike (docs/demo.md)
     priority_weight: float = 4.0  # the priority bearer's scheduling weight against 1 for everyone else
     # How the network gives the priority flow its weight (docs/qos.md): camara, the emulated cell grants it
     # only while a QoD session the QoS agent asked for is AVAILABLE (the truer model of the paper's
     # network); links, by static policy for the priority port, the moment the drone uses it.
     qos_backend: Literal["links", "camara"] = "camara"
-    qod_max_sessions: int = -1  # the emulated operator's admission limit (0: it grants no session)
     base_delay_ms: float = 5.0  # one way: with processing and camera head-of-line ~15 ms C&C RTT, below rho2
     faults: tuple[
         Fault, ...
@@ -132,6 +126,10 @@ class Scenario:
     # With more than one, no agent takes the operator's notifications (they would share one address):
     # each polls its sessions.
     qos_agents: int = 1
+    # Any dynqos setting ([scenario.config.<section>], as a config file writes it), over what the scenario
+    # derives: the fields above are the experiment's own variables (each sets several settings, is
+    # scaled, or is what reports and profiles compare); everything else is a setting (docs/demo.md).
+    config: dict[str, Any] = field(default_factory=dict)
 
     @property
     def run_id(self) -> str:
@@ -150,13 +148,15 @@ class Scenario:
             raise ConfigError("priority_weight", "must be in 0.1..100")
         if not 0 <= self.camera_pace_mbps <= 1e5:
             raise ConfigError("camera_pace_mbps", "must be in 0..100000 Mbit/s (0: no pacing)")
-        if not 512 <= self.camera_part_bytes <= 1 << 20:
-            raise ConfigError("camera_part_bytes", "must be in 512..1048576")
         for i, fault in enumerate(self.faults):
             if fault.at_s + fault.duration_s > self.duration_s:
                 raise ConfigError(f"faults[{i}].at_s", "the fault must end before the run does")
         self._check_run()
         self._check_fleet()
+        try:
+            overlaid(Config(), self.config)  # a setting that does not exist or fit is an error now
+        except ConfigError as exc:
+            raise exc.under("config") from None
 
     def _check_run(self) -> None:
         for name in ("mpc_replicas", "planner_replicas", "qos_agents"):
@@ -166,8 +166,6 @@ class Scenario:
             needs = REPLICA_FAULTS.get(fault.kind)
             if needs is not None and getattr(self, needs) < 2:
                 raise ConfigError(f"faults[{i}].kind", f"{fault.kind} needs {needs} >= 2 (a standby)")
-        if self.qod_max_sessions < -1:
-            raise ConfigError("qod_max_sessions", "must be -1 (no limit) or >= 0")
         if not 0.5 <= self.memory_sample_s <= 600:
             raise ConfigError("memory_sample_s", "must be in 0.5..600 s")
         if self.metrics_port and not 1024 <= self.metrics_port <= 65000:
@@ -201,6 +199,11 @@ class Scenario:
 
 
 MAX_REPLICAS = 8
+# Scenario keys that were settings under another name, and the section that holds each now
+MOVED = {
+    "wind_mps": "vehicle", "gust_std_mps": "vehicle", "gust_tau_s": "vehicle", "qod_max_sessions": "cell",
+    "camera_part_bytes": "onboard",
+}  # fmt: skip
 # the faults that act on the replica serving the drone, and the setting that must give it a standby
 REPLICA_FAULTS = {
     "mpc_replica_kill": "mpc_replicas", "mpc_replica_hang": "mpc_replicas",
@@ -239,6 +242,13 @@ def load_scenario(path: str | Path) -> Scenario:
             "a scenario file has one [scenario] table",
             source=source,
         )
+    for key, section in MOVED.items():
+        if key in table["scenario"]:
+            raise ConfigError(
+                f"scenario.{key}",
+                f"is a setting: write it as [scenario.config.{section}] {key}",
+                source=source,
+            )
     try:
         return build(Scenario, table["scenario"], "scenario")
     except ConfigError as exc:
@@ -283,13 +293,14 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
             seed=scenario.seed,
             priority_weight=scenario.priority_weight,
             qod=scenario.qos_backend == "camara",
-            qod_max_sessions=scenario.qod_max_sessions,
             background=(BackgroundConfig(name="bg", weight=scenario.bg_weight),),
         ),
         vehicle=VehicleSimConfig(
-            wind_mps=(scenario.wind_mps, 0.0, 0.0),
-            gust_std_mps=scenario.gust_std_mps,
-            gust_tau_s=scenario.gust_tau_s,
+            # a steady breeze from the north, with short gusts, so that control delay shows in the
+            # tracking and windows compare alike (docs/demo.md)
+            wind_mps=(0.5, 0.0, 0.0),
+            gust_std_mps=0.5,
+            gust_tau_s=0.5,
             offboard_bind_port=0,
             gcs_bind_port=0,
             offboard_remote_port=fc_port,
@@ -302,7 +313,9 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
             qos=scenario.qos,
             camera_fps=scenario.camera_fps,
             camera_pace_mbps=scenario.camera_pace_mbps / scenario.scale,
-            camera_part_bytes=scenario.camera_part_bytes,
+            # a C&C message queued behind a paced part waits for it to drain at the drone's scaled
+            # share: a fleet (a smaller share each) sets smaller parts (docs/fleet.md)
+            camera_part_bytes=4096,
             # The heading stays the FC's own, as in every run the README quotes. Flown along the circle,
             # the camera sees the pillars for most of a lap (measured: the baseline in q2, high risk, 22
             # of 30 s) and the scenarios' contrast changes; docs/demo.md says more.
@@ -320,6 +333,7 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
             ),
         ),
     )
+    config = overlaid(config, scenario.config)
     part_bytes = config.onboard.camera_part_bytes if scenario.camera_pace_mbps > 0 else 0
     target_bps = scenario.uav_mbps * 1e6 / scenario.scale
     width, height = camera_size_for(target_bps, scenario.camera_fps, flight_views(config), part_bytes)
