@@ -1,7 +1,8 @@
 """The router's access-control policy: every identity reaches only the keys its job needs.
 
 Zenoh matches a connecting session's certificate common name (mTLS) against `subjects`. A drone's CN
-is its id; each edge service has its own CN (`edge-mpc`, `edge-planner`, `edge-detector`, `edge-qos`),
+is its id; each edge service has its own CN (`edge-mpc`, `edge-planner`, `edge-detector`, `edge-qos`,
+`edge-ros2`),
 so a compromised detector, which parses camera frames from the network, cannot command a drone.
 Default deny, then:
 
@@ -68,6 +69,16 @@ EDGE_ROLES: dict[str, EdgeRole] = {
         writes=(downlink_all_drones(Downlink.CAMERA_ACK), downlink_all_drones(Downlink.DETECTIONS)),
         tokens=(any_replica_of("detector"),),  # detectors share the drones (edge/membership.py, LiveSet)
     ),
+    # ROS 2 topics too (rmw_zenoh's keys and tokens, under the domain and prefix the router's config
+    # names: ros2_topics); it publishes nothing on dynqos keys
+    "ros2": EdgeRole(
+        reads=(
+            uplink_all_drones(Stream.STATE),
+            uplink_all_drones(Stream.STATUS),
+            uplink_all_drones(Stream.CAMERA_RGB),
+        ),
+        writes=(),
+    ),
     "qos": EdgeRole(
         reads=(uplink_all_drones(Stream.QOS),),
         writes=(downlink_all_drones(Downlink.QOS_GRANT), downlink_all_drones(Downlink.QOS_DECISION)),
@@ -111,8 +122,9 @@ def _reader_and_writer(
     rules = [
         _rule(f"{name}-subscribe", "ingress", ["declare_subscriber"], reads),
         _rule(f"{name}-receive", "egress", ["put"], reads),
-        _rule(f"{name}-publish", "ingress", ["put"], writes),
     ]
+    if writes:
+        rules.append(_rule(f"{name}-publish", "ingress", ["put"], writes))
     if tokens:
         rules += [
             _rule(f"{name}-tokens", "ingress",
@@ -122,8 +134,24 @@ def _reader_and_writer(
     return rules
 
 
-def access_control_policy(drones: tuple[str, ...] | list[str]) -> dict[str, Any]:
-    """zenoh's `access_control` config object for `drones` and the edge services."""
+def ros2_topics(domain_id: int, prefix: str) -> tuple[str, ...]:
+    """The rmw_zenoh data keys of what `dynqos edge ros2` publishes: `/<prefix>/...` and `/tf`."""
+    return (f"{domain_id}/{prefix}/**", f"{domain_id}/tf/**")
+
+
+def ros2_tokens(domain_id: int) -> tuple[str, ...]:
+    """rmw_zenoh's liveliness tokens of one domain (nodes, publishers, subscribers)."""
+    return (f"@ros2_lv/{domain_id}/**",)
+
+
+def access_control_policy(
+    drones: tuple[str, ...] | list[str],
+    ros2_clients: tuple[str, ...] | list[str] = (),
+    ros2_domain_id: int = 0,
+    ros2_prefix: str = "dynqos",
+) -> dict[str, Any]:
+    """zenoh's `access_control` config object for `drones`, the edge services and the ROS 2 nodes named
+    by `ros2_clients` (read only: the bridge's topics and the domain's discovery tokens)."""
     rules: list[dict[str, Any]] = [
         _rule("learn-subscribers", "egress", ["declare_subscriber"], [f"{ROOT}/**"]),
     ]
@@ -141,9 +169,18 @@ def access_control_policy(drones: tuple[str, ...] | list[str]) -> dict[str, Any]
             }
         )
 
+    topics, tokens = ros2_topics(ros2_domain_id, ros2_prefix), ros2_tokens(ros2_domain_id)
     for service, role in EDGE_ROLES.items():
         cn = edge_common_name(service)
+        if service == "ros2":  # its topics lie outside dynqos/**: it learns their subscribers by a rule
+            own = _reader_and_writer(cn, role.reads, topics, tokens)
+            grant(cn, cn, [*own, _rule(f"{cn}-learn-subscribers", "egress", ["declare_subscriber"], topics)])
+            continue
         grant(cn, cn, _reader_and_writer(cn, role.reads, role.writes, role.tokens))
+    for name in ros2_clients:
+        if reserved_name(name) or name in drones:
+            raise ValueError(f"{name!r} is an edge or drone identity, not a ROS 2 client")
+        grant(f"ros2-{name}", name, _reader_and_writer(name, topics, (), tokens))
     for uav in drones:
         check_uav_id(uav)
         if reserved_name(uav):

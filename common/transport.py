@@ -149,7 +149,9 @@ def router_access_control(cfg: ZenohConfig) -> dict[str, Any] | None:
     """The router's access-control policy, failing closed: TLS without a policy is refused unless
     `acl = "off"` says so, and every setup that lets anyone in is logged as a warning naming the risk."""
     if cfg.tls and cfg.acl_drones:
-        return access_control_policy(cfg.acl_drones)
+        return access_control_policy(
+            cfg.acl_drones, cfg.acl_ros2_clients, cfg.acl_ros2_domain_id, cfg.acl_ros2_prefix
+        )
     if cfg.tls and cfg.acl == "on":
         raise ConfigError(
             "zenoh.acl_drones",

@@ -80,6 +80,8 @@ def test_effective_config_round_trips_through_toml(tmp_path: Path) -> None:
         ("[onboard]\ncamera_pace_mbps = -5\n", "onboard.camera_pace_mbps", "0: no pacing"),
         ("[onboard]\ncamera_part_bytes = 100\n", "onboard.camera_part_bytes", "512..1048576"),
         ("[vehicle]\ngust_tau_s = 0\n", "vehicle.gust_tau_s", "0.05..600 s"),
+        ("[zenoh]\nacl_ros2_clients = ['ros-ground']\n", "zenoh.acl_ros2_clients", "access control"),
+        ("[zenoh]\nacl_ros2_prefix = '9lives'\n", "zenoh.acl_ros2_prefix", "must be a ROS name"),
         ("[qos.camara]\nprofile_recheck_s = 0\n", "qos.camara.profile_recheck_s", "1..86400 s"),
         (
             "[qos.camara]\napplication_server_addresses = ['10.0.0.1']\n",

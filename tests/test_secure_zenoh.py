@@ -18,6 +18,7 @@ import datetime as dt
 import queue
 import subprocess
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -76,16 +77,17 @@ def _start_router(tmp_path: Path, pki: Path, *extra: str) -> tuple[DynqosProcess
         *extra,
     ]
     config = load_config(PRODUCTION_ROUTER, overrides)
-    args = ["edge", "router", *(arg for o in overrides for arg in ("--set", o))]
-    router = DynqosProcess(args, PRODUCTION_ROUTER)
-    return router, dataclasses.replace(
-        config.zenoh, acl_drones=(), edge_host="127.0.0.1", connect_timeout_s=3
+    client = dataclasses.replace(  # what the sessions connect with (the ACL is the router's alone)
+        config.zenoh, acl_drones=(), acl_ros2_clients=(), edge_host="127.0.0.1", connect_timeout_s=3
     )
+    args = ["edge", "router", *(arg for o in overrides for arg in ("--set", o))]
+    return DynqosProcess(args, PRODUCTION_ROUTER), client
 
 
 def _pki_fixture(tmp_path: Path, *router_settings: str) -> Iterator[Pki]:
     folder = tmp_path / "pki"
-    make_dev_pki(folder, ["uav1", "uav2", "uav3"], [])  # uav3: signed by the CA, not in the ACL
+    # uav3: signed by the CA, not in the ACL; ros-ground: a ROS 2 node's identity (a read-only client)
+    make_dev_pki(folder, ["uav1", "uav2", "uav3", "ros-ground"], [])
     router, cfg = _start_router(tmp_path, folder, *router_settings)
     pki = Pki(folder, cfg)
     try:
@@ -101,6 +103,12 @@ def secure_router(tmp_path: Path) -> Iterator[Pki]:
     """The production router config (deploy/), on 127.0.0.1, free ports, fresh certificates."""
     assert load_config(PRODUCTION_ROUTER).zenoh.acl_drones == ("uav1", "uav2")
     yield from _pki_fixture(tmp_path)
+
+
+@pytest.fixture
+def ros2_router(tmp_path: Path) -> Iterator[Pki]:
+    """The production router that also lets the ROS 2 node `ros-ground` read the bridge's topics."""
+    yield from _pki_fixture(tmp_path, 'zenoh.acl_ros2_clients=["ros-ground"]')
 
 
 @pytest.fixture
@@ -240,6 +248,7 @@ READS = {
     "edge-planner": ("dynqos/uav1/up/priority/qos", "dynqos/uav1/up/priority/state"),
     "edge-detector": ("dynqos/uav1/up/priority/state", "dynqos/uav1/up/priority/camera/rgb"),
     "edge-qos": ("dynqos/uav1/up/priority/camera/depth", "dynqos/uav1/up/priority/qos"),
+    "edge-ros2": ("dynqos/uav1/up/priority/qos", "dynqos/uav1/up/priority/state"),
 }
 
 
@@ -551,3 +560,42 @@ def test_only_a_qos_agent_can_claim_to_be_the_active_agent(secure_router: Pki) -
     assert seen.empty()
     for token in impostors:
         token.close()
+
+
+ROS_POSE = "0/dynqos/uav1/pose/geometry_msgs::msg::dds_::PoseStamped_/RIHS01_" + "ab" * 32
+
+
+def test_the_ros2_bridge_and_ros_nodes_reach_only_the_ros2_topics(ros2_router: Pki) -> None:
+    """`dynqos edge ros2` (edge-ros2) publishes ROS 2 topics and declares rmw_zenoh tokens, and commands
+    no drone; a ROS 2 node (a client CN the router lists in acl_ros2_clients) reads those topics and the
+    domain's tokens, and neither reads a drone's keys nor writes anything: each forgery is refused, the
+    allowed sample after it is the sentinel."""
+    pki = ros2_router
+    bridge, ros, uav1 = pki.open("edge-ros2"), pki.open("ros-ground", Role.EDGE), pki.open("uav1")
+    at_ros: Seen = queue.Queue()
+    _collect(ros, "dynqos/uav1/up/**", at_ros)  # a drone's own keys: refused
+    _collect(ros, "0/**", at_ros)  # wider than the bridge's topics: refused as a whole
+    _collect(ros, "0/dynqos/**", at_ros)  # the bridge's topics: allowed
+    at_uav1: Seen = queue.Queue()
+    _collect(uav1, "dynqos/uav1/down/**", at_uav1)
+    _collect(bridge, "dynqos/*/up/*/state", queue.Queue())  # so that the drone's state is routed at all
+    _wait_matched(uav1, "dynqos/uav1/up/priority/state").put(b"uav1 state")
+    for key in ("dynqos/uav1/down/cmd", "dynqos/uav1/ref"):
+        bridge.put(key, b"forged by the bridge", allowed_destination=REMOTE)
+        ros.put(key, b"forged by a ROS node", allowed_destination=REMOTE)
+    ros.put(ROS_POSE, b"a ROS node posing as the bridge", allowed_destination=REMOTE)
+    _wait_matched(bridge, ROS_POSE).put(b"pose")
+    assert _wait_for(at_ros, (ROS_POSE, b"pose")) == [(ROS_POSE, b"pose")]
+    mpc = pki.open("edge-mpc")
+    _wait_matched(mpc, "dynqos/uav1/down/cmd").put(b"from the mpc")
+    assert _wait_for(at_uav1, ("dynqos/uav1/down/cmd", b"from the mpc")) == [
+        ("dynqos/uav1/down/cmd", b"from the mpc")
+    ]
+    token_key = "@ros2_lv/0/0123/0/1/MP/%/%dynqos/dynqos_edge/%dynqos%uav1%pose/x/y/z"
+    token = bridge.liveliness().declare_token(token_key)
+    deadline = time.monotonic() + 10
+    seen: list[str] = []
+    while not seen and time.monotonic() < deadline:
+        seen = [str(r.ok.key_expr) for r in ros.liveliness().get("@ros2_lv/0/**", timeout=1.0) if r.ok]
+    assert seen == [token_key]  # a ROS node discovers the bridge's publisher
+    token.undeclare()  # type: ignore[no-untyped-call]

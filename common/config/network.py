@@ -4,6 +4,7 @@ timeline events), [vehicle] and [metrics]."""
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
@@ -40,7 +41,8 @@ class ZenohConfig:
     bulk_sndbuf_bytes: int = 65536
     connect_timeout_s: Annotated[float, In(0.1, 600, "must be in 0.1..600 s")] = 5.0
     # Production: mutual TLS on both flows, and on the router an access-control policy by certificate
-    # common name (drone id; edge-mpc, edge-planner, edge-detector, edge-qos for the edge services).
+    # common name (drone id; edge-mpc, edge-planner, edge-detector, edge-qos, edge-ros2 for the edge
+    # services).
     # See docs/security.md and `dynqos certs`.
     tls: bool = False
     tls_ca: str = ""  # the CA that signed every certificate (PEM)
@@ -50,6 +52,11 @@ class ZenohConfig:
     # router with tls: "on" refuses to start without acl_drones (fail closed); "off" runs TLS with no
     # access control at all (every certificate from the CA may do anything), and says so loudly.
     acl: str = "on"
+    # router with access control: ROS 2 nodes let in by certificate CN, to read what `dynqos edge ros2`
+    # publishes and nothing else; the domain and prefix are the bridge's [ros2] domain_id and prefix
+    acl_ros2_clients: tuple[str, ...] = ()
+    acl_ros2_domain_id: Annotated[int, In(0, 232, "must be in 0..232 (ROS 2 domain ids)")] = 0
+    acl_ros2_prefix: str = "dynqos"
 
     def __post_init__(self) -> None:
         _require(bool(self.edge_host.strip()), "edge_host", "must not be empty")
@@ -67,6 +74,14 @@ class ZenohConfig:
             _require(UAV_ID_PATTERN.fullmatch(uav) is not None, "acl_drones", f"{uav!r} is not a drone id")
             _require(not reserved_name(uav), "acl_drones", f"{uav!r} names an edge identity, not a drone")
         _require(not self.acl_drones or self.tls, "acl_drones", "access control needs tls = true")
+        for name in self.acl_ros2_clients:
+            ok = UAV_ID_PATTERN.fullmatch(name) is not None and not reserved_name(name)
+            _require(ok, "acl_ros2_clients", f"{name!r}: 1 to 32 of A-Z a-z 0-9 _ -, not an edge identity")
+            _require(name not in self.acl_drones, "acl_ros2_clients", f"{name!r} is a drone's identity")
+        _require(not self.acl_ros2_clients or bool(self.acl_drones), "acl_ros2_clients",
+                 "needs the router's access control (acl_drones)")  # fmt: skip
+        _require(re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", self.acl_ros2_prefix) is not None, "acl_ros2_prefix",
+                 "must be a ROS name: a letter, then letters, digits, _")  # fmt: skip
         _require(self.acl in ("on", "off"), "acl", f'must be "on" or "off", got {self.acl!r}')
         _require(
             not (self.acl == "off" and self.acl_drones),

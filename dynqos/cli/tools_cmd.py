@@ -21,11 +21,13 @@ BENCH = (
 CERTS = (
     "Writes into --out (made 0700): ca.pem and ca-key.pem (kept and reused if present), router.pem (server "
     "and client auth; names: localhost, 127.0.0.1 and each --router-host), one identity per edge service "
-    "(edge-mpc, edge-planner, edge-detector, edge-qos: each may touch only its own keys) and <id>.pem per "
-    "--drone (CN = drone id, matched by the router's access control), each with its <name>-key.pem (mode "
-    "0600, written through a new file, never through a link). Pairs that exist and are still valid are "
-    "kept unless --force, so adding a drone re-issues nothing else. No certificate outlives the CA. For "
-    "production use your own PKI with the same common names; rotation and revocation: docs/security.md."
+    "(edge-mpc, edge-planner, edge-detector, edge-qos, edge-ros2: each may touch only its own keys) and "
+    "<id>.pem per --drone (CN = drone id, matched by the router's access control; a ROS 2 node's "
+    "identity is issued the same way, its name in [zenoh] acl_ros2_clients), each with its "
+    "<name>-key.pem (mode 0600, written through a new file, never through a link). Pairs that exist and "
+    "are still valid are kept unless --force, so adding a drone re-issues nothing else. No certificate "
+    "outlives the CA. For production use your own PKI with the same common names; rotation and "
+    "revocation: docs/security.md."
 )
 OBSERVE = (
     "poses, the reference path, the world's obstacles and the risk zone as a 3D scene, the RGB camera with "
