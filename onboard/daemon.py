@@ -151,15 +151,18 @@ class OnboardDaemon:
         link = self.link
         assert link is not None
         sequence = TakeoffSequencer(self.cfg.takeoff_alt_m, self.cfg.fc_timeout_s, self.clock.now_ns())
-        commands: dict[Do, Callable[[], int | None]] = {
+        commands: dict[Do, Callable[[int], int | None]] = {  # each given its confirmation count
             Do.ARM: link.arm,
-            Do.TAKE_OFF: lambda: link.takeoff(self.cfg.takeoff_alt_m),
-            Do.OFFBOARD: lambda: link.set_mode(PX4_MAIN_OFFBOARD),
+            Do.TAKE_OFF: lambda c: link.takeoff(self.cfg.takeoff_alt_m, confirmation=c),
+            Do.OFFBOARD: lambda c: link.set_mode(PX4_MAIN_OFFBOARD, confirmation=c),
         }
         while not self.stop.is_set():
             step = sequence.next(self.clock.now_ns(), link.state, link.last_heartbeat_ns is not None)
             if step.do in commands:
-                sequence.answered(commands[step.do]())
+                if step.confirmation:
+                    log.warning("onboard: the flight controller did not answer %s; sending it again (%d)",
+                                step.do.value, step.confirmation)  # fmt: skip
+                sequence.answered(commands[step.do](step.confirmation))
             elif step.do is Do.HOLD_SETPOINT and step.hold is not None:
                 hold = hold_at(step.hold)
                 link.send_position(hold.pos_m, hold.yaw_rad)

@@ -243,28 +243,34 @@ class FcLink:
             except OSError as exc:
                 log.debug("fc link: send failed: %s", exc)
 
-    def command(self, command: int, *params: float, timeout_s: float = 3.0) -> int | None:
-        """Send COMMAND_LONG and wait for its COMMAND_ACK result (None on timeout)."""
+    def command(
+        self, command: int, *params: float, timeout_s: float = 3.0, confirmation: int = 0
+    ) -> int | None:
+        """Send COMMAND_LONG and wait for its COMMAND_ACK result (None on timeout); `confirmation`: 0 for
+        the first send, then the number of the retransmission (MAVLink's command protocol)."""
         with self._ack_event:
             self._acks.pop(command, None)
-        self._send_command(command, *params)
+        self._send_command(command, *params, confirmation=confirmation)
         with self._ack_event:
             self._ack_event.wait_for(lambda: command in self._acks, timeout=timeout_s)
             return self._acks.pop(command, None)
 
-    def _send_command(self, command: int, *params: float) -> None:
+    def _send_command(self, command: int, *params: float, confirmation: int = 0) -> None:
         p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
         target = (self.fc_system_id, self.fc_component_id)
-        self._send(lambda mav: mav.command_long_send(*target, command, 0, *p))
+        self._send(lambda mav: mav.command_long_send(*target, command, min(confirmation, 255), *p))
 
-    def arm(self) -> int | None:
-        return self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+    def arm(self, confirmation: int = 0) -> int | None:
+        return self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, confirmation=confirmation)
 
-    def takeoff(self, altitude_m: float) -> int | None:
-        return self.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, altitude_m)
+    def takeoff(self, altitude_m: float, confirmation: int = 0) -> int | None:
+        return self.command(
+            mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, altitude_m, confirmation=confirmation
+        )
 
-    def set_mode(self, main: int, sub: int = 0) -> int | None:
-        return self.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub)
+    def set_mode(self, main: int, sub: int = 0, confirmation: int = 0) -> int | None:
+        flags = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        return self.command(mavlink.MAV_CMD_DO_SET_MODE, flags, main, sub, confirmation=confirmation)
 
     def land(self) -> int | None:
         return self.command(mavlink.MAV_CMD_NAV_LAND)

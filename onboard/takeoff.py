@@ -5,7 +5,9 @@ Arm, take off to `[onboard] takeoff_alt_m`, wait until the FC reports the altitu
 `ALTITUDE_TOLERANCE_M`, at most `CLIMB_TIMEOUT_S`), stream a few hold setpoints (PX4 refuses offboard
 mode without a setpoint stream), enter offboard. The shell (onboard/daemon.py) asks `next` what to do,
 does it on the FC link and reports the FC's answer with `answered`; each refusal ends the sequence with
-the reason a person needs. Tested tick by tick in tests/test_takeoff.py.
+the reason a person needs. A command that gets no answer is sent again, its `confirmation` counting the
+retransmissions, as MAVLink's command protocol asks (a datagram lost on a busy link is not a refusal),
+up to `COMMAND_ATTEMPTS` in all. Tested tick by tick in tests/test_takeoff.py.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ CLIMB_TIMEOUT_S = 30.0  # a climb that takes longer goes on in offboard from whe
 PRIME_SETPOINTS = 10  # hold setpoints streamed before asking for offboard
 PRIME_PERIOD_S = 0.02  # their rate: 50 Hz, the setpoint rate
 POLL_S = 0.05  # how often the climb and the FC's first position are looked at
+COMMAND_ATTEMPTS = 5  # a command with no answer is sent this many times in all before it is a failure
 
 
 class Do(enum.Enum):
@@ -39,6 +42,7 @@ class Step:
     wait_s: float = 0.0
     hold: FcState | None = None  # the state to hold at (HOLD_SETPOINT)
     reason: str = ""
+    confirmation: int = 0  # a command's retransmissions so far (MAVLink COMMAND_LONG.confirmation)
 
 
 class TakeoffSequencer:
@@ -49,6 +53,7 @@ class TakeoffSequencer:
         self._primed = 0
         self._hold: FcState | None = None
         self._asked: Do | None = None  # the command waiting for `answered`
+        self._unanswered: dict[Do, int] = {}  # sends of a command that got no answer
         self._done: set[Do] = set()
         self.failed = ""
 
@@ -87,14 +92,16 @@ class TakeoffSequencer:
             return
         if result == 0:
             self._done.add(asked)
+        elif result is None and self._unanswered.get(asked, 0) + 1 < COMMAND_ATTEMPTS:
+            self._unanswered[asked] = self._unanswered.get(asked, 0) + 1  # sent again by the next `next`
         else:
             refusal = "refused offboard mode" if asked is Do.OFFBOARD else f"refused to {asked.value}"
-            why = "did not answer" if result is None else f"answered {result}"
+            why = f"did not answer {COMMAND_ATTEMPTS} times" if result is None else f"answered {result}"
             self.failed = f"the flight controller {refusal} ({why})"
 
     def _ask(self, do: Do) -> Step:
         self._asked = do
-        return Step(do)
+        return Step(do, confirmation=self._unanswered.get(do, 0))
 
     def _fail(self, reason: str) -> Step:
         self.failed = reason

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dynqos.onboard.fc import FcState
 from dynqos.onboard.takeoff import (
     CLIMB_TIMEOUT_S,
+    COMMAND_ATTEMPTS,
     PRIME_SETPOINTS,
     Do,
     ExitAction,
@@ -60,10 +61,27 @@ def test_each_refusal_ends_the_take_off_with_what_was_refused() -> None:
     seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
     while seq.next(0, at(2.0), fc_heard=True).do is not Do.OFFBOARD:
         seq.answered(0)
-    seq.answered(None)  # no answer in time
-    assert seq.next(0, at(2.0), fc_heard=True).reason == (
-        "the flight controller refused offboard mode (did not answer)"
+    for _ in range(COMMAND_ATTEMPTS):
+        seq.answered(None)  # no answer in time, each time
+        step = seq.next(0, at(2.0), fc_heard=True)
+    assert step.reason == (
+        f"the flight controller refused offboard mode (did not answer {COMMAND_ATTEMPTS} times)"
     )
+
+
+def test_a_command_without_an_answer_is_sent_again_with_its_confirmation_counted() -> None:
+    """MAVLink's command protocol: no COMMAND_ACK in time, the same command again with confirmation 1,
+    2, ...; one lost datagram on a busy link (seen: 1 of 15 fleet runs stayed on the ground) is no
+    refusal. An answer after the retransmissions goes on as if the first had been answered."""
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    first = seq.next(0, at(0.0), fc_heard=True)
+    assert (first.do, first.confirmation) == (Do.ARM, 0)
+    seq.answered(None)
+    again = seq.next(0, at(0.0), fc_heard=True)
+    assert (again.do, again.confirmation) == (Do.ARM, 1)
+    seq.answered(0)
+    take_off = seq.next(0, at(0.0), fc_heard=True)
+    assert (take_off.do, take_off.confirmation) == (Do.TAKE_OFF, 0)
 
 
 def test_a_climb_that_never_reaches_the_altitude_goes_on_after_its_timeout() -> None:
