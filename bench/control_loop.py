@@ -61,6 +61,7 @@ class Loop:
 
     def __init__(self, bus: ZenohBus) -> None:
         self.bus = bus
+        self.presence = bus.declare_token(keys.drone_presence(UAV))  # as the drone's daemon does
         self.state_pub = bus.publisher(keys.uplink(UAV, Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME,
                                        express=True)  # fmt: skip
         self.commands: BoundedQueue[Received] = BoundedQueue(64)

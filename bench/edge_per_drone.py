@@ -90,6 +90,7 @@ def _status(uav: str, seq: int, now: int) -> SupervisorStatus:
 class _Drone:
     def __init__(self, bus: Any, uav: str) -> None:
         self.uav = uav
+        self.presence = bus.declare_token(keys.drone_presence(uav))  # as its daemon does
         self.state = bus.publisher(
             keys.uplink(uav, Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME, express=True
         )

@@ -45,6 +45,8 @@ def _load(zcfg: ZenohConfig, drones: int, seconds: float) -> dict[str, Any]:
     try:
         commands: BoundedQueue[Received] = BoundedQueue(100_000)
         bus.subscribe(keys.downlink_all_drones(Downlink.COMMAND), commands)
+        # each announced, as a drone's daemon does: the MPC follows these (held until the bus closes)
+        tokens = [bus.declare_token(keys.drone_presence(f"uav{i}")) for i in range(drones)]
         pubs = {
             f"uav{i}": bus.publisher(
                 keys.uplink(f"uav{i}", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME, express=True
@@ -73,6 +75,7 @@ def _load(zcfg: ZenohConfig, drones: int, seconds: float) -> dict[str, Any]:
                 pub.put(state)
             _collect(commands, sent, latencies, until=start + (tick + 1) * PERIOD_S)
         _collect(commands, sent, latencies, until=time.perf_counter() + 0.2)  # the last tick's answers
+        del tokens  # the drones leave (the MPC stops following them)
     finally:
         bus.close()
     states = drones * ticks

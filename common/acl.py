@@ -8,7 +8,8 @@ Default deny, then:
 
 - a drone publishes only `dynqos/<id>/up/**` and receives only `dynqos/<id>/down/**` and
   `dynqos/<id>/ref` (the fallback's `continue` mode reads the reference); it both publishes and
-  receives `dynqos/<id>/clock`, the preflight's clock probes that the router stamps;
+  receives `dynqos/<id>/clock`, the preflight's clock probes that the router stamps; it holds its
+  presence token `dynqos/<id>/alive`, which the MPC and planner watch (and may not declare);
 - an edge service publishes only its outputs and subscribes only to its inputs (`EDGE_ROLES`);
 - everyone may learn which keys are subscribed (egress declare_subscriber on `dynqos/**`): zenoh only
   sends a put where a subscriber was declared, so without this no publisher's data would go anywhere.
@@ -16,8 +17,9 @@ Default deny, then:
 A rule applies only where the message's key is included in the rule's key expression, so a session
 that declares a wider subscriber (`dynqos/**`, `**`) matches no allow rule and is refused. Liveliness
 is allowed only where replicas of one edge service find each other (`dynqos/edge/replicas/<service>/**`,
-for that service's identity alone); queries and queryables are used by no dynqos component and are
-denied to everyone.
+for that service's identity alone) and where a drone announces itself (`dynqos/<id>/alive`, declared by
+that drone alone, watched by the MPC and the planner); queries and queryables are used by no dynqos
+component and are denied to everyone.
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ from dynqos.common.keys import (
     check_uav_id,
     clock_probe,
     downlink_all_drones,
+    drone_presence,
+    drones_present,
     uplink_all_drones,
 )
 
@@ -45,6 +49,7 @@ class EdgeRole:
     reads: tuple[str, ...]
     writes: tuple[str, ...]
     tokens: tuple[str, ...] = ()
+    watches: tuple[str, ...] = ()  # liveliness tokens it may watch and query, never declare
 
 
 EDGE_ROLES: dict[str, EdgeRole] = {
@@ -57,12 +62,14 @@ EDGE_ROLES: dict[str, EdgeRole] = {
         ),
         writes=(downlink_all_drones(Downlink.COMMAND),),
         tokens=(any_replica_of("mpc"),),
+        watches=(drones_present(),),  # it follows the drones it serves (edge/feeds.py)
     ),
     "planner": EdgeRole(
         # the references too: a standby planner follows the mission time of the one it stands by for
         reads=(uplink_all_drones(Stream.STATE), downlink_all_drones(Downlink.REFERENCE)),
         writes=(downlink_all_drones(Downlink.REFERENCE),),
         tokens=(any_replica_of("planner"),),
+        watches=(drones_present(),),
     ),
     "detector": EdgeRole(
         reads=(uplink_all_drones(Stream.CAMERA_RGB), uplink_all_drones(Stream.CAMERA_DEPTH)),
@@ -116,9 +123,10 @@ def _reader_and_writer(
     reads: list[str] | tuple[str, ...],
     writes: list[str] | tuple[str, ...],
     tokens: tuple[str, ...] = (),
+    watches: tuple[str, ...] = (),
 ) -> list[dict[str, Any]]:
     """Rules for a subject that subscribes to `reads`, publishes on `writes` and, where it has
-    `tokens`, declares, queries and watches liveliness tokens there."""
+    `tokens`, declares, queries and watches liveliness tokens there (`watches`: only the last two)."""
     rules = [
         _rule(f"{name}-subscribe", "ingress", ["declare_subscriber"], reads),
         _rule(f"{name}-receive", "egress", ["put"], reads),
@@ -131,6 +139,11 @@ def _reader_and_writer(
                   ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"], tokens),
             _rule(f"{name}-tokens-seen", "egress", ["liveliness_token", "reply"], tokens),
         ]  # fmt: skip
+    if watches:
+        rules += [
+            _rule(f"{name}-watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"], watches),
+            _rule(f"{name}-watched-seen", "egress", ["liveliness_token", "reply"], watches),
+        ]
     return rules
 
 
@@ -176,7 +189,7 @@ def access_control_policy(
             own = _reader_and_writer(cn, role.reads, topics, tokens)
             grant(cn, cn, [*own, _rule(f"{cn}-learn-subscribers", "egress", ["declare_subscriber"], topics)])
             continue
-        grant(cn, cn, _reader_and_writer(cn, role.reads, role.writes, role.tokens))
+        grant(cn, cn, _reader_and_writer(cn, role.reads, role.writes, role.tokens, role.watches))
     for name in ros2_clients:
         if reserved_name(name) or name in drones:
             raise ValueError(f"{name!r} is an edge or drone identity, not a ROS 2 client")
@@ -187,7 +200,7 @@ def access_control_policy(
             raise ValueError(f"{uav!r} is an edge identity, not a drone id")
         own_down = [f"{ROOT}/{uav}/down/**", f"{ROOT}/{uav}/ref", clock_probe(uav)]
         own_up = [f"{ROOT}/{uav}/up/**", clock_probe(uav)]
-        grant(f"drone-{uav}", uav, _reader_and_writer(uav, own_down, own_up))
+        grant(f"drone-{uav}", uav, _reader_and_writer(uav, own_down, own_up, (drone_presence(uav),)))
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -86,6 +86,8 @@ class Token(Protocol):
 
 # (key, alive): called once per token already present, then once per change
 TokenWatcher = Callable[[str, bool], None]
+# (key, payload, arrival_ns): what a subscriber's receive path is handed
+Deliver = Callable[[str, bytes, int], None]
 
 
 class Bus(Protocol):
@@ -105,7 +107,11 @@ class Bus(Protocol):
         expect: tuple[type[Message], ...] = (),
         decoder: Callable[[bytes], Message] = decode,
         remote_only: bool = False,
+        stats: SubscriptionStats | None = None,
     ) -> SubscriptionStats: ...
+
+    def unsubscribe(self, key_expr: str, stats: SubscriptionStats) -> None:
+        """Undeclare the subscriber declared on `key_expr` with `stats` (none: nothing happens)."""
 
     def declare_token(self, key: str) -> Token: ...
 
@@ -205,7 +211,8 @@ class MemoryBus:
             raise ValueError(f"delays must be >= 0 ns, got {list(delays)}")
         self._clock = clock or MonotonicClock()
         self._delays = [(key_matcher(expr), ns) for expr, ns in delays]
-        self._subscribers: list[tuple[re.Pattern[str], Callable[[str, bytes, int], None]]] = []
+        # (pattern, delivery, (key_expr, id(stats))): the last names the subscriber for unsubscribe()
+        self._subscribers: list[tuple[re.Pattern[str], Deliver, tuple[str, int]]] = []
         self.subscriptions: list[SubscriptionStats] = []
         self._in_flight: deque[tuple[int, str, bytes]] = deque()
         self._lock = threading.Lock()
@@ -226,14 +233,21 @@ class MemoryBus:
         expect: tuple[type[Message], ...] = (),
         decoder: Callable[[bytes], Message] = decode,
         remote_only: bool = False,
+        stats: SubscriptionStats | None = None,
     ) -> SubscriptionStats:
         """`remote_only` has no meaning within one process: everything is delivered (a subscriber that
         asks for it must, and does, tolerate its own messages)."""
-        stats = SubscriptionStats(key_expr)
+        stats = stats or SubscriptionStats(key_expr)
         with self._lock:
-            self._subscribers.append((key_matcher(key_expr), delivery(queue, stats, expect, decoder)))
-            self.subscriptions.append(stats)
+            deliver = delivery(queue, stats, expect, decoder)
+            self._subscribers.append((key_matcher(key_expr), deliver, (key_expr, id(stats))))
+            if all(s is not stats for s in self.subscriptions):
+                self.subscriptions.append(stats)
         return stats
+
+    def unsubscribe(self, key_expr: str, stats: SubscriptionStats) -> None:
+        with self._lock:
+            self._subscribers = [s for s in self._subscribers if s[2] != (key_expr, id(stats))]
 
     def declare_token(self, key: str) -> MemoryToken:
         self._token_changed(key, alive=True)
@@ -288,7 +302,7 @@ class MemoryBus:
 
     def _hand_over(self, key: str, data: bytes) -> None:
         with self._lock:
-            targets = [deliver for pattern, deliver in self._subscribers if pattern.fullmatch(key)]
+            targets = [deliver for pattern, deliver, _ in self._subscribers if pattern.fullmatch(key)]
         now = self._clock.now_ns()
         for deliver in targets:
             deliver(key, data, now)

@@ -13,6 +13,7 @@ declared on, so a receiver subscribes to both flows with one wildcard:
     dynqos/<uav>/down/qos                 QoS agent -> drone: the network's grant (QosGrant)
     dynqos/<uav>/down/qos/decision        QoS agent's arbiter -> drone and tools (QosDecision)
     dynqos/<uav>/clock                    drone -> router -> drone: the preflight's clock probes
+    dynqos/<uav>/alive                    liveliness token of a drone, held while its session lives
     dynqos/edge/replicas/<service>/<group>/<id>
                                           liveliness token of one replica of an edge service
     dynqos/edge/replicas/qos/<group>/active/<id>
@@ -84,6 +85,21 @@ def clock_probe(uav: str) -> str:
     """Where the preflight puts and hears its own probes, so that the router stamps them with its clock
     (onboard/clock_offset.py); only that drone may use it."""
     return f"{ROOT}/{check_uav_id(uav)}/clock"
+
+
+def drone_presence(uav: str) -> str:
+    """The drone's liveliness token: the edge replicas subscribe to the drones they see here
+    (edge/feeds.py), so a drone that holds none is served by no MPC or planner."""
+    return f"{ROOT}/{check_uav_id(uav)}/alive"
+
+
+def drones_present() -> str:
+    return f"{ROOT}/*/alive"
+
+
+def uav_of_presence(key: str) -> str:
+    """The drone id in a presence token's key (`dynqos/<uav>/alive`), unchecked."""
+    return key.split("/")[1] if key.count("/") == 2 else ""
 
 
 def replicas_of(service: str, group: str = "all") -> str:

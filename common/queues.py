@@ -1,7 +1,9 @@
-"""A bounded hand-off queue between zenoh callback threads and the code that consumes messages.
+"""Bounded hand-offs between zenoh callback threads and the code that consumes what they deliver.
 
 Zenoh callbacks must never block, so `put` never waits: when the queue is full the oldest item is
-dropped (the newest state or command is the one worth having) and the drop is counted.
+dropped (the newest state or command is the one worth having) and the drop is counted. Token changes
+(a replica or a drone came or went) wait in `PendingChanges`: the newest per key, a flood of new keys
+beyond the bound refused and counted.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from collections import deque
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
+K = TypeVar("K")
 
 
 class BoundedQueue(Generic[T]):
@@ -49,3 +52,29 @@ class BoundedQueue(Generic[T]):
             items = list(self._items)
             self._items.clear()
             return items
+
+
+class PendingChanges(Generic[K]):
+    """Whether each key is alive now, as zenoh's thread last said, until the worker takes them all."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.refused = 0  # new keys offered while `limit` others waited
+        self._pending: dict[K, bool] = {}
+        self._lock = threading.Lock()
+
+    def offer(self, key: K, alive: bool) -> bool | None:
+        """Note a change; returns whether nothing else was waiting (time to wake the worker), None if
+        refused."""
+        with self._lock:
+            if key not in self._pending and len(self._pending) >= self.limit:
+                self.refused += 1
+                return None
+            first = not self._pending
+            self._pending[key] = alive
+            return first
+
+    def take(self) -> dict[K, bool]:
+        with self._lock:
+            changes, self._pending = self._pending, {}
+        return changes

@@ -102,7 +102,7 @@ def endpoints(
         elif role is Role.EDGE:
             connect = [f"{_scheme(cfg)}/{_host(cfg.edge_host)}:{cfg.default_port}"]
         else:
-            connect = []
+            connect = list(cfg.router_links)  # the other edge sites' routers
     if listen is None:
         listen = router_endpoints(cfg) if role is Role.ROUTER else []
     return list(connect), list(listen)
@@ -134,7 +134,8 @@ def session_settings(
         "transport/unicast/max_links": cfg.max_links,
         "transport/shared_memory/enabled": cfg.shared_memory,
         "connect/timeout_ms": round(cfg.connect_timeout_s * 1000),
-        "connect/exit_on_failure": True,
+        # a router keeps trying another site's router (zenoh retries); anyone else stops, saying why
+        "connect/exit_on_failure": role is not Role.ROUTER,
     }
     if cfg.tls:
         settings.update(_tls_settings(cfg, role, check_files))
@@ -264,7 +265,9 @@ class ZenohPublisher:
 
         listener = self._inner.declare_matching_listener(on_status)
         try:
-            return self._inner.matching_status or matched.wait(timeout_s)
+            # a MatchingStatus, always truthy (its stub says bool): its `matching` field is the answer
+            status: Any = self._inner.matching_status
+            return bool(getattr(status, "matching", status)) or matched.wait(timeout_s)
         finally:
             listener.undeclare()  # type: ignore[no-untyped-call]
 
@@ -289,6 +292,7 @@ class ZenohBus:
         self._session = session
         self._clock = clock or MonotonicClock()
         self._subscribers: list[Any] = []
+        self._declared: dict[tuple[str, int], Any] = {}  # (key_expr, id(stats)) -> its subscriber
         self.subscriptions: list[SubscriptionStats] = []
         self._lock = threading.Lock()
 
@@ -313,10 +317,12 @@ class ZenohBus:
         expect: tuple[type[Message], ...] = (),
         decoder: Callable[[bytes], Message] = decode,
         remote_only: bool = False,
+        stats: SubscriptionStats | None = None,
     ) -> SubscriptionStats:
         """Decode every sample on key_expr into `queue`; bad payloads are counted, never raised.
-        `remote_only`: not what this session itself publishes (zenoh drops those before any decoding)."""
-        stats = SubscriptionStats(key_expr)
+        `remote_only`: not what this session itself publishes (zenoh drops those before any decoding).
+        `stats`: counters shared with other subscribers (one per drone, counted as one stream)."""
+        stats = stats or SubscriptionStats(key_expr)
         clock = self._clock
         deliver = delivery(queue, stats, expect, decoder)
 
@@ -327,8 +333,18 @@ class ZenohBus:
         subscriber = self._session.declare_subscriber(key_expr, on_sample, allowed_origin=origin)
         with self._lock:
             self._subscribers.append(subscriber)
-            self.subscriptions.append(stats)
+            self._declared[(key_expr, id(stats))] = subscriber
+            if all(s is not stats for s in self.subscriptions):
+                self.subscriptions.append(stats)
         return stats
+
+    def unsubscribe(self, key_expr: str, stats: SubscriptionStats) -> None:
+        with self._lock:
+            subscriber = self._declared.pop((key_expr, id(stats)), None)
+            if subscriber is not None:
+                self._subscribers.remove(subscriber)
+        if subscriber is not None:
+            subscriber.undeclare()
 
     def declare_token(self, key: str) -> ZenohToken:
         """A liveliness token; the router withdraws it when this session closes or its process dies."""
@@ -355,6 +371,7 @@ class ZenohBus:
     def close(self) -> None:
         with self._lock:
             subscribers, self._subscribers = self._subscribers, []
+            self._declared.clear()
         for subscriber in subscribers:
             subscriber.undeclare()
         self._session.close()  # type: ignore[no-untyped-call]

@@ -18,6 +18,7 @@ from collections.abc import Collection
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus
+from dynqos.common.queues import PendingChanges
 from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Change, Role, ranked, valid_replica_id
 
 log = logging.getLogger(__name__)
@@ -36,9 +37,8 @@ class Membership:
         self.service = service
         self.assignment = assignment
         self.replica = assignment.me
-        self.refused = 0  # changes beyond MAX_PENDING_CHANGES
-        self._pending: dict[str, bool] = {}
-        self._lock = threading.Lock()
+        self._changed = False  # a replica joined or left, or this replica's role for a drone changed
+        self._pending: PendingChanges[str] = PendingChanges(MAX_PENDING_CHANGES)
         bus.watch_tokens(keys.replicas_of(service, group), self._on_token)
         self.token = bus.declare_token(keys.replica_token(service, group, self.replica))
         for key in bus.alive_tokens(keys.replicas_of(service, group), timeout_s=2.0):  # the live set first
@@ -46,24 +46,26 @@ class Membership:
 
     def _on_token(self, key: str, alive: bool) -> None:
         """zenoh's thread: note the change; the worker applies it (the assignment is not shared)."""
-        with self._lock:
-            if key not in self._pending and len(self._pending) >= MAX_PENDING_CHANGES:
-                self.refused += 1
-                return
-            self._pending[key] = alive
+        self._pending.offer(key, alive)
+
+    @property
+    def refused(self) -> int:
+        """Changes beyond MAX_PENDING_CHANGES."""
+        return self._pending.refused
 
     def apply(self) -> None:
         """The worker: the changes since the last call, into the assignment, each logged."""
-        with self._lock:
-            changes, self._pending = self._pending, {}
+        changes = self._pending.take()
         a = self.assignment
         for key, alive in changes.items():
             replica = keys.replica_of_token(key)
             live = len(a.members)
             if alive and a.join(replica):
                 log.info("%s %s: replica %s joined (%d live)", self.service, self.replica, replica, live + 1)
+                self._changed = True
             elif not alive and a.leave(replica):
                 log.info("%s %s: replica %s left (%d live)", self.service, self.replica, replica, live - 1)
+                self._changed = True
             elif alive and replica not in a.members and replica != self.replica:
                 refused = a.counters.members_refused
                 if refused == 1 or refused % 1000 == 0:  # a flood is logged once, and counted
@@ -72,8 +74,14 @@ class Membership:
 
     def log_change(self, change: Change | None) -> None:
         if change is not None:
+            self._changed = True
             log.info("%s %s: drone %s: %s (term %d, now %s)", self.service, self.replica, change.uav,
                      change.reason, change.term, change.role.value)  # fmt: skip
+
+    def take_changed(self) -> bool:
+        """Whether the live set or a role changed since the last call (which drones to follow)."""
+        changed, self._changed = self._changed, False
+        return changed
 
     def health(self, drones: Collection[str], serving_word: str) -> str:
         """The replica part of a health line: who this is, how many peers, and its drones by role."""

@@ -15,7 +15,7 @@ import threading
 from collections.abc import Callable
 
 from dynqos.common import keys, mavsign
-from dynqos.common.bus import Bus, Priority, Received, SubscriptionStats
+from dynqos.common.bus import Bus, Priority, Received, SubscriptionStats, Token
 from dynqos.common.camera import CameraSource
 from dynqos.common.clock import Clock, MonotonicClock, to_ns
 from dynqos.common.config import Config
@@ -87,6 +87,7 @@ class OnboardDaemon:
         self.references: BoundedQueue[Received] = BoundedQueue(16)
         self.grants: BoundedQueue[Received] = BoundedQueue(16)  # the QoS agent's answers
         self.downlink_stats: dict[Downlink, SubscriptionStats] = {}
+        self.presence: Token | None = None
 
     # ---- set-up ---------------------------------------------------------------------------------------
 
@@ -123,6 +124,9 @@ class OnboardDaemon:
             self.downlink_stats[kind] = self.bus.subscribe(
                 keys.downlink(self.uav, kind), queue, expect=(expect,)
             )
+        # Announced once it listens: the MPC and planner replicas follow only drones that hold this
+        # token (edge/feeds.py); the router withdraws it when this session goes.
+        self.presence = self.bus.declare_token(keys.drone_presence(self.uav))
         source = self._camera_source()
         if source is not None:
             self.camera = CameraStream(

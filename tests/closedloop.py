@@ -73,6 +73,7 @@ def fly_circle(
     clock = ModelClock(model)
     one_way_ns = round(rtt_ms * 1e6 / 2)  # the drone's traffic crosses the network; the planner's does not
     bus = MemoryBus(clock, delays=[("dynqos/*/up/**", one_way_ns), ("dynqos/*/down/**", one_way_ns)])
+    bus.declare_token(keys.drone_presence(UAV))  # as the drone's daemon does
     service = MpcService(config, bus, clock)
     core = OnboardCore(config, start_ns=clock.now_ns())
     downlink: BoundedQueue[Received] = BoundedQueue(256)

@@ -56,6 +56,8 @@ def _commands_for(zcfg: ZenohConfig, uavs: dict[str, float], wanted: int) -> dic
     bus = drone_bus(zcfg)
     commands: dict[str, list[Command]] = {uav: [] for uav in uavs}
     try:
+        # announced, as each drone's daemon does: the MPC follows announced drones (held until the end)
+        tokens = [bus.declare_token(keys.drone_presence(uav)) for uav in uavs]
         queue: BoundedQueue[Received] = BoundedQueue(1000)
         for uav in uavs:
             bus.subscribe(keys.downlink(uav, Downlink.COMMAND), queue)
@@ -85,6 +87,7 @@ def _commands_for(zcfg: ZenohConfig, uavs: dict[str, float], wanted: int) -> dic
             while (item := queue.get(max(0.0, end - time.monotonic()))) is not None:
                 assert isinstance(item.message, Command)
                 commands[item.message.uav].append(item.message)
+        del tokens
     finally:
         bus.close()
     for uav, got in commands.items():
@@ -131,6 +134,31 @@ def test_mpc_replicas_share_the_fleet_by_drone_id(
     for shard, replica in enumerate(replicas):
         log = replica.stop()
         assert f"shard={shard}/2 drones=1" in log, log[-500:]
+
+
+def test_three_mpc_replicas_each_receive_only_the_drones_they_fly_or_stand_by_for(
+    edge: tuple[Path, ZenohConfig, list[DynqosProcess]],
+) -> None:
+    """Per-drone subscriptions over a real router (edge/feeds.py): a replica that is neither primary nor
+    standby for a drone receives none of its states (`not_mine=0`), and every drone is answered."""
+    from dynqos.edge.replicas import ranked
+
+    config, zcfg, procs = edge
+    procs.append(DynqosProcess(["edge", "planner"], config))
+    names = ("mpc-x", "mpc-y", "mpc-z")  # each ranks first or second for 3 to 5 of the six drones
+    replicas = {name: DynqosProcess(["edge", "mpc"], config, env={"DYNQOS_MPC__REPLICA_ID": name})
+                for name in names}  # fmt: skip
+    procs.extend(replicas.values())
+    uavs = {f"uav{i}": float(i % 3) for i in range(1, 7)}
+    expected = {name: {uav for uav in uavs if name in ranked(uav, names)[:2]} for name in names}
+    assert all(0 < len(e) < len(uavs) for e in expected.values()), expected  # each misses some
+    _commands_for(zcfg, uavs, 20)  # its drones' tokens go when it ends
+    for name, replica in replicas.items():
+        log = replica.stop()
+        followed = set(re.findall(r"mpc: following drone (\w+)", log))
+        left = set(re.findall(r"mpc: no longer following drone (\w+) \(not ours now\)", log))
+        assert followed - left == expected[name], log[-3000:]
+        assert " not_mine=0 " in log[log.rindex("mpc: stopped") :]
 
 
 def test_detector_acks_every_frame_and_finds_the_hoop(

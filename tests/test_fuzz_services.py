@@ -120,6 +120,8 @@ def test_every_bad_message_is_rejected_and_valid_traffic_still_served(
     services: tuple[ZenohConfig, dict[str, DynqosProcess]],
 ) -> None:
     zcfg, procs = services
+    for name in ("mpc", "planner"):  # they subscribe to uav1 once its daemon announces it (edge/feeds.py)
+        assert any(f"{name}: following drone uav1" in line for line in procs[name].lines(timeout_s=20))
     bus = open_bus(zcfg, Role.EDGE)
     sent = dict.fromkeys(KEYS, 0)
     try:

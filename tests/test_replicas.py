@@ -203,6 +203,7 @@ def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goe
     drone's states, the commands each replica sees of the other, the tokens; a token flood is counted."""
     clock = FakeClock(1_000_000_000)
     bus = MemoryBus(clock)
+    bus.declare_token(keys.drone_presence("uav1"))  # the drone's daemon announces it
     a, b = _mpc("mpc-a", bus, clock), _mpc("mpc-b", bus, clock)
     commands: BoundedQueue[Received] = BoundedQueue(1000)
     bus.subscribe(keys.downlink("uav1", Downlink.COMMAND), commands, expect=(Command,))
@@ -263,6 +264,7 @@ def test_a_standby_planner_continues_the_mission_where_the_one_it_replaces_left_
     references; when the first one's token goes, the second publishes the same mission, continued."""
     clock = FakeClock(1_000_000_000)
     bus = MemoryBus(clock)
+    bus.declare_token(keys.drone_presence("uav1"))
     planners = [PlannerService(load_config(None, [f'planner.replica_id="{n}"']), bus, clock) for n in "pq"]
     refs: BoundedQueue[Received] = BoundedQueue(1000)
     bus.subscribe(keys.downlink("uav1", Downlink.REFERENCE), refs, expect=(Reference,))

@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from dynqos.common.clock import FakeClock, MonotonicClock, seconds, to_ns
-from dynqos.common.queues import BoundedQueue
+from dynqos.common.queues import BoundedQueue, PendingChanges
 from dynqos.common.stats import Ema, SlidingWindow, percentile
 
 finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False)
@@ -108,3 +108,16 @@ def test_queue_wakes_a_waiting_consumer() -> None:
     queue.put("hello")
     consumer.join(timeout=10)
     assert got == ["hello"]
+
+
+def test_pending_changes_keep_the_newest_per_key_and_refuse_a_flood_of_new_keys() -> None:
+    pending: PendingChanges[str] = PendingChanges(2)
+    assert pending.offer("a", True) is True  # the first waiting change: wake the worker
+    assert pending.offer("a", False) is False  # the same key again: the newest wins, no new wake-up
+    assert pending.offer("b", True) is False
+    assert pending.offer("c", True) is None  # a third key while two wait: refused and counted
+    assert pending.offer("b", False) is False  # a waiting key is still updated
+    assert pending.refused == 1
+    assert pending.take() == {"a": False, "b": False}
+    assert pending.take() == {}
+    assert pending.offer("c", True) is True  # room again

@@ -151,6 +151,15 @@ def _send_and_count(net: Net, flow: Flow, priority: Priority, count: int) -> tup
     )
 
 
+def test_wait_matched_says_no_until_a_subscriber_is_there(net: Net) -> None:
+    """zenoh's matching status is an object (always truthy): the answer is its `matching` field."""
+    publisher = net.drone.publisher(keys.uplink(UAV, Flow.DEFAULT, Stream.STATUS), Priority.DATA)
+    assert publisher.wait_matched(0.3) is False  # nobody subscribes to it
+    queue: BoundedQueue[Received] = BoundedQueue(4)
+    net.edge.subscribe(keys.uplink_any_flow(UAV, Stream.STATUS), queue)
+    assert publisher.wait_matched(10) is True
+
+
 def test_priority_flow_traffic_moves_only_on_the_priority_link(net: Net) -> None:
     on_default, on_priority = _send_and_count(net, Flow.PRIORITY, Priority.INTERACTIVE_LOW, 50)
     assert on_priority >= 50 * CHUNK

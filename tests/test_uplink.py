@@ -59,11 +59,13 @@ def _state_publisher(rig: ZenohThroughCell) -> Publisher:
 def _back_up(rig: ZenohThroughCell, loss_s: float) -> threading.Event:
     """Lose coverage for `loss_s` and fill the priority flow's link until a state put waits on it; the
     event is set when that put returns."""
-    assert rig.cell.post_event({"kind": "coverage_loss", "duration_s": loss_s})[0] == 200
     camera = keys.uplink(UAV, Flow.PRIORITY, Stream.CAMERA_RGB)
     bulk = rig.drone.publisher(camera, STREAMS[Stream.CAMERA_RGB][1], drop_when_congested=True)
     rig.edge.subscribe(camera, BoundedQueue(4))
-    assert bulk.wait_matched(10)  # zenoh drops what no subscriber matches at the source
+    # zenoh drops what no subscriber matches at the source; the subscription crosses the cell, so
+    # before the coverage goes
+    assert bulk.wait_matched(10)
+    assert rig.cell.post_event({"kind": "coverage_loss", "duration_s": loss_s})[0] == 200
     probe = _state_publisher(rig)
     returned = threading.Event()
 

@@ -57,6 +57,9 @@ class ZenohConfig:
     acl_ros2_clients: tuple[str, ...] = ()
     acl_ros2_domain_id: Annotated[int, In(0, 232, "must be in 0..232 (ROS 2 domain ids)")] = 0
     acl_ros2_prefix: str = "dynqos"
+    # router: the routers of other edge sites to link to (zenoh endpoints, `tcp/<host>:<port>`), so that
+    # replicas at both sites see each other's tokens and share the drones (docs/deploy.md)
+    router_links: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         _require(bool(self.edge_host.strip()), "edge_host", "must not be empty")
@@ -83,6 +86,14 @@ class ZenohConfig:
         _require(re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", self.acl_ros2_prefix) is not None, "acl_ros2_prefix",
                  "must be a ROS name: a letter, then letters, digits, _")  # fmt: skip
         _require(self.acl in ("on", "off"), "acl", f'must be "on" or "off", got {self.acl!r}')
+        for link in self.router_links:
+            scheme = "tls" if self.tls else "tcp"
+            _require(re.fullmatch(rf"{scheme}/\S+:\d{{1,5}}", link) is not None, "router_links",
+                     f"{link!r} is not a zenoh endpoint: write {scheme}/<host>:<port>")  # fmt: skip
+        _require(not (self.router_links and self.acl_drones), "router_links",
+                 "cannot link routers under access control yet: the policy has no rule for another "
+                 "router (link the sites over a private network with acl_drones empty, or run zenohd "
+                 "with a policy of your own)")  # fmt: skip
         _require(
             not (self.acl == "off" and self.acl_drones),
             "acl",

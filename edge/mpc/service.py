@@ -1,4 +1,4 @@
-"""`dynqos edge mpc`: one process, one controller per drone, discovered from the drones' states.
+"""`dynqos edge mpc`: one process, one controller per drone, found by the drones' presence tokens.
 
 Zenoh callbacks only decode and queue; one worker thread drains the queue, keeps the newest state
 per drone, solves and publishes the Command (REAL_TIME, express). A failed solve sends nothing and
@@ -23,11 +23,12 @@ from prometheus_client import Histogram
 from dynqos.common import keys
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.config import Config
-from dynqos.common.keys import Downlink, Stream
+from dynqos.common.keys import Downlink
 from dynqos.common.messages import Command, Reference, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received
-from dynqos.edge import metrics
+from dynqos.edge import feeds, metrics
+from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
 from dynqos.edge.mpc.controller import DroneController
 from dynqos.edge.mpc.problem import SolveError
@@ -72,20 +73,21 @@ class MpcService:
         # Replicas of one static shard (or all, unsharded) share its drones among themselves.
         group = "all" if cfg.shard_count == 1 else f"shard-{cfg.shard_index}-of-{cfg.shard_count}"
         self.membership = Membership("mpc", group, self.assignment, bus)
-        self.state_stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,))
-        self.ref_stats = bus.subscribe(
-            keys.downlink_all_drones(Downlink.REFERENCE), self.queue, expect=(Reference,)
+        # each drone's state, its references, and the other replicas' commands to it (a standby's view)
+        self.feeds = DroneFeeds(
+            "mpc", bus, self.queue, [feeds.states(), feeds.references(), feeds.commands()]
         )
-        # Other replicas' commands (ours never: with one replica this costs nothing per message).
-        self.command_stats = bus.subscribe(
-            keys.downlink_all_drones(Downlink.COMMAND), self.queue, expect=(Command,), remote_only=True
-        )
+        self.feeds.reconcile(self._wanted, assignment_changed=True)
         self.service = Service("mpc", config.mpc.health_interval_s)
         self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
 
     def _mine(self, uav: str) -> bool:
         cfg = self.config.mpc
         return cfg.shard_count == 1 or shard_of(uav, cfg.shard_count) == cfg.shard_index
+
+    def _wanted(self, uav: str) -> bool:
+        """Whether to receive the drone's messages: our shard's, and one we fly or stand by for."""
+        return self._mine(uav) and self.assignment.mine(uav)
 
     def _controller(self, uav: str) -> DroneController:
         ctrl = self.controllers.get(uav)
@@ -122,6 +124,7 @@ class MpcService:
             else:
                 self._controller(uav)  # a standby keeps a warm controller, fed by the holder's commands
         self._drop_idle()
+        self.feeds.reconcile(self._wanted, assignment_changed=self.membership.take_changed())
         return sent
 
     def _on_reference(self, message: Reference, arrival_ns: int) -> None:
@@ -209,13 +212,14 @@ class MpcService:
     def health(self) -> str:
         c = self.counters
         solve = np.array(c.solve_ms[-500:]) if c.solve_ms else np.zeros(1)
-        rejected = self.state_stats.rejected + self.ref_stats.rejected + self.command_stats.rejected
+        rejected = self.feeds.rejected()
         a = self.assignment
         return (
             f"{self.membership.health(self.newest, 'flying')} "
             f"stepped_down={a.counters.stepped_down} tokens_refused={a.counters.members_refused} "
             f"shard={self.config.mpc.shard_index}/{self.config.mpc.shard_count} "
-            f"drones={len(self.controllers)} states={c.states} commands={c.commands} stale={c.stale} "
+            f"drones={len(self.controllers)} followed={len(self.feeds.subscribed)} "
+            f"states={c.states} not_mine={c.not_mine} commands={c.commands} stale={c.stale} "
             f"rejected={rejected} solve_failures={c.solve_failures} "
             f"references={c.references} queue_drops={self.queue.dropped} "
             f"solve_ms_p50={np.percentile(solve, 50):.3f} solve_ms_p99={np.percentile(solve, 99):.3f}"

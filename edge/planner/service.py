@@ -1,4 +1,4 @@
-"""`dynqos edge planner`: every drone that publishes its state gets the configured mission.
+"""`dynqos edge planner`: every drone that announces itself and publishes its state gets the mission.
 
 Each drone's mission clock starts when the planner first hears from it; References covering the MPC
 horizon (and some margin) are published at `publish_hz` on `dynqos/<uav>/ref`.
@@ -18,11 +18,12 @@ from pathlib import Path
 from dynqos.common import keys
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.config import Config, DroneMissionConfig, PlannerConfig
-from dynqos.common.keys import Downlink, Stream
+from dynqos.common.keys import Downlink
 from dynqos.common.messages import Reference, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received
-from dynqos.edge import metrics
+from dynqos.edge import feeds, metrics
+from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
 from dynqos.edge.planner.missions import Mission, load_waypoints
 from dynqos.edge.replicas import Assignment, Role
@@ -53,9 +54,11 @@ class PlannerService:
         self.replica = self.assignment.me
         self.membership = Membership("planner", "all", self.assignment, bus)
         self.state_seq: dict[str, int] = {}  # the newest state seen per drone
-        self.ref_stats = bus.subscribe(
-            keys.downlink_all_drones(Downlink.REFERENCE), self.queue, expect=(Reference,), remote_only=True
+        # the other replicas' references too: whom they publish for, and their mission time
+        self.feeds = DroneFeeds(
+            "planner", bus, self.queue, [feeds.states(), feeds.references(remote_only=True)]
         )
+        self.feeds.reconcile(self.assignment.mine, assignment_changed=True)
 
     def _init_mission(self, config: Config, bus: Bus, clock: Clock | None) -> None:
         self.config = config
@@ -66,7 +69,6 @@ class PlannerService:
         self.clock = clock or MonotonicClock()
         self.dt_s = config.control.t_mpc_s
         self.queue: BoundedQueue[Received] = BoundedQueue(1024)
-        self.stats = bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,))
         self.started_ns: dict[str, int] = {}
         self.publishers: dict[str, Publisher] = {}
         # From the wall clock in ms, not 0: a restarted planner (the same replica, the same term) is
@@ -92,6 +94,7 @@ class PlannerService:
                     self.started_ns[message.uav] = item.arrival_ns - round(message.mission_t_s * 1e9)
         for change in self.assignment.tick(self.clock.now_ns()):
             self.membership.log_change(change)
+        self.feeds.reconcile(self.assignment.mine, assignment_changed=self.membership.take_changed())
 
     def _on_state(self, message: State, arrival_ns: int) -> None:
         uav = message.uav
@@ -128,7 +131,7 @@ class PlannerService:
         return (
             f"{self.membership.health(self.started_ns, 'publishing')} "
             f"drones={len(self.started_ns)} references={self.sent} "
-            f"rejected={self.stats.rejected + self.ref_stats.rejected}"
+            f"followed={len(self.feeds.subscribed)} rejected={self.feeds.rejected()}"
         )
 
     def run(self) -> None:

@@ -10,11 +10,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import threading
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus, Token
 from dynqos.common.clock import NS_PER_S, Clock, to_ns
+from dynqos.common.queues import PendingChanges
 from dynqos.edge.qos.leadership import Leadership
 
 log = logging.getLogger(__name__)
@@ -29,11 +29,9 @@ class AgentPeers:
         self.group = group
         self.leadership = leadership
         self.changed = asyncio.Event()  # set (on the loop) when changes wait in `_pending`
-        self.refused = 0  # changes beyond MAX_PENDING_CHANGES
         self._refusal_logged = False
         self._loop = loop
-        self._pending: dict[tuple[str, str], bool] = {}  # (kind, agent) -> alive
-        self._lock = threading.Lock()
+        self._pending: PendingChanges[tuple[str, str]] = PendingChanges(MAX_PENDING_CHANGES)  # (kind, agent)
         self._active_token: Token | None = None
         members, actives = keys.replicas_of("qos", group), keys.qos_actives(group)
         bus.watch_tokens(members, lambda key, alive: self._on_token("member", key, alive))
@@ -50,21 +48,19 @@ class AgentPeers:
     def _on_token(self, kind: str, key: str, alive: bool) -> None:
         """zenoh's thread: note the change; the loop applies it."""
         agent = keys.replica_of_token(key)
-        with self._lock:
-            if (kind, agent) not in self._pending and len(self._pending) >= MAX_PENDING_CHANGES:
-                self.refused += 1
-                return
-            first = not self._pending
-            self._pending[(kind, agent)] = alive
-        if first:
+        if self._pending.offer((kind, agent), alive):
             with contextlib.suppress(RuntimeError):  # the loop has closed: the agent is stopping
                 self._loop.call_soon_threadsafe(self.changed.set)
+
+    @property
+    def refused(self) -> int:
+        """Changes beyond MAX_PENDING_CHANGES."""
+        return self._pending.refused
 
     def apply(self) -> None:
         """The loop: the changes since the last call, into the leadership, each logged."""
         self.changed.clear()
-        with self._lock:
-            changes, self._pending = self._pending, {}
+        changes = self._pending.take()
         lead = self.leadership
         for (kind, agent), alive in changes.items():
             seen = lead.member(agent, alive) if kind == "member" else lead.active(agent, alive)
