@@ -108,6 +108,7 @@ class Bus(Protocol):
         decoder: Callable[[bytes], Message] = decode,
         remote_only: bool = False,
         stats: SubscriptionStats | None = None,
+        direct: bool = False,
     ) -> SubscriptionStats: ...
 
     def unsubscribe(self, key_expr: str, stats: SubscriptionStats) -> None:
@@ -234,9 +235,11 @@ class MemoryBus:
         decoder: Callable[[bytes], Message] = decode,
         remote_only: bool = False,
         stats: SubscriptionStats | None = None,
+        direct: bool = False,
     ) -> SubscriptionStats:
-        """`remote_only` has no meaning within one process: everything is delivered (a subscriber that
-        asks for it must, and does, tolerate its own messages)."""
+        """`remote_only` and `direct` have no meaning within one process: everything is delivered, on
+        the putter's thread (a subscriber that asks for remote_only must, and does, tolerate its own
+        messages)."""
         stats = stats or SubscriptionStats(key_expr)
         with self._lock:
             deliver = delivery(queue, stats, expect, decoder)

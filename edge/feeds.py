@@ -113,8 +113,9 @@ class DroneFeeds:
         want = {uav for uav in self.present if wanted(uav)}
         for uav in want - self.subscribed:
             for feed in self.feeds:
+                # direct: no Python thread per subscriber (three per drone would be hundreds)
                 self.bus.subscribe(feed.key(uav), self.queue, expect=feed.expect,
-                                   remote_only=feed.remote_only, stats=feed.stats)  # fmt: skip
+                                   remote_only=feed.remote_only, stats=feed.stats, direct=True)  # fmt: skip
             log.info("%s: following drone %s (%d followed)", self.service, uav, len(self.subscribed) + 1)
             self.subscribed.add(uav)
         for uav in self.subscribed - want:
