@@ -5,14 +5,23 @@ from __future__ import annotations
 
 import json
 import subprocess
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from dynqos.common.config import ZenohConfig, load_config
+from dynqos.common.errors import ConfigError
 from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import builtin_scenario, fleet_configs, with_cell, write_config
+from dynqos.experiment.scenario import (
+    FLEET_FAULTS,
+    builtin_scenario,
+    fleet_configs,
+    load_scenario,
+    with_cell,
+    write_config,
+)
 from dynqos.reports.fleet import _queue_delays
 from tests.procs import DYNQOS
 
@@ -82,12 +91,25 @@ def test_each_drone_of_a_fleet_gets_its_own_vehicle_bearers_mission_and_identity
         assert loaded.onboard.camera_width >= 64
 
 
-def _fly_fleet(out: Path) -> dict[str, Any]:
+def test_a_fleet_takes_the_edges_faults_and_refuses_one_drones_with_the_reason(tmp_path: Path) -> None:
+    scenario = builtin_scenario("fleet-replicas")
+    assert scenario.fleet
+    assert (scenario.mpc_replicas, scenario.planner_replicas, scenario.qos_agents) == (2, 2, 2)
+    assert {f.kind for f in scenario.faults} <= set(FLEET_FAULTS)
+    path = tmp_path / "fleet-coverage.toml"
+    text = (Path(str(resources.files("dynqos") / "scenarios" / "fleet-arbiter.toml"))).read_text()
+    fault = '[[scenario.faults]]\nat_s = 5\nkind = "coverage_loss"\n\n'
+    path.write_text(text.replace("[[scenario.drones]]", fault + "[[scenario.drones]]", 1))
+    with pytest.raises(ConfigError, match=r"faults\[0\]\.kind.*coverage_loss acts on one drone's link"):
+        load_scenario(path)
+
+
+def _fly_fleet(out: Path, name: str = "fleet-arbiter", duration: str = "30") -> dict[str, Any]:
     result = subprocess.run(
-        [DYNQOS, "demo", "--scenario", "fleet-arbiter", "--duration", "30", "--out", str(out)],
+        [DYNQOS, "demo", "--scenario", name, "--duration", duration, "--out", str(out)],
         capture_output=True, text=True, timeout=270, check=False,
     )  # fmt: skip
-    summary: dict[str, Any] = json.loads((out / "fleet-arbiter" / "summary.json").read_text())
+    summary: dict[str, Any] = json.loads((out / name / "summary.json").read_text())
     assert result.returncode == (0 if summary["ok"] else 1), result.stderr[-3000:]
     return summary
 
@@ -155,3 +177,45 @@ def test_a_short_arbitrated_fleet_flight_keeps_the_high_risk_drones_loop(tmp_pat
     report = (out / "report.md").read_text()
     assert "## Fleets" in report
     assert "| uav1 | high |" in report
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+@pytest.mark.timeout(600)  # a starved first flight is flown again
+def test_a_fleet_on_a_replicated_edge_never_falls_back_when_its_replicas_are_killed_or_hung(
+    tmp_path: Path,
+) -> None:
+    """fleet-replicas, whole: four drones, two MPC and two planner replicas, two QoS agents; the MPC
+    replica serving uav1 is killed, a third joins, the serving one is hung, the serving planner is
+    killed, the active QoS agent is killed. No drone falls back, none of its setpoints pauses over 100
+    ms, the standby agent serves uav1's grant, the same session, within 2 s."""
+    out = tmp_path / "run"
+    summary = _fly_fleet(out, "fleet-replicas", "45")
+    if summary["failure"].startswith("starved"):
+        print(f"starved the first time ({summary['machine']}): flying again")
+        out = tmp_path / "again"
+        summary = _fly_fleet(out, "fleet-replicas", "45")
+    assert summary["ok"] is True, summary["failure"]
+    kinds = [f["kind"] for f in summary["faults"]]
+    assert kinds == ["mpc_replica_kill", "replica_join", "mpc_replica_hang", "planner_replica_kill",
+                     "qos_agent_kill"]  # fmt: skip
+    for fault in summary["faults"]:
+        print(f"{fault['kind']} on {fault['target']}: fell back {fault['fell_back'] or 'none'}, "
+              f"longest setpoint gap {fault['max_setpoint_gap_ms']} ms; {fault['notes']}")  # fmt: skip
+        assert fault["target"], fault  # it acted on a live process
+        assert fault["fell_back"] == [], fault
+        assert fault["max_setpoint_gap_ms"] is not None
+        assert fault["max_setpoint_gap_ms"] < 100, fault
+    assert summary["checks"]["no_fallback_in_faults"] is True
+    for uav, drone in summary["drones"].items():
+        assert drone["fallback_entered"] is False, uav
+        assert len(drone["faults"]) == len(kinds), uav
+    kill = summary["faults"][kinds.index("mpc_replica_kill")]
+    assert "served the drone" in kill["notes"][0], kill  # the replica flying uav1, by its own State
+    agent = summary["faults"][kinds.index("qos_agent_kill")]["grant"]
+    assert agent["before"] == agent["after"] == "available", agent
+    assert agent["same_session"] is True, agent
+    assert agent["served_after_s"] < 2.0, agent
+    assert summary["qod_sessions"]["conflicts"] == 0
+    assert summary["qod_sessions"]["open_at_end"] == 0
+    assert "- fault mpc_replica_kill at 8 s for 2 s on mpc" in (out / "report.md").read_text()

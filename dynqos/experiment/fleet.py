@@ -33,7 +33,7 @@ from dynqos.experiment.flight import (
 )
 from dynqos.experiment.processes import Processes, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import Scenario, fleet_configs, with_cell, write_config
+from dynqos.experiment.scenario import REPLICA_FAULTS, Scenario, fleet_configs, with_cell, write_config
 from dynqos.reports.fleet import summarise_fleet, write_fleet
 
 log = logging.getLogger(__name__)
@@ -129,14 +129,17 @@ def _record_fleet(
             recs[uav].offload_ns = wait_for_offload(streams[uav].states, procs, stop, f"onboard-{uav}")
         # The flight's time zero is when the last drone offloads: from then on every drone is recorded.
         rec.t0_ns = rec.offload_ns = time.monotonic_ns()
-        injector = FaultInjector(
-            procs, lambda event: post_json(cell_port, "/events", event), bus, uplink_mbps=uplink_mbps
-        )
+        # a replica fault acts on the replica serving the first drone (the others' may be another)
+        watched = next(iter(paths)) if any(f.kind in REPLICA_FAULTS for f in scenario.faults) else None
+        injector = FaultInjector(procs, lambda event: post_json(cell_port, "/events", event), bus,
+                                 uplink_mbps=uplink_mbps, watch_uav=watched)  # fmt: skip
         try:
             fly(scenario, procs, cell_port, injector, rec, stop, progress)
         finally:
             injector.close()
+            rec.faults = injector.windows
         for uav, s in streams.items():
+            recs[uav].faults = injector.windows  # what each fault did is measured on every drone
             s.drain_into(recs[uav])
             recs[uav].t0_ns = rec.t0_ns
             recs[uav].bg_on_ns = rec.bg_on_ns

@@ -182,8 +182,11 @@ class Scenario:
             raise ConfigError("drones", "drone ids must be unique")
         if len(self.drones) > MAX_FLEET:
             raise ConfigError("drones", f"at most {MAX_FLEET} drones on one machine")
-        if self.drones and self.faults:
-            raise ConfigError("faults", "a fleet scenario injects no faults (yet)")
+        for i, fault in enumerate(self.faults if self.drones else ()):
+            if fault.kind not in FLEET_FAULTS:
+                raise ConfigError(f"faults[{i}].kind", f"a fleet scenario injects only "
+                                  f"{', '.join(FLEET_FAULTS)}: {fault.kind} acts on one drone's link or "
+                                  "flight controller")  # fmt: skip
         if not 0.1 <= self.bg_weight <= 100:
             raise ConfigError("bg_weight", "must be in 0.1..100")
         if self.world:
@@ -209,6 +212,12 @@ REPLICA_FAULTS = {
     "mpc_replica_kill": "mpc_replicas", "mpc_replica_hang": "mpc_replicas",
     "planner_replica_kill": "planner_replicas", "qos_agent_kill": "qos_agents",
 }  # fmt: skip
+
+
+# the faults a fleet scenario may inject: they act on the edge's processes or the whole cell, and each
+# replica fault on the replica serving the fleet's first drone
+FLEET_FAULTS = ("mpc_replica_kill", "mpc_replica_hang", "planner_replica_kill", "qos_agent_kill",
+                "replica_join", "background")  # fmt: skip
 
 
 def replica_names(service: str, count: int) -> list[str]:

@@ -11,11 +11,15 @@ def fmt(value: float | None, digits: int = 1) -> str:
 
 
 def lookup(summary: dict[str, Any], path: str) -> Any:
+    """The value at a dotted path; a number indexes a list (`faults.0.fallback`); None where missing."""
     value: Any = summary
     for part in path.split("."):
-        if not isinstance(value, dict):
+        if isinstance(value, list) and part.isdigit():
+            value = value[int(part)] if int(part) < len(value) else None
+        elif isinstance(value, dict):
+            value = value.get(part)
+        else:
             return None
-        value = value.get(part)
     return value
 
 
