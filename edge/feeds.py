@@ -21,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from dynqos.common import keys
+from dynqos.common.acl import reserved_name
 from dynqos.common.bus import Bus, Received, SubscriptionStats
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import Command, Message, Reference, State
@@ -68,7 +69,7 @@ class DroneFeeds:
         self.feeds = feeds
         self.present: set[str] = set()
         self.subscribed: set[str] = set()
-        self.refused = 0  # presence tokens with an invalid drone id or beyond MAX_DRONES
+        self._bad_tokens = 0  # presence tokens with an invalid drone id or beyond MAX_DRONES
         self._pending: PendingChanges[str] = PendingChanges(MAX_PENDING_CHANGES)
         for feed in feeds:
             feed.stats.key_expr = feed.all_drones
@@ -76,16 +77,20 @@ class DroneFeeds:
         bus.watch_tokens(keys.drones_present(), self._on_token)
 
     def _on_token(self, key: str, alive: bool) -> None:
-        """zenoh's thread: note the change; the worker applies it."""
-        if self._pending.offer(key, alive) is None:
-            self.refused += 1  # a flood: counted here, logged by the worker's next refusal
+        """zenoh's thread: note the change; the worker applies it (a flood is counted there)."""
+        self._pending.offer(key, alive)
+
+    @property
+    def refused(self) -> int:
+        """Presence tokens refused: an invalid or edge id, beyond MAX_DRONES, or a flood of changes."""
+        return self._bad_tokens + self._pending.refused
 
     def _take_presence(self) -> bool:
         changes = self._pending.take()
         changed = False
         for key, alive in changes.items():
             uav = keys.uav_of_presence(key)
-            if alive and (not keys.UAV_ID_PATTERN.fullmatch(uav) or uav == "edge"):
+            if alive and (not keys.UAV_ID_PATTERN.fullmatch(uav) or reserved_name(uav)):
                 self._refuse(key)
                 continue
             if alive and uav not in self.present:
@@ -100,7 +105,7 @@ class DroneFeeds:
         return changed
 
     def _refuse(self, key: str) -> None:
-        self.refused += 1
+        self._bad_tokens += 1
         if self.refused == 1 or self.refused % 1000 == 0:  # a flood is logged once, and counted
             log.warning("%s: drone token %r refused (invalid id or more than %d drones; %d so far)",
                         self.service, key[:120], MAX_DRONES, self.refused)  # fmt: skip
