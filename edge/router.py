@@ -7,12 +7,13 @@ The default flow's port (7447) and the priority flow's port (7448) are two liste
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 from dynqos.common.config import Config
 from dynqos.common.lifecycle import ready_line, serving_metrics
 from dynqos.common.metrics import gauge
-from dynqos.common.transport import Role, open_session, router_endpoints
+from dynqos.common.transport import Role, close_session, open_session, router_endpoints
 from dynqos.edge.service import Service
 
 log = logging.getLogger(__name__)
@@ -39,6 +40,9 @@ def run(config: Config, *, health_file: Path | None = None) -> int:
                 service.maybe_health(lambda: f"links={len(session.info.links())}")
                 service.stop.wait(0.5)
         finally:
-            session.close()  # type: ignore[no-untyped-call]
+            closed = close_session(session, "router")
             log.info("router: stopped")
+    if not closed:
+        logging.shutdown()
+        os._exit(0)  # zenoh's runtime may hang the interpreter's exit as well; it has stopped serving
     return 0

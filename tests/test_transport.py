@@ -28,6 +28,7 @@ from dynqos.common.transport import (
     Priority,
     Received,
     Role,
+    close_session,
     default_flow_endpoint,
     open_bus,
     priority_flow_endpoint,
@@ -257,3 +258,31 @@ def test_unreachable_router_gives_a_transport_error() -> None:
     cfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port(), connect_timeout_s=0.3)
     with pytest.raises(TransportError, match="cannot open zenoh drone session"):
         open_bus(cfg, Role.DRONE)
+
+
+class _HungSession:
+    """A session whose close waits on a peer that never answers (the router hang seen once in CI)."""
+
+    def __init__(self) -> None:
+        self.release = threading.Event()
+
+    def close(self) -> None:
+        self.release.wait(30.0)
+
+
+def test_a_hung_session_close_is_bounded_and_reported(caplog: pytest.LogCaptureFixture) -> None:
+    session = _HungSession()
+    try:
+        assert close_session(session, "router", within_s=0.2) is False
+    finally:
+        session.release.set()
+    assert "router: zenoh session close did not finish" in caplog.text
+
+
+def test_a_real_session_closes_within_the_bound() -> None:
+    session = zenoh.open(
+        zenoh.Config.from_json5(
+            '{"mode": "peer", "listen": {"endpoints": []}, "scouting": {"multicast": {"enabled": false}}}'
+        )
+    )
+    assert close_session(session, "peer") is True
