@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+from dataclasses import replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -13,7 +14,9 @@ import pytest
 
 from dynqos.common.config import ZenohConfig, load_config
 from dynqos.common.errors import ConfigError
+from dynqos.experiment.faults import Fault
 from dynqos.experiment.recording import Recording
+from dynqos.experiment.runner import run_scenario
 from dynqos.experiment.scenario import (
     FLEET_FAULTS,
     builtin_scenario,
@@ -219,3 +222,57 @@ def test_a_fleet_on_a_replicated_edge_never_falls_back_when_its_replicas_are_kil
     assert summary["qod_sessions"]["conflicts"] == 0
     assert summary["qod_sessions"]["open_at_end"] == 0
     assert "- fault mpc_replica_kill at 8 s for 2 s on mpc" in (out / "report.md").read_text()
+
+
+# The fleet's other two modes (fleet-allprio's policy, fleet-noqos's flow): the same replicated edge and
+# faults, closer together. Commands reach a drone on the flow it flies, so a takeover meets each one.
+OTHER_MODES = {
+    "allprio": ("dynamic", ("mpc_replica_kill", "replica_join", "mpc_replica_hang", "planner_replica_kill",
+                            "qos_agent_kill")),
+    "noqos": ("default", ("mpc_replica_kill", "replica_join", "mpc_replica_hang", "planner_replica_kill")),
+}  # fmt: skip
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+@pytest.mark.timeout(600)  # a starved first flight is flown again
+@pytest.mark.parametrize("mode", sorted(OTHER_MODES))
+def test_a_replicated_edge_keeps_every_drone_out_of_its_fallback_in_the_fleets_other_modes(
+    mode: str, tmp_path: Path
+) -> None:
+    """fleet-replicas with every drone granted what it asks (allprio) or none asking (noqos), the
+    faults 5 s apart: no drone falls back, no setpoint pauses over 100 ms, and in allprio the standby
+    QoS agent serves uav1's grant, the same session, within 2 s."""
+    qos, kinds = OTHER_MODES[mode]
+    base = builtin_scenario("fleet-replicas")
+    faults = tuple(Fault(at_s=6.0 + 5.0 * i, kind=kind, duration_s=3.0 if kind == "qos_agent_kill" else 2.0)
+                   for i, kind in enumerate(kinds))  # fmt: skip
+    scenario = replace(base, name=f"fleet-replicas-{mode}", qos=qos, qos_policy="grant-all", faults=faults,
+                       duration_s=faults[-1].at_s + 8.0)  # fmt: skip
+    summary = run_scenario(scenario, tmp_path / "first", progress=False)
+    if summary["failure"].startswith("starved"):
+        print(f"starved the first time ({summary['machine']}): flying again")
+        summary = run_scenario(scenario, tmp_path / "again", progress=False)
+    assert summary["ok"] is True, summary["failure"]
+    assert [f["kind"] for f in summary["faults"]] == list(kinds)
+    for fault in summary["faults"]:
+        print(f"{mode}: {fault['kind']} on {fault['target']}: fell back {fault['fell_back'] or 'none'}, "
+              f"longest setpoint gap {fault['max_setpoint_gap_ms']} ms; {fault['notes']}")  # fmt: skip
+        assert fault["target"], fault
+        assert fault["fell_back"] == [], fault
+        assert fault["max_setpoint_gap_ms"] is not None
+        assert fault["max_setpoint_gap_ms"] < 100, fault
+    assert "served the drone" in summary["faults"][0]["notes"][0]
+    for uav, drone in summary["drones"].items():
+        assert drone["fallback_entered"] is False, uav
+        if qos == "default":  # the mode does what it says: nobody is granted priority
+            assert drone["granted_time_s"] == 0, uav
+    if qos == "dynamic":  # and here the high-risk drone holds it (granted, as every drone is asked)
+        assert summary["drones"]["uav1"]["granted_time_s"] > 0.5 * scenario.duration_s
+    if "qos_agent_kill" in kinds:
+        grant = summary["faults"][kinds.index("qos_agent_kill")]["grant"]
+        assert grant["before"] == grant["after"] == "available", grant
+        assert grant["same_session"] is True, grant
+        assert grant["served_after_s"] < 2.0, grant
+    assert summary["qod_sessions"]["conflicts"] == 0
+    assert summary["qod_sessions"]["open_at_end"] == 0
