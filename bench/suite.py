@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import importlib.util
 import json
 import statistics
 import sys
@@ -80,8 +81,24 @@ HEADLINES: dict[str, Headline] = {
         "busy_share_max": r["busy_share"]["max"],
         "cpu_s_total_median": r["cpu_s_total"]["median"],
     },
+    "ros2_bridge": lambda r: {
+        "loop_change_p50": r["control_loop"]["change_p50"],
+        "loop_floor_change_p50": r["control_loop"]["floor_change_p50"],
+        "pose_added_p50_ms": r["pose_latency"]["added_p50_ms"],
+        "per_drone_core_share": r["cpu"]["per_drone_core_share"],
+    },
 }
 NAMES = tuple(HEADLINES)
+# a benchmark of an extra's role -> (the module it needs, the extra): skipped from the default set
+# without it, refused by name
+NEEDS_EXTRA = {"ros2_bridge": ("rosbags", "ros2")}
+
+
+def _missing_extra(name: str) -> str | None:
+    need = NEEDS_EXTRA.get(name)
+    if need is None or importlib.util.find_spec(need[0]) is not None:
+        return None
+    return f"{name} needs the {need[1]} extra: pip install 'dynqos[{need[1]}]'"
 
 
 def spread(values: list[float | None]) -> dict[str, float | None]:
@@ -126,7 +143,13 @@ def run_suite(names: list[str], *, smoke: bool, repeat: int, out: Path) -> dict[
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise DynqosError(f"cannot create {out}: {exc.strerror}") from None
-    chosen = names or list(NAMES)
+    missing = [text for name in names if (text := _missing_extra(name))]
+    if missing:
+        raise DynqosError("; ".join(missing))
+    chosen = names or [name for name in NAMES if _missing_extra(name) is None]
+    for name in NAMES:
+        if not names and (text := _missing_extra(name)):
+            print(f"bench: skipped {text}", flush=True)
     suite: dict[str, Any] = {"suite": "dynqos bench", **provenance(), "smoke": smoke, "repeat": repeat}
     suite["benchmarks"] = {}
     tables = [f"# dynqos bench ({suite['date']}, {suite['machine']}{', smoke' if smoke else ''})", ""]

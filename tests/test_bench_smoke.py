@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import json
 import subprocess
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from dynqos.bench.suite import NAMES, spread
+from dynqos.common.errors import DynqosError
 from tests.procs import DYNQOS
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(400)]
@@ -127,3 +129,32 @@ def test_the_fleet_flight_measured_the_machine_and_every_process(smoke: tuple[di
     )
     assert run["cpu_s_total"] == pytest.approx(sum(run["cpu_s"].values()), abs=0.05)
     assert fleet["busy_share"]["max"] == run["busy_share"]
+
+
+def test_a_benchmark_whose_extra_is_missing_is_skipped_by_default_and_refused_by_name(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without the ros2 extra, `dynqos bench` runs the others and says why one was left out; naming it
+    is an error that says what to install, before anything runs."""
+    from dynqos.bench import suite
+
+    monkeypatch.setitem(suite.NEEDS_EXTRA, "ros2_bridge", ("no_such_module_here", "ros2"))
+    with pytest.raises(DynqosError, match=r"ros2_bridge needs the ros2 extra: pip install 'dynqos\[ros2\]'"):
+        suite.run_suite(["ros2_bridge"], smoke=True, repeat=1, out=tmp_path)
+    ran: list[str] = []
+    monkeypatch.setattr(suite, "NAMES", ("ros2_bridge",))
+    monkeypatch.setattr(suite.importlib, "import_module", lambda name: ran.append(name))
+    suite.run_suite([], smoke=True, repeat=1, out=tmp_path)
+    assert ran == []
+    assert "bench: skipped ros2_bridge needs the ros2 extra" in capsys.readouterr().out
+
+
+def test_ros2_bridge_figures(smoke: tuple[dict[str, Any], str]) -> None:
+    r = _result(smoke, "ros2_bridge")
+    latency = r["pose_latency"]
+    assert latency["round_trips"] >= 100  # each a pose the ROS side received, against a bare echo
+    assert latency["bridged"]["p50_ms"] > 0
+    assert latency["bare_zenoh"]["p50_ms"] > 0
+    assert [row["drones"] for row in r["cpu"]["rows"]] == [1, 2, 4, 8]
+    for mode in ("off", "floor", "on"):  # each once per round, four rounds
+        assert len(r["control_loop"][mode]["phase_p50_ms"]) == 4
