@@ -10,63 +10,76 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar
 
 import msgpack
 
 from dynqos.common import fields as f
 from dynqos.common.errors import DecodeError, MessageError
 from dynqos.common.fastdecode import FastDecoder
+from dynqos.common.message_base import (
+    ACCEL_LIMIT_MPS2,
+    ANGLE,
+    CAMERA_ENCODINGS,
+    CAMERA_KINDS,
+    COMMON,
+    CONSTRUCTION,
+    LATENCY_LIMIT_MS,
+    LATENCY_MS,
+    MAX_DETECTIONS,
+    MAX_FRAME_PARTS,
+    MAX_HORIZON,
+    MAX_MESSAGE_BYTES,
+    MAX_PAYLOAD_BYTES,
+    MAX_REFERENCE_SAMPLES,
+    MAX_STATUS_SAMPLES,
+    POSITION,
+    POSITION_LIMIT_M,
+    PROBABILITY,
+    RISK_LEVELS,
+    SCHEMA_VERSION,
+    VELOCITY,
+    VELOCITY_LIMIT_MPS,
+    M,
+    Message,
+)
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
+from dynqos.common.qos_messages import QosDecision, QosGrant, QosRequest
 
-SCHEMA_VERSION = 1
-MAX_MESSAGE_BYTES = 24 * 1024 * 1024
-MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
-MAX_HORIZON = 64
-MAX_REFERENCE_SAMPLES = 400
-MAX_DETECTIONS = 64
-MAX_FRAME_PARTS = 4096
-MAX_STATUS_SAMPLES = 256
-
-POSITION_LIMIT_M = 1e5
-VELOCITY_LIMIT_MPS = 1e3
-ACCEL_LIMIT_MPS2 = 100.0
-LATENCY_LIMIT_MS = 1e7
-
-CAMERA_KINDS = ("rgb", "depth")
-RISK_LEVELS = ("HR", "MR", "LR", "NA")
-CAMERA_ENCODINGS = ("jpeg", "png", "png16", "zstd16", "raw8", "raw16")
-
-_position = f.vector(3, -POSITION_LIMIT_M, POSITION_LIMIT_M)
-_velocity = f.vector(3, -VELOCITY_LIMIT_MPS, VELOCITY_LIMIT_MPS)
-_angle = f.real(-100.0, 100.0)
-_probability = f.real(0.0, 1.0)
-_latency_ms = f.real(0.0, LATENCY_LIMIT_MS)
-
-M = TypeVar("M", bound="Message")
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Message:
-    """Base of all messages: validates and normalises every field when constructed."""
-
-    TYPE: ClassVar[str] = ""
-    SCHEMA: ClassVar[dict[str, f.Validator]] = {}
-
-    uav: str
-    seq: int
-
-    def __post_init__(self) -> None:
-        if not (FAST_CONSTRUCTION and _FAST.normalise(self)):  # in C; else each validator, naming the field
-            for name, check in self.SCHEMA.items():
-                object.__setattr__(self, name, check(name, getattr(self, name)))
-        self._check()
-
-    def _check(self) -> None:
-        """Cross-field rules; override where a message has them."""
-
-
-_COMMON: dict[str, f.Validator] = {"uav": f.uav_id, "seq": f.integer()}
+# The one place every message is imported from: the base's limits and the QoS agent's messages too.
+__all__ = [
+    "ACCEL_LIMIT_MPS2",
+    "CAMERA_ENCODINGS",
+    "CAMERA_KINDS",
+    "LATENCY_LIMIT_MS",
+    "MAX_DETECTIONS",
+    "MAX_FRAME_PARTS",
+    "MAX_HORIZON",
+    "MAX_MESSAGE_BYTES",
+    "MAX_PAYLOAD_BYTES",
+    "MAX_REFERENCE_SAMPLES",
+    "MAX_STATUS_SAMPLES",
+    "MESSAGE_TYPES",
+    "POSITION_LIMIT_M",
+    "RISK_LEVELS",
+    "SCHEMA_VERSION",
+    "VELOCITY_LIMIT_MPS",
+    "CameraAck",
+    "CameraFrame",
+    "Command",
+    "Detections",
+    "Message",
+    "QosDecision",
+    "QosGrant",
+    "QosRequest",
+    "Reference",
+    "State",
+    "SupervisorStatus",
+    "decode",
+    "decode_as",
+    "decode_checked",
+    "encode",
+]
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -75,12 +88,12 @@ class State(Message):
 
     TYPE: ClassVar[str] = "State"
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **_COMMON,
+        **COMMON,
         "stamp_ns": f.integer(),
-        "pos_m": _position,
-        "vel_mps": _velocity,
+        "pos_m": POSITION,
+        "vel_mps": VELOCITY,
         "quat": f.vector(4, -1.0001, 1.0001),
-        "rtt_est_ms": _latency_ms,
+        "rtt_est_ms": LATENCY_MS,
         "mode": f.text(32),
         "command_term": f.integer(),
         "command_replica": f.text(64),
@@ -110,13 +123,13 @@ class Command(Message):
 
     TYPE: ClassVar[str] = "Command"
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **_COMMON,
+        **COMMON,
         "state_seq": f.integer(),
         "state_stamp_ns": f.integer(),
         "edge_hold_ns": f.integer(),
         "dt_s": f.real(1e-4, 1.0),
         "accel_mps2": f.sequence(f.vector(3, -ACCEL_LIMIT_MPS2, ACCEL_LIMIT_MPS2), 1, MAX_HORIZON),
-        "yaw_rad": f.sequence(_angle, 1, MAX_HORIZON),
+        "yaw_rad": f.sequence(ANGLE, 1, MAX_HORIZON),
         "term": f.integer(),
         "replica": f.text(64),
     }
@@ -145,7 +158,7 @@ class CameraFrame(Message):
 
     TYPE: ClassVar[str] = "CameraFrame"
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **_COMMON,
+        **COMMON,
         "stamp_ns": f.integer(),
         "kind": f.choice(CAMERA_KINDS),
         "encoding": f.choice(CAMERA_ENCODINGS),
@@ -182,7 +195,7 @@ class CameraAck(Message):
 
     TYPE: ClassVar[str] = "CameraAck"
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **_COMMON,
+        **COMMON,
         "frame_seq": f.integer(),
         "kind": f.choice(CAMERA_KINDS),
         "stamp_ns": f.integer(),
@@ -202,7 +215,7 @@ class Detections(Message):
 
     TYPE: ClassVar[str] = "Detections"
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **_COMMON,
+        **COMMON,
         "frame_seq": f.integer(),
         "stamp_ns": f.integer(),
         "circles_px": f.sequence(f.vector(3, -1e5, 1e5), 0, MAX_DETECTIONS),
@@ -227,12 +240,12 @@ class Reference(Message):
 
     TYPE: ClassVar[str] = "Reference"
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **_COMMON,
+        **COMMON,
         "stamp_ns": f.integer(),
         "dt_s": f.real(1e-4, 10.0),
-        "pos_m": f.sequence(_position, 1, MAX_REFERENCE_SAMPLES),
-        "vel_mps": f.sequence(_velocity, 1, MAX_REFERENCE_SAMPLES),
-        "yaw_rad": f.sequence(_angle, 1, MAX_REFERENCE_SAMPLES),
+        "pos_m": f.sequence(POSITION, 1, MAX_REFERENCE_SAMPLES),
+        "vel_mps": f.sequence(VELOCITY, 1, MAX_REFERENCE_SAMPLES),
+        "yaw_rad": f.sequence(ANGLE, 1, MAX_REFERENCE_SAMPLES),
         "mission": f.text(64),
         "mission_t_s": f.real(0.0, 1e7),
         "term": f.integer(),
@@ -265,7 +278,7 @@ class SupervisorStatus(Message):
 
     TYPE: ClassVar[str] = "SupervisorStatus"
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **_COMMON,
+        **COMMON,
         "stamp_ns": f.integer(),
         "state": f.member(SupervisorState),
         "flow": f.member(Flow),
@@ -274,30 +287,30 @@ class SupervisorStatus(Message):
         "latency": f.choice(("LL", "HL", "NA")),
         "risk": f.choice(("LR", "MR", "HR", "NA")),
         "watchdog": f.boolean,
-        "t_cam_ms": f.optional(_latency_ms),
-        "t_cc_ms": f.optional(_latency_ms),
+        "t_cam_ms": f.optional(LATENCY_MS),
+        "t_cc_ms": f.optional(LATENCY_MS),
         "spaciousness_m": f.optional(f.real(0.0, 1e6)),
         "depth_lost": f.boolean,
-        "p_cam": _probability,
-        "p_cc": _probability,
-        "p_lat": _probability,
-        "p_cs": _probability,
+        "p_cam": PROBABILITY,
+        "p_cc": PROBABILITY,
+        "p_lat": PROBABILITY,
+        "p_cs": PROBABILITY,
         "prev_state": f.member(SupervisorState),
         "cause": f.text(200),
         "changed_ns": f.integer(),
-        "rtt_ms": f.optional(_latency_ms),
-        "camera_latency_ms": f.optional(_latency_ms),
-        "setpoint_gap_ms": f.optional(_latency_ms),
+        "rtt_ms": f.optional(LATENCY_MS),
+        "camera_latency_ms": f.optional(LATENCY_MS),
+        "setpoint_gap_ms": f.optional(LATENCY_MS),
         "camera_flow": f.member(Flow),
         "fallbacks": f.integer(),
         "control_changed_ns": f.integer(),
-        "command_age_ms": f.optional(_latency_ms),
+        "command_age_ms": f.optional(LATENCY_MS),
         "camera_bytes": f.integer(),
         "uplink_bytes": f.integer(),
         "qos_grant": f.member(Grant),
         "qos_agent": f.boolean,
-        "rtt_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
-        "camera_latency_samples_ms": f.sequence(_latency_ms, 0, MAX_STATUS_SAMPLES),
+        "rtt_samples_ms": f.sequence(LATENCY_MS, 0, MAX_STATUS_SAMPLES),
+        "camera_latency_samples_ms": f.sequence(LATENCY_MS, 0, MAX_STATUS_SAMPLES),
     }
 
     stamp_ns: int
@@ -334,75 +347,6 @@ class SupervisorStatus(Message):
     depth_lost: bool = False  # depth stopped for risk_stale_s: risk is NA and read as HR
 
 
-@dataclass(frozen=True, slots=True, kw_only=True)
-class QosRequest(Message):
-    """The drone to the QoS agent: whether it wants its priority flow from the network now. Sent on every
-    change and repeated every [qos] request_interval_s; the agent forgets a drone it no longer hears."""
-
-    TYPE: ClassVar[str] = "QosRequest"
-    SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **_COMMON,
-        "stamp_ns": f.integer(),
-        "want": f.boolean,
-        "risk": f.choice(RISK_LEVELS),
-        "latency_excess": f.real(-1.0, 1.0),
-        "offered_mbps": f.real(0.0, 1e5),
-    }
-
-    stamp_ns: int
-    want: bool
-    # The drone's need, for an arbiter that cannot grant everyone (edge/qos/arbiter.py): its supervisor's
-    # risk level, P_lat minus th_lat (0 while there is no latency evidence), and what it sends upward.
-    risk: str = "NA"
-    latency_excess: float = 0.0
-    offered_mbps: float = 0.0
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class QosDecision(Message):
-    """The QoS agent's arbiter to everyone listening: one decision on one drone's priority, and why
-    (`dynqos/<uav>/down/qos/decision`; tools subscribe to every drone's)."""
-
-    TYPE: ClassVar[str] = "QosDecision"
-    SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **_COMMON,
-        "stamp_ns": f.integer(),
-        "action": f.choice(("grant", "deny", "revoke", "release")),
-        "reason": f.text(500),
-        "risk": f.choice(RISK_LEVELS),
-        "latency_excess": f.real(-1.0, 1.0),
-        "holders": f.sequence(f.uav_id, max_len=1024),
-    }
-
-    stamp_ns: int
-    action: str
-    reason: str
-    risk: str  # the drone's need as the arbiter saw it
-    latency_excess: float
-    holders: tuple[str, ...]  # who holds priority after this decision
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class QosGrant(Message):
-    """The QoS agent to the drone: what the network grants its priority flow, and why."""
-
-    TYPE: ClassVar[str] = "QosGrant"
-    SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **_COMMON,
-        "grant": f.member(Grant),
-        "backend": f.choice(("links", "camara")),
-        "session_id": f.text(64),
-        "reason": f.text(300),
-        "answers_seq": f.integer(),
-    }
-
-    grant: Grant
-    backend: str
-    session_id: str = ""  # the QoD session ("" with the links backend or when there is none)
-    reason: str = ""  # why the grant is what it is (the API's code and message on a refusal)
-    answers_seq: int = 0  # the newest QosRequest seq the agent had when it sent this
-
-
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
     for cls in (
@@ -422,7 +366,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 
 _FIELD_NAMES = {cls: tuple(field.name for field in fields(cls)) for cls in MESSAGE_TYPES.values()}
 _FAST = FastDecoder(MESSAGE_TYPES, SCHEMA_VERSION)
-FAST_CONSTRUCTION = True  # tests turn it off to compare with the validators alone
+CONSTRUCTION.fast = _FAST
 
 
 def encode(message: Message) -> bytes:

@@ -33,9 +33,8 @@ from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.config import Config
 from dynqos.common.geometry import yaw_of
 from dynqos.common.keys import Stream
+from dynqos.common.message_base import LATENCY_LIMIT_MS, MAX_STATUS_SAMPLES
 from dynqos.common.messages import (
-    LATENCY_LIMIT_MS,
-    MAX_STATUS_SAMPLES,
     CameraAck,
     Command,
     Detections,

@@ -16,6 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from dynqos.common import message_base as base
 from dynqos.common import messages as m
 from dynqos.common.errors import DecodeError, MessageError
 from dynqos.common.modes import Flow, Grant
@@ -101,13 +102,13 @@ arguments = st.one_of(
 
 
 def _construct(cls: type[m.Message], kwargs: dict[str, Any], *, fast: bool) -> tuple[str, Any]:
-    m.FAST_CONSTRUCTION = fast
+    base.CONSTRUCTION.enabled = fast
     try:
         return "ok", m.encode(cls(**kwargs))
     except MessageError as exc:
         return "refused", exc.field
     finally:
-        m.FAST_CONSTRUCTION = True
+        base.CONSTRUCTION.enabled = True
 
 
 @settings(max_examples=2500)

@@ -18,7 +18,8 @@ import numpy as np
 from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.config import ControlConfig, MpcConfig
 from dynqos.common.geometry import yaw_of
-from dynqos.common.messages import MAX_HORIZON, State
+from dynqos.common.message_base import MAX_HORIZON
+from dynqos.common.messages import State
 from dynqos.common.reference import ReferenceTrack
 from dynqos.edge.mpc.problem import Array, MpcProblem
 
