@@ -65,8 +65,13 @@ EDGE_ROLES: dict[str, EdgeRole] = {
         watches=(drones_present(),),  # it follows the drones it serves (edge/feeds.py)
     ),
     "planner": EdgeRole(
-        # the references too: a standby planner follows the mission time of the one it stands by for
-        reads=(uplink_all_drones(Stream.STATE), downlink_all_drones(Downlink.REFERENCE)),
+        # the references too: a standby planner follows the mission time of the one it stands by for;
+        # and the missions the ROS 2 bridge sends
+        reads=(
+            uplink_all_drones(Stream.STATE),
+            downlink_all_drones(Downlink.REFERENCE),
+            downlink_all_drones(Downlink.MISSION),
+        ),
         writes=(downlink_all_drones(Downlink.REFERENCE),),
         tokens=(any_replica_of("planner"),),
         watches=(drones_present(),),
@@ -77,14 +82,14 @@ EDGE_ROLES: dict[str, EdgeRole] = {
         tokens=(any_replica_of("detector"),),  # detectors share the drones (edge/membership.py, LiveSet)
     ),
     # ROS 2 topics too (rmw_zenoh's keys and tokens, under the domain and prefix the router's config
-    # names: ros2_topics); it publishes nothing on dynqos keys
+    # names: ros2_topics); on dynqos keys it writes only the missions ROS 2 nodes ask for
     "ros2": EdgeRole(
         reads=(
             uplink_all_drones(Stream.STATE),
             uplink_all_drones(Stream.STATUS),
             uplink_all_drones(Stream.CAMERA_RGB),
         ),
-        writes=(),
+        writes=(downlink_all_drones(Downlink.MISSION),),
     ),
     "qos": EdgeRole(
         reads=(uplink_all_drones(Stream.QOS),),
@@ -152,6 +157,16 @@ def ros2_topics(domain_id: int, prefix: str) -> tuple[str, ...]:
     return (f"{domain_id}/{prefix}/**", f"{domain_id}/tf/**")
 
 
+def ros2_steering(domain_id: int, prefix: str) -> tuple[str, ...]:
+    """The rmw_zenoh data keys on which ROS 2 nodes steer a drone: its `mission` (a nav_msgs/Path) and
+    `goal` (a geometry_msgs/PoseStamped), any type hash; not `mission/status`, which is the bridge's.
+    (The DDS type names as edge/ros2/wire.py spells them; tests/test_ros2_steer.py checks they agree.)"""
+    return (
+        f"{domain_id}/{prefix}/*/mission/nav_msgs::msg::dds_::Path_/*",
+        f"{domain_id}/{prefix}/*/goal/geometry_msgs::msg::dds_::PoseStamped_/*",
+    )
+
+
 def ros2_tokens(domain_id: int) -> tuple[str, ...]:
     """rmw_zenoh's liveliness tokens of one domain (nodes, publishers, subscribers)."""
     return (f"@ros2_lv/{domain_id}/**",)
@@ -164,7 +179,8 @@ def access_control_policy(
     ros2_prefix: str = "dynqos",
 ) -> dict[str, Any]:
     """zenoh's `access_control` config object for `drones`, the edge services and the ROS 2 nodes named
-    by `ros2_clients` (read only: the bridge's topics and the domain's discovery tokens)."""
+    by `ros2_clients` (the bridge's topics and the domain's discovery tokens; they write only a drone's
+    mission or goal)."""
     rules: list[dict[str, Any]] = [
         _rule("learn-subscribers", "egress", ["declare_subscriber"], [f"{ROOT}/**"]),
     ]
@@ -183,17 +199,21 @@ def access_control_policy(
         )
 
     topics, tokens = ros2_topics(ros2_domain_id, ros2_prefix), ros2_tokens(ros2_domain_id)
+    steering = ros2_steering(ros2_domain_id, ros2_prefix)
     for service, role in EDGE_ROLES.items():
         cn = edge_common_name(service)
         if service == "ros2":  # its topics lie outside dynqos/**: it learns their subscribers by a rule
-            own = _reader_and_writer(cn, role.reads, topics, tokens)
+            own = _reader_and_writer(cn, (*role.reads, *steering), (*topics, *role.writes), tokens)
             grant(cn, cn, [*own, _rule(f"{cn}-learn-subscribers", "egress", ["declare_subscriber"], topics)])
             continue
         grant(cn, cn, _reader_and_writer(cn, role.reads, role.writes, role.tokens, role.watches))
     for name in ros2_clients:
         if reserved_name(name) or name in drones:
             raise ValueError(f"{name!r} is an edge or drone identity, not a ROS 2 client")
-        grant(f"ros2-{name}", name, _reader_and_writer(name, topics, (), tokens))
+        # it reads the bridge's topics and writes only a drone's mission or goal (which the bridge checks)
+        own = _reader_and_writer(name, topics, steering, tokens)
+        grant(f"ros2-{name}", name, [*own, _rule(f"{name}-learn-steering", "egress", ["declare_subscriber"],
+                                                 steering)])  # fmt: skip
     for uav in drones:
         check_uav_id(uav)
         if reserved_name(uav):

@@ -9,6 +9,7 @@ declared on, so a receiver subscribes to both flows with one wildcard:
     dynqos/<uav>/down/ack/camera          detector -> drone camera acks
     dynqos/<uav>/down/detections          detector -> drone detections
     dynqos/<uav>/ref                      planner -> MPC reference
+    dynqos/<uav>/mission                  ROS 2 bridge -> planner: a mission from outside (MissionRequest)
     dynqos/<uav>/up/<flow>/qos            drone -> QoS agent: priority wanted or not (QosRequest)
     dynqos/<uav>/down/qos                 QoS agent -> drone: the network's grant (QosGrant)
     dynqos/<uav>/down/qos/decision        QoS agent's arbiter -> drone and tools (QosDecision)
@@ -48,6 +49,7 @@ class Downlink(str, enum.Enum):
     REFERENCE = "ref"
     QOS_GRANT = "down/qos"
     QOS_DECISION = "down/qos/decision"
+    MISSION = "mission"  # edge to edge, as REFERENCE: the ROS 2 bridge to the planner replicas
 
 
 def check_uav_id(uav: object) -> str:

@@ -30,6 +30,7 @@ from dynqos.common.message_base import (
     MAX_FRAME_PARTS,
     MAX_HORIZON,
     MAX_MESSAGE_BYTES,
+    MAX_MISSION_WAYPOINTS,
     MAX_PAYLOAD_BYTES,
     MAX_REFERENCE_SAMPLES,
     MAX_STATUS_SAMPLES,
@@ -56,6 +57,7 @@ __all__ = [
     "MAX_FRAME_PARTS",
     "MAX_HORIZON",
     "MAX_MESSAGE_BYTES",
+    "MAX_MISSION_WAYPOINTS",
     "MAX_PAYLOAD_BYTES",
     "MAX_REFERENCE_SAMPLES",
     "MAX_STATUS_SAMPLES",
@@ -69,6 +71,7 @@ __all__ = [
     "Command",
     "Detections",
     "Message",
+    "MissionRequest",
     "QosDecision",
     "QosGrant",
     "QosRequest",
@@ -272,6 +275,29 @@ class Reference(Message):
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class MissionRequest(Message):
+    """A mission for one drone from outside the edge, to its planner replicas: fly these waypoints
+    (local NED; the first is where the drone was when it was asked) and hold the last. `dynqos edge
+    ros2` sends one for a ROS 2 node's Path or goal, and re-sends it with the same seq every second
+    until another replaces it, so a planner replica that starts later flies it too; a planner applies
+    a seq once, and refuses one outside its arena (docs/ros2.md)."""
+
+    TYPE: ClassVar[str] = "MissionRequest"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **COMMON,
+        "stamp_ns": f.integer(),
+        "waypoints_m": f.sequence(POSITION, 2, MAX_MISSION_WAYPOINTS),
+        "speed_mps": f.real(0.0, 50.0),
+        "source": f.text(64),
+    }
+
+    stamp_ns: int
+    waypoints_m: tuple[tuple[float, float, float], ...]
+    speed_mps: float = 0.0  # 0: the planner's own [planner] speed_mps
+    source: str = ""  # who asked, for the logs (e.g. "ros2:/dynqos/uav1/mission")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class SupervisorStatus(Message):
     """What the supervisor decided this tick and why. Before any sample a latency or risk signal is
     "NA" and its estimate None; a probability is then 0.0 and means nothing."""
@@ -358,6 +384,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         Reference,
         SupervisorStatus,
         QosRequest,
+        MissionRequest,
         QosGrant,
         QosDecision,
     )

@@ -24,7 +24,7 @@ from dynqos.common import keys
 from dynqos.common.acl import reserved_name
 from dynqos.common.bus import Bus, Received, SubscriptionStats
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import Command, Message, Reference, State
+from dynqos.common.messages import Command, Message, MissionRequest, Reference, State
 from dynqos.common.queues import BoundedQueue, PendingChanges
 
 log = logging.getLogger(__name__)
@@ -53,6 +53,12 @@ def states() -> Feed:
 def references(*, remote_only: bool = False) -> Feed:
     return Feed(lambda uav: keys.downlink(uav, Downlink.REFERENCE),
                 keys.downlink_all_drones(Downlink.REFERENCE), (Reference,), remote_only)  # fmt: skip
+
+
+def missions() -> Feed:
+    """Missions from outside the edge (the ROS 2 bridge's MissionRequest) for the drones followed."""
+    return Feed(lambda uav: keys.downlink(uav, Downlink.MISSION), keys.downlink_all_drones(Downlink.MISSION),
+                (MissionRequest,))  # fmt: skip
 
 
 def commands() -> Feed:

@@ -66,7 +66,7 @@ def test_kustomize_renders_valid_manifests(folder: str) -> None:
     _validate(docs)
     workloads = [d for d in docs if d["kind"] in ("Deployment", "StatefulSet")]
     assert {w["metadata"]["name"] for w in workloads} == {
-        "dynqos-router", "dynqos-mpc", "dynqos-planner", "dynqos-detector", "dynqos-qos",
+        "dynqos-router", "dynqos-mpc", "dynqos-planner", "dynqos-detector", "dynqos-qos", "dynqos-ros2",
     }  # fmt: skip
     (qos,) = [w for w in workloads if w["metadata"]["name"] == "dynqos-qos"]
     # a rolling update starts the new agent first: it stands by, and the old one hands it the sessions
@@ -98,7 +98,7 @@ def _configs(docs: list[dict[str, Any]], tmp_path: Path) -> dict[str, Path]:
 
 
 SERVICES = {"dynqos-router": "router", "dynqos-mpc": "mpc", "dynqos-planner": "planner",
-            "dynqos-detector": "detector", "dynqos-qos": "qos"}  # fmt: skip
+            "dynqos-detector": "detector", "dynqos-qos": "qos", "dynqos-ros2": "ros2"}  # fmt: skip
 
 
 def test_production_overlay_turns_on_mtls_access_control_and_mpc_replicas(tmp_path: Path) -> None:
@@ -368,7 +368,7 @@ def test_the_wheel_builds_from_exactly_what_the_dockerfile_copies(tmp_path: Path
     import zipfile
 
     text = (DEPLOY / "container" / "Dockerfile").read_text()
-    assert re.search(r'^RUN pip wheel --wheel-dir /wheels "\.\[edge\]"$', text, re.M)
+    assert re.search(r'^RUN pip wheel --wheel-dir /wheels "\.\[edge,ros2\]"$', text, re.M)
     context = tmp_path / "src"
     context.mkdir()
     for source, destination in _build_stage_copies(text):

@@ -173,6 +173,15 @@ qos_grants = st.builds(
     reason=st.text(max_size=300),
     answers_seq=u63,
 )
+mission_requests = st.builds(
+    m.MissionRequest,
+    uav=uav_ids,
+    seq=u63,
+    stamp_ns=u63,
+    waypoints_m=st.lists(vec(3, -1e4, 1e4), min_size=2, max_size=m.MAX_MISSION_WAYPOINTS).map(tuple),
+    speed_mps=reals(0, 50),
+    source=st.text(max_size=64),
+)
 any_message = st.one_of(
     states,
     commands(),
@@ -183,6 +192,7 @@ any_message = st.one_of(
     statuses,
     qos_requests,
     qos_grants,
+    mission_requests,
     qos_decisions,
 )
 
@@ -264,6 +274,7 @@ def test_wrong_typed_fields_give_decode_error_naming_the_field(
             m.QosRequest: qos_requests,
             m.QosGrant: qos_grants,
             m.QosDecision: qos_decisions,
+            m.MissionRequest: mission_requests,
         }[cls]
     )
     body = msgpack.unpackb(m.encode(example), raw=False)

@@ -9,6 +9,7 @@ import math
 import queue
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -18,8 +19,8 @@ from zenoh_ros2_sdk import get_topic_info, get_topic_names_and_types
 
 from dynqos.common import keys
 from dynqos.common.config import load_config
-from dynqos.common.keys import Flow, Stream
-from dynqos.common.messages import CameraFrame, State, SupervisorStatus
+from dynqos.common.keys import Downlink, Flow, Stream
+from dynqos.common.messages import CameraFrame, MissionRequest, State, SupervisorStatus, decode
 from dynqos.common.transport import Priority, Role, default_flow_endpoint, open_bus
 from dynqos.edge.ros2 import codec, wire
 from tests.conftest import free_tcp_port
@@ -205,5 +206,107 @@ def test_a_paced_camera_image_reaches_ros2_as_the_same_jpeg_with_its_camera_info
         assert endpoint is not None
         assert endpoint.publishers[0].qos == "2::,1:,:,:,,"  # best effort, the newest image only
     finally:
+        drone.close()
+        ros_side.close()
+
+
+STEER_TYPES = (  # what a Path and a goal are made of, from rosbags' Jazzy definitions
+    "builtin_interfaces/msg/Time", "std_msgs/msg/Header", "geometry_msgs/msg/Point",
+    "geometry_msgs/msg/Quaternion", "geometry_msgs/msg/Pose",
+)  # fmt: skip
+DEFINITIONS = {
+    codec.PATH: "std_msgs/Header header\ngeometry_msgs/PoseStamped[] poses\n",
+    codec.POSE: "std_msgs/Header header\ngeometry_msgs/Pose pose\n",
+}
+
+
+def _sdk_publisher(port: int, topic: str, ros_type: str) -> Any:
+    """The ROBOTIS SDK's ROS 2 publisher (its keys, attachment and tokens), given the definitions it would
+    fetch with git: the parts from rosbags' Jazzy store, the type itself as .msg text."""
+    from zenoh_ros2_sdk import ROS2Publisher
+    from zenoh_ros2_sdk.session import ZenohSession
+
+    store = ZenohSession.get_instance("127.0.0.1", port).store
+    store.register({name: codec.STORE.fielddefs[name] for name in STEER_TYPES if name not in store.types})
+    if ros_type == codec.PATH and codec.POSE not in store.types:
+        _sdk_publisher(port, "/unused", codec.POSE).close()  # registers the PoseStamped a Path holds
+    return ROS2Publisher(
+        topic, ros_type, msg_definition=DEFINITIONS[ros_type], node_name="ground", router_port=port,
+        type_hash=codec.type_hash(ros_type),
+    )  # fmt: skip
+
+
+def _ros_pose(t: Any, enu: tuple[float, float, float]) -> Any:
+    header = t["std_msgs/msg/Header"](
+        stamp=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="map"
+    )
+    point = t["geometry_msgs/msg/Point"](x=enu[0], y=enu[1], z=enu[2])
+    level = t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
+    return t[codec.POSE](header=header, pose=t["geometry_msgs/msg/Pose"](position=point, orientation=level))
+
+
+def test_a_ros2_path_reaches_the_drones_planner_and_a_goal_outside_the_arena_is_refused(
+    edge: tuple[Path, int],
+) -> None:
+    """A nav_msgs/Path from the SDK's publisher becomes a MissionRequest on the drone's mission key, in
+    NED from where the drone is, re-sent every second; a goal outside the arena is refused with a
+    mission/status error and never sent. ROS 2 sees the bridge listening (its subscriber tokens)."""
+    from zenoh_ros2_sdk.session import ZenohSession
+
+    config_path, port = edge
+    config = load_config(config_path)
+    missions: queue.Queue[zenoh.Sample] = queue.Queue()
+    statuses: queue.Queue[zenoh.Sample] = queue.Queue()
+    ros_side = _ros_client(port)
+    drone = open_bus(config.zenoh, Role.DRONE, connect=[default_flow_endpoint(config.zenoh)])
+    publishers: list[Any] = []
+    try:
+        ros_side.declare_subscriber(
+            keys.downlink("uav8", Downlink.MISSION), missions.put
+        )  # the planner's part
+        status_key = wire.topic_key(0, "/fleet/uav8/mission/status", codec.DIAGNOSTICS,
+                                    codec.type_hash(codec.DIAGNOSTICS))  # fmt: skip
+        ros_side.declare_subscriber(status_key, statuses.put)
+        state_pub = drone.publisher(keys.uplink("uav8", Flow.DEFAULT, Stream.STATE), Priority.DATA_HIGH)
+        assert state_pub.wait_matched(10)
+        here = State(uav="uav8", seq=1, stamp_ns=1, pos_m=(1.0, 2.0, -1.5), vel_mps=(0.0, 0.0, 0.0),
+                     quat=(1.0, 0.0, 0.0, 0.0))  # fmt: skip
+        state_pub.put(here)
+        for _ in range(10):  # the bridge declares its subscriber tokens when it hears the drone (bounded)
+            listed = dict(get_topic_names_and_types(domain_id=0, router_port=port, timeout=1.0))
+            if "/fleet/uav8/goal" in listed:
+                break
+        assert listed["/fleet/uav8/mission"] == [codec.PATH]
+        assert listed["/fleet/uav8/goal"] == [codec.POSE]
+        info = get_topic_info("/fleet/uav8/mission", domain_id=0, router_port=port, timeout=2.0, verbose=True)
+        assert info is not None
+        assert [s.node_name for s in info.subscribers] == ["dynqos_edge"]
+
+        path_pub = _sdk_publisher(port, "/fleet/uav8/mission", codec.PATH)
+        publishers.append(path_pub)
+        t = ZenohSession.get_instance("127.0.0.1", port).store.types
+        poses = [_ros_pose(t, (2.0, 1.0, 1.5)), _ros_pose(t, (4.0, 1.0, 2.0))]
+        header = poses[0].header
+        sample = _first(missions, lambda: path_pub.publish(header=header, poses=poses), tries=25)
+        request = decode(sample.payload.to_bytes())
+        assert isinstance(request, MissionRequest)
+        assert request.waypoints_m == ((1.0, 2.0, -1.5), (1.0, 2.0, -1.5), (1.0, 4.0, -2.0))
+        ok = codec.decode(codec.DIAGNOSTICS, statuses.get(timeout=5).payload.to_bytes()).status[0]
+        assert ok.level == codec.OK
+        assert f"as mission {request.seq}" in ok.message
+
+        goal_pub = _sdk_publisher(port, "/fleet/uav8/goal", codec.POSE)
+        publishers.append(goal_pub)
+        far = _ros_pose(t, (0.0, 500.0, 2.0))
+        refusal = _first(statuses, lambda: goal_pub.publish(header=far.header, pose=far.pose), tries=25)
+        (error,) = codec.decode(codec.DIAGNOSTICS, refusal.payload.to_bytes()).status
+        assert error.level == codec.ERROR
+        assert "goal refused: waypoint 0 (500.00, 0.00, -2.00) NED is outside the arena" in error.message
+        # never sent: what reaches the planner's key from now on is the accepted mission, re-sent
+        resent = [decode(missions.get(timeout=3).payload.to_bytes()) for _ in range(2)]
+        assert {m.seq for m in resent if isinstance(m, MissionRequest)} == {request.seq}
+    finally:
+        for publisher in publishers:
+            publisher.close()
         drone.close()
         ros_side.close()

@@ -599,3 +599,35 @@ def test_the_ros2_bridge_and_ros_nodes_reach_only_the_ros2_topics(ros2_router: P
         seen = [str(r.ok.key_expr) for r in ros.liveliness().get("@ros2_lv/0/**", timeout=1.0) if r.ok]
     assert seen == [token_key]  # a ROS node discovers the bridge's publisher
     token.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_a_ros_node_steers_only_through_the_bridge_and_only_a_drones_mission_or_goal(
+    ros2_router: Pki,
+) -> None:
+    """A ROS 2 node may write a drone's `mission` and `goal` (the bridge reads them and checks them),
+    never the bridge's `mission/status` nor a dynqos key; the bridge may write the drone's mission key,
+    which the planner reads; a drone may not write it. Each forgery is refused, the sentinel after it is
+    the one sample that arrives."""
+    pki = ros2_router
+    bridge, ros = pki.open("edge-ros2"), pki.open("ros-ground", Role.EDGE)
+    planner, uav1 = pki.open("edge-planner"), pki.open("uav1")
+    path_key = "0/dynqos/uav1/mission/nav_msgs::msg::dds_::Path_/RIHS01_abc"
+    status_key = "0/dynqos/uav1/mission/status/diagnostic_msgs::msg::dds_::DiagnosticArray_/RIHS01_abc"
+    at_bridge: Seen = queue.Queue()
+    _collect(bridge, "0/dynqos/*/mission/nav_msgs::msg::dds_::Path_/*", at_bridge)
+    watcher = pki.open("ros-ground", Role.EDGE)  # another ROS node: the forged status would reach it
+    at_ros: Seen = queue.Queue()
+    _collect(watcher, "0/dynqos/**", at_ros)
+    ros.put(status_key, b"a ROS node posing as the bridge's status", allowed_destination=REMOTE)
+    _wait_matched(ros, path_key).put(b"a path")
+    assert _wait_for(at_bridge, (path_key, b"a path")) == [(path_key, b"a path")]
+    _wait_matched(bridge, status_key).put(b"status")
+    # ROS nodes see each other's paths, as on any ROS graph; the forged status never arrived
+    assert _wait_for(at_ros, (status_key, b"status")) == [(path_key, b"a path"), (status_key, b"status")]
+
+    at_planner: Seen = queue.Queue()
+    _collect(planner, "dynqos/*/mission", at_planner)
+    for forger in (uav1, ros):
+        forger.put("dynqos/uav1/mission", b"forged", allowed_destination=REMOTE)
+    _wait_matched(bridge, "dynqos/uav1/mission").put(b"mission")
+    assert _wait_for(at_planner, ("dynqos/uav1/mission", b"mission")) == [("dynqos/uav1/mission", b"mission")]

@@ -181,10 +181,17 @@ class PlannerConfig:
     replica_id: str = ""
     takeover_after_s: float = 0.5
     holdoff_s: float = 2.0
+    # Where a mission from outside (a ROS 2 Path or goal) may take a drone: a box in local NED (metres;
+    # down is positive, so the ceiling is arena_min_m's z and the floor arena_max_m's). A waypoint outside
+    # it is refused, never flown.
+    arena_min_m: tuple[float, float, float] = (-50.0, -50.0, -30.0)
+    arena_max_m: tuple[float, float, float] = (50.0, 50.0, -0.3)
 
     def __post_init__(self) -> None:
         _check_mission(self)
         _check_replica(self.replica_id, self.takeover_after_s, self.holdoff_s, max_takeover_s=10.0)
+        _require(all(lo < hi for lo, hi in zip(self.arena_min_m, self.arena_max_m, strict=True)),
+                 "arena_max_m", "must exceed arena_min_m on every axis")  # fmt: skip
         for uav in self.drones:
             _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"drones.{uav}", "is not a drone id")
 

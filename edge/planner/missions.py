@@ -87,7 +87,15 @@ class Mission:
                 )
             travelled -= leg
         last = points[-1]
-        return (float(last[0]), float(last[1]), float(last[2])), (0.0, 0.0, 0.0), self.fixed_yaw_rad
+        return (float(last[0]), float(last[1]), float(last[2])), (0.0, 0.0, 0.0), self._arrival_yaw(points)
+
+    def _arrival_yaw(self, points: list[np.ndarray]) -> float:
+        """Where the drone looks once it holds the last waypoint: along its last leg (not a turn to
+        `fixed_yaw_rad` on arrival), or `fixed_yaw_rad` if it never moved."""
+        for a, b in itertools.pairwise(reversed(points)):
+            if float(np.linalg.norm(a[:2] - b[:2])) > 1e-6:
+                return math.atan2(a[1] - b[1], a[0] - b[0])
+        return self.fixed_yaw_rad
 
     def samples(
         self, t0: float, dt: float, count: int
@@ -97,6 +105,22 @@ class Mission:
         """Positions, velocities and yaws at t0, t0 + dt, ... (count samples)."""
         sampled = [self.sample(t0 + k * dt) for k in range(count)]
         return tuple(s[0] for s in sampled), tuple(s[1] for s in sampled), tuple(s[2] for s in sampled)
+
+
+def outside_arena(
+    points: tuple[tuple[float, float, float], ...],
+    arena_min_m: tuple[float, float, float],
+    arena_max_m: tuple[float, float, float],
+) -> str | None:
+    """Why a mission from outside may not be flown (its first waypoint outside the arena), or None."""
+    for index, point in enumerate(points):
+        for axis, value, low, high in zip("xyz", point, arena_min_m, arena_max_m, strict=True):
+            if not low <= value <= high:
+                return (
+                    f"waypoint {index} ({point[0]:.2f}, {point[1]:.2f}, {point[2]:.2f}) NED is outside the "
+                    f"arena: {axis} must be in {low:g}..{high:g} m"
+                )
+    return None
 
 
 def load_waypoints(path: str | Path) -> tuple[tuple[float, float, float], ...]:

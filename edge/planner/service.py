@@ -19,13 +19,13 @@ from dynqos.common import keys
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.config import Config, DroneMissionConfig, PlannerConfig
 from dynqos.common.keys import Downlink
-from dynqos.common.messages import Reference, State
+from dynqos.common.messages import MissionRequest, Reference, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received
 from dynqos.edge import feeds, metrics
 from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
-from dynqos.edge.planner.missions import Mission, load_waypoints
+from dynqos.edge.planner.missions import Mission, load_waypoints, outside_arena
 from dynqos.edge.replicas import Assignment, Role
 from dynqos.edge.service import Service, serve
 
@@ -56,7 +56,7 @@ class PlannerService:
         self.state_seq: dict[str, int] = {}  # the newest state seen per drone
         # the other replicas' references too: whom they publish for, and their mission time
         self.feeds = DroneFeeds(
-            "planner", bus, self.queue, [feeds.states(), feeds.references(remote_only=True)]
+            "planner", bus, self.queue, [feeds.states(), feeds.references(remote_only=True), feeds.missions()]
         )
         self.feeds.reconcile(self.assignment.mine, assignment_changed=True)
 
@@ -75,6 +75,9 @@ class PlannerService:
         # newer than its last life to every receiver (common/reference.py), at up to 1000 references/s.
         self.seq = time.time_ns() // 1_000_000
         self.sent = 0
+        self.mission_seq: dict[str, int] = {}  # the newest MissionRequest seen per drone, flown or refused
+        self.missions_flown = 0
+        self.missions_refused = 0
         self.service = Service("planner", self.cfg.health_interval_s)
 
     def discover(self) -> None:
@@ -92,6 +95,8 @@ class PlannerService:
                 if message.replica == self.assignment.seats[message.uav].holder:
                     # follow the mission where the publishing replica has it (to the arrival: ~1 ms)
                     self.started_ns[message.uav] = item.arrival_ns - round(message.mission_t_s * 1e9)
+            elif isinstance(message, MissionRequest):
+                self._on_mission(message, item.arrival_ns)
         for change in self.assignment.tick(self.clock.now_ns()):
             self.membership.log_change(change)
         self.feeds.reconcile(self.assignment.mine, assignment_changed=self.membership.take_changed())
@@ -109,6 +114,31 @@ class PlannerService:
             )
             mission = self.missions.get(uav, self.mission)
             log.info("planner: %s mission (centre %s) starts for %s", mission.kind, mission.center_m, uav)
+
+    def _on_mission(self, request: MissionRequest, arrival_ns: int) -> None:
+        """A mission from outside (the ROS 2 bridge), flown from now unless a waypoint is outside the
+        arena; each seq once (the bridge re-sends it every second, for replicas that start later: one
+        that first hears it then flies it from its first waypoint, where the drone was when asked)."""
+        uav = request.uav
+        if request.seq <= self.mission_seq.get(uav, -1):
+            return
+        self.mission_seq[uav] = request.seq
+        why = outside_arena(request.waypoints_m, self.cfg.arena_min_m, self.cfg.arena_max_m)
+        if why is not None:
+            self.missions_refused += 1
+            log.warning("planner: refused mission %d for %s from %s, never flown: %s", request.seq, uav,
+                        request.source or "?", why)  # fmt: skip
+            return
+        self.missions[uav] = Mission(
+            kind="waypoints", waypoints=request.waypoints_m, lead_in_s=0.0,
+            speed_mps=request.speed_mps or self.cfg.speed_mps,
+        )  # fmt: skip
+        if uav in self.started_ns:
+            self.started_ns[uav] = arrival_ns
+        self.missions_flown += 1
+        north, east, down = request.waypoints_m[-1]
+        log.info("planner: %s flies mission %d from %s: %d waypoints to (%.2f, %.2f, %.2f) NED", uav,
+                 request.seq, request.source or "?", len(request.waypoints_m), north, east, down)  # fmt: skip
 
     def publish(self) -> None:
         now = self.clock.now_ns()
@@ -131,7 +161,8 @@ class PlannerService:
         return (
             f"{self.membership.health(self.started_ns, 'publishing')} "
             f"drones={len(self.started_ns)} references={self.sent} "
-            f"followed={len(self.feeds.subscribed)} rejected={self.feeds.rejected()}"
+            f"followed={len(self.feeds.subscribed)} rejected={self.feeds.rejected()} "
+            f"missions={self.missions_flown} refused={self.missions_refused}"
         )
 
     def run(self) -> None:

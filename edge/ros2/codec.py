@@ -151,6 +151,17 @@ def path_waypoints(data: bytes) -> Waypoints:
     return Waypoints(str(path.header.frame_id), points)
 
 
+def pose_goal(data: bytes) -> Waypoints:
+    """The position of a geometry_msgs/PoseStamped (a goal), in NED; ValueError for bytes that are not
+    one. Its orientation is not used: the planner flies yaw along the way."""
+    try:
+        pose = decode(POSE, data)
+    except Exception as exc:  # rosbags raises several kinds for truncated or foreign bytes
+        raise ValueError(f"not a {POSE} in CDR: {exc}") from None
+    p = pose.pose.position
+    return Waypoints(str(pose.header.frame_id), [ned_of_enu((p.x, p.y, p.z))])
+
+
 def transform(stamp_ns: int, frame: str, child_frame: str, pos_ned: Vec, quat_frd_ned: Quat) -> bytes:
     """A tf2_msgs/TFMessage with the one transform frame -> child_frame (the drone's body, FLU)."""
     t = STORE.types

@@ -1,12 +1,15 @@
 """`dynqos edge ros2`: each drone's pose, odometry, /tf, camera and supervisor status as ROS 2 topics in
 rmw_zenoh's format, so that ROS 2 nodes on the same router see them with `ros2 topic list/echo` and no
-bridge of their own (docs/ros2.md).
+bridge of their own, and ROS 2 nodes steer a drone with a Path or a goal (docs/ros2.md).
 
 It is an edge client of the router like the other services: it subscribes to the drones' states,
 statuses and RGB images (discovering drones as they appear; an image paced in parts is joined first),
 and for each drone declares, once, a publisher and a liveliness token per topic under
 `/<prefix>/<uav>/`, beside one node token (`/<prefix>/dynqos_edge`).
 Every sample carries rmw_zenoh's attachment (sequence from 1, source time, the publisher's GID).
+Per drone it also subscribes (with subscriber tokens) to `mission` (nav_msgs/Path) and `goal`
+(geometry_msgs/PoseStamped); each becomes a MissionRequest to the drone's planner replicas (checked in
+edge/ros2/steer.py, re-sent every second), and its outcome a `mission/status` DiagnosticArray.
 
 Stamps: a drone stamps its state with its own monotonic clock, which means nothing to ROS; the header
 stamp is this service's wall clock when the state arrived. Priority: every ROS-facing sample is
@@ -25,18 +28,21 @@ import zenoh
 
 from dynqos.common import keys
 from dynqos.common.config import Config
-from dynqos.common.keys import Stream
-from dynqos.common.messages import CameraFrame, State, SupervisorStatus
+from dynqos.common.errors import KeyExprError
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.messages import CameraFrame, MissionRequest, State, SupervisorStatus
 from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Received, ZenohBus
+from dynqos.common.transport import Priority, Publisher, Received, ZenohBus
 from dynqos.edge.ros2 import codec, wire
-from dynqos.edge.ros2.translate import Translator
+from dynqos.edge.ros2.steer import KINDS, STEER_QOS, Refusal, Steering, Vec
+from dynqos.edge.ros2.translate import STATUS_QOS, Translator
 from dynqos.edge.ros2.wire import Entity, Node, Qos
 from dynqos.edge.service import Service, serve
 
 log = logging.getLogger(__name__)
 
 NODE_NAME = "dynqos_edge"
+RESEND_S = 1.0  # a mission is re-sent this often, for planner replicas that start later
 
 
 @dataclass
@@ -75,8 +81,36 @@ class Ros2Face:
         self.node = Node(self.cfg.domain_id, zid, 0, f"/{self.cfg.prefix}", NODE_NAME)
         self.node_token = self.session.liveliness().declare_token(self.node.token())
         self.topics: dict[str, Topic] = {}
+        self.entities = 0
         self.published = 0
         self.service = Service("ros2", self.cfg.health_interval_s)
+        self._init_steering(config, bus)
+
+    def _init_steering(self, config: Config, bus: ZenohBus) -> None:
+        planner = config.planner
+        self.bus = bus
+        self.steering = Steering(self.cfg.frame_id, planner.arena_min_m, planner.arena_max_m)
+        self.positions: dict[str, Vec] = {}  # each drone's last position: where a mission starts
+        self.steered: dict[str, list[Any]] = {}  # each drone's subscriber tokens
+        self.steer_queue: BoundedQueue[tuple[str, bytes]] = BoundedQueue(64)
+        self.requests: dict[str, tuple[MissionRequest, Publisher]] = {}  # the last mission sent per drone
+        self.mission_seq = time.time_ns() // 1_000_000  # newer than a restarted bridge's last
+        self.missions_sent = 0
+        self.missions_refused = 0
+        self.resent_ns = time.monotonic_ns()
+        self._topic_root = f"{self.cfg.domain_id}/{self.cfg.prefix}/"
+        self.steer_subscribers = [
+            self.session.declare_subscriber(
+                wire.topic_key(self.cfg.domain_id, f"/{self.cfg.prefix}/*/{kind}", ros_type,
+                               codec.type_hash(ros_type)),
+                lambda sample: self.steer_queue.put((str(sample.key_expr), sample.payload.to_bytes())),
+            )
+            for kind, ros_type in KINDS.items()
+        ]  # fmt: skip
+
+    def _entity(self) -> int:
+        self.entities += 1
+        return self.entities
 
     def topic(self, name: str, ros_type: str, qos: Qos) -> Topic:
         """The publisher of `name` (a fully qualified topic), declared with its token on first use."""
@@ -84,9 +118,7 @@ class Ros2Face:
         if found is not None:
             return found
         type_hash = codec.type_hash(ros_type)
-        token_key = self.node.endpoint_token(
-            len(self.topics) + 1, Entity.PUBLISHER, name, ros_type, type_hash, qos
-        )
+        token_key = self.node.endpoint_token(self._entity(), Entity.PUBLISHER, name, ros_type, type_hash, qos)
         publisher = self.session.declare_publisher(
             wire.topic_key(self.cfg.domain_id, name, ros_type, type_hash),
             priority=zenoh.Priority.DATA_LOW,
@@ -100,13 +132,81 @@ class Ros2Face:
 
     def handle(self, item: Received) -> None:
         uav = keys.parse(item.key).uav
+        if isinstance(item.message, State):
+            self.positions[uav] = item.message.pos_m
+            if uav not in self.steered:
+                self._listen_for_steering(uav)
         for sample in self.translator.translate(uav, item.message, time.time_ns()):
             self.topic(sample.topic, sample.ros_type, sample.qos).publish(sample.payload)
             self.published += 1
 
+    def _listen_for_steering(self, uav: str) -> None:
+        """Subscriber tokens for the drone's mission and goal: ROS 2 sees who listens there."""
+        self.steered[uav] = [
+            self.session.liveliness().declare_token(self.node.endpoint_token(
+                self._entity(), Entity.SUBSCRIPTION, f"/{self.cfg.prefix}/{uav}/{kind}", ros_type,
+                codec.type_hash(ros_type), STEER_QOS,
+            ))
+            for kind, ros_type in KINDS.items()
+        ]  # fmt: skip
+        log.info("ros2: listening for %s's mission and goal", uav)
+
+    def steer(self, key: str, payload: bytes) -> None:
+        """One ROS 2 sample on a drone's mission or goal: a MissionRequest to its planners, or refused."""
+        uav, kind = key.removeprefix(self._topic_root).split("/", 2)[:2]
+        try:
+            keys.check_uav_id(uav)
+        except KeyExprError as exc:
+            self._refused(Refusal("", kind, str(exc)))
+            return
+        self.mission_seq += 1
+        result = self.steering.request(
+            uav, kind, payload, self.positions.get(uav), self.mission_seq, time.monotonic_ns()
+        )
+        if isinstance(result, Refusal):
+            self._refused(result)
+            return
+        known = self.requests.get(uav)
+        publisher = (
+            known[1] if known else self.bus.publisher(keys.downlink(uav, Downlink.MISSION), Priority.DATA)
+        )
+        publisher.put(result)
+        self.requests[uav] = (result, publisher)
+        self.missions_sent += 1
+        count = len(result.waypoints_m) - 1
+        log.info(
+            "ros2: %s for %s sent to its planner as mission %d (%d waypoints)", kind, uav, result.seq, count
+        )
+        self._mission_status(uav, codec.OK, f"{kind} sent to the planner as mission {result.seq}",
+                             {"seq": str(result.seq), "waypoints": str(count)})  # fmt: skip
+
+    def _refused(self, refusal: Refusal) -> None:
+        self.missions_refused += 1
+        if self.missions_refused == 1 or self.missions_refused % 100 == 0:
+            log.warning("ros2: refused a %s for %s (%d refused so far), never flown: %s", refusal.kind,
+                        refusal.uav or "an unknown drone", self.missions_refused, refusal.reason)  # fmt: skip
+        if refusal.uav:
+            self._mission_status(refusal.uav, codec.ERROR, f"{refusal.kind} refused: {refusal.reason}", {})
+
+    def _mission_status(self, uav: str, level: int, message: str, values: dict[str, str]) -> None:
+        payload = codec.diagnostics(time.time_ns(), f"dynqos/{uav}/mission", uav, level, message, values)
+        self.topic(f"/{self.cfg.prefix}/{uav}/mission/status", codec.DIAGNOSTICS, STATUS_QOS).publish(payload)
+
+    def resend(self) -> None:
+        """Every mission sent, once more each RESEND_S: a planner replica that starts later flies it."""
+        now = time.monotonic_ns()
+        if now - self.resent_ns < RESEND_S * 1e9:
+            return
+        self.resent_ns = now
+        for request, publisher in self.requests.values():
+            publisher.put(request)
+
     def health(self) -> str:
         received = sum(s.received for s in self.stats)
-        return f"topics={len(self.topics)} published={self.published} received={received}"
+        return (
+            f"topics={len(self.topics)} published={self.published} received={received} "
+            f"missions={self.missions_sent} refused={self.missions_refused}"
+        )
 
     def run(self) -> None:
         try:
@@ -114,10 +214,17 @@ class Ros2Face:
                 item = self.queue.get(timeout_s=0.1)
                 if item is not None:
                     self.handle(item)
+                for key, payload in self.steer_queue.drain():
+                    self.steer(key, payload)
+                self.resend()
                 self.service.maybe_health(self.health)
         finally:
+            for subscriber in self.steer_subscribers:
+                subscriber.undeclare()  # type: ignore[no-untyped-call]
             for topic in self.topics.values():
                 topic.close()
+            for token in (t for tokens in self.steered.values() for t in tokens):
+                token.undeclare()
             self.node_token.undeclare()  # type: ignore[no-untyped-call]
 
 
