@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 import queue
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +25,7 @@ from dynqos.common.transport import Priority, Role, default_flow_endpoint, open_
 from dynqos.edge.ros2 import codec, wire
 from tests.conftest import free_tcp_port
 from tests.procs import DynqosProcess
+from tests.ros2_client import first_sample, ros_client, ros_pose, sdk_publisher
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
@@ -69,7 +70,7 @@ def test_a_drones_pose_reaches_ros2_clients_counted_with_attachments_and_tokens(
     config_path, port = edge
     config = load_config(config_path)
     got: queue.Queue[zenoh.Sample] = queue.Queue()
-    ros_side = _ros_client(port)
+    ros_side = ros_client(port)
     drone = open_bus(config.zenoh, Role.DRONE, connect=[default_flow_endpoint(config.zenoh)])
     try:
         pose_key = wire.topic_key(0, "/fleet/uav7/pose", codec.POSE, codec.type_hash(codec.POSE))
@@ -119,7 +120,7 @@ def test_a_drones_pose_reaches_ros2_clients_counted_with_attachments_and_tokens(
         )  # fmt: skip
         # the subscriber to the status topic may not be known to the bridge's publisher, declared with it:
         # the status is sent until one arrives (bounded)
-        sample = _first(got, lambda: status_pub.put(status))
+        sample = first_sample(got, lambda: status_pub.put(status))
         (diagnostic,) = codec.decode(codec.DIAGNOSTICS, sample.payload.to_bytes()).status
         assert diagnostic.level == codec.ERROR
         assert diagnostic.hardware_id == "uav7"
@@ -130,27 +131,6 @@ def test_a_drones_pose_reaches_ros2_clients_counted_with_attachments_and_tokens(
     finally:
         drone.close()
         ros_side.close()
-
-
-def _ros_client(port: int) -> zenoh.Session:
-    """A bare zenoh client of the router: the ROS 2 side, reading the rmw_zenoh keys directly."""
-    listener = zenoh.Config()
-    listener.insert_json5("mode", '"client"')
-    listener.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-    listener.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(listener)
-
-
-def _first(got: queue.Queue[zenoh.Sample], send: Callable[[], None], tries: int = 50) -> zenoh.Sample:
-    """Send (`send()`) until a sample arrives: the bridge declares a topic's publisher on the first
-    message, and a subscriber it has not yet heard of can miss that one (bounded: `tries` x 0.2 s)."""
-    for _ in range(tries):
-        send()
-        try:
-            return got.get(timeout=0.2)
-        except queue.Empty:
-            continue
-    raise AssertionError("nothing reached the ROS 2 side")
 
 
 def test_a_paced_camera_image_reaches_ros2_as_the_same_jpeg_with_its_camera_info(
@@ -166,7 +146,7 @@ def test_a_paced_camera_image_reaches_ros2_as_the_same_jpeg_with_its_camera_info
     half = len(jpeg) // 2
     got: queue.Queue[zenoh.Sample] = queue.Queue()
     info_got: queue.Queue[zenoh.Sample] = queue.Queue()
-    ros_side = _ros_client(port)
+    ros_side = ros_client(port)
     drone = open_bus(config.zenoh, Role.DRONE, connect=[default_flow_endpoint(config.zenoh)])
     try:
         base = "/fleet/uav7/camera"
@@ -191,7 +171,7 @@ def test_a_paced_camera_image_reaches_ros2_as_the_same_jpeg_with_its_camera_info
                     intrinsics=(200.0, 201.0, 80.0, 60.0), payload=payload, part=part, parts=2,
                 ))  # fmt: skip
 
-        sample = _first(got, send_in_two_parts)
+        sample = first_sample(got, send_in_two_parts)
         picture = codec.decode(codec.COMPRESSED_IMAGE, sample.payload.to_bytes())
         assert picture.format == "jpeg"
         assert bytes(picture.data) == jpeg  # joined from its parts, passed on as it came
@@ -210,41 +190,6 @@ def test_a_paced_camera_image_reaches_ros2_as_the_same_jpeg_with_its_camera_info
         ros_side.close()
 
 
-STEER_TYPES = (  # what a Path and a goal are made of, from rosbags' Jazzy definitions
-    "builtin_interfaces/msg/Time", "std_msgs/msg/Header", "geometry_msgs/msg/Point",
-    "geometry_msgs/msg/Quaternion", "geometry_msgs/msg/Pose",
-)  # fmt: skip
-DEFINITIONS = {
-    codec.PATH: "std_msgs/Header header\ngeometry_msgs/PoseStamped[] poses\n",
-    codec.POSE: "std_msgs/Header header\ngeometry_msgs/Pose pose\n",
-}
-
-
-def _sdk_publisher(port: int, topic: str, ros_type: str) -> Any:
-    """The ROBOTIS SDK's ROS 2 publisher (its keys, attachment and tokens), given the definitions it would
-    fetch with git: the parts from rosbags' Jazzy store, the type itself as .msg text."""
-    from zenoh_ros2_sdk import ROS2Publisher
-    from zenoh_ros2_sdk.session import ZenohSession
-
-    store = ZenohSession.get_instance("127.0.0.1", port).store
-    store.register({name: codec.STORE.fielddefs[name] for name in STEER_TYPES if name not in store.types})
-    if ros_type == codec.PATH and codec.POSE not in store.types:
-        _sdk_publisher(port, "/unused", codec.POSE).close()  # registers the PoseStamped a Path holds
-    return ROS2Publisher(
-        topic, ros_type, msg_definition=DEFINITIONS[ros_type], node_name="ground", router_port=port,
-        type_hash=codec.type_hash(ros_type),
-    )  # fmt: skip
-
-
-def _ros_pose(t: Any, enu: tuple[float, float, float]) -> Any:
-    header = t["std_msgs/msg/Header"](
-        stamp=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="map"
-    )
-    point = t["geometry_msgs/msg/Point"](x=enu[0], y=enu[1], z=enu[2])
-    level = t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)
-    return t[codec.POSE](header=header, pose=t["geometry_msgs/msg/Pose"](position=point, orientation=level))
-
-
 def test_a_ros2_path_reaches_the_drones_planner_and_a_goal_outside_the_arena_is_refused(
     edge: tuple[Path, int],
 ) -> None:
@@ -257,7 +202,7 @@ def test_a_ros2_path_reaches_the_drones_planner_and_a_goal_outside_the_arena_is_
     config = load_config(config_path)
     missions: queue.Queue[zenoh.Sample] = queue.Queue()
     statuses: queue.Queue[zenoh.Sample] = queue.Queue()
-    ros_side = _ros_client(port)
+    ros_side = ros_client(port)
     drone = open_bus(config.zenoh, Role.DRONE, connect=[default_flow_endpoint(config.zenoh)])
     publishers: list[Any] = []
     try:
@@ -282,12 +227,12 @@ def test_a_ros2_path_reaches_the_drones_planner_and_a_goal_outside_the_arena_is_
         assert info is not None
         assert [s.node_name for s in info.subscribers] == ["dynqos_edge"]
 
-        path_pub = _sdk_publisher(port, "/fleet/uav8/mission", codec.PATH)
+        path_pub = sdk_publisher(port, "/fleet/uav8/mission", codec.PATH)
         publishers.append(path_pub)
         t = ZenohSession.get_instance("127.0.0.1", port).store.types
-        poses = [_ros_pose(t, (2.0, 1.0, 1.5)), _ros_pose(t, (4.0, 1.0, 2.0))]
+        poses = [ros_pose(t, (2.0, 1.0, 1.5)), ros_pose(t, (4.0, 1.0, 2.0))]
         header = poses[0].header
-        sample = _first(missions, lambda: path_pub.publish(header=header, poses=poses), tries=25)
+        sample = first_sample(missions, lambda: path_pub.publish(header=header, poses=poses), tries=25)
         request = decode(sample.payload.to_bytes())
         assert isinstance(request, MissionRequest)
         assert request.waypoints_m == ((1.0, 2.0, -1.5), (1.0, 2.0, -1.5), (1.0, 4.0, -2.0))
@@ -295,10 +240,10 @@ def test_a_ros2_path_reaches_the_drones_planner_and_a_goal_outside_the_arena_is_
         assert ok.level == codec.OK
         assert f"as mission {request.seq}" in ok.message
 
-        goal_pub = _sdk_publisher(port, "/fleet/uav8/goal", codec.POSE)
+        goal_pub = sdk_publisher(port, "/fleet/uav8/goal", codec.POSE)
         publishers.append(goal_pub)
-        far = _ros_pose(t, (0.0, 500.0, 2.0))
-        refusal = _first(statuses, lambda: goal_pub.publish(header=far.header, pose=far.pose), tries=25)
+        far = ros_pose(t, (0.0, 500.0, 2.0))
+        refusal = first_sample(statuses, lambda: goal_pub.publish(header=far.header, pose=far.pose), tries=25)
         (error,) = codec.decode(codec.DIAGNOSTICS, refusal.payload.to_bytes()).status
         assert error.level == codec.ERROR
         assert "goal refused: waypoint 0 (500.00, 0.00, -2.00) NED is outside the arena" in error.message

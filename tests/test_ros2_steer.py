@@ -152,3 +152,18 @@ def test_the_planner_flies_a_mission_from_now_once_per_seq_and_refuses_one_outsi
     assert (
         "refused mission 6 for uav1 from ?, never flown: waypoint 1 (1.00, 60.00, -1.50) NED" in caplog.text
     )
+
+
+def test_a_scenario_with_the_bridge_needs_the_ros2_extra_and_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    from dataclasses import replace
+
+    from dynqos.experiment import scenario as scenarios
+
+    base = scenarios.builtin_scenario("baseline")
+    assert replace(base, ros2_bridge=True).ros2_bridge  # here the extra is installed
+    real = scenarios.importlib.util.find_spec
+    monkeypatch.setattr(
+        scenarios.importlib.util, "find_spec", lambda name: None if name == "rosbags" else real(name)
+    )
+    with pytest.raises(ConfigError, match=r"ros2_bridge.*needs the ros2 extra: pip install 'dynqos\[ros2\]'"):
+        replace(base, ros2_bridge=True)

@@ -89,6 +89,8 @@ def run_fleet(
         # The detector is best effort (it drops the frames it cannot keep up with): on one machine it
         # runs below the control path, as it would on its own cores at a real edge.
         procs.start("detector", ["edge", "detector"], program=["nice", "-n", str(DETECTOR_NICE), procs.exe])
+        if scenario.ros2_bridge:  # best effort as well
+            procs.start("ros2", ["edge", "ros2"], program=["nice", "-n", str(DETECTOR_NICE), procs.exe])
         _record_fleet(scenario, shared.zenoh, procs, paths, cell["control_port"], rec, recs, decisions, stop,
                       progress, shared.cell.uplink_mbps)  # fmt: skip
 

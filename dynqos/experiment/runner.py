@@ -93,6 +93,8 @@ def _start_edge_and_cell(
     start_replicas(procs, "planner", scenario.planner_replicas)
     start_replicas(procs, "mpc", scenario.mpc_replicas)
     procs.start("detector", ["edge", "detector"])
+    if scenario.ros2_bridge:
+        procs.start("ros2", ["edge", "ros2"])
     port: int = cell["control_port"]
     return port
 

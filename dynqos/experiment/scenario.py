@@ -3,6 +3,7 @@ runs it. Scenarios come as TOML files (`dynqos run FILE`, or the built-in ones i
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 from dataclasses import dataclass, field, replace
 from importlib import resources
@@ -130,6 +131,9 @@ class Scenario:
     # derives: the fields above are the experiment's own variables (each sets several settings, is
     # scaled, or is what reports and profiles compare); everything else is a setting (docs/demo.md).
     config: dict[str, Any] = field(default_factory=dict)
+    # `dynqos edge ros2` beside the edge services (docs/ros2.md): the drones' ROS 2 topics on the router,
+    # and ROS 2 nodes may steer them. Needs the ros2 extra.
+    ros2_bridge: bool = False
 
     @property
     def run_id(self) -> str:
@@ -166,6 +170,8 @@ class Scenario:
             needs = REPLICA_FAULTS.get(fault.kind)
             if needs is not None and getattr(self, needs) < 2:
                 raise ConfigError(f"faults[{i}].kind", f"{fault.kind} needs {needs} >= 2 (a standby)")
+        if self.ros2_bridge and importlib.util.find_spec("rosbags") is None:
+            raise ConfigError("ros2_bridge", "needs the ros2 extra: pip install 'dynqos[ros2]'")
         if not 0.5 <= self.memory_sample_s <= 600:
             raise ConfigError("memory_sample_s", "must be in 0.5..600 s")
         if self.metrics_port and not 1024 <= self.metrics_port <= 65000:
