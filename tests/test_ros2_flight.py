@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import queue
 import threading
+from collections import Counter
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -157,10 +158,17 @@ def test_a_ros2_client_sees_every_pose_image_and_status_of_a_flying_drone_and_st
         image = cv2.imdecode(np.frombuffer(bytes(data), np.uint8), cv2.IMREAD_COLOR)
         assert image is not None
         assert (image.shape[1], image.shape[0]) in sizes
+    # Every status the flight recorded was heard with the same values (counted: as many times each).
     with (folder / "supervisor.csv").open() as f:
-        recorded_states = {row["state"] for row in csv.DictReader(f)}
-    assert len(statuses.samples) > 2 * scenario.duration_s  # 5 Hz
+        recorded = Counter(
+            (r["state"], r["flow"], r["control_source"], r["risk"], r["latency"],
+             f"{float(r['rtt_ms']):.1f}" if r["rtt_ms"] else "")
+            for r in csv.DictReader(f)
+        )  # fmt: skip
+    heard: Counter[tuple[str, ...]] = Counter()
     for payload, _ in statuses.samples:
         (status,) = codec.decode(codec.DIAGNOSTICS, payload).status
-        values = {kv.key: kv.value for kv in status.values}
-        assert values["state"] in recorded_states
+        v = {kv.key: kv.value for kv in status.values}
+        heard[(v["state"], v["flow"], v["control"], v["risk"], v["latency"], v["rtt_ms"])] += 1
+    assert sum(recorded.values()) > 4 * scenario.duration_s  # 5 Hz
+    assert recorded - heard == Counter(), recorded - heard
