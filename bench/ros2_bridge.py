@@ -1,14 +1,17 @@
 """Benchmark: what `dynqos edge ros2` costs (docs/ros2.md): its CPU per drone, the time it adds to a
 drone's pose on its way to a ROS 2 node, and whether the control loop notices it running.
 
-1. Pose latency. A drone session publishes a State on the priority flow; the bridge publishes its pose
+1. Pose latency. A drone session publishes a State on the priority flow; the bridge, publishing each
+   message as it comes (`[ros2] publish_period_s = 0`: its work, not its pacing), publishes its pose
    (and odometry and /tf) in rmw_zenoh's format; a raw zenoh subscriber on the pose's data key, a ROS
-   node's part, times it from the put. The floor, on the same sessions and router: a bare zenoh-python
-   responder (bench/zenoh_echo.py) answering a payload of the State's size with one of the pose's size.
-   The two alternate in blocks of 50, one state at a time.
-2. CPU per drone. D = 1, 2, 4, 8 drones' States at 20 Hz and SupervisorStatus at 5 Hz for `--seconds`,
-   a ROS listener subscribed to every topic the bridge publishes (zenoh sends nothing to nobody), the
-   bridge's CPU seconds (/proc/PID/stat); the cost per drone is the least-squares slope.
+   node's part, times it from the put (with the default period a pose waits up to that long more).
+   The floor, on the same sessions and router: a bare zenoh-python responder (bench/zenoh_echo.py)
+   answering a payload of the State's size with one of the pose's size. The two alternate in blocks
+   of 50, one state at a time.
+2. CPU per drone, the bridge as configured by default. D = 1, 2, 4, 8 drones' States at 20 Hz and
+   SupervisorStatus at 5 Hz for `--seconds`, a ROS listener subscribed to every topic the bridge
+   publishes (zenoh sends nothing to nobody), the bridge's CPU seconds (/proc/PID/stat); the cost per
+   drone is the least-squares slope.
 3. The control loop of `control_loop` (State -> `dynqos edge mpc` -> Command), paced at 100 Hz, with the
    bridge and its listener running, without, and with the floor of any watcher (a bare zenoh
    subscriber of the states: the router then sends each state twice), each once per round, four rounds,
@@ -80,7 +83,7 @@ def pose_latency(zcfg: ZenohConfig, procs: Processes, round_trips: int) -> dict[
     procs.start(
         "echo", ["--reply-bytes", str(pose_bytes)], program=[sys.executable, "-m", "dynqos.bench.zenoh_echo"]
     )
-    procs.start("ros2", ["edge", "ros2"])
+    procs.start("ros2", ["edge", "ros2", "--set", "ros2.publish_period_s=0"])  # its work, not its period
     bus = open_bus(zcfg, Role.DRONE)
     try:
         poses: queue.SimpleQueue[int] = queue.SimpleQueue()

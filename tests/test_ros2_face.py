@@ -216,11 +216,12 @@ def test_a_ros2_path_reaches_the_drones_planner_and_a_goal_outside_the_arena_is_
         assert state_pub.wait_matched(10)
         here = State(uav="uav8", seq=1, stamp_ns=1, pos_m=(1.0, 2.0, -1.5), vel_mps=(0.0, 0.0, 0.0),
                      quat=(1.0, 0.0, 0.0, 0.0))  # fmt: skip
-        state_pub.put(here)
-        for _ in range(10):  # the bridge declares its subscriber tokens when it hears the drone (bounded)
-            listed = dict(get_topic_names_and_types(domain_id=0, router_port=port, timeout=1.0))
-            if "/fleet/uav8/goal" in listed:
-                break
+        # the bridge declares its subscriber tokens when it hears the drone, before it publishes its pose
+        poses: queue.Queue[zenoh.Sample] = queue.Queue()
+        pose_key = wire.topic_key(0, "/fleet/uav8/pose", codec.POSE, codec.type_hash(codec.POSE))
+        ros_side.declare_subscriber(pose_key, poses.put)
+        first_sample(poses, lambda: state_pub.put(here))
+        listed = dict(get_topic_names_and_types(domain_id=0, router_port=port, timeout=2.0))
         assert listed["/fleet/uav8/mission"] == [codec.PATH]
         assert listed["/fleet/uav8/goal"] == [codec.POSE]
         info = get_topic_info("/fleet/uav8/mission", domain_id=0, router_port=port, timeout=2.0, verbose=True)

@@ -297,6 +297,9 @@ class Ros2Config:
     prefix: str = "dynqos"  # topics are /<prefix>/<uav>/...
     frame_id: str = "map"  # the fixed ENU frame of poses and odometry
     health_interval_s: Annotated[float, In(0.5, 3600, "must be in 0.5..3600 s")] = 5.0
+    # The bridge translates what arrived every publish_period_s, on its own clock, not the moment each
+    # state arrives (when the MPC is solving the same state: docs/ros2.md, "What it costs"); 0: at once.
+    publish_period_s: Annotated[float, In(0, 1, "must be in 0..1 s")] = 0.05
 
     def __post_init__(self) -> None:
         _require(ROS_NAME.fullmatch(self.prefix) is not None, "prefix",
