@@ -84,6 +84,7 @@ class Ros2Face:
         self.topics: dict[str, Topic] = {}
         self.entities = 0
         self.published = 0
+        self.next_tick = time.monotonic()  # the next publish_period_s tick
         self.service = Service("ros2", self.cfg.health_interval_s)
         self._init_steering(config, bus)
 
@@ -222,7 +223,6 @@ class Ros2Face:
         return self.queue.drain()
 
     def run(self) -> None:
-        self.next_tick = time.monotonic()
         try:
             while not self.service.stop.is_set():
                 for item in self.arrived():
