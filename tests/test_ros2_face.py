@@ -20,7 +20,17 @@ from zenoh_ros2_sdk import get_topic_info, get_topic_names_and_types
 from dynqos.common import keys
 from dynqos.common.config import load_config
 from dynqos.common.keys import Downlink, Flow, Stream
-from dynqos.common.messages import CameraFrame, MissionRequest, State, SupervisorStatus, decode
+from dynqos.common.messages import (
+    CameraFrame,
+    Detections,
+    MissionRequest,
+    QosDecision,
+    QosGrant,
+    State,
+    SupervisorStatus,
+    decode,
+)
+from dynqos.common.modes import Grant
 from dynqos.common.transport import Priority, Role, default_flow_endpoint, open_bus
 from dynqos.edge.ros2 import codec, wire
 from tests.conftest import free_tcp_port
@@ -255,4 +265,54 @@ def test_a_ros2_path_reaches_the_drones_planner_and_a_goal_outside_the_arena_is_
         for publisher in publishers:
             publisher.close()
         drone.close()
+        ros_side.close()
+
+
+def test_detections_and_the_qos_grant_and_decisions_reach_ros2(edge: tuple[Path, int]) -> None:
+    """The detector's circles as a vision_msgs/Detection2DArray in the camera's optical frame, the QoS
+    agent's grant and the arbiter's decisions as a `qos` DiagnosticArray (edge/ros2/translate.py)."""
+    config_path, port = edge
+    config = load_config(config_path)
+    ros_side = ros_client(port)
+    edge_side = open_bus(config.zenoh, Role.EDGE, connect=[default_flow_endpoint(config.zenoh)])
+    try:
+        got: queue.Queue[zenoh.Sample] = queue.Queue()
+        ros_side.declare_subscriber(
+            wire.topic_key(0, "/fleet/uav9/detections", codec.DETECTIONS, codec.type_hash(codec.DETECTIONS)),
+            got.put,
+        )
+        found = Detections(uav="uav9", seq=1, frame_seq=7, stamp_ns=1, circles_px=((320.0, 240.0, 30.0),),
+                           centers_m=((0.25, -0.1, 2.5, 0.3),))  # fmt: skip
+        detections = edge_side.publisher(keys.downlink("uav9", Downlink.DETECTIONS), Priority.DATA)
+        assert detections.wait_matched(10)
+        sample = first_sample(got, lambda: detections.put(found))
+        array = codec.decode(codec.DETECTIONS, sample.payload.to_bytes())
+        assert array.header.frame_id == "uav9/camera_optical"
+        (detection,) = array.detections
+        assert (detection.bbox.center.position.x, detection.bbox.size_x) == (320.0, 60.0)
+        p = detection.results[0].pose.pose.position
+        assert (p.x, p.y, p.z) == (0.25, -0.1, 2.5)
+
+        qos_key = wire.topic_key(0, "/fleet/uav9/qos", codec.DIAGNOSTICS, codec.type_hash(codec.DIAGNOSTICS))
+        ros_side.declare_subscriber(qos_key, got.put)
+        grant = edge_side.publisher(keys.downlink("uav9", Downlink.QOS_GRANT), Priority.DATA)
+        decision = edge_side.publisher(keys.downlink("uav9", Downlink.QOS_DECISION), Priority.DATA)
+        assert grant.wait_matched(10)
+        assert decision.wait_matched(10)
+        refused = QosGrant(uav="uav9", seq=2, grant=Grant.UNAVAILABLE, backend="camara", session_id="s-1",
+                           reason="409 conflict")  # fmt: skip
+        (status,) = codec.decode(
+            codec.DIAGNOSTICS, first_sample(got, lambda: grant.put(refused)).payload.to_bytes()
+        ).status
+        assert (status.name, status.level) == ("dynqos/uav9/qos/grant", codec.ERROR)
+        assert {kv.key: kv.value for kv in status.values}["session_id"] == "s-1"
+        denied = QosDecision(uav="uav9", seq=3, stamp_ns=1, action="deny", reason="budget of 2 held",
+                             risk="LR", latency_excess=0.0, holders=("uav1", "uav2"))  # fmt: skip
+        decision.put(denied)
+        (status,) = codec.decode(codec.DIAGNOSTICS, got.get(timeout=10).payload.to_bytes()).status
+        assert status.name == "dynqos/uav9/qos/decision"
+        values = {kv.key: kv.value for kv in status.values}
+        assert (values["action"], values["holders"]) == ("deny", "uav1 uav2")
+    finally:
+        edge_side.close()
         ros_side.close()

@@ -15,7 +15,7 @@ from zenoh_ros2_sdk import utils as sdk_utils
 from zenoh_ros2_sdk.attachment import Attachment as SdkAttachment
 from zenoh_ros2_sdk.entity import EndpointEntity, EntityKind, NodeEntity
 
-from dynqos.edge.ros2 import codec, wire
+from dynqos.edge.ros2 import codec, vision, wire
 from dynqos.edge.ros2.wire import Attachment, Durability, Entity, Node, Qos, Reliability
 
 POSE_HASH = "RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8"  # Jazzy's
@@ -153,3 +153,32 @@ def test_a_path_gives_its_waypoints_in_ned_and_junk_is_a_clear_error() -> None:
     assert got.points_ned == [(0.0, 1.0, -2.5), (3.0, 1.0, -2.5)]
     with pytest.raises(ValueError, match="not a nav_msgs/msg/Path"):
         codec.path_waypoints(data[:20])
+
+
+def test_the_detections_type_hash_is_the_one_the_sdk_computes_from_vision_msgs_definitions() -> None:
+    """vision_msgs is not in rosbags' Jazzy store: ours registers its 4.1.1 definitions, and the SDK's own
+    RIHS01 code, given the same .msg texts, must arrive at the same hash (what ROS 2 nodes compute)."""
+    deps = {
+        **DEFINITIONS,
+        "geometry_msgs/msg/PoseWithCovariance": "Pose pose\nfloat64[36] covariance\n",
+        **{name: text for name, text in vision.DEFINITIONS.items() if name != vision.DETECTIONS},
+    }
+    theirs = sdk_utils.get_type_hash(
+        vision.DETECTIONS, msg_definition=vision.DEFINITIONS[vision.DETECTIONS], dependencies=deps
+    )
+    assert codec.type_hash(codec.DETECTIONS) == theirs
+    data = codec.detections(5, "uav1/camera_optical", ((320.0, 240.0, 12.0), (10.0, 20.0, 4.0)),
+                            ((0.1, -0.2, 3.0, 0.15), None))  # fmt: skip
+    array = codec.decode(codec.DETECTIONS, data)
+    first, second = array.detections
+    assert array.header.frame_id == "uav1/camera_optical"
+    assert (first.bbox.center.position.x, first.bbox.center.position.y, first.bbox.size_x) == (
+        320.0,
+        240.0,
+        24.0,
+    )
+    (hypothesis,) = first.results
+    assert (hypothesis.hypothesis.class_id, hypothesis.hypothesis.score) == ("circle", 1.0)
+    p = hypothesis.pose.pose.position
+    assert (p.x, p.y, p.z) == (0.1, -0.2, 3.0)
+    assert second.results == []  # no depth there: a box without a 3-D hypothesis

@@ -19,10 +19,13 @@ from typing import Any
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
+from dynqos.edge.ros2 import vision
+
 Quat = tuple[float, float, float, float]  # w, x, y, z
 Vec = tuple[float, float, float]
 
 STORE = get_typestore(Stores.ROS2_JAZZY)
+vision.register(STORE)  # vision_msgs, for the detections
 
 POSE = "geometry_msgs/msg/PoseStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -31,6 +34,7 @@ TF = "tf2_msgs/msg/TFMessage"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
+DETECTIONS = vision.DETECTIONS
 OK, WARN, ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
 
 
@@ -214,3 +218,13 @@ def camera_info(
         ),
     )  # fmt: skip
     return encode(message)
+
+
+def detections(
+    stamp_ns: int,
+    frame: str,
+    circles_px: tuple[tuple[float, float, float], ...],
+    centers_m: tuple[tuple[float, float, float, float] | None, ...],
+) -> bytes:
+    """The detector's circles in one frame as a vision_msgs/Detection2DArray (edge/ros2/vision.py)."""
+    return encode(vision.detection_array(STORE, _header(stamp_ns, frame), circles_px, centers_m))

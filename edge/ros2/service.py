@@ -30,7 +30,15 @@ from dynqos.common import keys
 from dynqos.common.config import Config
 from dynqos.common.errors import KeyExprError
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import CameraFrame, MissionRequest, State, SupervisorStatus
+from dynqos.common.messages import (
+    CameraFrame,
+    Detections,
+    MissionRequest,
+    QosDecision,
+    QosGrant,
+    State,
+    SupervisorStatus,
+)
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Publisher, Received, ZenohBus
 from dynqos.edge.ros2 import codec, wire
@@ -76,6 +84,9 @@ class Ros2Face:
             bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,)),
             bus.subscribe(keys.uplink_all_drones(Stream.STATUS), self.queue, expect=(SupervisorStatus,)),
             bus.subscribe(keys.uplink_all_drones(Stream.CAMERA_RGB), self.queue, expect=(CameraFrame,)),
+            bus.subscribe(keys.downlink_all_drones(Downlink.DETECTIONS), self.queue, expect=(Detections,)),
+            bus.subscribe(keys.downlink_all_drones(Downlink.QOS_GRANT), self.queue, expect=(QosGrant,)),
+            bus.subscribe(keys.downlink_all_drones(Downlink.QOS_DECISION), self.queue, expect=(QosDecision,)),
         ]
         self.translator = Translator(self.cfg.prefix, self.cfg.frame_id)
         zid = str(self.session.info.zid())

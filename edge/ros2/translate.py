@@ -3,14 +3,23 @@ writes, decided in one place (docs/ros2.md). Pure: the caller gives the time to 
 
 Per drone: every State gives `pose`, `odom` and a `/tf` transform; every SupervisorStatus a `status`
 DiagnosticArray; every whole RGB JPEG (joined from its parts when paced) `camera/compressed` and
-`camera/camera_info`.
+`camera/camera_info`; every Detections a vision_msgs `detections`; every QosGrant and QosDecision a
+`qos` DiagnosticArray (the network's grant, the arbiter's decisions).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from dynqos.common.messages import CameraFrame, Message, State, SupervisorStatus
+from dynqos.common.messages import (
+    CameraFrame,
+    Detections,
+    Message,
+    QosDecision,
+    QosGrant,
+    State,
+    SupervisorStatus,
+)
 from dynqos.edge.detector.assembler import FrameAssembler
 from dynqos.edge.ros2 import codec
 from dynqos.edge.ros2.wire import Qos, Reliability
@@ -19,6 +28,9 @@ POSE_QOS = Qos(Reliability.RELIABLE, depth=10)  # a pose is small and every one 
 STATUS_QOS = Qos(Reliability.RELIABLE, depth=10)
 TF_QOS = Qos(Reliability.RELIABLE, depth=100)  # tf2's own listener default
 CAMERA_QOS = Qos(Reliability.BEST_EFFORT, depth=1)  # ROS's sensor-data profile: the newest image only
+DETECTIONS_QOS = Qos(Reliability.BEST_EFFORT, depth=10)  # per frame, as the detector keeps up: best effort
+QOS_QOS = Qos(Reliability.RELIABLE, depth=10)  # each grant and decision counts
+GRANT_LEVELS = {"available": 0, "requested": 1, "none": 1, "unavailable": 2}  # OK, WARN, ERROR
 ADAPTING = ("q4", "q5", "q6")  # the supervisor adapts: a warning to a ROS monitor; qA (fallback): an error
 
 
@@ -44,6 +56,11 @@ class Translator:
             return [self._status(uav, message, now_ns)]
         if isinstance(message, CameraFrame):
             return self._image(uav, message, now_ns)
+        if isinstance(message, Detections):
+            payload = codec.detections(now_ns, f"{uav}/camera_optical", message.circles_px, message.centers_m)
+            return [RosSample(f"/{self.prefix}/{uav}/detections", codec.DETECTIONS, DETECTIONS_QOS, payload)]
+        if isinstance(message, QosGrant | QosDecision):
+            return [self._qos(uav, message, now_ns)]
         return []
 
     def _state(self, uav: str, state: State, now: int) -> list[RosSample]:
@@ -69,6 +86,23 @@ class Translator:
         message = f"{state} on the {status.flow.value} flow, {status.control_source.value} flies"
         payload = codec.diagnostics(now, f"dynqos/{uav}/supervisor", uav, level, message, values)
         return RosSample(f"/{self.prefix}/{uav}/status", codec.DIAGNOSTICS, STATUS_QOS, payload)
+
+    def _qos(self, uav: str, message: QosGrant | QosDecision, now: int) -> RosSample:
+        if isinstance(message, QosGrant):
+            grant = message.grant.value
+            name, level = f"dynqos/{uav}/qos/grant", GRANT_LEVELS.get(grant, codec.WARN)
+            text = f"priority flow {grant}" + (f": {message.reason}" if message.reason else "")
+            values = {"grant": grant, "backend": message.backend, "session_id": message.session_id,
+                      "reason": message.reason}  # fmt: skip
+        else:
+            name, level = f"dynqos/{uav}/qos/decision", codec.OK
+            text = f"{message.action}: {message.reason}"
+            values = {
+                "action": message.action, "reason": message.reason, "risk": message.risk,
+                "latency_excess": f"{message.latency_excess:g}", "holders": " ".join(message.holders),
+            }  # fmt: skip
+        payload = codec.diagnostics(now, name, uav, level, text, values)
+        return RosSample(f"/{self.prefix}/{uav}/qos", codec.DIAGNOSTICS, QOS_QOS, payload)
 
     def _image(self, uav: str, frame: CameraFrame, now: int) -> list[RosSample]:
         whole = self.assembler.add(frame)
