@@ -306,7 +306,7 @@ class QosAgent:
                 self._tell(record, state)
                 told, next_tell = state, now + repeat_ns
             if grant.silent(now) and grant.session is None:
-                if now - grant.heard_ns > FORGET_AFTER * to_ns(self.qos.drone_timeout_s):
+                if self._long_silent(grant.heard_ns, now):
                     log.info("qos agent: %s silent; forgotten", uav)
                     self._forget(uav)
                     return
@@ -315,6 +315,10 @@ class QosAgent:
             wake.clear()
             with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
                 await asyncio.wait_for(wake.wait(), max(0.001, (deadline - now) / NS_PER_S))
+
+    def _long_silent(self, heard_ns: int, now: int) -> bool:
+        """A drone not heard for FORGET_AFTER drone timeouts is forgotten (its record closed)."""
+        return now - heard_ns > FORGET_AFTER * to_ns(self.qos.drone_timeout_s)
 
     def _forget(self, uav: str) -> None:
         record = self.drones.pop(uav, None)
@@ -395,11 +399,7 @@ class QosAgent:
 
     def _prune(self, now: int) -> None:
         """A standby forgets the drones silent for long (the active agent's tasks do that for it)."""
-        gone = [
-            u
-            for u, r in self.drones.items()
-            if now - r.grant.heard_ns > FORGET_AFTER * to_ns(self.qos.drone_timeout_s)
-        ]
+        gone = [u for u, r in self.drones.items() if self._long_silent(r.grant.heard_ns, now)]
         for uav in gone:
             self._forget(uav)
 
