@@ -27,6 +27,9 @@ POSITION_LIMIT_M = 1e5
 VELOCITY_LIMIT_MPS = 1e3
 ACCEL_LIMIT_MPS2 = 100.0
 LATENCY_LIMIT_MS = 1e7
+# What a 5G modem reports (3GPP TS 38.133's reporting ranges): SS-RSRP -156..-31 dBm, SS-SINR -23..40 dB
+RSRP_RANGE_DBM = (-156.0, -31.0)
+SINR_RANGE_DB = (-23.0, 40.0)
 
 CAMERA_KINDS = ("rgb", "depth")
 RISK_LEVELS = ("HR", "MR", "LR", "NA")

@@ -38,7 +38,9 @@ from dynqos.common.message_base import (
     POSITION_LIMIT_M,
     PROBABILITY,
     RISK_LEVELS,
+    RSRP_RANGE_DBM,
     SCHEMA_VERSION,
+    SINR_RANGE_DB,
     VELOCITY,
     VELOCITY_LIMIT_MPS,
     M,
@@ -337,6 +339,8 @@ class SupervisorStatus(Message):
         "qos_agent": f.boolean,
         "rtt_samples_ms": f.sequence(LATENCY_MS, 0, MAX_STATUS_SAMPLES),
         "camera_latency_samples_ms": f.sequence(LATENCY_MS, 0, MAX_STATUS_SAMPLES),
+        "rsrp_dbm": f.optional(f.real(*RSRP_RANGE_DBM)),
+        "sinr_db": f.optional(f.real(*SINR_RANGE_DB)),
     }
 
     stamp_ns: int
@@ -371,6 +375,8 @@ class SupervisorStatus(Message):
     qos_grant: Grant = Grant.NONE  # what the network grants the priority flow (the agent's last word)
     qos_agent: bool = False  # a QoS agent answered recently (False: links only, no network request)
     depth_lost: bool = False  # depth stopped for risk_stale_s: risk is NA and read as HR
+    rsrp_dbm: float | None = None  # what the drone's modem reports lately (None: no modem, or no reading)
+    sinr_db: float | None = None
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

@@ -48,6 +48,7 @@ from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 from dynqos.common.reference import ReferenceTrack
 from dynqos.onboard.commands import CommandTracker
 from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint, Setpoint
+from dynqos.onboard.modem import ModemReading
 from dynqos.onboard.monitors import CameraLatencyMonitor
 from dynqos.onboard.pid import CascadedPid
 from dynqos.onboard.supervisor import Decision, Inputs, Supervisor
@@ -131,6 +132,8 @@ class OnboardCore:
         self._status_seq = 0
         self._t_mpc_ns = to_ns(config.control.t_mpc_s)
         self._status_period_ns = round(NS_PER_S / config.onboard.status_hz)
+        self.modem: ModemReading | None = None
+        self._modem_stale_ns = to_ns(3 * config.onboard.modem_interval_s)
         self._next_state_ns: int | None = None
         self._next_status_ns = start_ns
         self._last_setpoint_ns: int | None = None
@@ -189,6 +192,8 @@ class OnboardCore:
             self.counters.uplink_bytes = max(self.counters.uplink_bytes, inp.uplink_bytes)
         if inp.spaciousness_m is not None:
             self._space = inp.spaciousness_m
+        if inp.modem is not None:
+            self.modem = inp.modem
         for item in inp.downlink:
             message = item.message
             if isinstance(message, Command):
@@ -409,6 +414,7 @@ class OnboardCore:
         self._status_seq += 1
         cams, rtts = self.samples.take()
         gap, self._status_gap_ms = self._status_gap_ms, 0.0
+        modem = self.modem if self.modem and now - self.modem.stamp_ns <= self._modem_stale_ns else None
         return SupervisorStatus(
             uav=self.uav,
             seq=self._status_seq,
@@ -429,6 +435,8 @@ class OnboardCore:
             command_age_ms=self.command_age_ms,
             qos_grant=self.reported_grant(now),
             qos_agent=self.agent_heard(now),
+            rsrp_dbm=modem.rsrp_dbm if modem else None,
+            sinr_db=modem.sinr_db if modem else None,
             **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),
         )
 

@@ -33,6 +33,7 @@ from dynqos.onboard.core import OnboardCore, hold_at, setpoint_period_ns
 from dynqos.onboard.fc import AccelSetpoint, FcState
 from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD, PX4_SUB_LOITER, FcLink
 from dynqos.onboard.metrics import DroneMetrics
+from dynqos.onboard.modem import modem_poller
 from dynqos.onboard.systemd import SystemdNotifier
 from dynqos.onboard.takeoff import Do, ExitAction, TakeoffSequencer, on_exit
 from dynqos.onboard.tick import TickInput, TickOutput
@@ -88,6 +89,9 @@ class OnboardDaemon:
         self.grants: BoundedQueue[Received] = BoundedQueue(16)  # the QoS agent's answers
         self.downlink_stats: dict[Downlink, SubscriptionStats] = {}
         self.presence: Token | None = None
+        cfg = self.cfg
+        self.modem = modem_poller(cfg.modem, cfg.modem_url, cfg.modem_command, cfg.modem_interval_s,
+                                  self.clock.now_ns, self.stop)  # fmt: skip
 
     # ---- set-up ---------------------------------------------------------------------------------------
 
@@ -208,6 +212,7 @@ class OnboardDaemon:
                 spaciousness_m=space[-1] if space else None,
                 offboard=self.offboard.is_set(),
                 uplink_bytes=self.uplink_bytes(),
+                modem=self.modem.latest if self.modem else None,
             )
         )
         for event in out.events:
@@ -235,6 +240,8 @@ class OnboardDaemon:
     def run(self) -> None:
         """The control loop, until stop is set; then hold (or land) and close."""
         self.uplink.start()
+        if self.modem is not None:
+            self.modem.start()
         if self.camera is not None:
             self.camera.start()
         if self.takeoff_requested:

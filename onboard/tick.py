@@ -11,6 +11,7 @@ from dynqos.common.keys import Stream
 from dynqos.common.messages import Message
 from dynqos.common.modes import Flow
 from dynqos.onboard.fc import FcState, Setpoint
+from dynqos.onboard.modem import ModemReading
 
 
 @dataclass(frozen=True, slots=True)
@@ -34,6 +35,7 @@ class TickInput:
     spaciousness_m: float | None = None
     offboard: bool = False
     uplink_bytes: int | None = None  # every byte the drone's publishers put so far (None: unknown)
+    modem: ModemReading | None = None  # the modem's newest reading (None: no modem, or none yet)
 
 
 @dataclass(frozen=True, slots=True)

@@ -26,6 +26,7 @@ from dynqos.common.messages import (
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 from dynqos.onboard.core import SETPOINT_PERIOD_NS, STALE_STATE_NS, OnboardCore
 from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint
+from dynqos.onboard.modem import ModemReading
 from dynqos.onboard.tick import FrameSent, TickInput, TickOutput
 
 MS = 1_000_000
@@ -56,6 +57,7 @@ class Rig:
     pending: list[tuple[int, Received]] = field(default_factory=list)
     outputs: list[TickOutput] = field(default_factory=list)
     extra: list[Received] = field(default_factory=list)
+    modem: ModemReading | None = None  # the modem's reading handed in every tick
 
     @classmethod
     def make(cls, qos: str = "dynamic", **kwargs: object) -> Rig:
@@ -71,7 +73,7 @@ class Rig:
         frames = [FrameSent(len(self.outputs), "rgb", self.now, self.frame_bytes)] if self.frame_bytes else []
         out = self.core.tick(
             TickInput(now_ns=self.now, fc=self.fc, downlink=downlink, offboard=self.offboard,
-                      spaciousness_m=self.spaciousness_m, frames_sent=frames)
+                      spaciousness_m=self.spaciousness_m, frames_sent=frames, modem=self.modem)
         )  # fmt: skip
         for item in out.publish:
             # Everything the core publishes must survive the codec: a status it cannot encode is a crash.
@@ -446,3 +448,18 @@ def test_the_request_carries_the_drones_need_and_a_new_risk_is_said_at_once() ->
             break
     assert any(r.risk == "HR" and r.want for r in new)
     assert len(rig.outputs) - before < 50
+
+
+def test_a_status_carries_the_modems_reading_while_it_is_fresh() -> None:
+    rig = Rig.make()
+    before = rig.statuses(rig.run(0.5))
+    assert before
+    assert all(s.rsrp_dbm is None and s.sinr_db is None for s in before)
+    rig.modem = ModemReading(-85.5, 12.0, rig.now)
+    fresh = rig.statuses(rig.run(0.5))
+    assert fresh
+    assert {(s.rsrp_dbm, s.sinr_db) for s in fresh} == {(-85.5, 12.0)}
+    rig.modem = None  # no new reading: the last one holds for three modem intervals (3 s), then goes
+    rig.run(2.0)
+    assert rig.statuses(rig.run(0.2))[-1].rsrp_dbm == -85.5
+    assert rig.statuses(rig.run(1.0))[-1].rsrp_dbm is None

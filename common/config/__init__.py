@@ -36,6 +36,7 @@ from dynqos.common.config.network import (
     ZenohConfig,
 )
 from dynqos.common.config.qos import ArbiterConfig, CamaraConfig, DeviceConfig, DeviceIpv4Config, QosConfig
+from dynqos.common.config.radio import CoverageHoleConfig, RadioConfig, RadioSiteConfig
 
 __all__ = [
     "ArbiterConfig",
@@ -46,6 +47,7 @@ __all__ = [
     "CellEventConfig",
     "Config",
     "ControlConfig",
+    "CoverageHoleConfig",
     "DetectorConfig",
     "DeviceConfig",
     "DeviceIpv4Config",
@@ -56,6 +58,8 @@ __all__ = [
     "OnboardConfig",
     "PlannerConfig",
     "QosConfig",
+    "RadioConfig",
+    "RadioSiteConfig",
     "Ros2Config",
     "SupervisorConfig",
     "VehicleSimConfig",

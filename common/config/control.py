@@ -268,8 +268,19 @@ class OnboardConfig:
     heartbeat_timeout_s: Annotated[float, In(0.5, 60, "must be in 0.5..60 s")] = 3.0
     status_hz: Annotated[float, In(0.1, 50, "must be in 0.1..50 Hz")] = 5.0
     health_interval_s: Annotated[float, In(0.5, 3600, "must be in 0.5..3600 s")] = 5.0
+    # The modem's RSRP and SINR in each status (docs/radio.md): "mmcli" asks ModemManager on a real
+    # drone, "cell" the emulated cell's GET /radio/<uav> at modem_url; a reading 3 intervals old is dropped
+    modem: Literal["none", "mmcli", "cell"] = "none"
+    modem_url: str = ""  # modem = "cell": e.g. http://127.0.0.1:40123/radio/uav1
+    modem_command: str = "mmcli -m any --signal-get --output-json"
+    modem_interval_s: Annotated[float, In(0.1, 60, "must be in 0.1..60 s")] = 1.0
 
     def __post_init__(self) -> None:
+        _require(self.modem != "cell" or self.modem_url.startswith(("http://", "https://")), "modem_url",
+                 "the cell modem needs the cell's radio URL (http://HOST:PORT/radio/<uav>)")  # fmt: skip
+        _require(
+            self.modem != "mmcli" or bool(self.modem_command.strip()), "modem_command", "must not be empty"
+        )
         _require(
             bool(self.mavlink_url.strip()), "mavlink_url", "must not be empty (e.g. udpin:127.0.0.1:14540)"
         )

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
 from dynqos.common.acl import reserved_name
+from dynqos.common.config.radio import RadioConfig
 from dynqos.common.config.validate import In, _host_port, _require, checked
 from dynqos.common.errors import ConfigError, KeyExprError
 from dynqos.common.keys import UAV_ID_PATTERN, check_uav_id
@@ -243,6 +244,7 @@ class CellConfig:
     bearers: tuple[BearerConfig, ...] = ()  # empty: the drone's two flows (see bearer_list)
     background: tuple[BackgroundConfig, ...] = (BackgroundConfig(name="bg"),)
     events: tuple[CellEventConfig, ...] = ()
+    radio: RadioConfig = field(default_factory=RadioConfig)  # where each drone's radio comes from
 
     def __post_init__(self) -> None:
         _require(bool(self.listen_host), "listen_host", "must not be empty")

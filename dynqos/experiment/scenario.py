@@ -348,7 +348,7 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
             ),
         ),
     )
-    config = overlaid(config, scenario.config)
+    config = with_radio(overlaid(config, scenario.config))
     part_bytes = config.onboard.camera_part_bytes if scenario.camera_pace_mbps > 0 else 0
     target_bps = scenario.uav_mbps * 1e6 / scenario.scale
     width, height = camera_size_for(target_bps, scenario.camera_fps, flight_views(config), part_bytes)
@@ -391,6 +391,7 @@ def fleet_configs(
             camara=replace(shared.qos.camara, devices=devices),
         ),
     )
+    shared = with_radio(shared)
     part_bytes = shared.onboard.camera_part_bytes if scenario.camera_pace_mbps > 0 else 0
     target_bps = scenario.uav_mbps * 1e6 / scenario.scale
     drones: dict[str, Config] = {}
@@ -409,6 +410,17 @@ def fleet_configs(
     return shared, drones
 
 
+def with_radio(config: Config) -> Config:
+    """With `[cell.radio] enabled` (docs/radio.md): the cell hears the vehicles' MAVLink on their
+    ground-station port and shadows the signal with the vehicles' world."""
+    radio = config.cell.radio
+    if not radio.enabled:
+        return config
+    radio = replace(radio, position_port=config.vehicle.gcs_remote_port,
+                    world_file=radio.world_file or config.vehicle.world_file)  # fmt: skip
+    return replace(config, cell=replace(config.cell, radio=radio))
+
+
 def with_cell(config: Config, cell: dict[str, Any], sink_port: int = 0) -> Config:
     """The config once the cell is up: the drone's flows connect to the bearers' ports it reported, and
     the QoS agent asks its control port for QoD sessions and (`sink_port` > 0) takes the operator's
@@ -421,6 +433,10 @@ def with_cell(config: Config, cell: dict[str, Any], sink_port: int = 0) -> Confi
             connect_default=f"127.0.0.1:{bearers[f'{uav}-default']['port']}",
             connect_priority=f"127.0.0.1:{bearers[f'{uav}-priority']['port']}",
         )
+        if config.cell.radio.enabled and onboard.modem == "none":  # the drone's modem is the cell's report
+            onboard = replace(
+                onboard, modem="cell", modem_url=f"http://127.0.0.1:{cell['control_port']}/radio/{uav}"
+            )
     api_root = f"http://127.0.0.1:{cell['control_port']}/quality-on-demand/v1"
     camara = replace(config.qos.camara, api_root=api_root)
     if sink_port:

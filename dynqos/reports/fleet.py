@@ -25,7 +25,7 @@ from dynqos.reports.summary import _cell_rates, summarise, write_scenario
 DRONE_FIELDS = (
     "uav_offered_mbps", "uav_admitted_mbps", "uav_delivered_mbps", "rtt_ms", "camera_latency_ms",
     "tracking_rmse_m", "states_time_s", "transitions", "first_qos_switch_after_bg_s", "camera_fps",
-    "fallback_entered", "setpoint_gap_max_ms", "states_recorded", "faults",
+    "fallback_entered", "setpoint_gap_max_ms", "states_recorded", "faults", "radio",
 )  # fmt: skip
 PRIORITY_STATES = sorted(s.value for s in SUPERVISOR_PRIORITY_STATES)  # q2, q3, q5, q6
 RATE_ADAPTATION_STATES = sorted(s.value for s in SUPERVISOR_RATE_ADAPTATION_STATES)  # q4, q5, q6

@@ -11,7 +11,7 @@ from typing import Any
 
 from dynqos.common.geometry import yaw_of
 from dynqos.common.messages import SupervisorStatus
-from dynqos.common.modes import SupervisorState
+from dynqos.common.modes import ControlSource, SupervisorState
 from dynqos.experiment.faults import log_times, outcome, time_in_states
 from dynqos.experiment.machine import judge, machine_figures
 from dynqos.experiment.recording import Recording
@@ -153,6 +153,7 @@ def summarise(
             scenario, statuses, rtts, bg_ns, window(rtts, settle_ns, baseline_end), rec.qod
         ),
         **_fallbacks(statuses, t0),
+        "radio": radio_figures(statuses, t0),
         "setpoint_gap_max_ms": max(gaps) if gaps else None,
         "states_recorded": len(rec.states),
         "faults": [
@@ -191,6 +192,22 @@ def _fallbacks(statuses: list[SupervisorStatus], t0_ns: int) -> dict[str, Any]:
     return {
         "fallback_entered": in_flight > 0,
         "fallbacks": {"before_flight": at_start, "in_flight": in_flight},
+    }
+
+
+def radio_figures(statuses: list[SupervisorStatus], t0_ns: int) -> dict[str, Any]:
+    """What the drone's modem reported over the flight (docs/radio.md), and how long the fallback PID
+    flew it: a coverage hole shows in both."""
+    flown = [s for s in statuses if s.stamp_ns >= t0_ns]
+    sinr = [s.sinr_db for s in flown if s.sinr_db is not None]
+    rsrp = [s.rsrp_dbm for s in flown if s.rsrp_dbm is not None]
+    controls = time_in_states(flown, field="control_source")
+    return {
+        "readings": len(sinr),
+        "sinr_db": stats(sinr),
+        "sinr_min_db": min(sinr, default=None),
+        "rsrp_min_dbm": min(rsrp, default=None),
+        "fallback_s": controls.get(ControlSource.FALLBACK.value, 0.0),
     }
 
 

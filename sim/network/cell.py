@@ -24,6 +24,7 @@ from dynqos.common.errors import ConfigError
 from dynqos.sim.network.cell_core import CellCore, describe
 from dynqos.sim.network.delayline import DelayLine
 from dynqos.sim.network.operator import Notification, Operator
+from dynqos.sim.network.radio_feed import RadioFeed
 from dynqos.sim.network.traces import Trace, TraceError
 from dynqos.sim.network.uebuffer import UeBuffer
 
@@ -37,8 +38,7 @@ DOWNLINK_HIGH_WATER = 4 * 1024 * 1024
 QOD_CHECK_TICKS = 10  # sessions settle and expire at this many TTIs' resolution
 
 
-def _now_ns() -> int:
-    return time.monotonic_ns()
+_now_ns = time.monotonic_ns
 
 
 class _DroneSide(asyncio.BufferedProtocol):
@@ -258,6 +258,7 @@ class CellEmulator:
         self.notify: Callable[[list[Notification]], None] = lambda notes: None
         self.ticks = 0
         self.late_ticks = 0
+        self.radio: RadioFeed | None = None  # [cell.radio]: each drone's rate from its position
         self.beat: Callable[[str], None] | None = None  # /healthz (common/metrics.py), once per record
         self._csv_file: TextIO | None = None
         self._csv: Any = None
@@ -268,10 +269,8 @@ class CellEmulator:
             out_dir.mkdir(parents=True, exist_ok=True)
             self._csv_file = (out_dir / "cell.csv").open("w", newline="")
             self._csv = csv.writer(self._csv_file)
-            self._csv.writerow(
-                ["t_s", "name", "kind", "capacity_mbps", "offered_bits", "delivered_bits", "buffer_bytes",
-                 "queue_delay_ms", "dropped_bytes"]
-            )  # fmt: skip
+            self._csv.writerow(["t_s", "name", "kind", "capacity_mbps", "offered_bits", "delivered_bits",
+                                "buffer_bytes", "queue_delay_ms", "dropped_bytes"])  # fmt: skip
 
     # ---- set-up ------------------------------------------------------------------------------------
 
@@ -484,6 +483,7 @@ class CellEmulator:
                 }
                 for u in self.background.values()
             },
+            **({"radio": self.radio.counters()} if self.radio is not None else {}),
         }
 
     async def stop(self) -> None:

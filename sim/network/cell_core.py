@@ -65,6 +65,9 @@ class CellCore:
         self.start_ns = start_ns
         self.last_tick_ns = start_ns
         self._pending = sorted(cell.events, key=lambda e: e.at_s)
+        # bearer -> the bits its resources carry per nominal bit, from its drone's radio (docs/radio.md);
+        # a bearer not in it has the nominal rate
+        self.rate_factors: dict[str, float] = {}
 
     # ---- the TTI ----------------------------------------------------------------------------------------
 
@@ -92,10 +95,18 @@ class CellCore:
             self._shares = {name: self.effective_weight(name) for name in self.weights}
             self._shares.update({"bg:" + u.name: u.weight for u in self.background.values()})
         wants = dict(demands)
+        factors = self.rate_factors
+        # the scheduler shares resources: a bit sent at a poor SINR takes more of them
+        for name, factor in factors.items():
+            if name in wants:
+                wants[name] = wants[name] / factor if factor > 0 else 0.0
         for user in self.background.values():
             user.arrive(elapsed_s)
             wants["bg:" + user.name] = user.backlog_bits
         grants = weighted_fair_share(capacity, wants, self._shares)
+        for name, factor in factors.items():
+            if name in grants:
+                grants[name] *= factor
         for user in self.background.values():
             user.serve(grants["bg:" + user.name])
         return grants

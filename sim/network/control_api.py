@@ -29,6 +29,7 @@ from dynqos.common.camara import JWT_BEARER, JWT_BEARER_GRANT, SCOPES, scope_for
 from dynqos.common.config import CellConfig, CellEventConfig, build
 from dynqos.common.errors import ConfigError
 from dynqos.sim.network.operator import Answer, Notification, Operator, error
+from dynqos.sim.network.radio_feed import RadioFeed
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,7 @@ class Emulator(Protocol):
     """What the control API needs of the cell emulator (sim/network/cell.py)."""
 
     cell: CellConfig
+    radio: RadioFeed | None  # [cell.radio]: what each drone's modem would report
 
     def counters(self) -> dict[str, Any]: ...
     def apply(self, event: CellEventConfig) -> str: ...
@@ -119,6 +121,7 @@ class ControlApi:
         r = self.app.router
         r.add_get("/counters", self.counters)
         r.add_post("/events", self.events)
+        r.add_get("/radio/{uav}", self.radio)
         r.add_post(QOD_PREFIX + "/sessions", self.create)
         r.add_get(QOD_PREFIX + "/sessions/{sid}", self.get)
         r.add_delete(QOD_PREFIX + "/sessions/{sid}", self.delete)
@@ -265,6 +268,19 @@ class ControlApi:
                 "sessions": self.operator.open_sessions(),
             }
         return web.json_response(counters)
+
+    async def radio(self, request: web.Request) -> web.Response:
+        """What a drone's modem would report: its RSRP and SINR where the cell last placed it
+        ([cell.radio]); 404 with a reason while there is none. The onboard daemon's `cell` modem reads it."""
+        uav = request.match_info["uav"]
+        feed = self.emulator.radio
+        if feed is None:
+            return web.json_response({"error": "this cell has no radio map ([cell.radio] enabled = false)"},
+                                     status=404)  # fmt: skip
+        report = feed.report(uav)
+        if report is None:
+            return web.json_response({"error": f"no position heard for {uav!r} lately"}, status=404)
+        return web.json_response(report)
 
     async def events(self, request: web.Request) -> web.Response:
         try:

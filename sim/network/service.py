@@ -23,6 +23,9 @@ from dynqos.common.metrics import ProcessMetrics, counter, gauge
 from dynqos.sim.network.cell import CellEmulator
 from dynqos.sim.network.control_api import ControlApi, Tap
 from dynqos.sim.network.operator import Operator
+from dynqos.sim.network.radio import RadioMap
+from dynqos.sim.network.radio_feed import RadioFeed
+from dynqos.sim.vehicle.world import default_world, load_world
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +84,7 @@ async def run_cell(
     sees every control-API exchange (method, path, request JSON, status, response JSON)."""
     emulator = CellEmulator(cell, bearers, out_dir)
     await emulator.start()
+    radio = await _start_radio(cell, bearers, emulator, out_dir)
     if metrics is not None:
         emulator.beat = metrics.health.beat
         metrics.add(lambda: cell_families(emulator))
@@ -114,6 +118,8 @@ async def run_cell(
             },
             "control_port": control_port,
         }
+        if radio is not None:
+            info["position_port"] = radio.port
         if stop is not None:
             stopper = emulator.loop.create_task(stop.wait())
             stopper.add_done_callback(lambda _: emulator.stopped.set())
@@ -129,8 +135,35 @@ async def run_cell(
         counters = _final_counters(emulator, out_dir)
         if control is not None:
             await control.stop()
+        if radio is not None:
+            radio.close()
         await emulator.stop()
     return counters
+
+
+async def _start_radio(
+    cell: CellConfig, bearers: tuple[BearerConfig, ...], emulator: CellEmulator, out_dir: Path | None
+) -> RadioFeed | None:
+    """With [cell.radio] enabled, each drone's rate follows the radio at its position (docs/radio.md)."""
+    config = cell.radio
+    if not config.enabled:
+        return None
+    try:
+        world = load_world(config.world_file) if config.world_file else default_world()
+    except ConfigError as exc:
+        raise ConfigError("cell.radio.world_file", str(exc)) from None
+    feed = RadioFeed(config, RadioMap(config, world), bearers, time.monotonic_ns)
+    emulator.radio = feed
+    try:
+        await feed.start(emulator.core, out_dir)
+    except OSError as exc:
+        where = f"{config.position_host}:{config.position_port}"
+        raise ConfigError(
+            "cell.radio.position_port", f"cannot listen on {where} for the vehicles' MAVLink ({exc.strerror})"
+        ) from None
+    log.info("radio map on: %d site(s), %d coverage hole(s); positions heard on udp port %d",
+             len(config.sites), len(config.holes), feed.port)  # fmt: skip
+    return feed
 
 
 def _final_counters(emulator: CellEmulator, out_dir: Path | None) -> dict[str, Any]:

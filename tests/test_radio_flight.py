@@ -1,0 +1,41 @@
+"""A flight through a coverage hole of the cell's radio map (the shipped `coverage-hole` scenario), in
+each QoS mode: the cell hears the vehicle's MAVLink positions, the drone's modem reports the hole in its
+statuses, the watchdog hands the drone to its fallback while nothing goes up, and the edge takes it
+back once the drone is out. Real processes on 127.0.0.1 (docs/radio.md)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from dynqos.experiment.runner import run_scenario
+from dynqos.experiment.scenario import builtin_scenario
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("qos", ["dynamic", "default", "priority"])
+def test_a_coverage_hole_shows_in_the_status_and_the_drone_falls_back_and_returns(
+    tmp_path: Path, qos: str
+) -> None:
+    # 18 s: the circle crosses the hole once, about 9.5 s in, and the edge has it back some 6 s later
+    scenario = replace(builtin_scenario("coverage-hole"), qos=qos, duration_s=18)
+    result = run_scenario(scenario, tmp_path, progress=False)
+    assert result["ok"], result["failure"]
+    radio = result["radio"]
+    assert radio["readings"] > 40, radio  # a reading in every status (5 Hz) once the modem has one
+    assert radio["sinr_db"]["p50"] > 10, radio  # most of the circle is in the open
+    assert radio["sinr_min_db"] <= -20, radio  # the hole, as the modem reports it
+    assert radio["rsrp_min_dbm"] < -110, radio
+    assert result["fallbacks"]["in_flight"] >= 1, result["fallbacks"]
+    assert 0 < radio["fallback_s"] < 12, radio
+    transitions = result["transitions"]
+    into = [t for t in transitions if t["to"] == "qA" and t["cause"] == "watchdog"]
+    assert into, transitions
+    assert any(t["from"] == "qA" and t["t_s"] > into[0]["t_s"] for t in transitions), transitions
+    # the fallback flew it: setpoints never paused as long as the watchdog (how steady they are is a
+    # benchmark's target, bench/supervisor_reaction.py)
+    assert result["setpoint_gap_max_ms"] < 150
+    assert result["tracking_rmse_m"]["baseline"] < 0.5  # and it stayed on its circle
