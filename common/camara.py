@@ -7,6 +7,7 @@ emulator's schema validator (jsonschema, a `demo` extra)."""
 
 from __future__ import annotations
 
+import datetime as dt
 import re
 from pathlib import Path
 from typing import Any
@@ -25,10 +26,28 @@ SCOPES = {
     ("POST", "retrieve-sessions"): "quality-on-demand:sessions:retrieve-by-device",
     ("POST", "retrieve-qos-profiles"): "qos-profiles:read",
     ("GET", "qos-profiles"): "qos-profiles:read",
+    ("POST", "retrieve"): "predictive-connectivity-data:read",  # Predictive Connectivity Data 0.1.0
 }
 AGENT_SCOPE = " ".join(dict.fromkeys(SCOPES.values()))  # every call the agent makes
 JWT_BEARER = "urn:ietf:params:oauth:client-assertion-type:jwt-bearer"  # RFC 7523 client authentication
 JWT_BEARER_GRANT = "urn:ietf:params:oauth:grant-type:jwt-bearer"  # RFC 7523 authorization grant
+
+
+def rfc3339(unix_s: float, timespec: str = "seconds") -> str:
+    """A CAMARA date-time: RFC 3339 in UTC, with its zone as Z."""
+    return (
+        dt.datetime.fromtimestamp(unix_s, dt.timezone.utc).isoformat(timespec=timespec).replace("+00:00", "Z")
+    )
+
+
+def unix_time(text: Any) -> float:
+    """An RFC 3339 date-time that has its zone, as Unix seconds; ValueError otherwise."""
+    if not isinstance(text, str):
+        raise ValueError("a date-time is a string")
+    stamp = dt.datetime.fromisoformat(text.replace("Z", "+00:00").replace("z", "+00:00"))
+    if stamp.tzinfo is None:
+        raise ValueError(f"{text} has no time zone")
+    return stamp.timestamp()
 
 
 def scope_for(method: str, path: str) -> str:

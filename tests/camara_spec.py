@@ -14,7 +14,11 @@ from pathlib import Path
 from typing import Any
 
 CAMARA = Path(__file__).resolve().parents[2] / "shared" / "camara"
-DOCUMENTS = {"/quality-on-demand/v1": "quality-on-demand.yaml", "/qos-profiles/v1": "qos-profiles.yaml"}
+DOCUMENTS = {
+    "/quality-on-demand/v1": "quality-on-demand.yaml",
+    "/qos-profiles/v1": "qos-profiles.yaml",
+    "/predictive-connectivity-data/v0.1": "predictive-connectivity-data.yaml",
+}
 HOST = "http://127.0.0.1:8080"  # the spec's {apiRoot}: any root matches
 # Where dynqos knowingly departs from the documents, each with its reason (docs/qos.md says the same):
 # the demo's notification sink is plain HTTP on loopback (no TLS to set up on one laptop), and the spec

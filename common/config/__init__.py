@@ -36,7 +36,7 @@ from dynqos.common.config.network import (
     ZenohConfig,
 )
 from dynqos.common.config.qos import ArbiterConfig, CamaraConfig, DeviceConfig, DeviceIpv4Config, QosConfig
-from dynqos.common.config.radio import CoverageHoleConfig, RadioConfig, RadioSiteConfig
+from dynqos.common.config.radio import CoverageHoleConfig, PredictionConfig, RadioConfig, RadioSiteConfig
 
 __all__ = [
     "ArbiterConfig",
@@ -57,6 +57,7 @@ __all__ = [
     "MpcConfig",
     "OnboardConfig",
     "PlannerConfig",
+    "PredictionConfig",
     "QosConfig",
     "RadioConfig",
     "RadioSiteConfig",

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
 from dynqos.common.acl import reserved_name
-from dynqos.common.config.radio import RadioConfig
+from dynqos.common.config.radio import PredictionConfig, RadioConfig
 from dynqos.common.config.validate import In, _host_port, _require, checked
 from dynqos.common.errors import ConfigError, KeyExprError
 from dynqos.common.keys import UAV_ID_PATTERN, check_uav_id
@@ -245,6 +245,7 @@ class CellConfig:
     background: tuple[BackgroundConfig, ...] = (BackgroundConfig(name="bg"),)
     events: tuple[CellEventConfig, ...] = ()
     radio: RadioConfig = field(default_factory=RadioConfig)  # where each drone's radio comes from
+    prediction: PredictionConfig = field(default_factory=PredictionConfig)  # what the operator predicts of it
 
     def __post_init__(self) -> None:
         _require(bool(self.listen_host), "listen_host", "must not be empty")

@@ -78,3 +78,32 @@ class RadioConfig:
             _require(1 <= sysid <= 255, f"system_ids.{uav}", "must be a MAVLink system id in 1..255")
         ids = list(self.system_ids.values())
         _require(len(set(ids)) == len(ids), "system_ids", "each drone needs its own system id")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+@checked
+class PredictionConfig:
+    """The emulated operator's CAMARA Predictive Connectivity Data (0.1.0), predicted from the radio map
+    and the cell's scheduled background load with an error (docs/radio.md). Served on the control port
+    while [cell.radio] is enabled."""
+
+    # where the world's origin is on the earth: its x axis points north, its y axis east
+    origin_lat_deg: Annotated[float, In(-80, 80, "must be in -80..80 degrees")] = 45.0
+    origin_lon_deg: Annotated[float, In(-180, 180, "must be in -180..180 degrees")] = 10.0
+    slot_s: Annotated[float, In(1, 3600, "must be in 1..3600 s")] = 10.0  # the time slots' length
+    layer_thickness_m: Annotated[float, In(0.5, 250, "must be in 0.5..250 m")] = 2.0
+    max_height_m: Annotated[float, In(0.5, 250, "must be in 0.5..250 m")] = 8.0  # layers above: ND
+    precisions: tuple[int, ...] = (8, 9)  # the geohash levels answered (others: UNSUPPORTED_PRECISION)
+    error_db: Annotated[float, In(0, 30, "must be in 0..30 dB")] = 3.0  # the predicted SINR's error (sigma)
+    seed: int = 0
+    # what each service level needs from the drone's uplink (Mbit/s): good connectivity (GC) is twice it
+    c2_mbps: Annotated[float, In(0.01, 1e4, "must be in 0.01..10000")] = 1.0
+    stream_4k_mbps: Annotated[float, In(0.01, 1e4, "must be in 0.01..10000")] = 25.0
+    good_margin: Annotated[float, In(1, 100, "must be in 1..100")] = 2.0
+    horizon_s: Annotated[float, In(1, 86400 * 30, "must be in 1 s..30 days")] = 3600.0  # latest startTime
+    max_period_s: Annotated[float, In(1, 86400 * 30, "must be in 1 s..30 days")] = 3600.0
+    max_values: Annotated[int, In(1, 10**7, "must be in 1..10000000")] = 200_000  # cells x layers x slots
+
+    def __post_init__(self) -> None:
+        _require(bool(self.precisions) and all(1 <= p <= 12 for p in self.precisions), "precisions",
+                 "geohash levels are 1..12")  # fmt: skip

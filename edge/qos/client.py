@@ -170,6 +170,13 @@ class QodClient:
         """Every QoS profile the operator offers this client (QoS Profiles API, retrieve-qos-profiles)."""
         return await self._call("POST", "/retrieve-qos-profiles", {}, expect=(200,), root=self.profiles_root)
 
+    async def request(
+        self, method: str, path: str, body: dict[str, Any] | None, *, expect: tuple[int, ...], root: str
+    ) -> Any:
+        """A call to another CAMARA API of the same operator (under `root`), with this client's token,
+        correlator, retries and time-out: the answer's JSON, or a QodError."""
+        return await self._call(method, path, body, expect=expect, root=root)
+
     # ---- one call: token, timeout, retries --------------------------------------------------------------
 
     async def _call(

@@ -29,12 +29,17 @@ from dynqos.common.camara import JWT_BEARER, JWT_BEARER_GRANT, SCOPES, scope_for
 from dynqos.common.config import CellConfig, CellEventConfig, build
 from dynqos.common.errors import ConfigError
 from dynqos.sim.network.operator import Answer, Notification, Operator, error
+from dynqos.sim.network.operator_schema import problem
+from dynqos.sim.network.prediction import Refused
+from dynqos.sim.network.prediction_schema import RETRIEVE_CONNECTIVITY_STRICT
 from dynqos.sim.network.radio_feed import RadioFeed
 
 log = logging.getLogger(__name__)
 
 QOD_PREFIX = "/quality-on-demand/v1"
 PROFILES_PREFIX = "/qos-profiles/v1"
+CONNECTIVITY_PREFIX = "/predictive-connectivity-data/v0.1"
+CAMARA_PREFIXES = (QOD_PREFIX, PROFILES_PREFIX, CONNECTIVITY_PREFIX)
 MAX_ASSERTION_LIFETIME_S = 600  # a client assertion valid longer than this is refused
 SEEN_ASSERTIONS = 4096  # jti values remembered against replays
 CORRELATOR = re.compile(r"[a-zA-Z0-9\-_:;./<>{}]{0,256}")  # XCorrelator in both APIs' documents
@@ -129,6 +134,7 @@ class ControlApi:
         r.add_post(QOD_PREFIX + "/retrieve-sessions", self.retrieve)
         r.add_post(PROFILES_PREFIX + "/retrieve-qos-profiles", self.retrieve_profiles)
         r.add_get(PROFILES_PREFIX + "/qos-profiles/{name}", self.get_profile)
+        r.add_post(CONNECTIVITY_PREFIX + "/retrieve", self.connectivity)
         r.add_post("/oauth2/token", self.token)
         r.add_delete("/oauth2/tokens", self.revoke)
         self.runner: web.AppRunner | None = None
@@ -170,7 +176,7 @@ class ControlApi:
 
     async def _answer(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         """A CAMARA call is authorised and its x-correlator checked and echoed (CAMARA Commonalities)."""
-        if not request.path.startswith((QOD_PREFIX, PROFILES_PREFIX)):
+        if not request.path.startswith(CAMARA_PREFIXES):
             return await self._handle(request, handler)
         correlator = request.headers.get("x-correlator")
         if correlator is not None and not CORRELATOR.fullmatch(correlator):
@@ -188,11 +194,16 @@ class ControlApi:
                 if self.operator is None:
                     return _json(error(404, "NOT_FOUND", "this cell serves no QoD API ([cell] qod = false)"))
                 self._authorise(request)
+            elif request.path.startswith(CONNECTIVITY_PREFIX):
+                if self.emulator.radio is None:
+                    return _json(error(404, "NOT_FOUND", "this cell serves no Predictive Connectivity Data "
+                                       "([cell.radio] enabled = false)"))  # fmt: skip
+                self._authorise(request)
             return await handler(request)
         except _Reply as reply:
             return _json(reply.answer)
         except web.HTTPException as exc:
-            if request.path.startswith((QOD_PREFIX, PROFILES_PREFIX)):
+            if request.path.startswith(CAMARA_PREFIXES):
                 return _json(
                     error(exc.status, "NOT_FOUND" if exc.status == 404 else "INVALID_ARGUMENT", exc.reason)
                 )
@@ -218,7 +229,7 @@ class ControlApi:
             raise _Reply(
                 error(401, "UNAUTHENTICATED", "request not authenticated: a valid token is required")
             )
-        prefix = QOD_PREFIX if request.path.startswith(QOD_PREFIX) else PROFILES_PREFIX
+        prefix = next(p for p in CAMARA_PREFIXES if request.path.startswith(p))
         needed = scope_for(request.method, request.path.removeprefix(prefix))
         if needed and needed not in scopes:
             raise _Reply(error(403, "PERMISSION_DENIED", f"the token lacks the scope {needed}"))
@@ -281,6 +292,18 @@ class ControlApi:
         if report is None:
             return web.json_response({"error": f"no position heard for {uav!r} lately"}, status=404)
         return web.json_response(report)
+
+    async def connectivity(self, request: web.Request) -> web.Response:
+        """Predictive Connectivity Data 0.1.0's retrieve (sim/network/prediction.py)."""
+        assert self.emulator.radio is not None  # _handle answered 404 otherwise
+        body = await _body(request)
+        wrong = problem(RETRIEVE_CONNECTIVITY_STRICT, body)
+        if wrong is not None:
+            return _json(error(400, "INVALID_ARGUMENT", wrong))
+        try:
+            return web.json_response(self.emulator.radio.predictor.retrieve(body, time.time()))
+        except Refused as refused:
+            return _json(error(refused.status, refused.code, refused.message))
 
     async def events(self, request: web.Request) -> web.Response:
         try:

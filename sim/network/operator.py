@@ -16,10 +16,9 @@ import ipaddress
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timezone
 from typing import Any
 
-from dynqos.common.camara import EVENT_TYPE, ports_named
+from dynqos.common.camara import EVENT_TYPE, ports_named, rfc3339
 from dynqos.common.config import CellConfig, CellEventConfig
 from dynqos.sim.network.cell_core import Effect
 from dynqos.sim.network.operator_schema import (
@@ -83,9 +82,7 @@ class QodCounters:
 
 
 def _rfc3339(wall_s: float) -> str:
-    return (
-        datetime.fromtimestamp(wall_s, timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
-    )
+    return rfc3339(wall_s, "milliseconds")
 
 
 def error(status: int, code: str, message: str) -> Answer:

@@ -22,6 +22,7 @@ from dynqos.common.config import BearerConfig
 from dynqos.common.config.radio import RadioConfig
 from dynqos.common.message_base import RSRP_RANGE_DBM, SINR_RANGE_DB
 from dynqos.sim.network.cell_core import CellCore
+from dynqos.sim.network.prediction import Predictor
 from dynqos.sim.network.radio import Radio, RadioMap
 
 log = logging.getLogger(__name__)
@@ -59,10 +60,12 @@ class RadioFeed:
     """The drones' positions as heard, and their radio from the map."""
 
     def __init__(
-        self, config: RadioConfig, radio_map: RadioMap, bearers: tuple[BearerConfig, ...], clock: Any
-    ) -> None:
+        self, config: RadioConfig, radio_map: RadioMap, bearers: tuple[BearerConfig, ...], clock: Any,
+        predictor: Predictor,
+    ) -> None:  # fmt: skip
         self.config = config
         self.map = radio_map
+        self.predictor = predictor  # what the operator predicts from the same map (GET is the truth)
         self.clock = clock  # () -> ns
         self.uavs = system_ids(config, bearers)
         self.bearers_of: dict[str, list[str]] = {}

@@ -23,6 +23,7 @@ from dynqos.common.metrics import ProcessMetrics, counter, gauge
 from dynqos.sim.network.cell import CellEmulator
 from dynqos.sim.network.control_api import ControlApi, Tap
 from dynqos.sim.network.operator import Operator
+from dynqos.sim.network.prediction import Predictor
 from dynqos.sim.network.radio import RadioMap
 from dynqos.sim.network.radio_feed import RadioFeed
 from dynqos.sim.vehicle.world import default_world, load_world
@@ -152,7 +153,10 @@ async def _start_radio(
         world = load_world(config.world_file) if config.world_file else default_world()
     except ConfigError as exc:
         raise ConfigError("cell.radio.world_file", str(exc)) from None
-    feed = RadioFeed(config, RadioMap(config, world), bearers, time.monotonic_ns)
+    radio_map = RadioMap(config, world)
+    started_unix = time.time() - (time.monotonic_ns() - emulator.start_ns) / 1e9  # the timeline's zero
+    predictor = Predictor(radio_map, cell, world.arena.size_m[:2], start_unix=started_unix)
+    feed = RadioFeed(config, radio_map, bearers, time.monotonic_ns, predictor)
     emulator.radio = feed
     try:
         await feed.start(emulator.core, out_dir)
