@@ -27,6 +27,10 @@ SCOPES = {
     ("POST", "retrieve-qos-profiles"): "qos-profiles:read",
     ("GET", "qos-profiles"): "qos-profiles:read",
     ("POST", "retrieve"): "predictive-connectivity-data:read",  # Predictive Connectivity Data 0.1.0
+    ("POST", "device-qos-bookings"): "qos-booking:device-qos-bookings:create",  # QoS Booking 0.1.0
+    ("GET", "device-qos-bookings"): "qos-booking:device-qos-bookings:read",
+    ("DELETE", "device-qos-bookings"): "qos-booking:device-qos-bookings:delete",
+    ("POST", "retrieve-device-qos-bookings"): "qos-booking:device-qos-bookings:retrieve-by-device",
 }
 AGENT_SCOPE = " ".join(dict.fromkeys(SCOPES.values()))  # every call the agent makes
 JWT_BEARER = "urn:ietf:params:oauth:client-assertion-type:jwt-bearer"  # RFC 7523 client authentication
@@ -53,7 +57,7 @@ def unix_time(text: Any) -> float:
 def scope_for(method: str, path: str) -> str:
     """The scope a call to `path` (under the API's root) needs."""
     parts = [p for p in path.split("/") if p]
-    if len(parts) >= 2 and parts[-2] in ("sessions", "qos-profiles"):
+    if len(parts) >= 2 and parts[-2] in ("sessions", "qos-profiles", "device-qos-bookings"):
         parts = parts[:-1]  # /sessions/{id}, /qos-profiles/{name}
     return SCOPES.get((method, parts[-1] if parts else ""), "")
 

@@ -18,6 +18,7 @@ DOCUMENTS = {
     "/quality-on-demand/v1": "quality-on-demand.yaml",
     "/qos-profiles/v1": "qos-profiles.yaml",
     "/predictive-connectivity-data/v0.1": "predictive-connectivity-data.yaml",
+    "/qos-booking/v0.1": "qos-booking.yaml",
 }
 HOST = "http://127.0.0.1:8080"  # the spec's {apiRoot}: any root matches
 # Where dynqos knowingly departs from the documents, each with its reason (docs/qos.md says the same):

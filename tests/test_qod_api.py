@@ -117,8 +117,9 @@ async def emulated_operator(
     **cell: Any,
 ) -> AsyncIterator[Operator]:
     cfg = CellConfig(
-        qod=True, control_port=0, default_listen_port=0, priority_listen_port=0, qod_setup_s=0.05, **cell
-    )
+        **{"qod": True, "control_port": 0, "default_listen_port": 0, "priority_listen_port": 0,
+           "qod_setup_s": 0.05, **cell}
+    )  # fmt: skip
     rig = Operator()
     ready: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
     stop = asyncio.Event()

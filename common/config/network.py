@@ -238,6 +238,8 @@ class CellConfig:
     qod_api_version: Literal["1.1.0", "1.2.0"] = "1.1.0"
     qod_auth: bool = False  # require OAuth2 client-credential tokens ([qos.camara] client_id/secret file)
     qod_token_ttl_s: Annotated[float, In(1, 86400, "must be in 1..86400 s")] = 3600.0
+    # CAMARA QoS Booking 0.1.0 beside the QoD API (docs/radio.md): bookings overlapping in time at once
+    booking_max_concurrent: Annotated[int, In(-1, 10**6, "must be -1 (no limit) or >= 0")] = -1
     trace: str = ""
     trace_mean_mbps: Annotated[float, In(0, math.inf, "must be >= 0")] = 0.0
     seed: int = 0

@@ -112,6 +112,7 @@ class CamaraConfig:
     profiles_root: str = ""  # e.g. https://api.operator.example/qos-profiles/v1 ("" = beside api_root)
     # Predictive Connectivity Data 0.1.0 ("" = beside api_root: {apiRoot}/predictive-connectivity-data/v0.1)
     connectivity_root: str = ""
+    booking_root: str = ""  # QoS Booking 0.1.0 ("" = beside api_root: {apiRoot}/qos-booking/v0.1)
     # ... and again this often, and at once when a create is refused as if the profile had changed
     profile_recheck_s: Annotated[float, In(1, 86400, "must be in 1..86400 s")] = 300.0
     duration_s: Annotated[int, In(1, 10**7, "must be in 1..10000000 s")] = (
@@ -139,7 +140,7 @@ class CamaraConfig:
     devices: dict[str, DeviceConfig] = field(default_factory=dict)  # drone id -> its device
 
     def __post_init__(self) -> None:
-        for name in ("api_root", "token_url", "sink", "profiles_root", "connectivity_root"):
+        for name in ("api_root", "token_url", "sink", "profiles_root", "connectivity_root", "booking_root"):
             url = getattr(self, name)
             _require(not url or url.startswith(("http://", "https://")), name, "must be an http(s) URL")
             # tokens, device identities and the sink's credential cross these: TLS, except on this host

@@ -302,14 +302,19 @@ class QodClient:
         return str(jwt.encode(claims, self.key, algorithm=signing_algorithm(self.key)))
 
 
-def profiles_root(cfg: CamaraConfig) -> str:
-    """Where the QoS Profiles API is: `profiles_root`, or beside the QoD API as CAMARA publishes both
-    ({apiRoot}/quality-on-demand/v1 and {apiRoot}/qos-profiles/v1)."""
-    if cfg.profiles_root:
-        return cfg.profiles_root.rstrip("/")
+def beside(cfg: CamaraConfig, explicit: str, api: str) -> str:
+    """Where another CAMARA API of the operator is: `explicit`, or beside the QoD API as CAMARA publishes
+    them ({apiRoot}/quality-on-demand/v1 and {apiRoot}/<api>, e.g. qos-profiles/v1)."""
+    if explicit:
+        return explicit.rstrip("/")
     root = cfg.api_root.rstrip("/")
     base, _, _ = root.rpartition("/quality-on-demand/")
-    return (base or root.rsplit("/", 2)[0]) + "/qos-profiles/v1"
+    return f"{base or root.rsplit('/', 2)[0]}/{api}"
+
+
+def profiles_root(cfg: CamaraConfig) -> str:
+    """Where the QoS Profiles API is: `profiles_root`, or beside the QoD API."""
+    return beside(cfg, cfg.profiles_root, "qos-profiles/v1")
 
 
 def _error(status: int, answer: Any, correlator: str, retry_after: float | None) -> QodError:

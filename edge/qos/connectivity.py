@@ -14,7 +14,7 @@ from typing import Any
 
 from dynqos.common.camara import rfc3339, unix_time
 from dynqos.common.config import CamaraConfig
-from dynqos.edge.qos.client import QodClient, QodError
+from dynqos.edge.qos.client import QodClient, QodError, beside
 
 LEVELS = ("GC", "MC", "NC", "ND")
 STATUSES = ("SUPPORTED_AREA", "PART_OF_AREA_NOT_SUPPORTED", "AREA_NOT_SUPPORTED", "OPERATION_NOT_COMPLETED")
@@ -53,12 +53,8 @@ class Prediction:
 
 
 def connectivity_root(cfg: CamaraConfig) -> str:
-    """`connectivity_root`, or beside the QoD API as CAMARA publishes them ({apiRoot}/<api>/<version>)."""
-    if cfg.connectivity_root:
-        return cfg.connectivity_root.rstrip("/")
-    root = cfg.api_root.rstrip("/")
-    base, _, _ = root.rpartition("/quality-on-demand/")
-    return (base or root.rsplit("/", 2)[0]) + "/predictive-connectivity-data/v0.1"
+    """`connectivity_root`, or beside the QoD API ({apiRoot}/predictive-connectivity-data/v0.1)."""
+    return beside(cfg, cfg.connectivity_root, "predictive-connectivity-data/v0.1")
 
 
 def parse_prediction(body: Any) -> Prediction:

@@ -28,6 +28,7 @@ from aiohttp import ClientSession, ClientTimeout, web
 from dynqos.common.camara import JWT_BEARER, JWT_BEARER_GRANT, SCOPES, scope_for, signing_algorithm
 from dynqos.common.config import CellConfig, CellEventConfig, build
 from dynqos.common.errors import ConfigError
+from dynqos.sim.network.booking import Bookings
 from dynqos.sim.network.operator import Answer, Notification, Operator, error
 from dynqos.sim.network.operator_schema import problem
 from dynqos.sim.network.prediction import Refused
@@ -39,7 +40,8 @@ log = logging.getLogger(__name__)
 QOD_PREFIX = "/quality-on-demand/v1"
 PROFILES_PREFIX = "/qos-profiles/v1"
 CONNECTIVITY_PREFIX = "/predictive-connectivity-data/v0.1"
-CAMARA_PREFIXES = (QOD_PREFIX, PROFILES_PREFIX, CONNECTIVITY_PREFIX)
+BOOKING_PREFIX = "/qos-booking/v0.1"
+CAMARA_PREFIXES = (QOD_PREFIX, PROFILES_PREFIX, CONNECTIVITY_PREFIX, BOOKING_PREFIX)
 MAX_ASSERTION_LIFETIME_S = 600  # a client assertion valid longer than this is refused
 SEEN_ASSERTIONS = 4096  # jti values remembered against replays
 CORRELATOR = re.compile(r"[a-zA-Z0-9\-_:;./<>{}]{0,256}")  # XCorrelator in both APIs' documents
@@ -135,6 +137,10 @@ class ControlApi:
         r.add_post(PROFILES_PREFIX + "/retrieve-qos-profiles", self.retrieve_profiles)
         r.add_get(PROFILES_PREFIX + "/qos-profiles/{name}", self.get_profile)
         r.add_post(CONNECTIVITY_PREFIX + "/retrieve", self.connectivity)
+        r.add_post(BOOKING_PREFIX + "/device-qos-bookings", self.book)
+        r.add_get(BOOKING_PREFIX + "/device-qos-bookings/{bid}", self.booking)
+        r.add_delete(BOOKING_PREFIX + "/device-qos-bookings/{bid}", self.unbook)
+        r.add_post(BOOKING_PREFIX + "/retrieve-device-qos-bookings", self.bookings_of)
         r.add_post("/oauth2/token", self.token)
         r.add_delete("/oauth2/tokens", self.revoke)
         self.runner: web.AppRunner | None = None
@@ -190,7 +196,7 @@ class ControlApi:
 
     async def _handle(self, request: web.Request, handler: Handler) -> web.StreamResponse:
         try:
-            if request.path.startswith((QOD_PREFIX, PROFILES_PREFIX)):
+            if request.path.startswith((QOD_PREFIX, PROFILES_PREFIX, BOOKING_PREFIX)):
                 if self.operator is None:
                     return _json(error(404, "NOT_FOUND", "this cell serves no QoD API ([cell] qod = false)"))
                 self._authorise(request)
@@ -304,6 +310,30 @@ class ControlApi:
             return web.json_response(self.emulator.radio.predictor.retrieve(body, time.time()))
         except Refused as refused:
             return _json(error(refused.status, refused.code, refused.message))
+
+    # ---- QoS Booking 0.1.0 (sim/network/booking.py) ---------------------------------------------------
+
+    @property
+    def books(self) -> Bookings:
+        assert self.operator is not None
+        assert self.operator.bookings is not None
+        return self.operator.bookings
+
+    async def book(self, request: web.Request) -> web.Response:
+        answer, notes = self.books.create(await _body(request), subject=request.get("subject", ""))
+        self._changed(notes)
+        return _json(answer)
+
+    async def booking(self, request: web.Request) -> web.Response:
+        return _json(self.books.get(request.match_info["bid"], request.get("subject", "")))
+
+    async def unbook(self, request: web.Request) -> web.Response:
+        answer, notes = self.books.delete(request.match_info["bid"], request.get("subject", ""))
+        self._changed(notes)
+        return _json(answer)
+
+    async def bookings_of(self, request: web.Request) -> web.Response:
+        return _json(self.books.retrieve(await _body(request), subject=request.get("subject", "")))
 
     async def events(self, request: web.Request) -> web.Response:
         try:

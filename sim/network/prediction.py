@@ -246,10 +246,13 @@ class Predictor:
         first = math.floor(start / step) * step
         return [(t, t + step) for t in (first + i * step for i in range(math.ceil((end - first) / step)))]
 
+    def covers(self, x: float, y: float) -> bool:
+        """Is the local (x, y) where the operator has data (the world's arena)?"""
+        return abs(x) <= self.half[0] and abs(y) <= self.half[1]
+
     def _supported(self, gh: str) -> bool:
         centre = pygeohash.decode_exactly(gh)
-        x, y = self.geo.to_local(centre.latitude, centre.longitude)
-        return abs(x) <= self.half[0] and abs(y) <= self.half[1]
+        return self.covers(*self.geo.to_local(centre.latitude, centre.longitude))
 
     def _cell(self, gh: str, supported: bool, layers: list[int], slot: tuple[float, float], need: float,
               signal: bool) -> dict[str, Any]:  # fmt: skip

@@ -20,10 +20,11 @@ from dynqos.common.config import BearerConfig, CellConfig, Config
 from dynqos.common.errors import ConfigError, DynqosError
 from dynqos.common.lifecycle import serving_metrics, stop_loop_on_signals
 from dynqos.common.metrics import ProcessMetrics, counter, gauge
+from dynqos.sim.network.booking import Bookings
 from dynqos.sim.network.cell import CellEmulator
 from dynqos.sim.network.control_api import ControlApi, Tap
 from dynqos.sim.network.operator import Operator
-from dynqos.sim.network.prediction import Predictor
+from dynqos.sim.network.prediction import Geo, Predictor
 from dynqos.sim.network.radio import RadioMap
 from dynqos.sim.network.radio_feed import RadioFeed
 from dynqos.sim.vehicle.world import default_world, load_world
@@ -98,6 +99,7 @@ async def run_cell(
             )
         servers = {b.ue: b.target_host_port[0] for b in bearers if b.ue}
         emulator.operator = Operator(cell, dict(qod_devices or {}), servers, time.monotonic, time.time)
+        emulator.operator.bookings = _bookings(cell, emulator.operator, radio)
     try:
         if cell.control_port >= 0:
             control = ControlApi(
@@ -140,6 +142,21 @@ async def run_cell(
             radio.close()
         await emulator.stop()
     return counters
+
+
+def _bookings(cell: CellConfig, operator: Operator, radio: RadioFeed | None) -> Bookings:
+    """The QoS Booking API's bookings: with the radio map on, a booking's area is checked against the
+    world's arena and grants only while the cell places the drone inside it."""
+    geo = Geo(cell.prediction.origin_lat_deg, cell.prediction.origin_lon_deg)
+
+    def where(uav: str) -> tuple[float, float] | None:
+        heard = radio.positions.get(uav) if radio is not None else None
+        return (heard[0][0], heard[0][1]) if heard is not None else None
+
+    def covered(x: float, y: float) -> bool:
+        return radio is None or radio.predictor.covers(x, y)
+
+    return Bookings(operator, time.time, geo, where, covered, cell.booking_max_concurrent)
 
 
 async def _start_radio(
