@@ -13,11 +13,11 @@ import pytest
 
 from dynqos.common.camara import rfc3339
 from dynqos.common.config import CellConfig, PredictionConfig, RadioConfig
+from dynqos.common.geo import Geo
 from dynqos.edge.qos.booking import BookingClient, BookingInfo, booking_root, circle
 from dynqos.edge.qos.client import QodClient, QodError
 from dynqos.sim.network.booking import KEEP_UNAVAILABLE_S, Bookings
 from dynqos.sim.network.operator import Operator
-from dynqos.sim.network.prediction import Geo
 from tests.test_qod_api import DEVICE, SECRET, emulated_operator, run
 
 GEO = Geo(PredictionConfig().origin_lat_deg, PredictionConfig().origin_lon_deg)

@@ -17,9 +17,15 @@ import pytest
 from aiohttp import web
 
 from dynqos.common.config import CamaraConfig, CoverageHoleConfig, PredictionConfig, RadioConfig
+from dynqos.common.geo import Geo
+from dynqos.edge.planner.fleet_plan import PlanDrone, PlanSettings, Router, Task, plan
 from dynqos.edge.qos.client import QodClient, QodError
-from dynqos.edge.qos.connectivity import ConnectivityClient, connectivity_root, parse_prediction
-from dynqos.sim.network.prediction import Geo
+from dynqos.edge.qos.connectivity import (
+    ConnectivityClient,
+    PredictedLevels,
+    connectivity_root,
+    parse_prediction,
+)
 from tests.test_qod_api import SECRET, emulated_operator, run
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
@@ -65,6 +71,17 @@ def test_a_prediction_of_the_arena_marks_the_hole_and_clears_above_it() -> None:
             high = await client.retrieve(ARENA, now + 1, now + 11, precision=9, height_m=5)
             assert high.requested_height_m == 5
             assert high.level(hole, now + 5) in ("GC", "MC")
+            # read by the fleet planner, in its own metres and seconds: it routes round the hole
+            levels = PredictedLevels(low, GEO, start_unix=now + 1, precision=9)
+            assert levels.level(-3.0, 0.0, 1.0, 4.0) == "NC"
+            assert levels.level(-3.0, 0.0, 5.0, 4.0) in ("GC", "MC")
+            arena = PlanSettings(half_m=(3.5, 3.5), grid_m=0.5, heights_m=(1.0,))
+            task = Task("look", "inspect", ((-3.0, 3.0),), duration_s=1.0)
+            routed = plan([task], [PlanDrone("uav1", (-3.0, -3.0))], levels, arena)
+            assert routed.legs["uav1"][0].nc_s == 0.0
+            assert (
+                Router(levels, arena).nc_length([(-3.0, -3.0), (-3.0, 3.0)], 1.0, 4.0) > 1.0
+            )  # straight: in it
 
     run(main())
 

@@ -20,8 +20,9 @@ from dynqos.common.config import (
     PredictionConfig,
     RadioConfig,
 )
+from dynqos.common.geo import Geo
 from dynqos.sim.network.operator_schema import problem
-from dynqos.sim.network.prediction import Geo, Predictor, Refused, inside, rfc3339, simple_polygon
+from dynqos.sim.network.prediction import Predictor, Refused, inside, rfc3339, simple_polygon
 from dynqos.sim.network.prediction_schema import RETRIEVE_CONNECTIVITY_STRICT
 from dynqos.sim.network.radio import RadioMap
 from dynqos.sim.vehicle.world import World

@@ -12,8 +12,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import pygeohash
+
 from dynqos.common.camara import rfc3339, unix_time
 from dynqos.common.config import CamaraConfig
+from dynqos.common.geo import Geo
 from dynqos.edge.qos.client import QodClient, QodError, beside
 
 LEVELS = ("GC", "MC", "NC", "ND")
@@ -125,3 +128,19 @@ class ConnectivityClient:
             return parse_prediction(answer)
         except ValueError as exc:
             raise QodError(502, "BAD_RESPONSE", f"predictive connectivity: {exc}") from None
+
+
+class PredictedLevels:
+    """A prediction read the way the fleet planner asks (edge/planner/fleet_plan.py, `Connectivity`):
+    the level at local (x, y) metres, a height above ground and seconds from `start_unix`."""
+
+    def __init__(self, prediction: Prediction, geo: Geo, start_unix: float, precision: int) -> None:
+        self.prediction = prediction
+        self.geo = geo
+        self.start_unix = start_unix
+        self.precision = precision
+
+    def level(self, x: float, y: float, height_m: float, t_s: float) -> str:
+        cell = pygeohash.encode(*self.geo.to_latlon(x, y), precision=self.precision)
+        layer = int(height_m // self.prediction.layer_thickness_m)
+        return self.prediction.level(cell, self.start_unix + t_s, layer)

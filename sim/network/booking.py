@@ -20,10 +20,11 @@ from dataclasses import dataclass
 from typing import Any
 
 from dynqos.common.camara import ports_named, rfc3339, unix_time
+from dynqos.common.geo import Geo
 from dynqos.sim.network.booking_schema import CREATE_BOOKING_STRICT, RETRIEVE_BOOKINGS_STRICT
 from dynqos.sim.network.operator import Answer, Notification, Operator, error
 from dynqos.sim.network.operator_schema import problem
-from dynqos.sim.network.prediction import Geo, inside, simple_polygon
+from dynqos.sim.network.prediction import inside, simple_polygon
 
 EVENT_TYPE = "org.camaraproject.qos-booking.v0.status-changed"
 KEEP_UNAVAILABLE_S = 360.0  # the API: an UNAVAILABLE booking is deleted at earliest this long after

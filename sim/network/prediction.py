@@ -18,7 +18,6 @@ import math
 import random
 import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import pygeohash
@@ -26,9 +25,9 @@ import pygeohash
 from dynqos.common.camara import rfc3339, unix_time
 from dynqos.common.config import CellConfig
 from dynqos.common.config.radio import PredictionConfig
+from dynqos.common.geo import Geo
 from dynqos.sim.network.radio import RadioMap, efficiency
 
-EARTH_RADIUS_M = 6_378_137.0
 CODE = "PREDICTIVE_CONNECTIVITY_DATA"
 
 
@@ -38,25 +37,6 @@ class Refused(Exception):
     def __init__(self, status: int, code: str, message: str) -> None:
         super().__init__(message)
         self.status, self.code, self.message = status, code, message
-
-
-@dataclass(frozen=True, slots=True)
-class Geo:
-    """Local NED metres (x north, y east) and WGS84 degrees, equirectangular about an origin: exact
-    enough over a few kilometres."""
-
-    lat0: float
-    lon0: float
-
-    def to_latlon(self, x_m: float, y_m: float) -> tuple[float, float]:
-        lat = self.lat0 + math.degrees(x_m / EARTH_RADIUS_M)
-        lon = self.lon0 + math.degrees(y_m / (EARTH_RADIUS_M * math.cos(math.radians(self.lat0))))
-        return lat, lon
-
-    def to_local(self, lat: float, lon: float) -> tuple[float, float]:
-        x = math.radians(lat - self.lat0) * EARTH_RADIUS_M
-        y = math.radians(lon - self.lon0) * EARTH_RADIUS_M * math.cos(math.radians(self.lat0))
-        return x, y
 
 
 def parse_time(text: str, key: str) -> float:

@@ -18,13 +18,14 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from dynqos.common.camara import load_private_key, read_headers, read_secret
 from dynqos.common.config import BearerConfig, CellConfig, Config
 from dynqos.common.errors import ConfigError, DynqosError
+from dynqos.common.geo import Geo
 from dynqos.common.lifecycle import serving_metrics, stop_loop_on_signals
 from dynqos.common.metrics import ProcessMetrics, counter, gauge
 from dynqos.sim.network.booking import Bookings
 from dynqos.sim.network.cell import CellEmulator
 from dynqos.sim.network.control_api import ControlApi, Tap
 from dynqos.sim.network.operator import Operator
-from dynqos.sim.network.prediction import Geo, Predictor
+from dynqos.sim.network.prediction import Predictor
 from dynqos.sim.network.radio import RadioMap
 from dynqos.sim.network.radio_feed import RadioFeed
 from dynqos.sim.vehicle.world import default_world, load_world
