@@ -295,6 +295,7 @@ class OnboardCore:
             spaciousness_m=self._space,
             watchdog_expired=watchdog,
             priority_denied=bool(self._requested) and self.reported_grant(now) is Grant.UNAVAILABLE,
+            sinr_db=modem.sinr_db if (modem := self._fresh_modem(now)) else None,
         )
         self._space = None
         decision = self.supervisor.step(inputs, now)
@@ -414,7 +415,7 @@ class OnboardCore:
         self._status_seq += 1
         cams, rtts = self.samples.take()
         gap, self._status_gap_ms = self._status_gap_ms, 0.0
-        modem = self.modem if self.modem and now - self.modem.stamp_ns <= self._modem_stale_ns else None
+        modem = self._fresh_modem(now)
         return SupervisorStatus(
             uav=self.uav,
             seq=self._status_seq,
@@ -439,6 +440,11 @@ class OnboardCore:
             sinr_db=modem.sinr_db if modem else None,
             **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),
         )
+
+    def _fresh_modem(self, now: int) -> ModemReading | None:
+        """The modem's reading while it is fresh (three of its intervals), else None."""
+        m = self.modem
+        return m if m is not None and now - m.stamp_ns <= self._modem_stale_ns else None
 
     def _offer_command(self, command: Command, arrival_ns: int) -> None:
         counters = self.tracker.counters

@@ -96,6 +96,7 @@ class Inputs:
     # The network refused the priority flow (the QoS agent's grant is UNAVAILABLE): on the priority
     # flow HL is then the paper's "priority applied but the delay still rises" at once.
     priority_denied: bool = False
+    sinr_db: float | None = None  # the modem's SINR, fresh (None: no modem or no reading)
 
 
 @dataclass(frozen=True, slots=True)
@@ -255,6 +256,9 @@ class Supervisor:
         weight = sum(w for w, _ in terms)
         # A missing term is left out and the rest re-weighted; no evidence at all is NA, not LL.
         p_lat = sum(w * p for w, p in terms) / weight if terms and weight > 0 else None
+        if cfg.radio_aware and inputs.sinr_db is not None and math.isfinite(inputs.sinr_db):
+            p_radio = 1.0 - sigmoid(inputs.sinr_db, cfg.radio_mu, cfg.radio_sinr_db)  # the link is fading
+            p_lat = p_radio if p_lat is None else max(p_lat, p_radio)
         latency = Latency.NA if p_lat is None else (Latency.HL if p_lat > cfg.th_lat else Latency.LL)
 
         s_k = self._risk.value

@@ -463,3 +463,18 @@ def test_a_status_carries_the_modems_reading_while_it_is_fresh() -> None:
     rig.run(2.0)
     assert rig.statuses(rig.run(0.2))[-1].rsrp_dbm == -85.5
     assert rig.statuses(rig.run(1.0))[-1].rsrp_dbm is None
+
+
+def test_a_radio_aware_supervisor_hears_the_modems_sinr_while_it_is_fresh() -> None:
+    cfg = config()
+    rig = Rig(
+        OnboardCore(replace(cfg, supervisor=replace(cfg.supervisor, radio_aware=True)), start_ns=1_000 * MS)
+    )
+    rig.run(1.0)
+    rig.modem = ModemReading(-110.0, -10.0, rig.now)  # a fading link, the RTT still 20 ms
+    faded = rig.statuses(rig.run(0.5))
+    assert faded[-1].latency == "HL"
+    assert faded[-1].sinr_db == -10.0
+    rig.modem = None
+    rig.run(3.5)  # the reading is stale: only the samples speak again
+    assert rig.statuses(rig.run(0.5))[-1].latency == "LL"

@@ -130,6 +130,27 @@ def test_missing_samples_are_not_zero_latency() -> None:
     assert decision.signals.spaciousness_m is None
 
 
+def test_a_fading_link_raises_latency_before_any_sample_only_when_radio_aware() -> None:
+    """The modem's SINR (docs/radio.md): off by default; on, a SINR below radio_sinr_db is evidence of HL
+    at once, and a good one never lowers what the samples say."""
+    fading = Inputs(cc_rtts_ms=[20.0], camera_latencies_ms=[40.0], spaciousness_m=9.0, sinr_db=0.0)
+    assert Supervisor(CONFIG).step(fading, 0).signals.latency is Latency.LL  # ignored by default
+    aware = replace(CONFIG, radio_aware=True)
+    signals = Supervisor(aware).step(fading, 0).signals
+    assert signals.latency is Latency.HL
+    assert signals.p_lat == pytest.approx(1.0 - sigmoid(0.0, aware.radio_mu, aware.radio_sinr_db))
+    assert Supervisor(aware).step(Inputs(sinr_db=-23.0), 0).signals.latency is Latency.HL  # no samples yet
+    clear = Supervisor(aware).step(replace(fading, sinr_db=20.0), 0).signals
+    assert clear.latency is Latency.LL
+    loaded = Supervisor(aware).step(Inputs(cc_rtts_ms=[90.0], camera_latencies_ms=[160.0], sinr_db=20.0), 0)
+    assert loaded.signals.latency is Latency.HL  # a good SINR does not hide a queue
+    assert Supervisor(aware).step(replace(fading, sinr_db=math.nan), 0).signals.latency is Latency.LL
+    # In a flight: an LR drone whose link fades throttles its camera (q4) on the SINR alone, RTT still low.
+    flight = Flight(aware)
+    flight.run(2.0, link(20.0, 40.0, space_m=9.0))
+    assert flight.run_until(Q4, 1.0, lambda _t: replace(fading, sinr_db=-5.0)) < 0.5
+
+
 def test_unanswered_requests_raise_latency_when_acks_stop() -> None:
     flight = Flight()
     flight.run(2.0, UNLOADED)

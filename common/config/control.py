@@ -50,6 +50,12 @@ class SupervisorConfig:
     min_rate_factor: float = 0.25
     rate_step_s: Annotated[float, In(0.0, 600, "must be in 0..600 s")] = 1.0
     watchdog_s: Annotated[float, In(0.001, 60, "must be in 0.001..60 s")] = 0.15
+    # The modem's SINR as proactive evidence of high latency (docs/radio.md): off by default; on, a SINR
+    # below radio_sinr_db raises P_lat before any sample shows the queue: P_lat = max(P_lat, P_radio),
+    # P_radio = 1 - P(SINR; radio_mu, radio_sinr_db) (the paper's eq. 1 form, rising as the SINR falls)
+    radio_aware: bool = False
+    radio_sinr_db: Annotated[float, In(-23, 40, "must be in -23..40 dB")] = 6.0
+    radio_mu: Annotated[float, In(0.01, 100, "must be in 0.01..100 per dB")] = 1.0
 
     def __post_init__(self) -> None:
         _require(all(m > 0 for m in self.mu), "mu", "slopes must be > 0")
