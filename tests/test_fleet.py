@@ -14,6 +14,7 @@ import pytest
 
 from dynqos.common.config import ZenohConfig, load_config
 from dynqos.common.errors import ConfigError
+from dynqos.common.messages import State
 from dynqos.experiment.faults import Fault
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.runner import run_scenario
@@ -25,7 +26,7 @@ from dynqos.experiment.scenario import (
     with_cell,
     write_config,
 )
-from dynqos.reports.fleet import _queue_delays
+from dynqos.reports.fleet import _queue_delays, summarise_fleet
 from tests.procs import DYNQOS
 
 DRONE_KEYS = {
@@ -143,6 +144,7 @@ def test_a_short_arbitrated_fleet_flight_keeps_the_high_risk_drones_loop(tmp_pat
     assert all(summary["checks"].values()), (summary["checks"], summary["drones"])  # the scenario's bar
     assert set(summary["checks"]) == {
         "high_risk_rtt_within_1_2x", "high_risk_delivered_95pct", "setpoint_gaps_within_100ms",
+        "every_drone_heard",
     }  # fmt: skip
     assert set(summary["drones"]) == {"uav1", "uav2", "uav3", "uav4"}
     for uav, drone in summary["drones"].items():
@@ -276,3 +278,22 @@ def test_a_replicated_edge_keeps_every_drone_out_of_its_fallback_in_the_fleets_o
         assert grant["served_after_s"] < 2.0, grant
     assert summary["qod_sessions"]["conflicts"] == 0
     assert summary["qod_sessions"]["open_at_end"] == 0
+
+
+def test_a_drone_never_heard_in_the_flight_fails_the_fleets_check() -> None:
+    """A drone stuck where its link carries nothing (a coverage hole it holds in) has no figures; the
+    fleet's summary says so instead of an entry that looks quiet (docs/radio.md, "In a fleet")."""
+    scenario = builtin_scenario("fleet-arbiter")
+
+    def heard(uav: str) -> Recording:
+        state = State(uav=uav, seq=1, stamp_ns=1, pos_m=(0.0, 0.0, -1.5), vel_mps=(0.0, 0.0, 0.0),
+                      quat=(1.0, 0.0, 0.0, 0.0))  # fmt: skip
+        return Recording(states=[(10.0, state)])
+
+    all_heard = {d.id: heard(d.id) for d in scenario.drones}
+    summary = summarise_fleet(scenario, Recording(), all_heard, [], {}, ok=True, failure="")
+    assert summary["checks"]["every_drone_heard"] is True
+    one_silent = all_heard | {"uav1": Recording()}
+    summary = summarise_fleet(scenario, Recording(), one_silent, [], {}, ok=True, failure="")
+    assert summary["checks"]["every_drone_heard"] is False
+    assert summary["drones"]["uav1"]["states_recorded"] == 0

@@ -122,6 +122,9 @@ def summarise_fleet(
         }
     )
     checks["setpoint_gaps_within_100ms"] = bool(gaps) and max(gaps) <= GAP_LIMIT_MS
+    # a drone whose link never carried a state during the flight (stuck in a coverage hole, say) has no
+    # figures at all: the run says so rather than leaving a quiet entry
+    checks["every_drone_heard"] = all(d["states_recorded"] > 0 for d in drones.values())
     faults = _faults(rec, drones)
     if faults:  # the edge's faults (replicas killed, hung) must not send any drone to its fallback
         checks["no_fallback_in_faults"] = not any(f["fallback"] for f in faults)
