@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from dynqos.common.config import ZenohConfig
-from dynqos.experiment.processes import Processes, free_port
+from dynqos.experiment.processes import Processes, flow_ports
 
 
 @contextlib.contextmanager
@@ -17,7 +17,7 @@ def router_rig(extra_toml: str = "") -> Iterator[tuple[ZenohConfig, Processes]]:
     services with (same config file, [zenoh] ports plus `extra_toml`); stops them all on exit."""
     with tempfile.TemporaryDirectory(prefix="dynqos-bench-") as tmp:
         folder = Path(tmp)
-        zcfg = ZenohConfig(default_port=free_port(), priority_port=free_port())
+        zcfg = ZenohConfig(**flow_ports())
         config = folder / "bench.toml"
         config.write_text(
             f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"

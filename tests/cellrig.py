@@ -75,9 +75,9 @@ def zenoh_through_cell(tmp_path: Path, uav: str, cell_keys: str = "") -> Iterato
     """`cell_keys`: more `[cell]` lines (a smaller UE buffer, a scale)."""
     from dynqos.common.config import ZenohConfig
     from dynqos.common.transport import Role, default_flow_endpoint, open_bus, priority_flow_endpoint
-    from tests.conftest import free_tcp_port
+    from tests.conftest import flow_ports
 
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     toml = f"""
 [drone]
 id = "{uav}"

@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
-from dynqos.experiment.processes import free_port
+from dynqos.experiment.processes import FlowPorts, free_port
+from dynqos.experiment.processes import flow_ports as _flow_ports
 
 settings.register_profile("default", max_examples=200, deadline=None)
 settings.register_profile(
@@ -18,6 +19,17 @@ settings.register_profile(
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "default"))
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def flow_ports() -> FlowPorts:
+    """Two distinct free TCP ports for the router's flows: ZenohConfig(**flow_ports())."""
+    return _flow_ports()
+
+
+def flow_ports_toml() -> str:
+    """The `[zenoh]` table's two flow ports, distinct and free, as TOML lines."""
+    ports = _flow_ports()
+    return f"default_port = {ports['default_port']}\npriority_port = {ports['priority_port']}\n"
 
 
 def free_tcp_port() -> int:

@@ -24,7 +24,7 @@ from dynqos.onboard.pacing import split
 from dynqos.sim.vehicle.dynamics import quat_to_rot
 from dynqos.sim.vehicle.render import Renderer
 from dynqos.sim.vehicle.world import default_world
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports
 from tests.procs import DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
@@ -32,7 +32,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
 @pytest.fixture
 def edge(tmp_path: Path) -> Iterator[tuple[Path, ZenohConfig, list[DynqosProcess]]]:
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     config = tmp_path / "edge.toml"
     config.write_text(
         f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports_toml, free_tcp_port
 from tests.procs import DYNQOS, DynqosProcess
 from tests.wheel import build_wheel
 
@@ -94,7 +94,7 @@ def _started(roles: list[list[str]], config: Path, bin_dir: Path | None = None) 
 
 def _config(path: Path, extra: str = "") -> Path:
     path.write_text(
-        f"[zenoh]\ndefault_port = {free_tcp_port()}\npriority_port = {free_tcp_port()}\n"
+        f"[zenoh]\n{flow_ports_toml()}"
         "[mpc]\nhealth_interval_s = 0.5\n[planner]\nhealth_interval_s = 0.5\n"
         "[detector]\nhealth_interval_s = 0.5\n[onboard]\nhealth_interval_s = 0.5\n" + extra
     )

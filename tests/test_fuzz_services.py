@@ -33,7 +33,7 @@ from dynqos.common.messages import (
 )  # fmt: skip
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received, Role, open_bus
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports, free_tcp_port
 from tests.procs import DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(240)]
@@ -85,7 +85,7 @@ def services(
     tmp_path_factory: pytest.TempPathFactory,
 ) -> Iterator[tuple[ZenohConfig, dict[str, DynqosProcess]]]:
     tmp = tmp_path_factory.mktemp("fuzz")
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     config = tmp / "fuzz.toml"
     config.write_text(
         f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"

@@ -22,7 +22,7 @@ import zenoh
 from dynqos.common.config import ZenohConfig
 from dynqos.common.messages import State, SupervisorStatus, decode, encode
 from dynqos.common.transport import Role, open_session
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports, free_tcp_port
 from tests.procs import DynqosProcess
 from tests.test_onboard_loop import loop_config
 
@@ -93,7 +93,7 @@ class FoxgloveClient:
 
 
 def test_view_and_record_a_short_flight(tmp_path: Path) -> None:
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     config = loop_config(tmp_path, zcfg)
     mcap_path = tmp_path / "flight.mcap"
     procs: dict[str, DynqosProcess] = {}

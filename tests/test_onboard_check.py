@@ -11,7 +11,7 @@ import pytest
 
 from dynqos.common import mavsign
 from dynqos.onboard.check import check_unit
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports_toml
 from tests.procs import DYNQOS, DynqosProcess
 from tests.test_vehicle_mavlink import free_udp_port
 
@@ -36,7 +36,7 @@ def test_the_preflight_passes_against_the_demo_and_names_each_missing_part(
     api = free_udp_port()
     config = tmp_path / "drone.toml"
     config.write_text(
-        f"[zenoh]\ndefault_port = {free_tcp_port()}\npriority_port = {free_tcp_port()}\n"
+        f"[zenoh]\n{flow_ports_toml()}"
         "connect_timeout_s = 1\n"
         f"[vehicle]\noffboard_bind_port = 0\ngcs_bind_port = 0\noffboard_remote_port = {api}\n"
         f'gcs_remote_port = {free_udp_port()}\nsigning_key = "{key}"\n'

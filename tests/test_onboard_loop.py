@@ -34,7 +34,7 @@ from dynqos.common.transport import Priority, Received, Role, open_bus
 from dynqos.edge.detector.assembler import FrameAssembler
 from dynqos.edge.detector.circles import decode_depth
 from dynqos.reports.measures import reference_errors
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports
 from tests.procs import DynqosProcess
 from tests.test_vehicle_mavlink import free_udp_port
 
@@ -105,7 +105,7 @@ def edge_loop(
     """Router, simulator, planner and the MPC processes `mpcs`; the test adds the onboard daemon. Each is
     stopped at the end in the reverse order of its start (a SIGSTOPped one is resumed first).
     `vehicle_env`: settings for the simulator (DYNQOS_VEHICLE__...)."""
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     config = loop_config(tmp_path, zcfg)
     procs: dict[str, DynqosProcess] = {}
     try:
@@ -214,7 +214,7 @@ def test_the_drone_flies_the_circle_survives_bad_commands_and_an_mpc_restart(
 def test_onboard_streams_the_real_frames_from_files_without_taking_off(
     tmp_path: Path, shared_data: Path
 ) -> None:
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     config = loop_config(tmp_path, zcfg, extra="")
     text = config.read_text().replace(
         "camera_fps = 5\n", f'camera_fps = 10\ncamera = "files"\nfiles_dir = "{shared_data / "rgbd"}"\n'
@@ -242,7 +242,7 @@ def test_onboard_streams_the_real_frames_from_files_without_taking_off(
 
 @pytest.mark.timeout(120)
 def test_onboard_paces_each_image_in_parts_that_the_detector_joins(tmp_path: Path, shared_data: Path) -> None:
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     config = loop_config(tmp_path, zcfg)
     pace_mbps, part_bytes = 20.0, 16384
     config.write_text(
@@ -284,7 +284,7 @@ def test_onboard_paces_each_image_in_parts_that_the_detector_joins(tmp_path: Pat
 @pytest.mark.timeout(60)
 def test_onboard_speaks_sd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> None:
     """What systemd's Type=notify and WatchdogSec (deploy/systemd/dynqos-onboard.service) rely on."""
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     config = loop_config(tmp_path, zcfg, extra="")
     config.write_text(config.read_text().replace("camera_fps = 5\n", 'camera = "none"\n'))
     notify_path = tmp_path / "notify.sock"
@@ -375,7 +375,7 @@ def test_the_status_counts_every_uplink_byte_the_drone_hands_to_zenoh(tmp_path: 
     """`uav_offered_mbps` rests on the status's `uplink_bytes`: every message the drone puts (state,
     status, QoS request, camera), not the camera's bytes alone. With the camera off, a count of camera
     bytes would read 0; the count must match what a subscriber to all of the drone's uplink receives."""
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     config = loop_config(tmp_path, zcfg, extra="")
     config.write_text(config.read_text().replace("camera_fps = 5\n", 'camera = "none"\n'))
     got: list[tuple[int, object]] = []  # (encoded size, message) in arrival order

@@ -26,7 +26,7 @@ from dynqos.common.messages import QosGrant, QosRequest
 from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received, Role, open_bus
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports, free_tcp_port
 from tests.procs import DYNQOS, DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
@@ -92,7 +92,7 @@ def write_config(
 @pytest.fixture
 def rig(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Rig]:
     backend, cell, camara = (*getattr(request, "param", ("camara", "")), "")[:3]
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     cell_port = free_tcp_port()
     config = tmp_path / "qos.toml"
     write_config(config, zcfg, cell_port, backend, cell, camara)
@@ -255,7 +255,7 @@ def refused_at_start(config: Path, key: str) -> str:
 def test_camara_a_profile_the_operator_does_not_offer_stops_the_agent_before_it_serves(
     tmp_path: Path,
 ) -> None:
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     cell_port = free_tcp_port()
     config = tmp_path / "qos.toml"
     write_config(config, zcfg, cell_port, "camara", 'qod_inactive_profiles = ["QOS_M"]\n')
@@ -428,7 +428,7 @@ def test_camara_each_oauth2_mode_flies_a_drone_to_priority_against_the_real_cell
                                            serialization.NoEncryption()))  # fmt: skip
     secret_file = tmp_path / "secret"
     secret_file.write_text("s3cret\n")
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     cell_port = free_tcp_port()
     config = tmp_path / "qos.toml"
     credential = (
@@ -454,7 +454,7 @@ def test_camara_each_oauth2_mode_flies_a_drone_to_priority_against_the_real_cell
 def test_camara_fixed_api_key_headers_fly_a_drone_to_priority_against_the_real_cell(tmp_path: Path) -> None:
     headers = tmp_path / "qod-headers"
     headers.write_text("X-API-Key: k3y\n")
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     cell_port = free_tcp_port()
     config = tmp_path / "qos.toml"
     write_config(config, zcfg, cell_port, "camara", "qod_auth = true\n", f'headers_file = "{headers}"\n')
@@ -480,7 +480,7 @@ def agent_for(
 ) -> Iterator[tuple[list[DynqosProcess], Drone]]:
     """The router and the QoS agent (backend camara, uav1's device) in front of a scripted operator, and a
     test drone; every process stopped by its pid after (their stderr in `stopped_stderr`)."""
-    zcfg = zcfg or ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = zcfg or ZenohConfig(**flow_ports())
     config = tmp_path / "qos.toml"
     config.write_text(
         f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"
@@ -581,7 +581,7 @@ class SlowOperator(ScriptedOperator):
 
 
 def test_camara_a_create_in_flight_at_sigterm_is_waited_for_and_its_session_deleted(tmp_path: Path) -> None:
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     operator = SlowOperator(zcfg.priority_port, delay_s=1.0)  # its sessions name the agent's port
     try:
         with agent_for(operator.root, tmp_path, "timeout_s = 3.0\n", zcfg) as (procs, drone):
@@ -666,7 +666,7 @@ def test_camara_credentials_the_token_endpoint_refuses_stop_the_agent_before_it_
                                                serialization.NoEncryption()))  # fmt: skip
     (tmp_path / "secret").write_text("s3cret\n")
     (tmp_path / "guess").write_text("guessed\n")
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     cell_port = free_tcp_port()
     token = f'token_url = "http://127.0.0.1:{cell_port}/oauth2/token"\nclient_id = "dynqos-edge"\n'
     credential = {"cell": "secret", "agent": "guess"} if mode == "wrong-secret" else None

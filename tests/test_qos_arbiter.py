@@ -17,7 +17,7 @@ from dynqos.common.messages import QosDecision, QosGrant, QosRequest
 from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Received, Role, open_bus
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports, free_tcp_port
 from tests.test_qos_agent import Rig, running
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
@@ -47,7 +47,7 @@ def write_config(path: Path, zcfg: ZenohConfig, cell_port: int) -> None:
 
 @pytest.fixture
 def rig(tmp_path: Path) -> Iterator[Rig]:
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     cell_port = free_tcp_port()
     config = tmp_path / "qos.toml"
     write_config(config, zcfg, cell_port)

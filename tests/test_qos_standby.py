@@ -19,7 +19,7 @@ from dynqos.common.config import ZenohConfig
 from dynqos.common.messages import QosGrant
 from dynqos.common.modes import Grant
 from dynqos.common.transport import Role, open_bus
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports, free_tcp_port
 from tests.procs import DynqosProcess
 from tests.test_qos_agent import Drone, Rig, write_config
 
@@ -38,7 +38,7 @@ def agent(name: str, config: Path) -> DynqosProcess:
 
 @contextlib.contextmanager
 def two_agents(tmp_path: Path, backend: str, policy: str) -> Iterator[Rig]:
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     cell_port = free_tcp_port()
     config = tmp_path / "qos.toml"
     write_config(config, zcfg, cell_port, backend)

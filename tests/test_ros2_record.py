@@ -17,7 +17,7 @@ from dynqos.common.config import load_config
 from dynqos.common.keys import Flow, Stream
 from dynqos.common.messages import State
 from dynqos.common.transport import Priority, Role, default_flow_endpoint, open_bus
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports_toml
 from tests.procs import DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
@@ -27,7 +27,7 @@ STATES = 25
 
 def test_a_ros2_recording_decodes_whole_with_the_mcap_ros2_decoder(tmp_path: Path) -> None:
     config_path = tmp_path / "edge.toml"
-    config_path.write_text(f"[zenoh]\ndefault_port = {free_tcp_port()}\npriority_port = {free_tcp_port()}\n")
+    config_path.write_text(f"[zenoh]\n{flow_ports_toml()}")
     config = load_config(config_path)
     out = tmp_path / "flight.mcap"
     router = DynqosProcess(["edge", "router"], config_path)

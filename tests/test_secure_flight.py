@@ -14,7 +14,7 @@ import pytest
 
 from dynqos.common.certs import make_dev_pki
 from dynqos.common.config import ZenohConfig
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports
 from tests.procs import DynqosProcess
 from tests.test_onboard_loop import loop_config
 
@@ -34,7 +34,7 @@ def _tls(pki: Path, name: str) -> list[str]:
 def test_the_loop_closes_with_each_process_on_its_own_identity(tmp_path: Path) -> None:
     pki = tmp_path / "pki"
     make_dev_pki(pki, ["uav1"], [])
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     config = loop_config(tmp_path, zcfg)
     procs: dict[str, DynqosProcess] = {}
     try:

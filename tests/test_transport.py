@@ -34,7 +34,7 @@ from dynqos.common.transport import (
     priority_flow_endpoint,
     session_config,
 )
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports
 from tests.relay import Relay
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
@@ -54,7 +54,7 @@ class Net:
 
 
 def _open(up_rate_bps: float | None = None) -> Iterator[Net]:
-    cfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    cfg = ZenohConfig(**flow_ports())
     router = open_bus(cfg, Role.ROUTER)
     default_relay = Relay(cfg.default_port, up_rate_bps=up_rate_bps)
     priority_relay = Relay(cfg.priority_port)
@@ -255,7 +255,7 @@ class _Json:
 
 
 def test_unreachable_router_gives_a_transport_error() -> None:
-    cfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port(), connect_timeout_s=0.3)
+    cfg = ZenohConfig(**flow_ports(), connect_timeout_s=0.3)
     with pytest.raises(TransportError, match="cannot open zenoh drone session"):
         open_bus(cfg, Role.DRONE)
 

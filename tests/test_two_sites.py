@@ -18,7 +18,7 @@ from dynqos.common.messages import Command, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, open_bus
 from dynqos.edge.replicas import ranked
-from tests.conftest import free_tcp_port
+from tests.conftest import flow_ports
 from tests.procs import DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
@@ -28,7 +28,7 @@ REPLICAS = ("mpc-a", "mpc-b")
 
 
 def _site(tmp_path: Path, name: str, links: list[str]) -> tuple[Path, ZenohConfig]:
-    zcfg = ZenohConfig(default_port=free_tcp_port(), priority_port=free_tcp_port())
+    zcfg = ZenohConfig(**flow_ports())
     config = tmp_path / f"{name}.toml"
     config.write_text(
         f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"

@@ -31,7 +31,7 @@ from dynqos.experiment.flight import (
     start_replicas,
     wait_for_offload,
 )
-from dynqos.experiment.processes import Processes, free_port, free_udp_block
+from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, Scenario, fleet_configs, with_cell, write_config
 from dynqos.reports.fleet import summarise_fleet, write_fleet
@@ -54,7 +54,7 @@ def run_fleet(
     folder = folder or out / scenario.run_id
     logs = folder / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    zenoh = ZenohConfig(default_port=free_port(), priority_port=free_port())
+    zenoh = ZenohConfig(**flow_ports())
     shared, drones = fleet_configs(
         scenario,
         zenoh=zenoh,

@@ -15,7 +15,7 @@ import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 from dynqos.common.config import environment_overrides
 from dynqos.common.errors import DynqosError
@@ -26,6 +26,33 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
         sock.bind(("127.0.0.1", 0))
         port: int = sock.getsockname()[1]
         return port
+
+
+def free_ports(count: int, kind: int = socket.SOCK_STREAM) -> list[int]:
+    """`count` distinct ports free right now: each socket stays bound until all are chosen, so the kernel
+    cannot hand the same port out twice (two free_port() calls can, and two flows on one port is a
+    config error)."""
+    socks: list[socket.socket] = []
+    try:
+        for _ in range(count):
+            sock = socket.socket(socket.AF_INET, kind)
+            socks.append(sock)
+            sock.bind(("127.0.0.1", 0))
+        return [int(s.getsockname()[1]) for s in socks]
+    finally:
+        for sock in socks:
+            sock.close()
+
+
+class FlowPorts(TypedDict):
+    default_port: int
+    priority_port: int
+
+
+def flow_ports() -> FlowPorts:
+    """The router's two flow ports, distinct and free: ZenohConfig(**flow_ports())."""
+    default, priority = free_ports(2)
+    return {"default_port": default, "priority_port": priority}
 
 
 def cpu_s(pid: int) -> float | None:

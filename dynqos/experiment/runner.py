@@ -28,7 +28,7 @@ from dynqos.experiment.flight import (
     start_replicas,
     wait_for_offload,
 )
-from dynqos.experiment.processes import Processes, free_port
+from dynqos.experiment.processes import Processes, flow_ports, free_port
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, with_cell, write_config
 from dynqos.reports.summary import summarise, write_scenario
@@ -55,7 +55,7 @@ def run_scenario(
     logs.mkdir(parents=True, exist_ok=True)
     config = scenario_config(
         scenario,
-        zenoh=ZenohConfig(default_port=free_port(), priority_port=free_port()),
+        zenoh=ZenohConfig(**flow_ports()),
         fc_port=free_port(socket.SOCK_DGRAM),
         gcs_port=free_port(socket.SOCK_DGRAM),
     )
