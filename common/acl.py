@@ -1,9 +1,9 @@
 """The router's access-control policy: every identity reaches only the keys its job needs.
 
 Zenoh matches a connecting session's certificate common name (mTLS) against `subjects`. A drone's CN
-is its id; each edge service has its own CN (`edge-mpc`, `edge-planner`, `edge-detector`, `edge-qos`,
-`edge-ros2`),
-so a compromised detector, which parses camera frames from the network, cannot command a drone.
+is its id; each edge service has its own CN (`edge-mpc`, `edge-planner`, `edge-fleet-planner`,
+`edge-detector`, `edge-qos`, `edge-ros2`), so a compromised detector, which parses camera frames from
+the network, cannot command a drone.
 Default deny, then:
 
 - a drone publishes only `dynqos/<id>/up/**` and receives only `dynqos/<id>/down/**` and
@@ -75,6 +75,11 @@ EDGE_ROLES: dict[str, EdgeRole] = {
         writes=(downlink_all_drones(Downlink.REFERENCE),),
         tokens=(any_replica_of("planner"),),
         watches=(drones_present(),),
+    ),
+    # where each drone starts from its states; it sends the missions of the fleet's plan to the planners
+    "fleet-planner": EdgeRole(
+        reads=(uplink_all_drones(Stream.STATE),),
+        writes=(downlink_all_drones(Downlink.MISSION),),
     ),
     "detector": EdgeRole(
         reads=(uplink_all_drones(Stream.CAMERA_RGB), uplink_all_drones(Stream.CAMERA_DEPTH)),

@@ -20,6 +20,7 @@ from dynqos.common.metrics import (
 if TYPE_CHECKING:  # the services import this module, not the other way round
     from dynqos.edge.detector.service import DetectorService
     from dynqos.edge.mpc.service import MpcService
+    from dynqos.edge.planner.fleet_service import FleetPlannerService
     from dynqos.edge.planner.service import PlannerService
     from dynqos.edge.qos.agent import QosAgent
 
@@ -48,6 +49,18 @@ def planner(service: PlannerService, m: ProcessMetrics) -> None:
     def families() -> Iterator[Metric]:
         yield gauge("dynqos_planner_drones", "Drones with a mission", len(service.started_ns))
         yield counter("dynqos_planner_references", "References published", service.sent)
+        yield from bus_families(service.bus)
+
+    m.add(families)
+
+
+def fleet_planner(service: FleetPlannerService, m: ProcessMetrics) -> None:
+    def families() -> Iterator[Metric]:
+        yield gauge("dynqos_fleet_planner_drones_heard", "Drones of the fleet heard in offboard mode",
+                    len(service.positions))  # fmt: skip
+        yield counter("dynqos_fleet_planner_missions", "Missions (legs) sent to the planners", service.sent)
+        yield gauge("dynqos_fleet_planner_bookings", "Bookings made and not released",
+                    len(service.bookings.made) if service.bookings is not None else 0)  # fmt: skip
         yield from bus_families(service.bus)
 
     m.add(families)

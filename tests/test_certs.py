@@ -34,7 +34,8 @@ def test_certs_command_makes_a_ca_the_edge_identities_and_one_per_drone(tmp_path
     proc = _certs("--out", str(out), "--drone", "uav7", "--router-host", "router.example")
     assert proc.returncode == 0, proc.stderr
     names = {p.name for p in out.iterdir()}
-    for cn in ("ca", "router", "edge-mpc", "edge-planner", "edge-detector", "edge-qos", "edge-ros2", "uav7"):
+    edge = ("edge-mpc", "edge-planner", "edge-fleet-planner", "edge-detector", "edge-qos", "edge-ros2")
+    for cn in ("ca", "router", *edge, "uav7"):
         assert {f"{cn}.pem", f"{cn}-key.pem"} <= names
     assert "edge.pem" not in names  # no shared edge identity any more
     cert = x509.load_pem_x509_certificate((out / "uav7.pem").read_bytes())

@@ -157,13 +157,17 @@ def test_the_edge_extra_starts_every_edge_service_the_qos_agent_with_camara_incl
     config = _config(
         tmp_path / "edge.toml",
         f'[qos]\nbackend = "camara"\nhealth_interval_s = 0.5\n'
-        f'[qos.camara]\napi_root = "http://127.0.0.1:{operator}/quality-on-demand/v1"\n',
+        f'[qos.camara]\napi_root = "http://127.0.0.1:{operator}/quality-on-demand/v1"\n'
+        '[fleet_plan]\nhealth_interval_s = 0.5\ndrones = ["uav1"]\n[[fleet_plan.tasks]]\nid = "a"\n'
+        "points_m = [[1.0, 1.0]]\n",
     )
-    roles = [["edge", name] for name in ("router", "mpc", "planner", "detector", "qos")]
+    services = ("router", "mpc", "planner", "fleet-planner", "detector", "qos")
+    roles = [["edge", name] for name in services]
     with _started(roles, config, bin_dir) as ports:
         deadline = time.monotonic() + HEALTH_WAIT_S
         lines = {role: _healthy_line(port, deadline) for role, port in ports.items()}
     assert lines["edge qos"].startswith("qos: drones=0 sessions=0"), lines
+    assert lines["edge fleet-planner"].startswith("fleet-planner: waiting drones=0/1"), lines
     assert set(lines) == {" ".join(r) for r in roles}
     # the ROS 2 face needs the ros2 extra, and says so in one line before any network
     ros2 = _run(bin_dir / "dynqos", "edge", "ros2", "--set", "zenoh.connect_timeout_s=0.5", timeout=60)

@@ -225,21 +225,28 @@ WRITES = {
     "edge-detector": ([f"{DOWN}/cmd", "dynqos/uav1/ref", f"{DOWN}/qos"], f"{DOWN}/ack/camera"),
     "edge-qos": ([f"{DOWN}/cmd", f"{DOWN}/detections"], f"{DOWN}/qos/decision"),
 }
+# Who hears an output no drone subscribes to: the fleet planner's missions go to the planners, and a
+# planner also hears references, which the fleet planner may not publish (it reaches a drone only through
+# the planners: never a reference, never a command)
+RECEIVERS = {"edge-fleet-planner": "edge-planner"}
+WRITES["edge-fleet-planner"] = (["dynqos/uav1/ref"], "dynqos/uav1/mission")
 
 
 @pytest.mark.parametrize("service", list(WRITES))
 def test_an_edge_service_publishes_only_its_own_outputs(secure_router: Pki, service: str) -> None:
     forbidden, allowed = WRITES[service]
-    uav1 = secure_router.open("uav1")
-    at_uav1: Seen = queue.Queue()
-    _collect(uav1, "dynqos/uav1/down/**", at_uav1)
-    _collect(uav1, "dynqos/uav1/ref", at_uav1)
+    receiver = secure_router.open(RECEIVERS.get(service, "uav1"))
+    at_receiver: Seen = queue.Queue()
+    for key in (
+        ("dynqos/uav1/down/**", "dynqos/uav1/ref") if service not in RECEIVERS else (*forbidden, allowed)
+    ):
+        _collect(receiver, key, at_receiver)
     edge = secure_router.open(service)
     sentinel = _wait_matched(edge, allowed)
     for key in forbidden:
         edge.put(key, f"{service} forging {key}".encode(), allowed_destination=REMOTE)
     sentinel.put(b"allowed")
-    assert _wait_for(at_uav1, (allowed, b"allowed")) == [(allowed, b"allowed")]
+    assert _wait_for(at_receiver, (allowed, b"allowed")) == [(allowed, b"allowed")]
 
 
 # Each edge service: an input it must not read, and one it may read (the sentinel), both from uav1.
@@ -249,6 +256,7 @@ READS = {
     "edge-detector": ("dynqos/uav1/up/priority/state", "dynqos/uav1/up/priority/camera/rgb"),
     "edge-qos": ("dynqos/uav1/up/priority/camera/depth", "dynqos/uav1/up/priority/qos"),
     "edge-ros2": ("dynqos/uav1/up/priority/qos", "dynqos/uav1/up/priority/state"),
+    "edge-fleet-planner": ("dynqos/uav1/up/priority/camera/rgb", "dynqos/uav1/up/priority/state"),
 }
 
 

@@ -35,6 +35,7 @@ from dynqos.common.config.network import (
     VehicleSimConfig,
     ZenohConfig,
 )
+from dynqos.common.config.planning import FleetPlanConfig, FleetTaskConfig
 from dynqos.common.config.qos import ArbiterConfig, CamaraConfig, DeviceConfig, DeviceIpv4Config, QosConfig
 from dynqos.common.config.radio import CoverageHoleConfig, PredictionConfig, RadioConfig, RadioSiteConfig
 
@@ -53,6 +54,8 @@ __all__ = [
     "DeviceIpv4Config",
     "DroneConfig",
     "DroneMissionConfig",
+    "FleetPlanConfig",
+    "FleetTaskConfig",
     "MetricsConfig",
     "MpcConfig",
     "OnboardConfig",

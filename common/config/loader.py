@@ -41,6 +41,7 @@ from dynqos.common.config.network import (
     VehicleSimConfig,
     ZenohConfig,
 )
+from dynqos.common.config.planning import FleetPlanConfig
 from dynqos.common.config.qos import QosConfig
 from dynqos.common.config.validate import checked
 
@@ -63,6 +64,7 @@ class Config:
     onboard: OnboardConfig = field(default_factory=OnboardConfig)
     qos: QosConfig = field(default_factory=QosConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    fleet_plan: FleetPlanConfig = field(default_factory=FleetPlanConfig)
 
     def __post_init__(self) -> None:
         bearers = {b.name for b in self.cell.bearer_list(self.zenoh, self.drone.id)}

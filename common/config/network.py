@@ -42,8 +42,8 @@ class ZenohConfig:
     bulk_sndbuf_bytes: int = 65536
     connect_timeout_s: Annotated[float, In(0.1, 600, "must be in 0.1..600 s")] = 5.0
     # Production: mutual TLS on both flows, and on the router an access-control policy by certificate
-    # common name (drone id; edge-mpc, edge-planner, edge-detector, edge-qos, edge-ros2 for the edge
-    # services).
+    # common name (drone id; edge-mpc, edge-planner, edge-fleet-planner, edge-detector, edge-qos,
+    # edge-ros2 for the edge services).
     # See docs/security.md and `dynqos certs`.
     tls: bool = False
     tls_ca: str = ""  # the CA that signed every certificate (PEM)

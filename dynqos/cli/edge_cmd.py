@@ -28,6 +28,11 @@ SERVICES = {  # name -> (its module, what it does)
         "dynqos.edge.planner.service",
         "the mission planner: publishes each drone's reference trajectory ([planner] config)",
     ),
+    "fleet-planner": (
+        "dynqos.edge.planner.fleet_service",
+        "the fleet's mission planner: assigns [fleet_plan] tasks to the drones, routes and books them by "
+        "the operator's predicted connectivity, and sends each drone its legs (docs/planning.md)",
+    ),
     "detector": (
         "dynqos.edge.detector.service",
         "the circle detector: acks every camera frame, detects circles in RGB, locates them with depth",
@@ -58,7 +63,9 @@ ONBOARD = (
 
 def add(commands: Commands) -> None:
     edge = commands.add_parser(
-        "edge", help="edge services: router, mpc, planner, detector, ros2, qos", parents=[common_options(1)]
+        "edge",
+        help="edge services: router, mpc, planner, fleet-planner, detector, ros2, qos",
+        parents=[common_options(1)],
     )
     services = edge.add_subparsers(dest="edge_command", metavar="SERVICE", required=True)
     for name, (_, text) in SERVICES.items():

@@ -21,7 +21,8 @@ BENCH = (
 CERTS = (
     "Writes into --out (made 0700): ca.pem and ca-key.pem (kept and reused if present), router.pem (server "
     "and client auth; names: localhost, 127.0.0.1 and each --router-host), one identity per edge service "
-    "(edge-mpc, edge-planner, edge-detector, edge-qos, edge-ros2: each may touch only its own keys) and "
+    "(edge-mpc, edge-planner, edge-fleet-planner, edge-detector, edge-qos, edge-ros2: each may touch only "
+    "its own keys) and "
     "<id>.pem per --drone (CN = drone id, matched by the router's access control; a ROS 2 node's "
     "identity is issued the same way, its name in [zenoh] acl_ros2_clients), each with its "
     "<name>-key.pem (mode 0600, written through a new file, never through a link). Pairs that exist and "

@@ -8,10 +8,12 @@ decisions; the summary holds each drone's figures under `drones` (dynqos/reports
 
 from __future__ import annotations
 
+import json
 import logging
 import socket
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +37,8 @@ from dynqos.experiment.processes import Processes, flow_ports, free_port, free_u
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, Scenario, fleet_configs, with_cell, write_config
 from dynqos.reports.fleet import summarise_fleet, write_fleet
+from dynqos.reports.mission import mission_figures, vehicle_tracks
+from dynqos.reports.routes import plot_routes
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +65,9 @@ def run_fleet(
         fc_base=free_udp_block(len(scenario.drones)),
         gcs_port=free_port(socket.SOCK_DGRAM),
     )
+    if shared.fleet_plan.tasks:  # the fleet's plan: for these drones, into the run folder
+        fleet_plan = replace(shared.fleet_plan, drones=tuple(drones), plan_file=str(folder / "plan.json"))
+        shared = replace(shared, fleet_plan=fleet_plan)
     shared_path = folder / "dynqos.toml"
     paths = {uav: folder / f"{uav}.toml" for uav in drones}
     write_config(shared_path, scenario, shared)
@@ -86,6 +93,8 @@ def run_fleet(
             procs.start(f"vehicle-{uav}", args, config=paths[uav])
         start_replicas(procs, "planner", scenario.planner_replicas)
         start_replicas(procs, "mpc", scenario.mpc_replicas)
+        if shared.fleet_plan.tasks:  # it waits until every drone offloads, then plans and sends the legs
+            procs.start("fleet-planner", ["edge", "fleet-planner"])
         # The detector is best effort (it drops the frames it cannot keep up with): on one machine it
         # runs below the control path, as it would on its own cores at a real edge.
         procs.start("detector", ["edge", "detector"], program=["nice", "-n", str(DETECTOR_NICE), procs.exe])
@@ -97,6 +106,11 @@ def run_fleet(
     ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
     onboard_logs = {uav: _read(logs / f"onboard-{uav}.log") for uav in drones}
     summary = summarise_fleet(scenario, rec, recs, decisions, onboard_logs, ok=ok, failure=failure)
+    if (folder / "plan.json").exists():  # a planned mission (docs/planning.md): what became of it
+        plan = json.loads((folder / "plan.json").read_text())
+        summary["mission"] = mission_figures(folder, plan, rec, recs, shared.supervisor.watchdog_s)
+        plot_routes(folder, plan, shared, vehicle_tracks(folder / "radio.csv", rec))
+        summary["checks"]["nothing_left_booked"] = not plan["release_failed"]
     write_fleet(folder, scenario, rec, recs, decisions, summary)
     return summary
 

@@ -15,6 +15,7 @@ from dynqos.reports.aggregate import interval
 from dynqos.reports.figures import figure, fmt, interval_text, lookup, mean_of
 from dynqos.reports.fleet import fleet_comparison, fleet_section
 from dynqos.reports.measures import rmse
+from dynqos.reports.mission import mission_comparison
 
 PAPER_TABLE_II = {
     "No QoS - No BG": {"uav_tx": 47, "uav_rx": 47, "rtt": "27.3", "bg_tx": None, "bg_rx": None},
@@ -59,6 +60,7 @@ def write_report(out: Path, summaries: list[dict[str, Any]]) -> None:
     if fleets:
         lines += ["", "## Fleets", "", "Several drones in one cell (docs/fleet.md). Rates at full scale.", ""]
         lines += fleet_comparison(fleets)
+        lines += mission_comparison(fleets)
         for s in fleets:
             lines += fleet_section(s)
     (out / "report.md").write_text("\n".join(lines) + "\n")

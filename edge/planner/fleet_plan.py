@@ -9,7 +9,8 @@ soonest, straight legs at the default height, no bookings (priority asked on dem
   predicted time without connectivity, each task to exactly one drone;
 - **order**: each drone's tasks nearest-first from where it is;
 - **routes**: shortest paths on a grid over the arena (scipy's csgraph) where a metre through a cell
-  predicted NC costs `nc_cost` metres and MC `mc_cost`, at the height that is best along the way;
+  predicted NC costs `nc_cost` metres and MC `mc_cost`, at whichever allowed height crosses the fewest
+  metres predicted NC (then the shortest);
 - **bookings**: each high-risk inspection booked for its window while fewer than `max_bookings` windows
   overlap it (the arbiter's budget); the rest left to QoD on demand.
 scipy is already what the edge installs (OSQP's sparse matrices); OR-Tools would add ~100 MB for a
@@ -20,16 +21,17 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import numpy as np
 from scipy.optimize import Bounds, LinearConstraint, milp
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 Point = tuple[float, float]
+IMPROVE_ROUNDS = 200  # moves and swaps that each lowered the objective, at most
 RANK = {"GC": 0, "MC": 1, "ND": 2, "NC": 3}  # better first; no data is better than a predicted hole
 
 
@@ -159,32 +161,43 @@ class Router:
         self.s = settings
         self.grid = Grid(settings)
         self._edges = self.grid.edges()
-        self._cache: dict[tuple[float, int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._matrices: dict[tuple[float, int], csr_matrix] = {}  # (height, time step) -> priced grid
+        self._trees: dict[tuple[float, int, int], np.ndarray] = {}  # (height, step, start) -> predecessors
 
     def level(self, p: Point, height: float, t_s: float) -> str:
         return "GC" if self.conn is None else self.conn.level(p[0], p[1], height, t_s)
 
-    def _tree(self, start: int, height: float, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        key = (height, start, int(t_s // self.s.time_step_s))
-        if key not in self._cache:
-            n = self.grid.nx * self.grid.ny
+    def _matrix(self, height: float, step: int) -> csr_matrix:
+        """The grid's edges priced by the level predicted at their middle: once per height and step."""
+        key = (height, step)
+        if key not in self._matrices:
+            t_s = step * self.s.time_step_s
             weights = []
             for a, b, length in self._edges:
-                mid = tuple((u + v) / 2 for u, v in zip(self.grid.point(a), self.grid.point(b), strict=True))
-                weights.append(length * _cost(self.level(mid, height, t_s), self.s))  # type: ignore[arg-type]
+                (ax, ay), (bx, by) = self.grid.point(a), self.grid.point(b)
+                middle = ((ax + bx) / 2, (ay + by) / 2)
+                weights.append(length * _cost(self.level(middle, height, t_s), self.s))
             rows = [a for a, _, _ in self._edges]
             cols = [b for _, b, _ in self._edges]
-            matrix = coo_matrix((weights, (rows, cols)), shape=(n, n)).tocsr()
-            dist, pred = dijkstra(matrix, directed=False, indices=start, return_predecessors=True)
-            self._cache[key] = (dist, pred)
-        return self._cache[key]
+            n = self.grid.nx * self.grid.ny
+            self._matrices[key] = coo_matrix((weights, (rows, cols)), shape=(n, n)).tocsr()
+        return self._matrices[key]
+
+    def _tree(self, start: int, height: float, t_s: float) -> np.ndarray:
+        step = int(t_s // self.s.time_step_s)
+        key = (height, step, start)
+        if key not in self._trees:
+            matrix = self._matrix(height, step)
+            _, pred = dijkstra(matrix, directed=False, indices=start, return_predecessors=True)
+            self._trees[key] = pred
+        return self._trees[key]
 
     def path(self, a: Point, b: Point, height: float, t_s: float) -> list[Point]:
         """The cheapest path from a to b (the exact ends, the grid between); straight without a network."""
         if self.conn is None:
             return [a, b]
         start, goal = self.grid.node(a), self.grid.node(b)
-        _, pred = self._tree(start, height, t_s)
+        pred = self._tree(start, height, t_s)
         nodes = [goal]
         while nodes[-1] != start and pred[nodes[-1]] >= 0:
             nodes.append(int(pred[nodes[-1]]))
@@ -226,11 +239,13 @@ def plan(
         raise ValueError("task ids must be unique")
     router = Router(None if blind else conn, settings)
     heights = {t.id: settings.heights_m[0] if blind else _best_height(router, t.points_m[0]) for t in tasks}
-    assignment = _greedy(tasks, drones, router) if blind else _assign(tasks, drones, router, heights)
+    if blind:
+        assignment = _greedy(tasks, drones, router)
+    else:
+        assignment = _improve(_assign(tasks, drones, router, heights), tasks, drones, router, heights)
     out = Plan()
     for drone in drones:
-        mine = _nearest_first([t for t in tasks if assignment[t.id] == drone.id], drone.start_m)
-        out.legs[drone.id] = _timeline(drone, mine, router, heights, blind)
+        out.legs[drone.id] = _legs_of(drone, assignment, tasks, router, heights, blind)
     if not blind:
         _book(out, {t.id: t for t in tasks}, settings)
     return out
@@ -298,6 +313,60 @@ def _assign(
     return {task.id: drones[int(np.argmax(x[:, j]))].id for j, task in enumerate(tasks)}
 
 
+def _legs_of(
+    drone: PlanDrone, assignment: dict[str, str], tasks: Sequence[Task], router: Router,
+    heights: dict[str, float], blind: bool = False,
+) -> list[Leg]:  # fmt: skip
+    mine = _nearest_first([t for t in tasks if assignment[t.id] == drone.id], drone.start_m)
+    return _timeline(drone, mine, router, heights, blind)
+
+
+def _score(legs: dict[str, list[Leg]], bad_weight_s: float) -> float:
+    """The plan's objective as flown: the makespan plus the price of the predicted time without
+    connectivity, every drone's time as a tie-break."""
+    ends = [drone_legs[-1].end_s for drone_legs in legs.values() if drone_legs]
+    nc = sum(leg.nc_s for drone_legs in legs.values() for leg in drone_legs)
+    return max(ends, default=0.0) + bad_weight_s * nc + 1e-3 * sum(ends)
+
+
+def _improve(
+    assignment: dict[str, str], tasks: Sequence[Task], drones: Sequence[PlanDrone], router: Router,
+    heights: dict[str, float],
+) -> dict[str, str]:  # fmt: skip
+    """Local search from the MILP's assignment on the objective of the timelines themselves (which the
+    MILP prices only from each drone's start): move one task to another drone, or swap two drones'
+    tasks, while that lowers it; first improvement, in a fixed order, so the same inputs give the same
+    plan."""
+    by_id = {d.id: d for d in drones}
+    legs = {d.id: _legs_of(d, assignment, tasks, router, heights) for d in drones}
+    best = _score(legs, router.s.bad_weight_s)
+    for _ in range(IMPROVE_ROUNDS):
+        for candidate in _neighbours(assignment, tasks, drones):
+            changed = {d for t, d in candidate.items() if assignment[t] != d} | {
+                assignment[t] for t, d in candidate.items() if assignment[t] != d
+            }
+            trial = legs | {d: _legs_of(by_id[d], candidate, tasks, router, heights) for d in changed}
+            score = _score(trial, router.s.bad_weight_s)
+            if score < best - 1e-6:
+                assignment, legs, best = candidate, trial, score
+                break
+        else:
+            break
+    return assignment
+
+
+def _neighbours(
+    assignment: dict[str, str], tasks: Sequence[Task], drones: Sequence[PlanDrone]
+) -> Iterator[dict[str, str]]:
+    for task in tasks:
+        for drone in drones:
+            if drone.id != assignment[task.id]:
+                yield assignment | {task.id: drone.id}
+    for a, b in itertools.combinations(tasks, 2):
+        if assignment[a.id] != assignment[b.id]:
+            yield assignment | {a.id: assignment[b.id], b.id: assignment[a.id]}
+
+
 def _nc_on_task(task: Task, router: Router, height: float, speed: float, t_s: float = 0.0) -> float:
     if task.kind == "route":
         return router.nc_length(task.points_m, height, t_s) / speed
@@ -323,16 +392,16 @@ def _timeline(
     for task in tasks:
         h = heights[task.id]
         site = task.points_m[0]
-        options = [h_at] if blind else sorted({h_at, h})
+        options = [h_at] if blind else sorted({h_at, h, *router.s.heights_m})  # transit at any height
         best = None
         for fly_h in options:
             path = router.path(at, site, fly_h, t)
-            key = (router.nc_length(path, fly_h, t), _length(path) + abs(fly_h - h_at) + abs(h - fly_h))
+            points = _flight(path, h_at, fly_h, h)
+            key = (router.nc_length(path, fly_h, t), _length3(points))
             if best is None or key < best[0]:
-                best = (key, fly_h, path)
+                best = (key, points)
         assert best is not None
-        (bad_m, metres), fly_h, path = best
-        points = [(at[0], at[1], h_at), *((x, y, fly_h) for x, y in path), (site[0], site[1], h)]
+        (bad_m, metres), points = best
         legs.append(Leg("fly", t, t + metres / v, tuple(points), task.id, bad_m / v))
         t += metres / v
         on = _task_s(task, v)
@@ -340,6 +409,21 @@ def _timeline(
         legs.append(Leg("task", t, t + on, task_path, task.id, _nc_on_task(task, router, h, v, t)))
         t, at, h_at = t + on, task.points_m[-1], h
     return legs
+
+
+def _flight(path: list[Point], h_from: float, fly_h: float, h_to: float) -> list[tuple[float, float, float]]:
+    """The leg in 3D: climbing (or descending) to the transit height along its first stretch and to the
+    task's height along its last, not on the spot; a straight leg that changes height on the way turns
+    at its middle."""
+    (ax, ay), (bx, by) = path[0], path[-1]
+    middle = [(x, y, fly_h) for x, y in path[1:-1]]
+    if not middle and fly_h not in (h_from, h_to):
+        middle = [((ax + bx) / 2, (ay + by) / 2, fly_h)]
+    return [(ax, ay, h_from), *middle, (bx, by, h_to)]
+
+
+def _length3(points: Sequence[tuple[float, float, float]]) -> float:
+    return sum(math.dist(p, q) for p, q in itertools.pairwise(points))
 
 
 def _book(out: Plan, tasks: dict[str, Task], settings: PlanSettings) -> None:

@@ -24,7 +24,7 @@ from dynqos.common.geo import Geo
 from dynqos.sim.network.booking_schema import CREATE_BOOKING_STRICT, RETRIEVE_BOOKINGS_STRICT
 from dynqos.sim.network.operator import Answer, Notification, Operator, error
 from dynqos.sim.network.operator_schema import problem
-from dynqos.sim.network.prediction import inside, simple_polygon
+from dynqos.sim.network.prediction import inside, polygon_area, simple_polygon
 
 EVENT_TYPE = "org.camaraproject.qos-booking.v0.status-changed"
 KEEP_UNAVAILABLE_S = 360.0  # the API: an UNAVAILABLE booking is deleted at earliest this long after
@@ -213,17 +213,10 @@ class Bookings:
         return self._notify(booking)
 
     def _notify(self, booking: Booking) -> list[Notification]:
-        sink = booking.body.get("sink")
-        if not sink:
-            return []
         data = {"bookingId": booking.booking_id, "status": booking.status}
         if booking.status_info:
             data["statusInfo"] = booking.status_info
-        event = {
-            "id": str(uuid.uuid4()), "source": self.operator.source, "type": EVENT_TYPE, "specversion": "1.0",
-            "datacontenttype": "application/json", "time": rfc3339(self.wall()), "data": data,
-        }  # fmt: skip
-        return [Notification(sink, booking.body.get("sinkCredential"), event)]
+        return self.operator.cloud_event(booking.body, EVENT_TYPE, data)
 
     def _shape(self, area: dict[str, Any]) -> tuple[str, list[tuple[float, float]]] | None:
         """The area in local metres: a circle's centre and a ring of points on it, or a polygon's corners;
@@ -234,10 +227,7 @@ class Bookings:
             ring = [(cx + r * dx, cy + r * dy) for dx, dy in ((1, 0), (0, 1), (-1, 0), (0, -1))]
             return "circle", [(cx, cy), *ring]
         corners = [self.geo.to_local(p["latitude"], p["longitude"]) for p in area["boundary"]]
-        twice_area = abs(
-            sum(a[0] * b[1] - b[0] * a[1] for a, b in zip(corners, [*corners[1:], corners[0]], strict=True))
-        )
-        if not simple_polygon(corners) or twice_area < 2.0:
+        if not simple_polygon(corners) or polygon_area(corners) < 1.0:
             return None
         return "polygon", corners
 

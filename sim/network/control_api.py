@@ -32,6 +32,7 @@ from dynqos.sim.network.booking import Bookings
 from dynqos.sim.network.operator import Answer, Notification, Operator, error
 from dynqos.sim.network.operator_schema import problem
 from dynqos.sim.network.prediction import Refused
+from dynqos.sim.network.prediction_process import PredictionProcess
 from dynqos.sim.network.prediction_schema import RETRIEVE_CONNECTIVITY_STRICT
 from dynqos.sim.network.radio_feed import RadioFeed
 
@@ -145,6 +146,7 @@ class ControlApi:
         r.add_delete("/oauth2/tokens", self.revoke)
         self.runner: web.AppRunner | None = None
         self.port = 0
+        self.predictions = PredictionProcess()
 
     async def start(self, port: int) -> int:
         self.http = ClientSession(timeout=ClientTimeout(total=NOTIFY_TIMEOUT_S))
@@ -153,6 +155,8 @@ class ControlApi:
         site = web.TCPSite(self.runner, "127.0.0.1", port)
         await site.start()
         self.port = int(self.runner.addresses[0][1])  # the port bound (the configured one may be 0)
+        if self.emulator.radio is not None:
+            self.predictions.start()  # before anyone asks: spawning it takes a second or so
         return self.port
 
     async def stop(self) -> None:
@@ -162,6 +166,7 @@ class ControlApi:
             await self.runner.cleanup()
         if self.http is not None:
             await self.http.close()
+        self.predictions.close()
 
     # ---- plumbing ---------------------------------------------------------------------------------------
 
@@ -307,9 +312,10 @@ class ControlApi:
         if wrong is not None:
             return _json(error(400, "INVALID_ARGUMENT", wrong))
         try:
-            return web.json_response(self.emulator.radio.predictor.retrieve(body, time.time()))
+            text = await self.predictions.answer(self.emulator.radio.predictor, body, time.time())
         except Refused as refused:
             return _json(error(refused.status, refused.code, refused.message))
+        return web.Response(body=text, content_type="application/json")
 
     # ---- QoS Booking 0.1.0 (sim/network/booking.py) ---------------------------------------------------
 

@@ -393,17 +393,22 @@ class Operator:
         return self._notify(session)
 
     def _notify(self, session: Session) -> list[Notification]:
-        sink = session.body.get("sink")
-        if not sink:
-            return []
         data = {"sessionId": session.session_id, "qosStatus": session.status}
         if session.status_info:
             data["statusInfo"] = session.status_info
+        return self.cloud_event(session.body, EVENT_TYPE, data)
+
+    def cloud_event(self, body: dict[str, Any], event_type: str, data: dict[str, Any]) -> list[Notification]:
+        """The CloudEvent that tells a request's sink (if it named one) what became of it: a QoD session's
+        status here, a booking's in sim/network/booking.py."""
+        sink = body.get("sink")
+        if not sink:
+            return []
         event = {
-            "id": str(uuid.uuid4()), "source": self.source, "type": EVENT_TYPE, "specversion": "1.0",
+            "id": str(uuid.uuid4()), "source": self.source, "type": event_type, "specversion": "1.0",
             "datacontenttype": "application/json", "time": _rfc3339(self.wall()), "data": data,
         }  # fmt: skip
-        return [Notification(sink, session.body.get("sinkCredential"), event)]
+        return [Notification(sink, body.get("sinkCredential"), event)]
 
     def info(self, session: Session) -> dict[str, Any]:
         """The session as a CAMARA SessionInfo."""

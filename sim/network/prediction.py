@@ -26,7 +26,7 @@ from dynqos.common.camara import rfc3339, unix_time
 from dynqos.common.config import CellConfig
 from dynqos.common.config.radio import PredictionConfig
 from dynqos.common.geo import Geo
-from dynqos.sim.network.radio import RadioMap, efficiency
+from dynqos.sim.network.radio import Radio, RadioMap, efficiency
 
 CODE = "PREDICTIVE_CONNECTIVITY_DATA"
 
@@ -37,6 +37,9 @@ class Refused(Exception):
     def __init__(self, status: int, code: str, message: str) -> None:
         super().__init__(message)
         self.status, self.code, self.message = status, code, message
+
+    def __reduce__(self) -> tuple[type[Refused], tuple[int, str, str]]:  # raised in the prediction process
+        return Refused, (self.status, self.code, self.message)
 
 
 def parse_time(text: str, key: str) -> float:
@@ -65,8 +68,14 @@ def simple_polygon(points: Sequence[tuple[float, float]]) -> bool:
                 continue
             if _segments_cross(*edges[i], *edges[j]):
                 return False
-    area = sum(p[0] * q[1] - q[0] * p[1] for p, q in edges) / 2
-    return abs(area) > 0
+    return polygon_area(points) > 0
+
+
+def polygon_area(points: Sequence[tuple[float, float]]) -> float:
+    """The shoelace formula: the area a simple polygon's corners enclose."""
+    return (
+        abs(sum(p[0] * q[1] - q[0] * p[1] for p, q in zip(points, [*points[1:], points[0]], strict=True))) / 2
+    )
 
 
 def inside(point: tuple[float, float], polygon: Sequence[tuple[float, float]]) -> bool:
@@ -118,12 +127,13 @@ class Predictor:
             worst = max(worst, weight())
         return worst
 
-    def rate_mbps(self, sinr_db: float, slot: tuple[float, float]) -> float:
-        """What one drone's uplink is predicted to carry in the slot: its share beside the scheduled
-        background at its busiest, at the efficiency of its SINR over the reference's."""
+    def rate_mbps(self, sinr_db: float, background_weight: float) -> float:
+        """What one drone's uplink is predicted to carry in a slot: its share beside the scheduled
+        background at its busiest (`background_weight`), at the efficiency of its SINR over the
+        reference's."""
         reference = self.map.reference_efficiency
         factor = efficiency(sinr_db) / reference if reference else 0.0
-        return self.cell.uplink_mbps * factor / (1.0 + self.background_weight(*slot))
+        return self.cell.uplink_mbps * factor / (1.0 + background_weight)
 
     def level(self, rate_mbps: float, need_mbps: float) -> str:
         if rate_mbps >= self.config.good_margin * need_mbps:
@@ -157,7 +167,8 @@ class Predictor:
         if len(cells) * len(layers) * len(slots) > c.max_values:
             raise Refused(422, f"{CODE}.UNSUPPORTED_REQUEST", "The indicated request is too big for both "
                           "synchronous and asynchronous processing")  # fmt: skip
-        supported = [self._supported(gh) for gh in cells]
+        places = {gh: self._place(gh) for gh in cells}  # each cell's centre in local metres, decoded once
+        supported = [self.covers(*places[gh]) for gh in cells]
         status = "SUPPORTED_AREA" if all(supported) else "PART_OF_AREA_NOT_SUPPORTED"
         if not any(supported):
             status = "AREA_NOT_SUPPORTED"
@@ -165,11 +176,14 @@ class Predictor:
         signal = bool(request.get("includeSignalStrength", False))
         timed = []
         if status != "AREA_NOT_SUPPORTED":
+            nowhere: list[Radio | None] = [None] * len(layers)
+            radios = {  # the map at each cell's centre and layer's middle: the same in every slot
+                gh: self._radios(places[gh], layers) if ok else nowhere
+                for gh, ok in zip(cells, supported, strict=True)
+            }
             for slot_start, slot_end in slots:
-                rows = [
-                    self._cell(gh, ok, layers, (slot_start, slot_end), need, signal)
-                    for gh, ok in zip(cells, supported, strict=True)
-                ]
+                weight = self.background_weight(slot_start, slot_end)
+                rows = [self._cell(gh, layers, radios[gh], slot_start, weight, need, signal) for gh in cells]
                 timed.append(
                     {
                         "startTime": rfc3339(slot_start),
@@ -230,27 +244,32 @@ class Predictor:
         """Is the local (x, y) where the operator has data (the world's arena)?"""
         return abs(x) <= self.half[0] and abs(y) <= self.half[1]
 
-    def _supported(self, gh: str) -> bool:
+    def _place(self, gh: str) -> tuple[float, float]:
         centre = pygeohash.decode_exactly(gh)
-        return self.covers(*self.geo.to_local(centre.latitude, centre.longitude))
+        return self.geo.to_local(centre.latitude, centre.longitude)
 
-    def _cell(self, gh: str, supported: bool, layers: list[int], slot: tuple[float, float], need: float,
-              signal: bool) -> dict[str, Any]:  # fmt: skip
+    def _radios(self, place: tuple[float, float], layers: list[int]) -> list[Radio | None]:
+        """The map at the cell's centre in the middle of each layer; None above `max_height_m`."""
+        c = self.config
+        out: list[Radio | None] = []
+        for layer in layers:
+            middle_m = (layer + 0.5) * c.layer_thickness_m
+            out.append(None if middle_m > c.max_height_m else self.map.at((place[0], place[1], -middle_m)))
+        return out
+
+    def _cell(self, gh: str, layers: list[int], radios: list[Radio | None], slot_start: float,
+              weight: float, need: float, signal: bool) -> dict[str, Any]:  # fmt: skip
         c = self.config
         levels: list[str] = []
         strengths: list[float | None] = []
-        centre = pygeohash.decode_exactly(gh)
-        x, y = self.geo.to_local(centre.latitude, centre.longitude)
-        for layer in layers:
-            middle_m = (layer + 0.5) * c.layer_thickness_m
-            if not supported or middle_m > c.max_height_m:
+        for layer, radio in zip(layers, radios, strict=True):
+            if radio is None:
                 levels.append("ND")
                 strengths.append(None)
                 continue
-            radio = self.map.at((x, y, -middle_m))
-            seed = zlib.crc32(f"{c.seed}:{gh}:{layer}:{int(slot[0])}".encode())
+            seed = zlib.crc32(f"{c.seed}:{gh}:{layer}:{int(slot_start)}".encode())
             error = random.Random(seed).gauss(0.0, c.error_db) if c.error_db > 0 else 0.0
-            levels.append(self.level(self.rate_mbps(radio.sinr_db + error, slot), need))
+            levels.append(self.level(self.rate_mbps(radio.sinr_db + error, weight), need))
             strengths.append(round(radio.rsrp_dbm + error, 1))
         row: dict[str, Any] = {"geohash": gh, "layerConnectivities": levels}
         if signal:

@@ -1,0 +1,276 @@
+"""`dynqos edge fleet-planner`: plans the fleet's mission by the network it will meet and flies it.
+
+Thin around the pure planner (edge/planner/fleet_plan.py, docs/planning.md): it waits until every drone
+of `[fleet_plan] drones` is heard in offboard mode (where each is, is where it starts), asks the
+operator for the predicted connectivity over the arena and the mission's time (CAMARA Predictive
+Connectivity Data), plans, books priority for the plan's high-risk inspections (CAMARA QoS Booking), and
+sends each drone its legs as MissionRequests when they are due; the planner replicas fly them. Without a
+prediction (the operator refused or failed) it flies the blind plan and says why; a booking refused
+leaves that inspection to QoD on demand. Every booking is released when the mission ends or the
+service stops. `plan_file` gets the plan and what became of it, for the scenario's report.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+from dynqos.common import keys
+from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.config import Config
+from dynqos.common.errors import DynqosError
+from dynqos.common.geo import Geo
+from dynqos.common.keys import Downlink, Stream
+from dynqos.common.messages import MissionRequest, State
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Bus, Priority, Publisher, Received
+from dynqos.edge import metrics
+from dynqos.edge.planner.fleet_plan import Plan, plan
+from dynqos.edge.planner.fleet_schedule import (
+    Ned,
+    TimedMission,
+    drones_at,
+    missions_of,
+    settings_of,
+    tasks_of,
+)
+from dynqos.edge.qos.booking import BookingClient, circle
+from dynqos.edge.qos.client import QodClient, QodError
+from dynqos.edge.qos.connectivity import ConnectivityClient, PredictedLevels
+from dynqos.edge.service import Service, serve
+
+log = logging.getLogger(__name__)
+
+RESEND_S = 1.0  # the leg being flown is sent again this often, for a planner replica that starts later
+DONE_AFTER_S = 1.0  # past the plan's last leg, the mission is over and its bookings are released
+
+
+class FleetPlannerService:
+    def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
+        self.config = config
+        self.cfg = config.fleet_plan
+        self.bus = bus
+        self.clock = clock or MonotonicClock()
+        self.service = Service("fleet-planner", self.cfg.health_interval_s)
+        self.geo = Geo(self.cfg.origin_lat_deg, self.cfg.origin_lon_deg)
+        self.queue: BoundedQueue[Received] = BoundedQueue(256)
+        bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,))
+        self.publishers: dict[str, Publisher] = {
+            uav: bus.publisher(keys.downlink(uav, Downlink.MISSION), Priority.INTERACTIVE_HIGH)
+            for uav in self.cfg.drones
+        }
+        self.positions: dict[str, Ned] = {}
+        self.plan: Plan | None = None
+        self.planned_with = ""  # "prediction", or why the blind plan is flown
+        self.start_unix = 0.0
+        self.start_ns = 0
+        self.missions: list[TimedMission] = []
+        self.sent = 0  # missions sent (each once; re-sends not counted)
+        self.booked: list[dict[str, Any]] = []
+        self.bookings: BookingClient | None = None  # the client that made them, to release them
+        self.released: list[str] = []
+        self.release_failed: list[str] = []
+        self.phase = "waiting"
+        self._due: list[TimedMission] = []  # the missions not sent yet, in time order
+        self._current: dict[str, MissionRequest] = {}  # each drone's last, sent again for late replicas
+        self._resent_ns = 0
+        self._seq = time.time_ns() // 1_000_000  # newer than any earlier life's (planner.service's rule)
+
+    # ---- phases ----------------------------------------------------------------------------------------
+
+    def hear(self) -> None:
+        """Where each drone of the fleet is, from its newest state in offboard mode."""
+        for item in self.queue.drain():
+            message = item.message
+            if isinstance(message, State) and message.uav in self.publishers and message.mode == "offboard":
+                self.positions[message.uav] = message.pos_m
+
+    def everyone_heard(self) -> bool:
+        return self.positions.keys() >= self.publishers.keys()
+
+    def wait_for_drones(self) -> None:
+        """Until every drone has sent a state in offboard mode; DynqosError naming the silent ones."""
+        deadline = self.clock.now_ns() + round(self.cfg.wait_s * 1e9)
+        while not self.service.stop.is_set():
+            self.hear()
+            if self.everyone_heard():
+                return
+            if self.clock.now_ns() > deadline:
+                missing = sorted(self.publishers.keys() - self.positions.keys())
+                raise DynqosError(f"fleet planner: never heard {', '.join(missing)} in offboard mode "
+                                  f"within {self.cfg.wait_s:g} s ([fleet_plan] wait_s)")  # fmt: skip
+            self.service.maybe_health(self.health)
+            self.service.stop.wait(0.1)  # the states' pace, not synchronisation
+
+    async def plan_and_book(self) -> None:
+        """The plan (from the prediction unless blind or it failed), then its bookings."""
+        self.start_unix = time.time() + self.cfg.lead_s
+        self.start_ns = self.clock.now_ns() + round(self.cfg.lead_s * 1e9)
+        tasks, settings = tasks_of(self.cfg), settings_of(self.cfg)
+        drones = drones_at(self.positions, self.cfg.speed_mps)
+        blind = plan(tasks, drones, None, settings, blind=True)
+        if self.cfg.mode == "blind":
+            self.plan, self.planned_with = blind, "blind ([fleet_plan] mode)"
+        else:
+            camara = self.config.qos.camara
+            async with QodClient(replace(camara, timeout_s=self.cfg.prediction_timeout_s)) as qod:
+                levels = await self._predict(qod, horizon_s=2.0 * blind.mission_s + 60.0)
+            if levels is None:
+                self.plan = blind
+            else:
+                self.plan, self.planned_with = plan(tasks, drones, levels, settings), "prediction"
+            async with QodClient(camara) as qod:
+                await self._book(qod)
+        self.missions = missions_of(self.plan)
+        self._due = list(self.missions)
+        log.info(
+            "fleet planner: %s plan (%s): %d tasks on %d drones, mission %.1f s, %d legs, %d booked, %d "
+            "left to QoD on demand", self.cfg.mode, self.planned_with, len(tasks), len(drones),
+            self.plan.mission_s, len(self.missions), len(self.booked), len(self.plan.unbooked),
+        )  # fmt: skip
+
+    async def _predict(self, qod: QodClient, horizon_s: float) -> PredictedLevels | None:
+        hx, hy = self.cfg.half_m
+        corners = [self.geo.to_latlon(x, y) for x, y in ((-hx, -hy), (-hx, hy), (hx, hy), (hx, -hy))]
+        end = self.start_unix + horizon_s
+        try:
+            prediction = await ConnectivityClient(qod).retrieve(
+                corners, self.start_unix, end, service_level=self.cfg.service_level,
+                precision=self.cfg.precision,
+            )  # fmt: skip
+        except QodError as exc:
+            self.planned_with = f"blind: the prediction failed ({exc})"
+            log.warning("fleet planner: no prediction, flying the blind plan: %s", exc)
+            return None
+        return PredictedLevels(prediction, self.geo, self.start_unix, self.cfg.precision)
+
+    async def _book(self, qod: QodClient) -> None:
+        """Book each planned window; a refusal leaves that inspection to QoD on demand."""
+        assert self.plan is not None
+        camara = self.config.qos.camara
+        client = self.bookings = BookingClient(qod)
+        server = {"ipv4Address": camara.application_server or self.config.zenoh.edge_host}
+        for want in self.plan.bookings:
+            device = camara.devices.get(want.drone)
+            entry: dict[str, Any] = {**asdict(want), "booking_id": "", "status": ""}
+            if device is None:
+                entry["status"] = "no device"
+                log.warning("fleet planner: %s has no [qos.camara.devices] entry: %s left to QoD on demand",
+                            want.drone, want.task)  # fmt: skip
+            else:
+                try:
+                    area = circle(self.geo.to_latlon(*want.center_m), want.radius_m)
+                    info = await client.book(
+                        device.as_api(), self.start_unix + want.start_s, max(1, math.ceil(want.duration_s)),
+                        area, qos_profile=camara.qos_profile, server=server,
+                        server_ports=[self.config.zenoh.priority_port],
+                    )  # fmt: skip
+                    entry.update(booking_id=info.booking_id, status=info.status)
+                except QodError as exc:
+                    entry["status"] = f"refused: {exc}"
+                    log.warning("fleet planner: booking for %s's %s refused, left to QoD on demand: %s",
+                                want.drone, want.task, exc)  # fmt: skip
+            if not entry["booking_id"]:
+                self.plan.unbooked.append(want.task)
+            self.booked.append(entry)
+
+    def send_due(self, now_ns: int) -> bool:
+        """Send the missions due by now (each drone's current one again every RESEND_S); False once the
+        mission is over."""
+        assert self.plan is not None
+        t_s = (now_ns - self.start_ns) / 1e9
+        while self._due and self._due[0].at_s <= t_s:
+            leg = self._due.pop(0)
+            self._seq += 1
+            self._current[leg.uav] = MissionRequest(
+                uav=leg.uav, seq=self._seq, stamp_ns=now_ns, waypoints_m=leg.waypoints_m,
+                speed_mps=self.cfg.speed_mps, source=f"fleet-planner:{leg.task}",
+            )  # fmt: skip
+            self.publishers[leg.uav].put(self._current[leg.uav])
+            self._resent_ns = now_ns
+            self.sent += 1
+            log.info("fleet planner: %s leaves for %s at t=%.1f s (%d waypoints)", leg.uav, leg.task, t_s,
+                     len(leg.waypoints_m))  # fmt: skip
+        if now_ns - self._resent_ns >= RESEND_S * 1e9:
+            self._resent_ns = now_ns
+            for uav, request in self._current.items():
+                self.publishers[uav].put(request)
+        return t_s < self.plan.mission_s + DONE_AFTER_S
+
+    def fly(self) -> None:
+        """Send each mission when it is due until the mission is over (or the service stops)."""
+        self.phase = "flying"
+        self.write_plan()
+        while not self.service.stop.is_set() and self.send_due(self.clock.now_ns()):
+            self.service.maybe_health(self.health)
+            ahead = self._due[0].at_s - (self.clock.now_ns() - self.start_ns) / 1e9 if self._due else 0.1
+            self.service.stop.wait(min(0.1, max(0.005, ahead)))  # the schedule's pace, not synchronisation
+        self.phase = "stopped" if self.service.stop.is_set() else "done"
+
+    async def release(self) -> None:
+        client = self.bookings
+        if client is None or not client.made:
+            return
+        async with QodClient(self.config.qos.camara) as qod:
+            client.qod = qod  # the session that booked was closed with its plan
+            ids = list(client.made)
+            self.release_failed = await client.release_all()
+            self.released = [i for i in ids if i not in self.release_failed]
+        log.info("fleet planner: released %d bookings%s", len(self.released),
+                 f"; could not release {self.release_failed}" if self.release_failed else "")  # fmt: skip
+
+    # ---- what it says ----------------------------------------------------------------------------------
+
+    def write_plan(self) -> None:
+        if not self.cfg.plan_file or self.plan is None:
+            return
+        record = {
+            "mode": self.cfg.mode, "planned_with": self.planned_with, "phase": self.phase,
+            "start_unix": self.start_unix, "start_monotonic_ns": self.start_ns,
+            "mission_s": self.plan.mission_s, "predicted_nc_s": self.plan.predicted_nc_s,
+            "tasks": [asdict(t) for t in self.cfg.tasks],
+            "start_m": {uav: list(p) for uav, p in self.positions.items()},
+            "legs": {uav: [asdict(leg) for leg in legs] for uav, legs in self.plan.legs.items()},
+            "bookings": self.booked, "unbooked": self.plan.unbooked, "missions_sent": self.sent,
+            "released": self.released, "release_failed": self.release_failed,
+        }  # fmt: skip
+        path = Path(self.cfg.plan_file)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+        tmp.replace(path)
+
+    def health(self) -> str:
+        heard = f"{len(self.positions)}/{len(self.cfg.drones)}"
+        mission = f"{self.plan.mission_s:.0f}s" if self.plan is not None else "-"
+        booked = sum(1 for b in self.booked if b["booking_id"])
+        return (
+            f"{self.phase} drones={heard} mission={mission} sent={self.sent}/{len(self.missions)} "
+            f"booked={booked} released={len(self.released)}"
+        )
+
+    def run(self) -> None:
+        try:
+            self.wait_for_drones()
+            if self.service.stop.is_set():
+                return
+            self.phase = "planning"
+            asyncio.run(self.plan_and_book())
+            self.fly()
+        finally:
+            asyncio.run(self.release())
+            self.write_plan()
+        log.info("fleet planner: mission %s; %s", self.phase, self.health())
+        self.service.stop.wait()  # stays up (healthy) until stopped, as every edge service
+
+
+def run(config: Config, *, health_file: Path | None = None) -> int:
+    """`dynqos edge fleet-planner` until SIGTERM."""
+    if not config.fleet_plan.drones or not config.fleet_plan.tasks:
+        raise DynqosError("fleet planner: [fleet_plan] needs drones and tasks (docs/planning.md)")
+    return serve("fleet-planner", config, FleetPlannerService, metrics.fleet_planner, health_file=health_file)
