@@ -299,6 +299,8 @@ class OnboardDaemon:
         fields["bad_downlink"] = sum(s.rejected for s in self.downlink_stats.values())
         fields["uplink_dropped"] = self.uplink.dropped
         fields["fc_setpoints"] = self.link.setpoints_sent if self.link else 0
+        if (modem := self.core.modem) is not None:  # the last reading, also when no status gets out
+            fields["rsrp_dbm"], fields["sinr_db"] = modem.rsrp_dbm, modem.sinr_db
         if self.link is not None and self.link.signing_on:
             counts = self.link.signing_counts()
             fields["fc_signed_ok"], fields["fc_refused"] = counts["signed_ok"], counts["refused"]

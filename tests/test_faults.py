@@ -334,8 +334,8 @@ def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_soak_ten_minutes_with_the_load_toggling(tmp_path: Path) -> None:
-    """The soak: 600 s, or DYNQOS_SOAK_S seconds (CI flies 240, four load periods, to keep the whole
-    suite well inside 30 minutes on two cores)."""
+    """The soak: 600 s, or DYNQOS_SOAK_S seconds (CI flies 180, three load periods, to keep the whole
+    suite inside 40 minutes on two cores)."""
     soak = builtin_scenario("soak")
     seconds = float(os.environ.get("DYNQOS_SOAK_S", soak.duration_s))
     soak = replace(soak, duration_s=seconds, faults=tuple(f for f in soak.faults if f.at_s + 30 <= seconds))

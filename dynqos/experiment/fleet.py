@@ -94,7 +94,9 @@ def run_fleet(
         start_replicas(procs, "planner", scenario.planner_replicas)
         start_replicas(procs, "mpc", scenario.mpc_replicas)
         if shared.fleet_plan.tasks:  # it waits until every drone offloads, then plans and sends the legs
-            procs.start("fleet-planner", ["edge", "fleet-planner"])
+            # below the control path, as the detector: its planning is a burst of CPU, not a deadline
+            procs.start("fleet-planner", ["edge", "fleet-planner"],
+                        program=["nice", "-n", str(DETECTOR_NICE), procs.exe])  # fmt: skip
         # The detector is best effort (it drops the frames it cannot keep up with): on one machine it
         # runs below the control path, as it would on its own cores at a real edge.
         procs.start("detector", ["edge", "detector"], program=["nice", "-n", str(DETECTOR_NICE), procs.exe])

@@ -120,7 +120,8 @@ class FleetPlannerService:
         else:
             camara = self.config.qos.camara
             async with QodClient(replace(camara, timeout_s=self.cfg.prediction_timeout_s)) as qod:
-                levels = await self._predict(qod, horizon_s=2.0 * blind.mission_s + 60.0)
+                # as far ahead as a plan some 50% longer than the blind one may need (past it: ND)
+                levels = await self._predict(qod, horizon_s=1.5 * blind.mission_s + 30.0)
             if levels is None:
                 self.plan = blind
             else:
