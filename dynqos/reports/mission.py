@@ -24,13 +24,13 @@ import math
 from pathlib import Path
 from typing import Any
 
+from dynqos.common.clock import NS_PER_S
 from dynqos.common.modes import ControlSource
 from dynqos.experiment.recording import Recording
-from dynqos.reports.figures import figure
+from dynqos.reports.figures import figure, mean_of
 
 NEAR_M = 1.0
 DONE_SHARE = 0.8
-NS = 1_000_000_000
 Track = list[tuple[int, float, float, float]]  # (monotonic ns, x, y, height)
 
 
@@ -47,23 +47,23 @@ def mission_figures(
             if leg["kind"] != "task":
                 continue
             task = tasks[leg["task"]]
-            lo, hi = start + round(leg["start_s"] * NS), start + round(leg["end_s"] * NS)
+            lo, hi = start + round(leg["start_s"] * NS_PER_S), start + round(leg["end_s"] * NS_PER_S)
             near, arrived = _near(tracks.get(uav, []), leg["path_m"], lo, hi)
             row = {"task": task["id"], "kind": task["kind"], "drone": uav, "risk": task["risk"],
                    "start_s": round(leg["start_s"], 2), "end_s": round(leg["end_s"], 2),
                    "near_share": None if near is None else round(near, 3),
                    "completed": near is not None and near >= DONE_SHARE}  # fmt: skip
             if arrived is not None:
-                arrivals.append((arrived - start) / NS + (leg["end_s"] - leg["start_s"]))
+                arrivals.append((arrived - start) / NS_PER_S + (leg["end_s"] - leg["start_s"]))
             if task["kind"] == "inspect":
                 delivered = _delivered(rec, uav, lo, hi)
                 row["camera_kb"] = None if delivered is None else round(delivered / 1e3, 1)
                 if delivered is not None:
                     inspect_bytes.append(delivered)
             rows.append(row)
-    end = start + round(float(plan["mission_s"]) * NS)
+    end = start + round(float(plan["mission_s"]) * NS_PER_S)
     fallback = {
-        uav: round(fallback_s(recs[uav], start, end, round(watchdog_s * NS)), 2)
+        uav: round(fallback_s(recs[uav], start, end, round(watchdog_s * NS_PER_S)), 2)
         for uav in plan["legs"]
         if uav in recs
     }
@@ -94,12 +94,12 @@ def vehicle_tracks(path: Path, rec: Recording) -> dict[str, Track]:
     time zero from its counters, which carry both its own time and the moment they were read)."""
     if not path.exists() or not rec.cell:
         return {}
-    offsets = sorted(c["now_ns"] - round(float(c["t_s"]) * NS) for c in rec.cell)
+    offsets = sorted(c["now_ns"] - round(float(c["t_s"]) * NS_PER_S) for c in rec.cell)
     zero = offsets[len(offsets) // 2]
     out: dict[str, Track] = {}
     with path.open(newline="") as f:
         for row in csv.DictReader(f):
-            t = zero + round(float(row["t_s"]) * NS)
+            t = zero + round(float(row["t_s"]) * NS_PER_S)
             point = (t, float(row["x_m"]), float(row["y_m"]), -float(row["z_m"]))
             out.setdefault(row["uav"], []).append(point)
     return out
@@ -125,7 +125,8 @@ def _distance(p: tuple[float, float, float], path: list[list[float]]) -> float:
 def _near(track: Track, path: list[list[float]], lo: int, hi: int) -> tuple[float | None, int | None]:
     """The share of the window's samples within NEAR_M of the task, and when the drone first got there
     (from 2 s before the window: a drone may arrive early)."""
-    inside = [(t, _distance((x, y, h), path) <= NEAR_M) for t, x, y, h in track if lo - 2 * NS <= t <= hi]
+    early = lo - 2 * NS_PER_S
+    inside = [(t, _distance((x, y, h), path) <= NEAR_M) for t, x, y, h in track if early <= t <= hi]
     window = [ok for t, ok in inside if t >= lo]
     arrived = next((t for t, ok in inside if ok), None)
     return (sum(window) / len(window) if window else None), arrived
@@ -175,7 +176,7 @@ def _union_s(spans: list[tuple[int, int]], lo: int, hi: int) -> float:
         if b > a:
             total += b - a
             reach = b
-    return total / NS
+    return total / NS_PER_S
 
 
 def _priority(plan: dict[str, Any], recs: dict[str, Recording], start: int) -> tuple[float, float]:
@@ -183,12 +184,13 @@ def _priority(plan: dict[str, Any], recs: dict[str, Recording], start: int) -> t
     for b in plan["bookings"]:
         if not b["booking_id"] or b["drone"] not in recs:
             continue
-        lo, hi = start + round(b["start_s"] * NS), start + round((b["start_s"] + b["duration_s"]) * NS)
-        booked += (hi - lo) / NS
+        lo = start + round(b["start_s"] * NS_PER_S)
+        hi = lo + round(b["duration_s"] * NS_PER_S)
+        booked += (hi - lo) / NS_PER_S
         statuses = sorted(recs[b["drone"]].status, key=lambda s: s.stamp_ns)
         for a, z in itertools.pairwise(statuses):
             if str(getattr(a.flow, "value", a.flow)) == "priority":
-                used += max(0, min(z.stamp_ns, hi) - max(a.stamp_ns, lo)) / NS
+                used += max(0, min(z.stamp_ns, hi) - max(a.stamp_ns, lo)) / NS_PER_S
     return booked, used
 
 
@@ -220,11 +222,11 @@ def mission_comparison(fleets: list[dict[str, Any]]) -> list[str]:
         "| tasks | " + " | ".join(str(s["mission"]["tasks"]) for s in firsts) + " |",
     ]
     for label, path, digits in ROWS:
-        base = _mean(planned[0], path)
+        base = mean_of(planned[0], path)
         cells = []
         for s in planned:
             text = figure(s, path, digits)
-            mean = _mean(s, path)
+            mean = mean_of(s, path)
             if s is not planned[0] and base and mean is not None:
                 text += f" ({(mean / base - 1) * 100:+.0f}%)"
             cells.append(text)
@@ -232,13 +234,3 @@ def mission_comparison(fleets: list[dict[str, Any]]) -> list[str]:
     runs = ", ".join(str(len(s["runs"]) if "aggregate" in s else 1) for s in planned)
     lines += ["", f"Runs (seeds) per scenario: {runs}; in brackets: against the first.", ""]
     return lines
-
-
-def _mean(s: dict[str, Any], path: str) -> float | None:
-    if "aggregate" in s:
-        agg = s["aggregate"].get(path)
-        return None if agg is None else float(agg["mean"])
-    value: Any = s
-    for key in path.split("."):
-        value = value.get(key) if isinstance(value, dict) else None
-    return float(value) if isinstance(value, (int, float)) else None
