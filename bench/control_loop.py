@@ -38,6 +38,11 @@ from dynqos.onboard.uplink import Uplink
 UAV = "uav1"
 BLOCK = 50
 TIMEOUT_S = 5.0
+PROBE_S = 0.5  # how long a readiness probe waits for its answer before the next probe
+
+
+class NoAnswer(RuntimeError):
+    """The MPC did not answer a state in time."""
 
 
 def _state(seq: int) -> State:
@@ -77,19 +82,31 @@ class Loop:
         self.hold_ms: list[float] = []
 
     def wait_ready(self) -> None:
-        if not self.state_pub.wait_matched(30):
-            raise RuntimeError("the MPC never subscribed to the drone's state")
+        self.wait_served()
         if not ZenohPublisher(self.ping, PING).wait_matched(30):  # zenoh's matching listener, no polling
             raise RuntimeError("the echo never subscribed to bench/ping")
 
-    def ours(self) -> float:
+    def wait_served(self, timeout_s: float = 30.0) -> None:
+        """Until the MPC answers a state. A match on the state's key is not enough: it may be another
+        subscriber of the states (a listener, a bridge) or an MPC that has just been stopped, and a
+        state sent then is lost (the benchmark waited TIMEOUT_S for it and failed)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                self.ours(PROBE_S)
+                return
+            except NoAnswer:
+                continue  # not following the drone yet: probe again
+        raise RuntimeError(f"the MPC did not answer a state within {timeout_s:.0f} s")
+
+    def ours(self, timeout_s: float = TIMEOUT_S) -> float:
         self.seq += 1
         start = time.perf_counter()
         self.uplink.put(Flow.PRIORITY, self.state_pub, _state(self.seq))
         while True:
-            item = self.commands.get(TIMEOUT_S)
+            item = self.commands.get(max(0.0, start + timeout_s - time.perf_counter()))
             if item is None:
-                raise RuntimeError(f"no Command for state {self.seq} within {TIMEOUT_S} s")
+                raise NoAnswer(f"no Command for state {self.seq} within {timeout_s} s")
             command = item.message
             if isinstance(command, Command) and command.state_seq == self.seq:
                 elapsed = time.perf_counter() - start
