@@ -78,6 +78,11 @@ class Membership:
             log.info("%s %s: drone %s: %s (term %d, now %s)", self.service, self.replica, change.uav,
                      change.reason, change.term, change.role.value)  # fmt: skip
 
+    @property
+    def changed(self) -> bool:
+        """Whether the live set or a role changed since the last `take_changed` (without taking it)."""
+        return self._changed
+
     def take_changed(self) -> bool:
         """Whether the live set or a role changed since the last call (which drones to follow)."""
         changed, self._changed = self._changed, False
