@@ -157,6 +157,9 @@ def test_time_in_states_lasts_each_state_until_the_next_status() -> None:
     assert time_in_states(statuses) == pytest.approx({"q1": 0.5, "q3": 1.0, "q6": 0.1})
     assert time_in_states(statuses, since_ns=500 * ms) == pytest.approx({"q3": 1.0, "q6": 0.1})
     assert time_in_states(statuses[:1]) == {}
+    # within a window, only the part of each span inside it (a booking's priority-seconds used)
+    clipped = time_in_states(statuses, within=(300 * ms, 1550 * ms))
+    assert clipped == pytest.approx({"q1": 0.2, "q3": 1.0, "q6": 0.05})
 
 
 def test_outcome_measures_fallback_gaps_and_recovery_from_the_status_stream() -> None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import signal
 import threading
 import time
@@ -296,17 +297,23 @@ class FaultInjector:
 
 
 def time_in_states(
-    statuses: Sequence[SupervisorStatus], since_ns: int | None = None, field: str = "state"
+    statuses: Sequence[SupervisorStatus],
+    since_ns: int | None = None,
+    field: str = "state",
+    *,
+    within: tuple[int, int] | None = None,
 ) -> dict[str, float]:
-    """Seconds with each value of a status field (the supervisor state by default; `risk`, `qos_grant`...):
+    """Seconds with each value of a status field (the supervisor state by default; `risk`, `flow`...):
     a status's value lasts until the next status. Only the spans that start at or after `since_ns` count
-    (all of them when None)."""
+    (all of them when None); with `within` (lo, hi), only the part of each span inside [lo, hi)."""
     out: dict[str, float] = {}
+    lo, hi = within or (-math.inf, math.inf)
     for a, b in itertools.pairwise(statuses):
         if since_ns is None or a.stamp_ns >= since_ns:
             value = getattr(a, field)
             key = str(getattr(value, "value", value))
-            out[key] = out.get(key, 0.0) + (b.stamp_ns - a.stamp_ns) / NS_PER_S
+            span = max(0, min(b.stamp_ns, hi) - max(a.stamp_ns, lo))
+            out[key] = out.get(key, 0.0) + span / NS_PER_S
     return out
 
 

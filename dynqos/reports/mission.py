@@ -26,6 +26,7 @@ from typing import Any
 
 from dynqos.common.clock import NS_PER_S
 from dynqos.common.modes import ControlSource
+from dynqos.experiment.faults import time_in_states
 from dynqos.experiment.recording import Recording
 from dynqos.reports.figures import figure, mean_of
 
@@ -188,9 +189,7 @@ def _priority(plan: dict[str, Any], recs: dict[str, Recording], start: int) -> t
         hi = lo + round(b["duration_s"] * NS_PER_S)
         booked += (hi - lo) / NS_PER_S
         statuses = sorted(recs[b["drone"]].status, key=lambda s: s.stamp_ns)
-        for a, z in itertools.pairwise(statuses):
-            if str(getattr(a.flow, "value", a.flow)) == "priority":
-                used += max(0, min(z.stamp_ns, hi) - max(a.stamp_ns, lo)) / NS_PER_S
+        used += time_in_states(statuses, field="flow", within=(lo, hi)).get("priority", 0.0)
     return booked, used
 
 
