@@ -8,7 +8,8 @@ bare zenoh-python responder (`bench/zenoh_echo.py`, its own process) answering a
 size with one of the Command's size, same priority and express setting. The two alternate in blocks so
 that drift in the machine's load hits both. The MPC's own time per answer is what it reports in each
 Command (`edge_hold_ns`: arrival to publish). Target: our p50 within 1.5x of the floor's p50 plus the
-MPC's p50.
+MPC's p50. Then the same once more with a minimal Python MPC (`zenoh_echo --mpc`: decode, solve, answer,
+and its own time in the Command) in the MPC's place: the ratio any Python MPC on zenoh gets here.
 
 Run: dynqos bench control_loop (suite settings), or with its own options:
   python -m dynqos.bench.control_loop [--round-trips 2000] [--quick] [--out FILE]
@@ -137,21 +138,20 @@ def run(round_trips: int) -> dict[str, Any]:
             for _ in range(BLOCK):  # warm-up: routes, caches, the MPC's first solves
                 loop.ours()
                 loop.bare()
-            loop.hold_ms.clear()
-            ours: list[float] = []
-            bare: list[float] = []
-            for block in range(max(1, round_trips // BLOCK)):
-                order = (loop.ours, loop.bare) if block % 2 else (loop.bare, loop.ours)
-                for measure in order:
-                    target = ours if measure == loop.ours else bare
-                    target.extend(measure() for _ in range(BLOCK))
+            ours, bare, hold = _blocks(loop, round_trips)
+            # The same once more with a minimal Python MPC in the MPC's place: the floor of the ratio
+            procs.stop("mpc")
+            procs.start("minimal-mpc", ["--mpc"], program=[sys.executable, "-m", "dynqos.bench.zenoh_echo"])
+            loop.wait_served()
+            _blocks(loop, BLOCK)  # warm-up
+            minimal, minimal_bare, minimal_hold = _blocks(loop, round_trips)
             loop.stop.set()
             loop.uplink.join(timeout_s=5)
         finally:
             bus.close()
     ours_s, bare_s = _summary(ours), _summary(bare)
-    hold = sorted(loop.hold_ms)
-    mpc = {"p50_ms": statistics.median(hold), "p99_ms": hold[min(len(hold) - 1, int(0.99 * len(hold)))]}
+    mpc = _hold(hold)
+    minimal_s, minimal_bare_s, minimal_mpc = _summary(minimal), _summary(minimal_bare), _hold(minimal_hold)
     return {
         "benchmark": "control_loop",
         **provenance(),
@@ -163,7 +163,31 @@ def run(round_trips: int) -> dict[str, Any]:
         "mpc_in_process": mpc,
         "ratio_p50": ours_s["p50_ms"] / (bare_s["p50_ms"] + mpc["p50_ms"]),
         "target_ratio": 1.5,
-    }
+        "minimal_mpc": {
+            "ours": minimal_s, "bare_zenoh": minimal_bare_s, "mpc_in_process": minimal_mpc,
+            "ratio_p50": minimal_s["p50_ms"] / (minimal_bare_s["p50_ms"] + minimal_mpc["p50_ms"]),
+        },
+    }  # fmt: skip
+
+
+def _blocks(loop: Loop, round_trips: int) -> tuple[list[float], list[float], list[float]]:
+    """Our round trips and bare zenoh's, alternating in blocks (drift in the load hits both), and the
+    MPC's own time for each of ours (ms)."""
+    loop.hold_ms.clear()
+    ours: list[float] = []
+    bare: list[float] = []
+    for block in range(max(1, round_trips // BLOCK)):
+        order = (loop.ours, loop.bare) if block % 2 else (loop.bare, loop.ours)
+        for measure in order:
+            target = ours if measure == loop.ours else bare
+            target.extend(measure() for _ in range(BLOCK))
+    return ours, bare, list(loop.hold_ms)
+
+
+def _hold(hold_ms: list[float]) -> dict[str, float]:
+    ordered = sorted(hold_ms)
+    p99 = ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))]
+    return {"p50_ms": statistics.median(ordered), "p99_ms": p99}
 
 
 def _sample_command() -> Command:
@@ -185,6 +209,7 @@ def verdict(result: dict[str, Any]) -> str:
 
 def markdown(result: dict[str, Any]) -> str:
     o, b, m = result["ours"], result["bare_zenoh"], result["mpc_in_process"]
+    mn = result["minimal_mpc"]
     return "\n".join(
         [
             f"| round trip on loopback via a router ({result['state_bytes']} B up, "
@@ -197,6 +222,10 @@ def markdown(result: dict[str, Any]) -> str:
             f"| MPC time inside the edge (arrival to publish) | {m['p50_ms']:.3f} | {m['p99_ms']:.3f} | - |",
             "",
             f"ratio (p50): {result['ratio_p50']:.2f}x of floor + MPC, {result['round_trips']} round trips",
+            "",
+            f"The same path with a minimal Python MPC (`zenoh_echo --mpc`) in the MPC's place: p50 "
+            f"{mn['ours']['p50_ms']:.3f} ms against bare {mn['bare_zenoh']['p50_ms']:.3f} ms + its own "
+            f"{mn['mpc_in_process']['p50_ms']:.3f} ms: {mn['ratio_p50']:.2f}x",
         ]
     )
 

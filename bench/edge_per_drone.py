@@ -9,7 +9,10 @@ at the size that offers 17 Mbit/s at the fleet's scale. It reads back what the d
 acks, references, grants). Each edge process's CPU seconds over the measured span (/proc/PID/stat)
 for D = 1, 2, 4, 8 drones; the cost per drone is the slope of a least-squares line through them (the
 intercept is what a served-nobody edge costs). Beside it, the bare OSQP solve of the MPC's QP at
-20 Hz (the same floor `mpc_step` measures): the part of the MPC's cost no transport can remove.
+20 Hz (the same floor `mpc_step` measures): the part of the MPC's cost no transport can remove. Then
+the same sweep once more with the MPC replaced by a minimal Python MPC (`zenoh_echo --mpc`: decode,
+solve, answer): what any Python MPC on zenoh costs per drone on this load, the floor of the ratio
+between the MPC process and its bare solves.
 
 Run: dynqos bench edge_per_drone (suite settings), or with its own options:
   python -m dynqos.bench.edge_per_drone [--seconds 5] [--quick] [--out FILE]
@@ -38,6 +41,7 @@ from dynqos.experiment.processes import Processes, cpu_s
 PERIOD_S = 0.05  # the State period: a tick; the camera sends in 3 ticks of 4 (15 fps), the status in 1 of 4
 EDGE = ("router", "mpc", "planner", "detector", "qos")
 TARGET_CORE_SHARE_PER_DRONE = 0.10  # the edge should serve a drone in a tenth of a core
+FLOOR = "minimal-mpc"  # bench/zenoh_echo.py --mpc
 
 
 @dataclass(frozen=True)
@@ -129,13 +133,16 @@ def _tick(drone: _Drone, index: int, tick: int, seq: int, frames: Frames) -> Non
                 )  # fmt: skip
 
 
-def _load(zcfg: ZenohConfig, procs: Processes, drones: int, seconds: float, frames: Frames) -> dict[str, Any]:
+def _load(
+    zcfg: ZenohConfig, procs: Processes, drones: int, seconds: float, frames: Frames, edge: tuple[str, ...]
+) -> dict[str, Any]:
     bus = open_bus(zcfg, Role.DRONE)
     try:
         back: BoundedQueue[Received] = BoundedQueue(200_000)
         for kind in (Downlink.COMMAND, Downlink.CAMERA_ACK, Downlink.REFERENCE, Downlink.QOS_GRANT):
             bus.subscribe(keys.downlink_all_drones(kind), back)
-        fleet = [_Drone(bus, f"b{drones}u{i}") for i in range(drones)]  # new ids per size: fresh controllers
+        # new ids per size and sweep: fresh controllers
+        fleet = [_Drone(bus, f"b{drones}{'f' if FLOOR in edge else 'u'}{i}") for i in range(drones)]
         if not all(pub.wait_matched(30) for d in fleet for pub in (d.state, d.rgb)):
             raise RuntimeError("the edge services never subscribed")
         seq0 = time.monotonic_ns() // 1_000_000
@@ -144,7 +151,7 @@ def _load(zcfg: ZenohConfig, procs: Processes, drones: int, seconds: float, fram
         used_before: dict[str, float] = {}
         for tick in range(warmup + ticks):
             if tick == warmup:
-                used_before = {name: cpu_s(procs.procs[name].pid) or 0.0 for name in EDGE}
+                used_before = {name: cpu_s(procs.procs[name].pid) or 0.0 for name in edge}
                 t_measured = time.perf_counter()
                 back.drain()
             for index, drone in enumerate(fleet):
@@ -153,7 +160,7 @@ def _load(zcfg: ZenohConfig, procs: Processes, drones: int, seconds: float, fram
             if delay > 0:
                 time.sleep(delay)  # the fleet's period: pacing the load, not synchronising with anything
         span = time.perf_counter() - t_measured
-        used = {name: ((cpu_s(procs.procs[name].pid) or 0.0) - used_before[name]) / span for name in EDGE}
+        used = {name: ((cpu_s(procs.procs[name].pid) or 0.0) - used_before[name]) / span for name in edge}
         answered = sum(1 for item in back.drain() if item.key.endswith("down/cmd"))
     finally:
         bus.close()
@@ -186,14 +193,22 @@ def run(seconds: float, quick: bool) -> dict[str, Any]:
     frames = _frames(3 if quick else 12)
     rows = []
     toml = '[qos]\nbackend = "links"\n[mpc]\nidle_timeout_s = 2\n[detector]\n'
+    floor_rows = []
     with router_rig(toml) as (zcfg, procs):
         for name in EDGE[1:]:
             procs.start(name, ["edge", name])
         for count in counts:
-            rows.append(_load(zcfg, procs, count, seconds, frames))
+            rows.append(_load(zcfg, procs, count, seconds, frames, EDGE))
+        # The same load once more with a minimal Python MPC in the MPC's place: the floor of the ratio
+        procs.stop("mpc")
+        procs.start(FLOOR, ["--mpc"], program=[sys.executable, "-m", "dynqos.bench.zenoh_echo"])
+        for count in counts:
+            floor_rows.append(_load(zcfg, procs, count, seconds, frames, (FLOOR,)))
     xs = [float(r["drones"]) for r in rows]
     per_process = {name: _slope(xs, [r["core_share"][name] for r in rows])[1] for name in EDGE}
     idle, per_drone = _slope(xs, [r["edge_core_share"] for r in rows])
+    floor = _slope([float(r["drones"]) for r in floor_rows], [r["core_share"][FLOOR] for r in floor_rows])[1]
+    bare = bare_osqp_share(50 if quick else 400)
     return {
         "benchmark": "edge_per_drone",
         **provenance(),
@@ -202,7 +217,11 @@ def run(seconds: float, quick: bool) -> dict[str, Any]:
         "per_drone_core_share": per_drone,
         "per_drone_core_share_by_process": per_process,
         "idle_core_share": idle,
-        "bare_osqp_core_share_per_drone": bare_osqp_share(50 if quick else 400),
+        "bare_osqp_core_share_per_drone": bare,
+        "minimal_mpc_rows": floor_rows,
+        "minimal_mpc_core_share_per_drone": floor,
+        "mpc_over_bare": per_process["mpc"] / bare,
+        "minimal_mpc_over_bare": floor / bare,
         "mpc_config": {"horizon": ControlConfig().horizon, "max_iter": MpcConfig().max_iter},
     }
 
@@ -232,6 +251,11 @@ def markdown(result: dict[str, Any]) -> str:
         f"({', '.join(f'{n} {by[n]:.3f}' for n in EDGE)}); an edge serving nobody: "
         f"{result['idle_core_share']:.3f}. Bare OSQP at 20 Hz: "
         f"{result['bare_osqp_core_share_per_drone']:.4f}.",
+        "",
+        f"The MPC process per drone: {result['mpc_over_bare']:.1f}x its bare solves; a minimal Python MPC "
+        f"on the same load (decode, solve, answer; `zenoh_echo --mpc`): "
+        f"{result['minimal_mpc_core_share_per_drone']:.4f} of a core, "
+        f"{result['minimal_mpc_over_bare']:.1f}x.",
     ]
     return "\n".join(rows)
 

@@ -66,6 +66,8 @@ HEADLINES: dict[str, Headline] = {
     "edge_per_drone": lambda r: {
         "per_drone_core_share": r["per_drone_core_share"],
         "bare_osqp_core_share_per_drone": r["bare_osqp_core_share_per_drone"],
+        "mpc_over_bare": r["mpc_over_bare"],
+        "minimal_mpc_over_bare": r["minimal_mpc_over_bare"],
     },
     "onboard_camera": lambda r: {"encode_publish_core_share": r["encode_publish_core_share_at_30fps"]},
     "vehicle_sim": lambda r: {

@@ -70,6 +70,8 @@ def test_loop_and_fleet_over_real_zenoh(smoke: tuple[dict[str, Any], str]) -> No
     assert loop["ours"]["p50_ms"] > loop["mpc_in_process"]["p50_ms"] > 0  # the MPC is inside our trip
     assert loop["state_bytes"] > 0
     assert loop["command_bytes"] > loop["state_bytes"]
+    minimal = loop["minimal_mpc"]  # the minimal Python MPC answered in the MPC's place, and timed itself
+    assert minimal["ours"]["p50_ms"] > minimal["mpc_in_process"]["p50_ms"] > 0
     fleet = _result(smoke, "fleet_zenoh")
     for key in ("one_process", "two_processes"):
         (row,) = fleet[key]["rows"]
@@ -82,6 +84,9 @@ def test_loop_and_fleet_over_real_zenoh(smoke: tuple[dict[str, Any], str]) -> No
         assert row["core_share"]["mpc"] > 0  # it solved for the drones it heard
         assert row["commands_per_s"] > 10 * row["drones"]  # 20 Hz each, less what the smoke span cuts
     assert edge["bare_osqp_core_share_per_drone"] > 0
+    for row in edge["minimal_mpc_rows"]:  # the minimal Python MPC answered every drone in the MPC's place
+        assert set(row["core_share"]) == {"minimal-mpc"}
+        assert row["commands_per_s"] > 10 * row["drones"]
 
 
 def test_camera_simulator_and_cell_figures(smoke: tuple[dict[str, Any], str]) -> None:
