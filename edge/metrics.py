@@ -60,7 +60,7 @@ def fleet_planner(service: FleetPlannerService, m: ProcessMetrics) -> None:
                     len(service.positions))  # fmt: skip
         yield counter("dynqos_fleet_planner_missions", "Missions (legs) sent to the planners", service.sent)
         yield gauge("dynqos_fleet_planner_bookings", "Bookings made and not released",
-                    len(service.bookings.made) if service.bookings is not None else 0)  # fmt: skip
+                    len(service.bookings))  # fmt: skip
         yield from bus_families(service.bus)
 
     m.add(families)

@@ -40,7 +40,7 @@ from dynqos.edge.planner.fleet_schedule import (
     settings_of,
     tasks_of,
 )
-from dynqos.edge.qos.booking import BookingClient, circle
+from dynqos.edge.qos.booking import BookingClient, BookingInfo, circle
 from dynqos.edge.qos.client import QodClient, QodError
 from dynqos.edge.qos.connectivity import ConnectivityClient, PredictedLevels
 from dynqos.edge.service import Service, serve
@@ -73,7 +73,7 @@ class FleetPlannerService:
         self.missions: list[TimedMission] = []
         self.sent = 0  # missions sent (each once; re-sends not counted)
         self.booked: list[dict[str, Any]] = []
-        self.bookings: BookingClient | None = None  # the client that made them, to release them
+        self.bookings: dict[str, BookingInfo] = {}  # those made and not yet released, by id
         self.released: list[str] = []
         self.release_failed: list[str] = []
         self.phase = "waiting"
@@ -155,7 +155,7 @@ class FleetPlannerService:
         """Book each planned window; a refusal leaves that inspection to QoD on demand."""
         assert self.plan is not None
         camara = self.config.qos.camara
-        client = self.bookings = BookingClient(qod)
+        client = BookingClient(qod, self.bookings)
         server = {"ipv4Address": camara.application_server or self.config.zenoh.edge_host}
         for want in self.plan.bookings:
             device = camara.devices.get(want.drone)
@@ -215,13 +215,11 @@ class FleetPlannerService:
         self.phase = "stopped" if self.service.stop.is_set() else "done"
 
     async def release(self) -> None:
-        client = self.bookings
-        if client is None or not client.made:
+        if not self.bookings:
             return
-        async with QodClient(self.config.qos.camara) as qod:
-            client.qod = qod  # the session that booked was closed with its plan
-            ids = list(client.made)
-            self.release_failed = await client.release_all()
+        async with QodClient(self.config.qos.camara) as qod:  # the session that booked closed with its plan
+            ids = list(self.bookings)
+            self.release_failed = await BookingClient(qod, self.bookings).release_all()
             self.released = [i for i in ids if i not in self.release_failed]
         log.info("fleet planner: released %d bookings%s", len(self.released),
                  f"; could not release {self.release_failed}" if self.release_failed else "")  # fmt: skip

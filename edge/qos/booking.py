@@ -60,10 +60,12 @@ def circle(center: tuple[float, float], radius_m: float) -> dict[str, Any]:
 class BookingClient:
     """QoS Booking over an open QodClient (`async with QodClient(cfg) as qod`)."""
 
-    def __init__(self, qod: QodClient) -> None:
+    def __init__(self, qod: QodClient, made: dict[str, BookingInfo] | None = None) -> None:
         self.qod = qod
         self.root = booking_root(qod.cfg)
-        self.made: dict[str, BookingInfo] = {}  # every booking this client made, by id, as last seen
+        # every booking made, by id, as last seen: this client's, or (`made`) one that an earlier
+        # session's client made, shared, so that this one releases them
+        self.made: dict[str, BookingInfo] = {} if made is None else made
 
     async def book(
         self, device: dict[str, Any], start_unix: float, duration_s: int, area: dict[str, Any], *,
