@@ -116,12 +116,15 @@ def session_settings(
     listen: Sequence[str] | None = None,
     check_files: bool = True,
     client: bool = False,
+    lease_s: float | None = None,
 ) -> dict[str, Any]:
     """The zenoh settings for `role`, as `path/to/key: value` (what `dynqos config zenoh` prints).
 
     `check_files`: fail now, naming the key, if a TLS file is missing (rather than in zenoh's words).
     `client`: a client session with the role's identity. A router forwards nothing between two peers
     (it expects them to reach each other), so the preflight hears its own clock probes on a client.
+    `lease_s`: the lease this session announces (zenoh's default 10 s): the router closes it, and
+    withdraws its tokens, after that long without a keep-alive from a process that hangs.
     """
     connect, listen = endpoints(cfg, role, connect, listen)
     mode = "client" if client else {Role.DRONE: "peer", Role.EDGE: "client", Role.ROUTER: "router"}[role]
@@ -137,6 +140,8 @@ def session_settings(
         # a router keeps trying another site's router (zenoh retries); anyone else stops, saying why
         "connect/exit_on_failure": role is not Role.ROUTER,
     }
+    if lease_s is not None:
+        settings["transport/link/tx/lease"] = round(lease_s * 1000)
     if cfg.tls:
         settings.update(_tls_settings(cfg, role, check_files))
     if role is Role.ROUTER:
@@ -205,10 +210,12 @@ def session_config(
     connect: Sequence[str] | None = None,
     listen: Sequence[str] | None = None,
     client: bool = False,
+    lease_s: float | None = None,
 ) -> zenoh.Config:
     """A zenoh.Config for `role`; `connect`/`listen` replace the endpoints derived from cfg."""
     zcfg = zenoh.Config()
-    for key, value in session_settings(cfg, role, connect=connect, listen=listen, client=client).items():
+    settings = session_settings(cfg, role, connect=connect, listen=listen, client=client, lease_s=lease_s)
+    for key, value in settings.items():
         zcfg.insert_json5(key, json.dumps(value))
     return zcfg
 
@@ -420,9 +427,10 @@ def open_session(
     connect: Sequence[str] | None = None,
     listen: Sequence[str] | None = None,
     client: bool = False,
+    lease_s: float | None = None,
 ) -> zenoh.Session:
     """Open a zenoh session, turning zenoh's errors into one TransportError that names the endpoints."""
-    zcfg = session_config(cfg, role, connect=connect, listen=listen, client=client)
+    zcfg = session_config(cfg, role, connect=connect, listen=listen, client=client, lease_s=lease_s)
     try:
         return zenoh.open(zcfg)
     except zenoh.ZError as exc:
@@ -441,5 +449,7 @@ def open_bus(
     listen: Sequence[str] | None = None,
     clock: Clock | None = None,
     client: bool = False,
+    lease_s: float | None = None,
 ) -> ZenohBus:
-    return ZenohBus(open_session(cfg, role, connect=connect, listen=listen, client=client), clock)
+    session = open_session(cfg, role, connect=connect, listen=listen, client=client, lease_s=lease_s)
+    return ZenohBus(session, clock)

@@ -144,6 +144,41 @@ def test_killing_the_active_agent_the_standby_serves_the_grant_with_the_same_ses
             assert rig.counters()["qod"]["conflicts"] == 0
 
 
+def test_a_hung_active_agent_loses_its_tokens_after_its_lease_and_the_standby_serves(tmp_path: Path) -> None:
+    """SIGSTOP of the active agent: the router withdraws its tokens after its session's lease (`[qos]
+    session_lease_s`, 2 s; zenoh's default would be 10 s) and the standby serves the grant with the same
+    session. Woken again, the hung agent finds an active one and settles by rank: still one session,
+    never a second create or a 409, and none left at the end. With camara: the mode with sessions at
+    the operator that a returning agent could duplicate (the takeover itself is the kill's, flown in
+    every mode above)."""
+    lease_s = 2.0
+    with flying(tmp_path) as f:
+        rig, drone = f.rig, f.drone
+        first = drone.until(True, Grant.AVAILABLE)
+        drone.grants.drain()
+        hung = rig.procs[f.active].proc
+        hung.send_signal(signal.SIGSTOP)
+        hung_at = time.monotonic()
+        try:
+            grant, heard_at = next_grant(drone, timeout_s=15.0)
+            assert actives(rig.zenoh) == [f.standby]
+        finally:
+            hung.send_signal(signal.SIGCONT)
+        print(f"served {heard_at - hung_at:.2f} s after the hang")
+        assert lease_s <= heard_at - hung_at < lease_s + SERVED_WITHIN_S, heard_at - hung_at
+        assert (grant.grant, grant.session_id) == (Grant.AVAILABLE, first.session_id)
+        # back: one agent stays active (by rank), the session is followed, never created again
+        drone.until(True, Grant.AVAILABLE, also=lambda: len(actives(rig.zenoh)) == 1)
+        extended = rig.counters()["qod"]["extended"]
+        drone.until(True, Grant.AVAILABLE, also=lambda: rig.counters()["qod"]["extended"] > extended)
+        counters = rig.counters()["qod"]
+        assert (counters["created"], counters["conflicts"]) == (1, 0)
+        assert [s["sessionId"] for s in rig.sessions()] == [first.session_id]
+        for name in AGENTS:
+            rig.procs[name].stop()
+        assert rig.sessions() == []
+
+
 def test_a_stopping_standby_leaves_the_active_agents_sessions_alone(tmp_path: Path) -> None:
     with flying(tmp_path) as f:
         first = f.drone.until(True, Grant.AVAILABLE)

@@ -255,8 +255,11 @@ class QosConfig:
     # Who gets priority: every drone that asks, or (arbiter) the neediest within [qos.arbiter]'s budget.
     policy: Literal["grant-all", "arbiter"] = "grant-all"
     # Several agents may run; one holds the sessions, the others stand by (docs/qos.md). replica_id
-    # names this one (empty: <host>-<pid>).
+    # names this one (empty: <host>-<pid>). session_lease_s: the lease the agent's zenoh session
+    # announces; an agent that hangs (SIGSTOP, a frozen VM) loses its tokens to the router after it,
+    # and a standby takes the sessions over (zenoh's own default is 10 s).
     replica_id: str = ""
+    session_lease_s: Annotated[float, In(0.5, 60, "must be in 0.5..60 s")] = 2.0
     camara: CamaraConfig = field(default_factory=CamaraConfig)
     arbiter: ArbiterConfig = field(default_factory=ArbiterConfig)
 

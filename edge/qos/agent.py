@@ -483,7 +483,8 @@ def run(config: Config, *, health_file: Path | None = None) -> int:
     """`dynqos edge qos` until SIGTERM: the operator settings are checked before any network is opened;
     its metrics served, its zenoh session open as an edge client, one ready line once it serves."""
     preflight(config)
-    with serving_metrics("qos", config) as metrics, open_bus(config.zenoh, Role.EDGE) as bus:
+    lease_s = config.qos.session_lease_s  # a hung agent's tokens go after it: a standby takes over
+    with serving_metrics("qos", config) as metrics, open_bus(config.zenoh, Role.EDGE, lease_s=lease_s) as bus:
         agent = QosAgent(config, bus)
         agent.service.health_file = health_file
         agent.service.beat = metrics.health.beat

@@ -7,8 +7,8 @@ use (edge/replicas.py): every agent holds a member token, and the active one hol
 too. Liveliness rather than a Kubernetes Lease because it works wherever dynqos runs (one laptop,
 systemd, Kubernetes), needs no API-server permission, and is told at once when a process dies (its
 session closes and the router withdraws its tokens), where a Lease is taken over only when it expires
-(15 s by default). A hung agent keeps its tokens until zenoh's session lease runs out; that is the
-takeover time for a hang (docs/qos.md).
+(15 s by default). A hung agent keeps its tokens until its zenoh session's lease runs out (`[qos]
+session_lease_s`, 2 s); that is the takeover time for a hang (docs/qos.md).
 
 The rules, applied whenever the tokens change:
 - an active agent stays active while it lives (a new agent never displaces it, so sessions do not move
