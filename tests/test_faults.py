@@ -306,19 +306,20 @@ def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
 @pytest.mark.timeout(600)  # a starved first flight is flown again
 def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> None:
     """The shipped replicas scenario: two MPC and two planner replicas; the MPC replica flying the drone
-    killed, a third joining, the one flying hung for 2 s, the planner replica publishing killed. None of
-    them makes the drone fall back or leave its mission (docs/reliability.md)."""
+    killed, a third joining, the one flying hung for 2 s, the planner replica publishing killed, the
+    active QoS agent killed and then hung. None of them makes the drone fall back or leave its mission
+    (docs/reliability.md)."""
     scenario = builtin_scenario("replicas")
     assert [f.kind for f in scenario.faults] == [
         "mpc_replica_kill", "replica_join", "mpc_replica_hang", "planner_replica_kill", "background",
-        "qos_agent_kill",
+        "qos_agent_kill", "qos_agent_hang",
     ]  # fmt: skip
     result = _fly_with_headroom(scenario, tmp_path)
     _check(result, set())
     for fault in result["faults"]:
         assert not fault["fallback"], fault
         assert fault["max_tracking_error_m"] < 0.5, fault  # it kept flying the mission, not a stale end
-    kill, join, hang, planner, _background, agent = result["faults"]
+    kill, join, hang, planner, _background, agent, agent_hang = result["faults"]
     assert "served the drone" in planner["notes"][0], planner
     # the standby QoS agent told the drone its grant within 2 s, with the session it adopted
     assert agent["notes"][0].endswith("was the active agent"), agent
@@ -327,6 +328,12 @@ def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> 
     assert grant["after"] == "available", grant
     assert grant["same_session"], grant
     assert grant["served_after_s"] < 2.0, grant
+    # the agent that took over, hung: the restarted one serves once the hung one's lease (2 s) ran out
+    assert agent_hang["notes"][0].endswith("was the active agent"), agent_hang
+    grant = agent_hang["grant"]
+    assert (grant["before"], grant["after"], grant["same_session"]) == ("available", "available", True), grant
+    # the router counts the 2 s lease from the hung agent's last keep-alive (sent every lease / 4)
+    assert 1.4 <= grant["served_after_s"] < 3.5, grant
     sessions = result["qos_network"]["sessions"]
     assert (sessions["conflicts"], sessions["open_at_end"]) == (0, 0), sessions
     assert "served the drone" in kill["notes"][0], kill  # it acted on the replica flying the drone

@@ -165,7 +165,8 @@ def test_a_hung_active_agent_loses_its_tokens_after_its_lease_and_the_standby_se
         finally:
             hung.send_signal(signal.SIGCONT)
         print(f"served {heard_at - hung_at:.2f} s after the hang")
-        assert lease_s <= heard_at - hung_at < lease_s + SERVED_WITHIN_S, heard_at - hung_at
+        # the router counts the lease from the agent's last keep-alive, sent every lease / 4
+        assert 0.7 * lease_s <= heard_at - hung_at < lease_s + SERVED_WITHIN_S, heard_at - hung_at
         assert (grant.grant, grant.session_id) == (Grant.AVAILABLE, first.session_id)
         # back: one agent stays active (by rank), the session is followed, never created again
         drone.until(True, Grant.AVAILABLE, also=lambda: len(actives(rig.zenoh)) == 1)

@@ -39,7 +39,7 @@ SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zen
 FaultKind = Literal[
     "mpc_kill", "router_kill", "coverage_loss", "downlink_loss", "fc_silence", "detector_flood", "background",
     "capacity", "trace", "mpc_replica_kill", "mpc_replica_hang", "replica_join", "planner_replica_kill",
-    "qos_agent_kill",
+    "qos_agent_kill", "qos_agent_hang",
 ]  # fmt: skip
 FLOOD_FPS = 100.0  # several times what the detector can process
 FLOOD_MAX_FRAMES = 20_000
@@ -78,7 +78,7 @@ class FaultWindow:
     end_ns: int | None = None
     notes: list[str] = field(default_factory=list)
     target: str = ""  # the process a replica fault acted on
-    grant: dict[str, Any] | None = None  # qos_agent_kill: the drone's grant before and after
+    grant: dict[str, Any] | None = None  # qos_agent_kill and _hang: the drone's grant before and after
 
 
 class Flood:
@@ -185,7 +185,8 @@ class FaultInjector:
             return "", f"no running QoS agent holds the active token ({', '.join(active) or 'none'})"
         return running[0], f"{running[0]} was the active agent"
 
-    def _begin_agent_kill(self, window: FaultWindow) -> None:
+    def _begin_agent_fault(self, window: FaultWindow) -> None:
+        """SIGKILL (qos_agent_kill) or SIGSTOP (qos_agent_hang) the active agent, its grant noted."""
         grants = [i.message for i in self._grants.drain() if isinstance(i.message, QosGrant)]
         before = grants[-1] if grants else None
         window.grant = {
@@ -194,11 +195,14 @@ class FaultInjector:
         }
         window.target, note = self._active_agent()
         window.notes.append(note)
-        if window.target:
+        if window.target and window.fault.kind == "qos_agent_hang":
+            self.procs.signal(window.target, signal.SIGSTOP)
+        elif window.target:
             self.procs.kill(window.target)
 
-    def _end_agent_kill(self, window: FaultWindow) -> None:
-        """The first grant the drone was told after the kill (the standby's), and when."""
+    def _end_agent_fault(self, window: FaultWindow) -> None:
+        """The first grant the drone was told after the fault began (the standby's), and when; then the
+        killed agent restarted, or the hung one woken (each comes back and stands by)."""
         assert window.grant is not None
         after = next(
             (
@@ -218,7 +222,9 @@ class FaultInjector:
                 "served_after_s": round((after.arrival_ns - window.start_ns) / NS_PER_S, 3),
                 "same_session": after.message.session_id == window.grant["session_before"],
             }
-        if window.target:
+        if window.target and window.fault.kind == "qos_agent_hang":
+            self.procs.signal(window.target, signal.SIGCONT)
+        elif window.target:
             self.procs.restart(window.target)
 
     def _begin_replica_fault(self, window: FaultWindow) -> None:
@@ -257,8 +263,8 @@ class FaultInjector:
             self.cell_event({"kind": "trace", "file": str(Path(fault.file).resolve()), "mean_mbps": 0.0})
         elif kind in ("mpc_replica_kill", "mpc_replica_hang", "replica_join", "planner_replica_kill"):
             self._begin_replica_fault(window)
-        elif kind == "qos_agent_kill":
-            self._begin_agent_kill(window)
+        elif kind in ("qos_agent_kill", "qos_agent_hang"):
+            self._begin_agent_fault(window)
         log.info("fault: %s for %.1f s", kind, fault.duration_s)
         self.windows.append(window)
         return window
@@ -275,8 +281,8 @@ class FaultInjector:
             self.procs.restart(window.target)
         elif kind == "mpc_replica_hang" and window.target:
             self.procs.signal(window.target, signal.SIGCONT)
-        elif kind == "qos_agent_kill":
-            self._end_agent_kill(window)
+        elif kind in ("qos_agent_kill", "qos_agent_hang"):
+            self._end_agent_fault(window)
         elif kind == "detector_flood":
             flood = self._floods.pop(id(window))
             window.notes.append(f"{flood.close()} flood frames sent")

@@ -216,14 +216,15 @@ MOVED = {
 # the faults that act on the replica serving the drone, and the setting that must give it a standby
 REPLICA_FAULTS = {
     "mpc_replica_kill": "mpc_replicas", "mpc_replica_hang": "mpc_replicas",
-    "planner_replica_kill": "planner_replicas", "qos_agent_kill": "qos_agents",
+    "planner_replica_kill": "planner_replicas",
+    "qos_agent_kill": "qos_agents", "qos_agent_hang": "qos_agents",
 }  # fmt: skip
 
 
 # the faults a fleet scenario may inject: they act on the edge's processes or the whole cell, and each
 # replica fault on the replica serving the fleet's first drone
 FLEET_FAULTS = ("mpc_replica_kill", "mpc_replica_hang", "planner_replica_kill", "qos_agent_kill",
-                "replica_join", "background")  # fmt: skip
+                "qos_agent_hang", "replica_join", "background")  # fmt: skip
 
 
 def replica_names(service: str, count: int) -> list[str]:
