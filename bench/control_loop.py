@@ -150,8 +150,9 @@ def run(round_trips: int) -> dict[str, Any]:
         finally:
             bus.close()
     ours_s, bare_s = _summary(ours), _summary(bare)
-    mpc = _hold(hold)
-    minimal_s, minimal_bare_s, minimal_mpc = _summary(minimal), _summary(minimal_bare), _hold(minimal_hold)
+    mpc = _summary([ms / 1000 for ms in hold])
+    minimal_mpc = _summary([ms / 1000 for ms in minimal_hold])
+    minimal_s, minimal_bare_s = _summary(minimal), _summary(minimal_bare)
     return {
         "benchmark": "control_loop",
         **provenance(),
@@ -182,12 +183,6 @@ def _blocks(loop: Loop, round_trips: int) -> tuple[list[float], list[float], lis
             target = ours if measure == loop.ours else bare
             target.extend(measure() for _ in range(BLOCK))
     return ours, bare, list(loop.hold_ms)
-
-
-def _hold(hold_ms: list[float]) -> dict[str, float]:
-    ordered = sorted(hold_ms)
-    p99 = ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))]
-    return {"p50_ms": statistics.median(ordered), "p99_ms": p99}
 
 
 def _sample_command() -> Command:

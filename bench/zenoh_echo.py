@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         subscriber = session.declare_subscriber(keys.uplink_all_drones(Stream.STATE), answer)
     else:
         if args.reply_bytes <= 0:
-            parser.error("--reply-bytes is required (or --listen KEY)")
+            parser.error("--reply-bytes is required (or --listen KEY, or --mpc)")
         reply = bytes(args.reply_bytes)
         pong = session.declare_publisher(PONG, priority=zenoh.Priority.REAL_TIME, express=True)
         subscriber = session.declare_subscriber(PING, lambda _sample: pong.put(reply))
