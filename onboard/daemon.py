@@ -34,6 +34,7 @@ from dynqos.onboard.fc import AccelSetpoint, FcState
 from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD, PX4_SUB_LOITER, FcLink
 from dynqos.onboard.metrics import DroneMetrics
 from dynqos.onboard.modem import modem_poller
+from dynqos.onboard.px4_events import EventCatalogue
 from dynqos.onboard.systemd import SystemdNotifier
 from dynqos.onboard.takeoff import Do, ExitAction, TakeoffSequencer, on_exit
 from dynqos.onboard.tick import TickInput, TickOutput
@@ -160,22 +161,34 @@ class OnboardDaemon:
         assert link is not None
         sequence = TakeoffSequencer(self.cfg.takeoff_alt_m, self.cfg.fc_timeout_s, self.clock.now_ns())
         commands: dict[Do, Callable[[int], int | None]] = {  # each given its confirmation count
+            Do.TAKEOFF_ALTITUDE: lambda _c: link.set_param("MIS_TAKEOFF_ALT", self.cfg.takeoff_alt_m),
             Do.ARM: link.arm,
-            Do.TAKE_OFF: lambda c: link.takeoff(self.cfg.takeoff_alt_m, confirmation=c),
+            Do.TAKE_OFF: lambda c: link.takeoff(confirmation=c),
             Do.OFFBOARD: lambda c: link.set_mode(PX4_MAIN_OFFBOARD, confirmation=c),
         }
+        logged = 0
         while not self.stop.is_set():
-            step = sequence.next(self.clock.now_ns(), link.state, link.last_heartbeat_ns is not None)
+            heard = link.last_heartbeat_ns is not None
+            step = sequence.next(self.clock.now_ns(), link.state, heard, armed=link.armed if heard else None)
             if step.do in commands:
                 if step.confirmation:
                     log.warning("onboard: the flight controller did not answer %s; sending it again (%d)",
                                 step.do.value, step.confirmation)  # fmt: skip
                 sequence.answered(commands[step.do](step.confirmation))
+                for refusal in sequence.refusals[logged:]:
+                    log.warning("onboard: %s; it said: %s", refusal, " | ".join(link.texts[-3:]) or "nothing")
+                logged = len(sequence.refusals)
             elif step.do is Do.HOLD_SETPOINT and step.hold is not None:
                 hold = hold_at(step.hold)
                 link.send_position(hold.pos_m, hold.yaw_rad)
             elif step.do is Do.FAILED:
-                log.error("onboard: %s (%s)", step.reason, self.cfg.mavlink_url)
+                said = " | ".join(link.texts[-3:])
+                log.error(
+                    "onboard: %s (%s)%s",
+                    step.reason,
+                    self.cfg.mavlink_url,
+                    f"; the flight controller said: {said}" if said else "",
+                )
                 return False
             elif step.do is Do.DONE and step.hold is not None:
                 self.offboard.set()
@@ -327,6 +340,7 @@ def fc_link(config: Config, clock: Clock | None = None) -> FcLink:
         signing_key=mavsign.load_key(cfg.mavlink_signing_key) if cfg.mavlink_signing_key else None,
         link_id=cfg.mavlink_link_id,
         accept_unsigned=cfg.mavlink_accept_unsigned,
+        events=EventCatalogue.load(cfg.px4_events) if cfg.px4_events else None,
     )
 
 

@@ -4,6 +4,10 @@ A reader thread keeps the latest position, velocity and attitude (stamped with o
 arrival), the FC's heartbeat (armed, custom mode) and command acks. Other threads send setpoints and
 commands through `send_*`, serialised by a lock. Heartbeat loss is reported, never raised.
 
+What the FC says in STATUSTEXT (PX4's preflight failures, failsafes, refusals) goes to the daemon's
+log at the FC's severity, the same text at most once per `TEXT_REPEAT_S`, and the last few are kept for
+the reason a failed take-off gives.
+
 The daemon does not rely on the FC's stream configuration: when it first hears the FC (and again
 when the FC comes back after a silence) it asks for LOCAL_POSITION_NED and ATTITUDE_QUATERNION at the
 rate it needs with MAV_CMD_SET_MESSAGE_INTERVAL, as MAVSDK does. Only messages from the configured
@@ -21,6 +25,7 @@ import math
 import os
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from pymavlink import mavutil
@@ -29,7 +34,9 @@ from pymavlink.dialects.v20 import common as mavlink
 from dynqos.common import mavsign
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.errors import TransportError
+from dynqos.onboard import px4_events
 from dynqos.onboard.fc import FcState
+from dynqos.onboard.px4_events import EventCatalogue
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +52,34 @@ ACCEL_AND_YAW_MASK = IGNORE_POSITION | IGNORE_VELOCITY | IGNORE_YAW_RATE  # fly 
 POSITION_AND_YAW_MASK = IGNORE_VELOCITY | IGNORE_ACCEL | IGNORE_YAW_RATE  # hold position and yaw
 STREAM_HZ = 50  # what the daemon asks the FC for: its 50 Hz loop needs a fresh state every tick
 STREAMS = (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION)
+TEXT_REPEAT_S = 10.0  # the same STATUSTEXT is logged again only after this long
+TEXTS_KEPT = 8  # the FC's last texts kept for a failure's reason
+MAX_TEXTS_TRACKED = 256  # distinct texts whose last logging time is remembered
+RESULT_NAMES = {
+    0: "accepted",
+    1: "temporarily rejected",
+    2: "denied",
+    3: "unsupported",
+    4: "failed",
+    5: "in progress",
+    6: "cancelled",
+}
+
+
+def severity_level(severity: int) -> int:
+    """A MAV_SEVERITY as a logging level: emergency..error are errors, warning a warning, the rest info."""
+    if severity <= mavlink.MAV_SEVERITY_ERROR:
+        return logging.ERROR
+    if severity == mavlink.MAV_SEVERITY_WARNING:
+        return logging.WARNING
+    return logging.INFO if severity <= mavlink.MAV_SEVERITY_INFO else logging.DEBUG
+
+
+def result_name(result: int | None) -> str:
+    """A MAV_RESULT as words (None: no answer)."""
+    if result is None:
+        return "no answer"
+    return f"{RESULT_NAMES.get(result, 'result')} ({result})"
 
 
 def serial_device_and_baud(url: str, default_baud: int = 921600) -> tuple[str, int]:
@@ -81,6 +116,7 @@ class FcLink:
         signing_key: bytes | None = None,
         link_id: int = 1,
         accept_unsigned: bool = False,
+        events: EventCatalogue | None = None,
     ) -> None:
         self.url = url
         # Without fly_yaw ([onboard] yaw = "free") the yaw is ignored and the FC keeps its own heading.
@@ -125,6 +161,11 @@ class FcLink:
         self.armed = False
         self.custom_mode = 0
         self._acks: dict[int, int] = {}
+        self._params: dict[str, float] = {}  # PARAM_VALUE echoes waited for by `set_param`
+        self.texts: list[str] = []  # the FC's last STATUSTEXTs, newest last
+        self.texts_heard = 0
+        self._text_logged: dict[str, float] = {}
+        self.events = events  # PX4's event catalogue, to read its EVENT messages
         self._ack_event = threading.Condition()
         self.setpoints_sent = 0
         self.positions = 0  # LOCAL_POSITION_NED messages read: their rate is what the loop gets
@@ -197,18 +238,58 @@ class FcLink:
                 first = True  # it may have rebooted and forgotten the rates we asked for
             if first:
                 self._request_streams()
-        elif kind == "COMMAND_ACK":
-            if msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and msg.result != 0:
-                log.warning("fc link: the flight controller refused a message rate (result %d)", msg.result)
             with self._ack_event:
+                self._ack_event.notify_all()  # for `wait_for`
+        elif kind in ("STATUSTEXT", px4_events.UNKNOWN_EVENT):
+            self._said(msg)
+        elif kind in ("COMMAND_ACK", "PARAM_VALUE"):
+            self._answer(msg)
+
+    def _answer(self, msg: Any) -> None:
+        """A command's ack or a parameter's echo, for whoever waits for it."""
+        with self._ack_event:
+            if msg.get_type() == "PARAM_VALUE":
+                self._params[msg.param_id] = msg.param_value
+            else:
+                if msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and msg.result != 0:
+                    log.warning(
+                        "fc link: the flight controller refused a message rate (result %d)", msg.result
+                    )
                 self._acks[msg.command] = msg.result
-                self._ack_event.notify_all()
+            self._ack_event.notify_all()
+
+    def _said(self, msg: Any) -> None:
+        """A STATUSTEXT, or PX4's EVENT (pymavlink's dialects do not know it: read from its bytes)."""
+        if msg.get_type() == "STATUSTEXT":
+            self._fc_says(str(msg.text).strip(), msg.severity)
+            return
+        event = px4_events.parse_event(bytes(msg.get_msgbuf()))
+        if event is not None and event.level < px4_events.LEVEL_DISABLED:
+            self._fc_says(px4_events.describe(event, self.events), event.level)
+
+    def _fc_says(self, text: str, severity: int) -> None:
+        """A STATUSTEXT or a PX4 event: kept, and logged at its severity unless said just before."""
+        if not text:
+            return
+        self.texts_heard += 1
+        self.texts = [*self.texts[-(TEXTS_KEPT - 1) :], text]
+        now = time.monotonic()
+        if now - self._text_logged.get(text, -math.inf) >= TEXT_REPEAT_S:
+            if len(self._text_logged) >= MAX_TEXTS_TRACKED:
+                self._text_logged.clear()
+            self._text_logged[text] = now
+            log.log(severity_level(severity), "flight controller says: %s", text)
 
     def _request_streams(self) -> None:
         """Ask for the state at STREAM_HZ; the acks are read (and a refusal logged) by the reader."""
         interval_us = 1_000_000 // STREAM_HZ
         for message_id in STREAMS:
             self._send_command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, message_id, interval_us)
+
+    def wait_for(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        """Until `predicate` holds, looked at on each heartbeat from the FC (at most `timeout_s`)."""
+        with self._ack_event:
+            return self._ack_event.wait_for(predicate, timeout=timeout_s)
 
     def heartbeat_lost(self) -> bool:
         lost = (
@@ -260,12 +341,29 @@ class FcLink:
         target = (self.fc_system_id, self.fc_component_id)
         self._send(lambda mav: mav.command_long_send(*target, command, min(confirmation, 255), *p))
 
+    def set_param(self, name: str, value: float, timeout_s: float = 3.0) -> int | None:
+        """PARAM_SET of a float parameter; 0 once the FC echoes it with PARAM_VALUE at that value, None
+        without an echo in time (an FC that has no such parameter says nothing)."""
+        with self._ack_event:
+            self._params.pop(name, None)
+        target = (self.fc_system_id, self.fc_component_id)
+        self._send(
+            lambda mav: mav.param_set_send(*target, name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32)
+        )
+        with self._ack_event:
+            self._ack_event.wait_for(lambda: name in self._params, timeout=timeout_s)
+            echoed = self._params.pop(name, None)
+        return 0 if echoed is not None and abs(echoed - value) < 1e-3 else None
+
     def arm(self, confirmation: int = 0) -> int | None:
         return self.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, confirmation=confirmation)
 
-    def takeoff(self, altitude_m: float, confirmation: int = 0) -> int | None:
+    def takeoff(self, confirmation: int = 0) -> int | None:
+        """MAV_CMD_NAV_TAKEOFF without a position or altitude: PX4 climbs to MIS_TAKEOFF_ALT above home
+        (its altitude field is above sea level, which the drone does not need to know)."""
+        nan = math.nan
         return self.command(
-            mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, altitude_m, confirmation=confirmation
+            mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, nan, nan, nan, nan, confirmation=confirmation
         )
 
     def set_mode(self, main: int, sub: int = 0, confirmation: int = 0) -> int | None:

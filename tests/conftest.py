@@ -19,6 +19,7 @@ settings.register_profile(
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "default"))
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED_PX4 = Path(__file__).resolve().parents[2] / "shared" / "px4"  # a PX4 SITL build (docs/px4.md)
 
 
 def flow_ports() -> FlowPorts:
@@ -42,6 +43,14 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data folder {SHARED_DATA} is absent")
     return SHARED_DATA
+
+
+@pytest.fixture
+def px4_dir() -> Path:
+    """PX4's folder for the tests that fly PX4 itself; they skip, saying why, where it is absent."""
+    if not (SHARED_PX4 / "bin" / "px4").is_file():
+        pytest.skip(f"no PX4 SITL build at {SHARED_PX4} (docs/px4.md says how to make one)")
+    return SHARED_PX4
 
 
 @pytest.fixture

@@ -5,8 +5,12 @@ from __future__ import annotations
 
 from dynqos.onboard.fc import FcState
 from dynqos.onboard.takeoff import (
+    ARM_RETRY_S,
+    ARM_WINDOW_S,
     CLIMB_TIMEOUT_S,
     COMMAND_ATTEMPTS,
+    DISARM_GRACE_S,
+    NO_ALTITUDE,
     PRIME_SETPOINTS,
     Do,
     ExitAction,
@@ -24,6 +28,8 @@ def at(alt_m: float) -> FcState:
 def test_arm_take_off_climb_prime_and_offboard_in_order() -> None:
     seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=10.0, start_ns=0)
     assert seq.next(0, None, fc_heard=False).do is Do.WAIT  # no FC yet
+    assert seq.next(1 * S, at(0.0), fc_heard=True).do is Do.TAKEOFF_ALTITUDE  # before arming
+    seq.answered(0)
     assert seq.next(1 * S, at(0.0), fc_heard=True).do is Do.ARM
     seq.answered(0)
     assert seq.next(1 * S, at(0.0), fc_heard=True).do is Do.TAKE_OFF
@@ -50,14 +56,15 @@ def test_a_silent_fc_fails_after_its_timeout_and_the_failure_sticks() -> None:
 
 
 def test_each_refusal_ends_the_take_off_with_what_was_refused() -> None:
-    for refused_at, expected in ((0, "refused to arm (answered 4)"), (1, "refused to take off (answered 4)")):
-        seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
-        for _ in range(refused_at):
-            seq.next(0, at(0.0), fc_heard=True)
-            seq.answered(0)
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    for _ in range(2):  # the altitude, the arming
         seq.next(0, at(0.0), fc_heard=True)
-        seq.answered(4)  # MAV_RESULT_FAILED
-        assert seq.next(0, at(0.0), fc_heard=True).reason == f"the flight controller {expected}"
+        seq.answered(0)
+    assert seq.next(0, at(0.0), fc_heard=True).do is Do.TAKE_OFF
+    seq.answered(4)  # MAV_RESULT_FAILED
+    refused = seq.next(0, at(0.0), fc_heard=True)
+    assert refused.reason == "the flight controller refused to take off (answered 4)"
+    assert seq.refusals == ["the flight controller answered 4 to 'take off'"]
     seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
     while seq.next(0, at(2.0), fc_heard=True).do is not Do.OFFBOARD:
         seq.answered(0)
@@ -74,6 +81,8 @@ def test_a_command_without_an_answer_is_sent_again_with_its_confirmation_counted
     2, ...; one lost datagram on a busy link (seen: 1 of 15 fleet runs stayed on the ground) is no
     refusal. An answer after the retransmissions goes on as if the first had been answered."""
     seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    seq.next(0, at(0.0), fc_heard=True)
+    seq.answered(0)  # the take-off altitude
     first = seq.next(0, at(0.0), fc_heard=True)
     assert (first.do, first.confirmation) == (Do.ARM, 0)
     seq.answered(None)
@@ -86,13 +95,61 @@ def test_a_command_without_an_answer_is_sent_again_with_its_confirmation_counted
 
 def test_a_climb_that_never_reaches_the_altitude_goes_on_after_its_timeout() -> None:
     seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
-    for _ in range(2):
+    for _ in range(3):
         seq.next(0, at(0.0), fc_heard=True)
         seq.answered(0)
     assert seq.next(1 * S, at(1.0), fc_heard=True).do is Do.WAIT  # the climb's clock starts here
     assert seq.next(int((1 + CLIMB_TIMEOUT_S) * S) - 1, at(1.0), fc_heard=True).do is Do.WAIT
     step = seq.next(int((1 + CLIMB_TIMEOUT_S) * S), at(1.2), fc_heard=True)
     assert (step.do, step.hold) == (Do.HOLD_SETPOINT, at(1.2))
+
+
+def test_a_refused_arming_is_asked_again_each_second_until_its_window_closes() -> None:
+    """PX4 refuses to arm until its estimator has a heading, a few seconds after boot; it says why in
+    STATUSTEXT and arms when asked again."""
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    seq.next(0, at(0.0), fc_heard=True)
+    seq.answered(0)
+    assert seq.next(0, at(0.0), fc_heard=True).do is Do.ARM
+    seq.answered(1)  # MAV_RESULT_TEMPORARILY_REJECTED
+    wait = seq.next(0, at(0.0), fc_heard=True)
+    assert (wait.do, wait.wait_s) == (Do.WAIT, ARM_RETRY_S)
+    assert seq.next(int(ARM_RETRY_S * S), at(0.0), fc_heard=True).do is Do.ARM
+    seq.answered(0)
+    assert seq.next(int(ARM_RETRY_S * S), at(0.0), fc_heard=True).do is Do.TAKE_OFF
+    assert seq.refusals == ["the flight controller answered 1 to 'arm'"]
+
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    seq.next(0, at(0.0), fc_heard=True)
+    seq.answered(0)
+    t = 0
+    while (step := seq.next(t, at(0.0), fc_heard=True)).do is not Do.FAILED:
+        if step.do is Do.ARM:
+            seq.answered(2)  # MAV_RESULT_DENIED, every time
+        t += int(ARM_RETRY_S * S)
+    assert step.reason == "the flight controller refused to arm (answered 2)"
+    assert ARM_WINDOW_S * S <= t <= (ARM_WINDOW_S + 2 * ARM_RETRY_S) * S
+
+
+def test_an_fc_that_disarms_during_the_climb_ends_the_take_off() -> None:
+    """PX4 disarms an armed vehicle that has not taken off within COM_DISARM_PRFLT: a take-off that
+    went nowhere must not go on to offboard mode on the ground."""
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    for _ in range(3):
+        seq.next(0, at(0.0), fc_heard=True, armed=True)
+        seq.answered(0)
+    assert seq.next(1 * S, at(0.0), fc_heard=True, armed=False).do is Do.WAIT  # the heartbeat may lag
+    failed = seq.next(int((1 + DISARM_GRACE_S) * S), at(0.0), fc_heard=True, armed=False)
+    assert (failed.do, failed.reason) == (Do.FAILED, "the flight controller disarmed during the climb")
+
+
+def test_an_fc_that_never_confirms_the_take_off_altitude_still_takes_off_to_its_own() -> None:
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    for _ in range(COMMAND_ATTEMPTS):
+        assert seq.next(0, at(0.0), fc_heard=True).do is Do.TAKEOFF_ALTITUDE
+        seq.answered(None)
+    assert seq.next(0, at(0.0), fc_heard=True).do is Do.ARM
+    assert seq.refusals == [NO_ALTITUDE]
 
 
 def test_only_a_drone_flying_from_the_edge_is_handed_a_mode_when_the_daemon_stops() -> None:

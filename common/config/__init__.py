@@ -36,6 +36,7 @@ from dynqos.common.config.network import (
     ZenohConfig,
 )
 from dynqos.common.config.planning import FleetPlanConfig, FleetTaskConfig
+from dynqos.common.config.px4 import Px4Config
 from dynqos.common.config.qos import ArbiterConfig, CamaraConfig, DeviceConfig, DeviceIpv4Config, QosConfig
 from dynqos.common.config.radio import CoverageHoleConfig, PredictionConfig, RadioConfig, RadioSiteConfig
 
@@ -61,6 +62,7 @@ __all__ = [
     "OnboardConfig",
     "PlannerConfig",
     "PredictionConfig",
+    "Px4Config",
     "QosConfig",
     "RadioConfig",
     "RadioSiteConfig",

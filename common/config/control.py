@@ -244,6 +244,9 @@ class OnboardConfig:
     mavlink_signing_key: str = ""
     mavlink_link_id: Annotated[int, In(0, 255, "must be a MAVLink link id, 0..255")] = 1
     mavlink_accept_unsigned: bool = False
+    # PX4's event catalogue (all_events.json.xz, made by every PX4 build): PX4's events, its arming
+    # checks among them, reach the log as PX4's sentences ("" = by their id; docs/px4.md)
+    px4_events: str = ""
     # command: the FC turns to the yaw of the edge's (or the fallback's) setpoint; free: the yaw is
     # ignored and the FC keeps its own heading (how every setpoint went out before 9231a8f).
     yaw: Literal["command", "free"] = "command"

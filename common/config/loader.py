@@ -42,6 +42,7 @@ from dynqos.common.config.network import (
     ZenohConfig,
 )
 from dynqos.common.config.planning import FleetPlanConfig
+from dynqos.common.config.px4 import Px4Config
 from dynqos.common.config.qos import QosConfig
 from dynqos.common.config.validate import checked
 
@@ -65,6 +66,7 @@ class Config:
     qos: QosConfig = field(default_factory=QosConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     fleet_plan: FleetPlanConfig = field(default_factory=FleetPlanConfig)
+    px4: Px4Config = field(default_factory=Px4Config)
 
     def __post_init__(self) -> None:
         bearers = {b.name for b in self.cell.bearer_list(self.zenoh, self.drone.id)}

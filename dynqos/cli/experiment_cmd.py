@@ -39,21 +39,25 @@ def add(commands: Commands) -> None:
         sub.set_defaults(handler=run_demo, own_config=OWN_CONFIG)
 
     sensitivity = commands.add_parser(
-        "sensitivity", parents=[common_options(1, settings=False)],
+        "sensitivity",
+        parents=[common_options(1, settings=False)],
         help="fly bg-staticqos once per priority weight and background load: where priority stops helping",
         description="Fly the bg-staticqos scenario (priority flow all along) once per priority weight and "
         "background load, and write summary.json, sensitivity.md and sensitivity.png: the drone's loaded "
         "C&C RTT and delivered rate against the weight, one line per load.",
-    )  # fmt: skip
+    )
     sensitivity.add_argument("--weights", default="1,2,4,8", metavar="W,W,...", help="priority weights")
     sensitivity.add_argument("--loads", default="40,80,120", metavar="M,M,...", help="background Mbit/s")
     sensitivity.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds per point")
     sensitivity.add_argument("--seed", type=int, default=0, metavar="N", help="seed of every point")
     sensitivity.add_argument(
-        "--repeat", type=int, default=1, metavar="N",
+        "--repeat",
+        type=int,
+        default=1,
+        metavar="N",
         help="fly each point N times with seeds S, S+1, ... (S: --seed); figures become mean [95%% interval] "
         "and the plot draws the intervals (default 1)",
-    )  # fmt: skip
+    )
     sensitivity.add_argument("--out", metavar="DIR", help="output folder (default: runs/<date-time>)")
     sensitivity.set_defaults(
         handler=run_sensitivity, own_config="each point builds its own config from the scenario"
@@ -63,27 +67,47 @@ def add(commands: Commands) -> None:
 def _flight_options(sub: argparse.ArgumentParser) -> None:
     sub.add_argument("--out", metavar="DIR", help="run folder (default: runs/<date-time>)")
     sub.add_argument(
-        "--metrics-port", type=int, default=0, metavar="BASE",
+        "--metrics-port",
+        type=int,
+        default=0,
+        metavar="BASE",
         help="each service's Prometheus /metrics on BASE, BASE+1, ... while it flies; the map is in "
         "<scenario>/logs/metrics.json (default 0: off)",
-    )  # fmt: skip
+    )
     sub.add_argument("--duration", type=float, metavar="S", help="recorded flight time per scenario")
     sub.add_argument("--scale", type=float, metavar="F", help="divide every rate by F (default 10)")
     sub.add_argument(
         "--seed", type=int, metavar="N", help="seed for the simulator, cell jitter and supervisor"
     )
     sub.add_argument(
-        "--repeat", type=int, default=1, metavar="N",
+        "--repeat",
+        type=int,
+        default=1,
+        metavar="N",
         help="run each scenario N times with seeds S, S+1, ... (S: --seed, else the scenario's); "
         "figures become mean [95%% interval] (default 1)",
-    )  # fmt: skip
+    )
     sub.add_argument(
-        "--profile", action="append", metavar="NAME",
+        "--vehicle",
+        choices=["sim", "px4"],
+        help="who flies the drone: dynqos's simulated vehicle (sim, the scenario's default) or a real PX4 "
+        "SITL, one instance per drone (px4; needs --px4-dir or [px4] dir, docs/px4.md)",
+    )
+    sub.add_argument(
+        "--px4-dir",
+        metavar="DIR",
+        help="PX4's folder (bin/px4 and etc/, such as PX4's build/px4_sitl_default); default: [px4] dir, "
+        "e.g. from DYNQOS_PX4__DIR",
+    )
+    sub.add_argument(
+        "--profile",
+        action="append",
+        metavar="NAME",
         help="dynqos (the default), paper (the paper's supervisor on a cell with its 27.3 ms RTT), "
         "no-rate-adaptation, radio-aware, or a profile file (dynqos/profiles/*.toml shows the format); "
         "repeatable: "
         "each scenario flies under each profile, side by side in report.md",
-    )  # fmt: skip
+    )
 
 
 def run_demo(args: argparse.Namespace, config: Config) -> int:
@@ -95,18 +119,37 @@ def run_demo(args: argparse.Namespace, config: Config) -> int:
         raise DynqosError(f"--duration must be in 5..3600 s, got {args.duration}")
     if args.scale is not None and not 0.01 <= args.scale <= 1000:
         raise DynqosError(f"--scale must be in 0.01..1000, got {args.scale}")
+    vehicle = _vehicle(args, config)
     out = Path(args.out) if args.out else default_out_dir()
     scenarios = [load_scenario(args.scenario_file)] if getattr(args, "scenario_file", None) else None
     names = getattr(args, "scenario", None) or list(DEFAULT_SCENARIOS)
     profiles = [load_profile(name) for name in (args.profile or [DEFAULT_PROFILE])]
     result = run_demo(
-        names, out, duration_s=args.duration, scale=args.scale, seed=args.seed, scenarios=scenarios,
-        profiles=profiles, repeat=args.repeat, metrics_port=args.metrics_port,
-    )  # fmt: skip
+        names,
+        out,
+        duration_s=args.duration,
+        scale=args.scale,
+        seed=args.seed,
+        scenarios=scenarios,
+        profiles=profiles,
+        repeat=args.repeat,
+        metrics_port=args.metrics_port,
+        vehicle=vehicle,
+    )
     print(f"report: {out / 'report.md'}")
     for s in result["scenarios"]:
         print(demo_line(s))
     return 0 if result["ok"] else 1
+
+
+def _vehicle(args: argparse.Namespace, config: Config) -> dict[str, Any]:
+    """The scenario changes that --vehicle and --px4-dir ask for (a PX4 folder checked now, not mid-run)."""
+    px4_dir = args.px4_dir or config.px4.dir
+    if args.vehicle != "px4":
+        return {"vehicle": args.vehicle} if args.vehicle else {}
+    from dynqos.sim.vehicle.px4_sitl import px4_folder
+
+    return {"vehicle": "px4", "px4_dir": str(px4_folder(px4_dir))}
 
 
 def floats(text: str, option: str) -> tuple[float, ...]:
@@ -130,9 +173,13 @@ def run_sensitivity(args: argparse.Namespace, config: Config) -> int:
     out = Path(args.out) if args.out else default_out_dir()
     out.mkdir(parents=True, exist_ok=True)
     result = run_sensitivity(
-        out, weights=floats(args.weights, "--weights"), loads_mbps=floats(args.loads, "--loads"),
-        duration_s=args.duration, seed=args.seed, repeat=args.repeat,
-    )  # fmt: skip
+        out,
+        weights=floats(args.weights, "--weights"),
+        loads_mbps=floats(args.loads, "--loads"),
+        duration_s=args.duration,
+        seed=args.seed,
+        repeat=args.repeat,
+    )
     print(f"report: {out / 'sensitivity.md'}")
     return 0 if result["ok"] else 1
 

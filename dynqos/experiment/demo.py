@@ -41,6 +41,7 @@ def run_demo(
     profiles: list[Profile] | None = None,
     repeat: int = 1,
     metrics_port: int = 0,
+    vehicle: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Every scenario under every profile, each `repeat` times with seeds seed, seed + 1, ...; then
     summary.json over all of them and report.md."""
@@ -49,7 +50,7 @@ def run_demo(
     chosen = scenarios if scenarios is not None else [builtin_scenario(n) for n in names]
     runs = [
         profile.apply(scenario)
-        for scenario in _overridden(chosen, duration_s, scale, seed, metrics_port)
+        for scenario in _overridden(chosen, duration_s, scale, seed, metrics_port, vehicle or {})
         for profile in profiles or [load_profile(DEFAULT_PROFILE)]
     ]
     try:
@@ -95,8 +96,13 @@ def _overridden(
     scale: float | None,
     seed: int | None,
     metrics_port: int = 0,
+    vehicle: dict[str, Any] | None = None,
 ) -> list[Scenario]:
+    """The scenarios with the command line's changes; `vehicle`: {"vehicle": "px4", "px4_dir": DIR}."""
     overrides: dict[str, Any] = {"metrics_port": metrics_port} if metrics_port else {}
+    vehicle = vehicle or {}
+    if "vehicle" in vehicle:
+        overrides["vehicle"] = vehicle["vehicle"]
     if duration_s is not None:
         overrides["duration_s"] = duration_s
     if scale is not None:
@@ -108,6 +114,9 @@ def _overridden(
         changes = dict(overrides)
         if "duration_s" in changes and scenario.bg_start_s >= 0:
             changes["bg_start_s"] = changes["duration_s"] / 2
+        if "px4_dir" in vehicle:
+            px4 = {**scenario.config.get("px4", {}), "dir": vehicle["px4_dir"]}
+            changes["config"] = {**scenario.config, "px4": px4}
         try:
             result.append(replace(scenario, **changes))
         except ConfigError as exc:

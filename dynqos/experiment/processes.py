@@ -4,6 +4,7 @@ ours to end). Used by the scenario runner, the fault injector and the benchmarks
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import selectors
@@ -219,9 +220,15 @@ class Processes:
         self.down.discard(name)
 
     def signal(self, name: str, signum: int) -> None:
+        """`signum` to our child `name`, or to the PX4 it started and runs (`px4_pid` in its ready line):
+        a fault that pauses the vehicle pauses PX4 itself, not its wrapper."""
         proc = self.procs[name]
         if proc.poll() is None:
-            proc.send_signal(signum)
+            px4 = self.info.get(name, {}).get("px4_pid")
+            if isinstance(px4, int):
+                os.kill(px4, signum)
+            else:
+                proc.send_signal(signum)
 
     def cpu_seconds(self) -> dict[str, float]:
         """CPU seconds each process still running has used so far (read before they are stopped)."""
@@ -237,6 +244,9 @@ class Processes:
             proc = self.procs[name]
             if proc.poll() is None:
                 proc.send_signal(signal.SIGCONT)  # in case a fault paused it
+                if isinstance(px4 := self.info.get(name, {}).get("px4_pid"), int):
+                    with contextlib.suppress(OSError):
+                        os.kill(px4, signal.SIGCONT)  # or the PX4 it runs
                 proc.send_signal(signal.SIGTERM)
             try:
                 proc.wait(timeout=15)

@@ -31,6 +31,7 @@ from dynqos.experiment.flight import (
 from dynqos.experiment.processes import Processes, flow_ports, free_port
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, with_cell, write_config
+from dynqos.experiment.vehicles import PX4_FOLDER, px4_config, px4_instance, start_vehicle, with_px4_flight
 from dynqos.reports.summary import summarise, write_scenario
 
 log = logging.getLogger(__name__)
@@ -59,25 +60,31 @@ def run_scenario(
         fc_port=free_port(socket.SOCK_DGRAM),
         gcs_port=free_port(socket.SOCK_DGRAM),
     )
+    px4 = px4_instance(scenario)
+    if px4 is not None:
+        config = px4_config(config, px4)
     config_path = folder / "dynqos.toml"
     write_config(config_path, scenario, config)
     procs = Processes(config_path, logs, scenario.metrics_port)
     rec = Recording()
 
     def fly() -> None:
-        cell_port = _start_edge_and_cell(procs, scenario, config, config_path, folder)
+        cell_port = _start_edge_and_cell(procs, scenario, config, config_path, folder, px4)
         _record_flight(scenario, config, procs, cell_port, rec, stop, progress)
 
     ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
     onboard_log = logs / "onboard.log"
     log_text = onboard_log.read_text(errors="replace") if onboard_log.exists() else ""
     summary = summarise(scenario, rec, log_text, ok=ok, failure=failure)
+    summary["vehicle"] = scenario.vehicle
+    if px4 is not None:
+        with_px4_flight(summary, folder / PX4_FOLDER / f"i{px4}", scenario)
     write_scenario(folder, scenario, rec, summary)
     return summary
 
 
 def _start_edge_and_cell(
-    procs: Processes, scenario: Scenario, config: Config, config_path: Path, folder: Path
+    procs: Processes, scenario: Scenario, config: Config, config_path: Path, folder: Path, px4: int | None
 ) -> int:
     """Everything but the drone, in dependency order; returns the cell's control port. The drone's flows
     connect to the bearer ports the cell reports and the QoS agent to its QoD API, so the config is
@@ -89,7 +96,7 @@ def _start_edge_and_cell(
     write_config(config_path, scenario, with_cell(config, cell, sink_port=sink_port))
     start_replicas(procs, "qos", scenario.qos_agents)
     start_mcap_recorder(procs, scenario, folder)
-    procs.start("vehicle", ["sim", "vehicle", "--duration", "3600"])
+    start_vehicle(procs, folder, px4)
     start_replicas(procs, "planner", scenario.planner_replicas)
     start_replicas(procs, "mpc", scenario.mpc_replicas)
     procs.start("detector", ["edge", "detector"])

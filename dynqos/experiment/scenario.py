@@ -134,6 +134,9 @@ class Scenario:
     # `dynqos edge ros2` beside the edge services (docs/ros2.md): the drones' ROS 2 topics on the router,
     # and ROS 2 nodes may steer them. Needs the ros2 extra.
     ros2_bridge: bool = False
+    # Who flies: dynqos's simulated vehicle, or a real PX4 SITL from [px4] dir ([scenario.config.px4],
+    # or `dynqos demo --vehicle px4 --px4-dir DIR`; docs/px4.md), one instance per drone.
+    vehicle: Literal["sim", "px4"] = "sim"
 
     @property
     def run_id(self) -> str:
@@ -172,6 +175,8 @@ class Scenario:
                 raise ConfigError(f"faults[{i}].kind", f"{fault.kind} needs {needs} >= 2 (a standby)")
         if self.ros2_bridge and importlib.util.find_spec("rosbags") is None:
             raise ConfigError("ros2_bridge", "needs the ros2 extra: pip install 'dynqos[ros2]'")
+        if self.vehicle == "px4" and self.fleet:
+            raise ConfigError("vehicle", "PX4 flies one drone for now: a fleet flies dynqos's vehicle")
         if not 0.5 <= self.memory_sample_s <= 600:
             raise ConfigError("memory_sample_s", "must be in 0.5..600 s")
         if self.metrics_port and not 1024 <= self.metrics_port <= 65000:

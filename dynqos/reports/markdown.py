@@ -157,6 +157,7 @@ def _single_section(out: Path, s: dict[str, Any], baseline: dict[str, Any] | Non
         f"fallback entered: {s['fallback_entered']}; "
         f"largest setpoint gap: {fmt(s['setpoint_gap_max_ms'])} ms",
         *_takeoff_line(s),
+        *_px4_lines(s),
         *_camera_line(s),
         *_qos_network_line(s),
         *_fault_lines(s),
@@ -254,6 +255,7 @@ def _repeated_section(s: dict[str, Any]) -> list[str]:
         f"- network QoS: grant AVAILABLE {figure(s, 'qos_network.decision_to_available_s', 2)} s and RTT "
         f"back within 1.2x {figure(s, 'qos_network.decision_to_rtt_back_s', 2)} s after the decision",
         *_repeated_fault_lines(s),
+        *_repeated_px4_line(s),
         *[f"- seed {run.get('seed')}: {machine.describe(run.get('machine'))}" for run in s["runs"]],
         f"- ok: {s['ok']} {s['failure']}",
         "",
@@ -298,6 +300,39 @@ def _takeoff_line(s: dict[str, Any]) -> list[str]:
     if not before:
         return []
     return [f"- take-off (before t=0, not counted above): {before} hand-over(s) to the fallback"]
+
+
+def _px4_lines(s: dict[str, Any]) -> list[str]:
+    """What PX4 itself did, from its ULog (dynqos/reports/px4_log.py)."""
+    px4 = s.get("px4")
+    if not px4:
+        return []
+    if "error" in px4:
+        return [f"- PX4 (vehicle = px4): {px4['error']}"]
+    modes = " -> ".join(f"{m['mode']} {m['duration_s']:.1f} s" for m in px4["modes"])
+    failsafes = ", ".join(f"{f['mode']} at {f['t_s']:.1f} s" for f in px4["failsafes"]) or "none"
+    lines = [
+        f"- PX4's own log ({px4['file']}): {modes}; OFFBOARD for the whole flight: "
+        f"{px4['offboard_whole_flight']}; failsafes: {failsafes}"
+    ]
+    if px4["warnings"]:
+        lines.append(
+            "- PX4's warnings: " + "; ".join(f"{w['text']} ({w['t_s']:.1f} s)" for w in px4["warnings"])
+        )
+    return lines
+
+
+def _repeated_px4_line(s: dict[str, Any]) -> list[str]:
+    """Flown by PX4: in how many runs its own log shows OFFBOARD for the whole flight, and its failsafes."""
+    flown = [run["px4"] for run in s["runs"] if run.get("px4")]
+    if not flown:
+        return []
+    whole = sum(1 for p in flown if p.get("offboard_whole_flight"))
+    failsafes = sum(len(p.get("failsafes", [])) for p in flown)
+    return [
+        f"- PX4's own logs: OFFBOARD for the whole flight in {whole} of {len(flown)} runs, "
+        f"OFFBOARD {figure(s, 'px4.offboard_s')} s; failsafes: {failsafes}"
+    ]
 
 
 def _camera_line(s: dict[str, Any]) -> list[str]:

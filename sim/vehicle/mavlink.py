@@ -308,6 +308,9 @@ class MavlinkVehicle:
                 return
             self.counters["commands"] += 1
             self._ack(msg.command, self._command(msg), link)
+        elif kind == "PARAM_SET":
+            if msg.target_system in (0, self.system_id):
+                self._param_set(msg.param_id, float(msg.param_value), link)
         elif kind == "SET_MODE":
             if (
                 msg.target_system in (0, self.system_id)
@@ -317,6 +320,19 @@ class MavlinkVehicle:
                 fc.set_mode(main, sub, state, now)
         else:
             self.counters["ignored"] += 1
+
+    def _param_set(self, name: str, value: float, link: Link | SerialLink) -> None:
+        """PARAM_SET as PX4 answers it, for the one parameter this vehicle has: MIS_TAKEOFF_ALT, the
+        altitude a take-off without one climbs to; echoed with PARAM_VALUE. Any other name: a STATUSTEXT."""
+        if name != "MIS_TAKEOFF_ALT" or not (math.isfinite(value) and 0.5 <= value <= 100):
+            self.counters["ignored"] += 1
+            text = f"[param] {name}: not set".encode()[:50]
+            self._send(self.mav.statustext_encode(mavlink.MAV_SEVERITY_WARNING, text), link)
+            return
+        self.model.fc.default_takeoff_alt_m = value
+        self._send(
+            self.mav.param_value_encode(name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32, 1, 0), link
+        )
 
     def _command(self, msg: Any) -> Result:
         fc, state, now = self.model.fc, self.model.state, self.model.now_ns
