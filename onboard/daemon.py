@@ -41,6 +41,7 @@ from dynqos.onboard.tick import TickInput, TickOutput
 from dynqos.onboard.uplink import Uplink
 
 log = logging.getLogger(__name__)
+LAND_WAIT_S = 12.0  # on_exit = "land": how long the daemon waits for the FC to land and disarm
 
 # Each stream's zenoh priority on (the default flow, the priority flow), and whether it may be dropped.
 # The status rides above the camera: zenoh serves a link's priorities strictly, so below the camera it
@@ -297,6 +298,11 @@ class OnboardDaemon:
         action = on_exit(self.core.offloading, self.cfg.on_exit)
         if action is ExitAction.LAND:
             log.info("onboard: stopping: landing (%s)", link.land())
+            # PX4 lands and then disarms by itself (COM_DISARM_LAND): the flight ends on the ground
+            landed = link.wait_for(lambda: not link.armed, timeout_s=LAND_WAIT_S)
+            log.info(
+                "onboard: %s", "landed and disarmed" if landed else f"still armed after {LAND_WAIT_S:g} s"
+            )
         elif action is ExitAction.HOLD:
             log.info("onboard: stopping: hold position (%s)", link.set_mode(PX4_MAIN_AUTO, PX4_SUB_LOITER))
         log.info("onboard: stopped; %s", self.health())

@@ -3,7 +3,9 @@ failsafes and whether it flew the whole recorded flight in OFFBOARD, on made-up 
 
 from __future__ import annotations
 
+from dynqos.experiment.vehicles import contacts
 from dynqos.reports.px4_log import CLOCK_SHARE, failsafe_onsets, flight_figures, mode_name, mode_spans
+from dynqos.sim.vehicle.world import default_world
 
 S = 1_000_000  # microseconds, PX4's clock
 
@@ -25,6 +27,21 @@ def test_the_modes_of_a_flight_in_order_with_how_long_each_lasted() -> None:
         1,
         True,
     )
+
+
+def test_a_mode_shown_while_disarmed_is_no_flight_in_it() -> None:
+    """Landed and disarmed, PX4 shows the mode last chosen (OFFBOARD) again: not a second entry."""
+    times = [0, 2 * S, 10 * S, 38 * S, 45 * S]
+    states = [4, 14, 14, 18, 14]
+    armed = [False, True, True, True, False]
+    spans = mode_spans(times, states, end_us=46 * S, armed=armed)
+    assert [s.mode for s in spans] == [
+        "AUTO_LOITER (disarmed)",
+        "OFFBOARD",
+        "AUTO_LAND",
+        "OFFBOARD (disarmed)",
+    ]
+    assert flight_figures(spans, [], flight_s=30.0)["offboard_whole_flight"] is True
 
 
 def test_leaving_offboard_mid_flight_or_a_short_stretch_is_not_the_whole_flight() -> None:
@@ -51,3 +68,21 @@ def test_modes_px4_may_add_have_a_name_that_says_what_they_are() -> None:
     assert mode_name(14) == "OFFBOARD"
     assert mode_name(23) == "EXTERNAL1"
     assert mode_name(99) == "nav_state 99"
+
+
+def test_contacts_with_the_world_are_found_along_px4s_track() -> None:
+    """PX4's world has no obstacles: what the drone touched is read from its track in dynqos's world,
+    with the rule dynqos's vehicle applies in flight; one entry per contact, none on the ground."""
+    world = default_world()
+    pillar = world.cylinders[0]
+    at_pillar = (pillar.center_m[0], pillar.center_m[1] - pillar.radius_m, -1.0)
+    track = [
+        (0.0, (pillar.center_m[0], pillar.center_m[1], 0.0)),  # standing on the floor under it: no contact
+        (1.0, (0.0, 0.0, -1.5)),
+        (2.0, at_pillar),
+        (2.1, at_pillar),  # still touching: the same contact
+        (3.0, (0.0, 0.0, -1.5)),
+        (4.0, at_pillar),
+    ]
+    found = contacts(world, track)
+    assert [(c["t_s"], c["with"]) for c in found] == [(2.0, "cylinder 0"), (4.0, "cylinder 0")]

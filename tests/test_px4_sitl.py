@@ -4,6 +4,7 @@ daemon listens and stopped cleanly by its pid, its ULog kept (skipped where no P
 
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
@@ -13,7 +14,9 @@ import pytest
 
 from dynqos.common.config import Px4Config
 from dynqos.common.errors import ConfigError, DynqosError
+from dynqos.common.geo import Geo
 from dynqos.onboard.fclink import FcLink
+from dynqos.sim.vehicle.px4_origin import DEFAULT_HOME, ORIGIN_TOLERANCE_M, Home
 from dynqos.sim.vehicle.px4_sitl import (
     DYNQOS_PARAMETERS,
     Px4Ports,
@@ -66,6 +69,17 @@ def test_px4_boots_with_dynqos_parameters_under_the_users_own() -> None:
         Px4Config(params={"com_obl": 1})
 
 
+def test_a_start_in_metres_is_a_home_that_far_from_the_common_origin() -> None:
+    origin = Home.of({})
+    assert (origin.lat_deg, origin.lon_deg) == DEFAULT_HOME[:2]
+    moved = origin.shifted((30.0, -20.0))
+    north, east = Geo(origin.lat_deg, origin.lon_deg).to_local(moved.lat_deg, moved.lon_deg)
+    assert (round(north, 6), round(east, 6)) == (30.0, -20.0)
+    assert moved.environment()["PX4_HOME_ALT"] == "489.400"
+    with pytest.raises(DynqosError, match="must be numbers"):
+        Home.of({"PX4_HOME_LAT": "north"})
+
+
 def test_each_instance_has_its_own_bin_of_links_to_the_one_binary(tmp_path: Path) -> None:
     """A copy whose px4-<module> links became plain files (as a copy without links makes them) boots."""
     folder = tmp_path / "px4"
@@ -90,13 +104,17 @@ def test_a_real_px4_boots_is_heard_where_the_daemon_listens_and_stops_cleanly(
     config = tmp_path / "dynqos.toml"
     config.write_text(f'[px4]\ndir = "{px4_dir}"\n')
     workdir = tmp_path / "px4"
-    px4 = DynqosProcess(["sim", "px4", "--instance", str(instance), "--workdir", str(workdir)], config, 60)
+    args = ["sim", "px4", "--instance", str(instance), "--workdir", str(workdir), "--start", "3,-2"]
+    px4 = DynqosProcess(args, config, 60)
     link = FcLink(f"udpin:127.0.0.1:{ports.offboard_remote}", fc_system_id=ports.system_id)
     try:
         assert px4.info["system_id"] == ports.system_id
         assert isinstance(px4.info["px4_pid"], int)
-        link.start()
+        link.start()  # where PX4 sends its offboard link, as the onboard daemon listens
         assert link.wait_ready(20), "no heartbeat and position from PX4 on its offboard link"
+        assert link.state is not None
+        # It stands where it was told, in the fleet's frame (SIH's home is a float32: ~0.4 m steps)
+        assert math.dist(link.state.pos_m[:2], (3.0, -2.0)) < ORIGIN_TOLERANCE_M
         assert link.set_param("MIS_TAKEOFF_ALT", 1.5) == 0  # PX4 echoes the take-off altitude
         assert not link.armed
     finally:

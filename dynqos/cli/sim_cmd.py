@@ -115,6 +115,12 @@ def _add_px4(simulators: Commands) -> None:
         help="PX4's working directory: parameters, dataman, log/ with the ULog (default ./px4-i<N>)",
     )
     px4.add_argument("--px4-dir", metavar="DIR", help="PX4's folder, over [px4] dir")
+    px4.add_argument(
+        "--start",
+        metavar="N,E",
+        help="where it stands, metres north and east of the fleet's common origin (default 0,0): PX4 boots "
+        "there and is told the common origin, so that every instance reports positions in one frame",
+    )
     px4.set_defaults(handler=run_px4)
 
 
@@ -147,4 +153,17 @@ def run_px4(args: argparse.Namespace, config: Config) -> int:
     if args.px4_dir:
         config = replace(config, px4=replace(config.px4, dir=args.px4_dir))
     workdir = Path(args.workdir) if args.workdir else Path(f"px4-i{args.instance}")
-    return px4_sitl.run(config, instance=args.instance, workdir=workdir)
+    start = _north_east(args.start) if args.start else (0.0, 0.0)
+    return px4_sitl.run(config, instance=args.instance, workdir=workdir, start_m=start)
+
+
+def _north_east(text: str) -> tuple[float, float]:
+    from dynqos.common.errors import DynqosError
+
+    try:
+        north, east = (float(v) for v in text.split(","))
+    except ValueError:
+        raise DynqosError(f"--start takes N,E in metres (e.g. 2.5,-1), got {text!r}") from None
+    if not all(abs(v) <= 1e4 for v in (north, east)):
+        raise DynqosError(f"--start must be within 10 km of the origin, got {text!r}")
+    return north, east

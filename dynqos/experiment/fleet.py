@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common import keys
-from dynqos.common.config import ZenohConfig
+from dynqos.common.config import Config, ZenohConfig
 from dynqos.common.keys import Downlink
 from dynqos.common.messages import QosDecision
 from dynqos.common.queues import BoundedQueue
@@ -36,6 +36,15 @@ from dynqos.experiment.flight import (
 from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, Scenario, fleet_configs, with_cell, write_config
+from dynqos.experiment.vehicles import (
+    contacts,
+    px4_workdir,
+    start_vehicle,
+    track,
+    with_px4_fleet,
+    with_px4_flight,
+    world_of,
+)
 from dynqos.reports.fleet import summarise_fleet, write_fleet
 from dynqos.reports.mission import mission_figures, vehicle_tracks
 from dynqos.reports.routes import plot_routes
@@ -65,6 +74,7 @@ def run_fleet(
         fc_base=free_udp_block(len(scenario.drones)),
         gcs_port=free_port(socket.SOCK_DGRAM),
     )
+    shared, drones, px4 = with_px4_fleet(scenario, shared, drones)  # px4: None, dynqos's vehicles fly
     if shared.fleet_plan.tasks:  # the fleet's plan: for these drones, into the run folder
         fleet_plan = replace(shared.fleet_plan, drones=tuple(drones), plan_file=str(folder / "plan.json"))
         shared = replace(shared, fleet_plan=fleet_plan)
@@ -88,9 +98,7 @@ def run_fleet(
         start_replicas(procs, "qos", scenario.qos_agents)
         # No MCAP recorder here: four drones already take this 2-core machine to its limit, and a fifth
         # subscriber of every state perturbed the fleet's figures in CI (docs/observability.md).
-        for i, uav in enumerate(drones):
-            args = ["sim", "vehicle", "--instance", str(i), "--duration", "3600"]
-            procs.start(f"vehicle-{uav}", args, config=paths[uav])
+        _start_vehicles(procs, folder, drones, paths, px4)
         start_replicas(procs, "planner", scenario.planner_replicas)
         start_replicas(procs, "mpc", scenario.mpc_replicas)
         if shared.fleet_plan.tasks:  # it waits until every drone offloads, then plans and sends the legs
@@ -108,6 +116,10 @@ def run_fleet(
     ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
     onboard_logs = {uav: _read(logs / f"onboard-{uav}.log") for uav in drones}
     summary = summarise_fleet(scenario, rec, recs, decisions, onboard_logs, ok=ok, failure=failure)
+    summary["vehicle"] = scenario.vehicle
+    for uav, instance in zip(drones, px4 or [], strict=False):  # what each PX4 did
+        with_px4_flight(summary, px4_workdir(folder, instance), scenario, uav)
+        summary["drones"][uav]["px4"]["contacts"] = contacts(world_of(drones[uav]), track(recs[uav]))
     if (folder / "plan.json").exists():  # a planned mission (docs/planning.md): what became of it
         plan = json.loads((folder / "plan.json").read_text())
         summary["mission"] = mission_figures(folder, plan, rec, recs, shared.supervisor.watchdog_s)
@@ -115,6 +127,22 @@ def run_fleet(
         summary["checks"]["nothing_left_booked"] = not plan["release_failed"]
     write_fleet(folder, scenario, rec, recs, decisions, summary)
     return summary
+
+
+def _start_vehicles(
+    procs: Processes, folder: Path, drones: dict[str, Config], paths: dict[str, Path], px4: list[int] | None
+) -> None:
+    """Each drone's vehicle, where its config stands it: dynqos's vehicle `--instance i`, or PX4."""
+    for i, (uav, config) in enumerate(drones.items()):
+        start_vehicle(
+            procs,
+            folder,
+            px4[i] if px4 else None,
+            name=f"vehicle-{uav}",
+            instance=i,
+            start_m=config.vehicle.start_m,
+            config=paths[uav],
+        )
 
 
 def _read(path: Path) -> str:

@@ -236,6 +236,9 @@ class Processes:
         for name, proc in self.procs.items():
             if proc.poll() is None and (used := cpu_s(proc.pid)) is not None:
                 out[name] = round(used, 2)
+            px4 = self.info.get(name, {}).get("px4_pid")  # the PX4 it runs (not counted in its own)
+            if isinstance(px4, int) and (used := cpu_s(px4)) is not None:
+                out[f"{name}-px4"] = round(used, 2)
         return out
 
     def stop_all(self) -> dict[str, int | None]:

@@ -31,7 +31,16 @@ from dynqos.experiment.flight import (
 from dynqos.experiment.processes import Processes, flow_ports, free_port
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, with_cell, write_config
-from dynqos.experiment.vehicles import PX4_FOLDER, px4_config, px4_instance, start_vehicle, with_px4_flight
+from dynqos.experiment.vehicles import (
+    contacts,
+    px4_config,
+    px4_instances,
+    px4_workdir,
+    start_vehicle,
+    track,
+    with_px4_flight,
+    world_of,
+)
 from dynqos.reports.summary import summarise, write_scenario
 
 log = logging.getLogger(__name__)
@@ -60,7 +69,8 @@ def run_scenario(
         fc_port=free_port(socket.SOCK_DGRAM),
         gcs_port=free_port(socket.SOCK_DGRAM),
     )
-    px4 = px4_instance(scenario)
+    instances = px4_instances(scenario)
+    px4 = instances[0] if instances else None
     if px4 is not None:
         config = px4_config(config, px4)
     config_path = folder / "dynqos.toml"
@@ -78,7 +88,8 @@ def run_scenario(
     summary = summarise(scenario, rec, log_text, ok=ok, failure=failure)
     summary["vehicle"] = scenario.vehicle
     if px4 is not None:
-        with_px4_flight(summary, folder / PX4_FOLDER / f"i{px4}", scenario)
+        with_px4_flight(summary, px4_workdir(folder, px4), scenario)
+        summary["px4"]["contacts"] = contacts(world_of(config), track(rec))
     write_scenario(folder, scenario, rec, summary)
     return summary
 

@@ -175,8 +175,6 @@ class Scenario:
                 raise ConfigError(f"faults[{i}].kind", f"{fault.kind} needs {needs} >= 2 (a standby)")
         if self.ros2_bridge and importlib.util.find_spec("rosbags") is None:
             raise ConfigError("ros2_bridge", "needs the ros2 extra: pip install 'dynqos[ros2]'")
-        if self.vehicle == "px4" and self.fleet:
-            raise ConfigError("vehicle", "PX4 flies one drone for now: a fleet flies dynqos's vehicle")
         if not 0.5 <= self.memory_sample_s <= 600:
             raise ConfigError("memory_sample_s", "must be in 0.5..600 s")
         if self.metrics_port and not 1024 <= self.metrics_port <= 65000:

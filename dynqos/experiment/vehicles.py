@@ -5,13 +5,18 @@ ports, so the daemon listens where PX4 instance N sends (14540+N) and reads syst
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from dynqos.common.config import Config
 from dynqos.experiment.processes import Processes
+from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import Scenario
+from dynqos.sim.vehicle.world import World, collision, default_world, load_world
+
+Vec3 = tuple[float, float, float]
 
 PX4_FOLDER = "px4"  # the run folder's sub-folder of PX4's working directories (its ULogs among them)
 
@@ -19,7 +24,7 @@ PX4_FOLDER = "px4"  # the run folder's sub-folder of PX4's working directories (
 def px4_config(config: Config, instance: int) -> Config:
     """`config` for a drone flown by PX4 instance `instance`: the daemon on PX4's offboard link, reading
     PX4's events with the build's catalogue, and the radio map (if on) hearing PX4's ground-station
-    link, which PX4 sends to 14550."""
+    link."""
     from dynqos.sim.vehicle.px4_sitl import Px4Ports, event_catalogue, px4_folder
 
     ports = Px4Ports(instance)
@@ -29,45 +34,116 @@ def px4_config(config: Config, instance: int) -> Config:
         mavlink_url=f"udpin:127.0.0.1:{ports.offboard_remote}",
         fc_system_id=ports.system_id,
         px4_events=str(events) if events else config.onboard.px4_events,
+        on_exit="land",  # the flight ends as PX4 expects: landed and disarmed before PX4 stops
     )
-    config = replace(config, onboard=onboard)
-    if config.cell.radio.enabled:
-        radio = replace(config.cell.radio, position_port=ports.gcs_remote)
-        config = replace(config, cell=replace(config.cell, radio=radio))
-    return config
+    return px4_radio(replace(config, onboard=onboard))
 
 
-def px4_instance(scenario: Scenario) -> int | None:
-    """A free PX4 instance number for the scenario's drone (None: it flies dynqos's vehicle)."""
+def px4_radio(config: Config) -> Config:
+    """The radio map (if on) hears the vehicles where every PX4 instance sends its ground-station link:
+    14550 (PX4's own port)."""
+    from dynqos.sim.vehicle.px4_sitl import Px4Ports
+
+    if not config.cell.radio.enabled:
+        return config
+    radio = replace(config.cell.radio, position_port=Px4Ports(0).gcs_remote)
+    return replace(config, cell=replace(config.cell, radio=radio))
+
+
+def with_px4_fleet(
+    scenario: Scenario, shared: Config, drones: dict[str, Config]
+) -> tuple[Config, dict[str, Config], list[int] | None]:
+    """A fleet's configs for PX4 (one free instance per drone, in order) when the scenario flies PX4,
+    and the instances; as they are, and None, when dynqos's vehicles fly."""
+    px4 = px4_instances(scenario)
+    if px4 is None:
+        return shared, drones, None
+    drones = {uav: px4_config(config, px4[i]) for i, (uav, config) in enumerate(drones.items())}
+    return px4_radio(shared), drones, px4
+
+
+def px4_instances(scenario: Scenario) -> list[int] | None:
+    """A free PX4 instance number for each of the scenario's drones (None: dynqos's vehicle flies)."""
     if scenario.vehicle != "px4":
         return None
     from dynqos.sim.vehicle.px4_sitl import free_instances
 
-    return free_instances(1)[0]
+    return free_instances(len(scenario.uavs))
 
 
-def start_vehicle(procs: Processes, folder: Path, instance: int | None, name: str = "vehicle") -> None:
-    """The drone's vehicle: PX4 instance `instance` with its working directory in the run folder, or
-    (None) dynqos's simulated vehicle."""
-    if instance is None:
-        procs.start(name, ["sim", "vehicle", "--duration", "3600"])
+def start_vehicle(
+    procs: Processes,
+    folder: Path,
+    px4: int | None,
+    *,
+    name: str = "vehicle",
+    instance: int = 0,
+    start_m: tuple[float, float] = (0.0, 0.0),
+    config: Path | None = None,
+) -> None:
+    """A drone's vehicle: PX4 instance `px4` with its working directory in the run folder, standing at
+    `start_m` in the fleet's frame, or (None) dynqos's simulated vehicle `instance` (which reads where it
+    stands from its config)."""
+    if px4 is None:
+        args = ["sim", "vehicle", "--instance", str(instance), "--duration", "3600"]
+        procs.start(name, args, config=config)
         return
-    workdir = folder / PX4_FOLDER / f"i{instance}"
-    procs.start(name, ["sim", "px4", "--instance", str(instance), "--workdir", str(workdir)], timeout_s=60)
+    workdir = px4_workdir(folder, px4)
+    args = [
+        "sim",
+        "px4",
+        "--instance",
+        str(px4),
+        "--workdir",
+        str(workdir),
+        "--start={},{}".format(*start_m),  # one word: a start of -5.5 is no option
+    ]
+    procs.start(name, args, timeout_s=90, config=config)
 
 
-def with_px4_flight(summary: dict[str, Any], workdir: Path, scenario: Scenario) -> None:
-    """`summary` with what PX4 did (its ULog, dynqos/reports/px4_log.py); a flight PX4 did not fly in
-    offboard mode throughout, or one in which PX4's failsafe fired, is not ok (docs/px4.md)."""
+def px4_workdir(folder: Path, px4: int) -> Path:
+    return folder / PX4_FOLDER / f"i{px4}"
+
+
+def with_px4_flight(
+    summary: dict[str, Any], workdir: Path, scenario: Scenario, uav: str | None = None
+) -> None:
+    """`summary` (a fleet's: drone `uav`'s entry) with what PX4 did (its ULog, dynqos/reports/px4_log.py);
+    a flight PX4 did not fly in offboard mode throughout, or one in which PX4's failsafe fired, is not ok
+    (docs/px4.md)."""
     from dynqos.reports.px4_log import px4_report
 
     report = px4_report(workdir, scenario.duration_s)
-    summary["px4"] = report
+    (summary if uav is None else summary["drones"][uav])["px4"] = report
     if not summary["ok"]:
         return
+    who = f"{uav}: " if uav else ""
     if "error" in report:
-        summary["ok"], summary["failure"] = False, f"PX4's ULog: {report['error']}"
+        summary["ok"], summary["failure"] = False, f"{who}PX4's ULog: {report['error']}"
     elif not report["offboard_whole_flight"]:
-        summary["ok"], summary["failure"] = False, "PX4 did not fly the whole flight in OFFBOARD"
+        summary["ok"], summary["failure"] = False, f"{who}PX4 did not fly the whole flight in OFFBOARD"
     elif report["failsafes"]:
-        summary["ok"], summary["failure"] = False, f"PX4's failsafe fired: {report['failsafes'][0]}"
+        summary["ok"], summary["failure"] = False, f"{who}PX4's failsafe fired: {report['failsafes'][0]}"
+
+
+def contacts(world: World, track: Sequence[tuple[float, Vec3]]) -> list[dict[str, Any]]:
+    """Each contact of the drone with the world along its `track` ((seconds, position) in the world's
+    frame): what PX4 cannot report, since its world has no obstacles. The same sphere and rule as dynqos's
+    vehicle checks in flight (sim/vehicle/world.py); one entry when a contact begins."""
+    found, touching = [], None
+    for t, pos in track:
+        now = collision(world, pos) if pos[2] < -0.05 else None  # on the ground it touches nothing
+        if now is not None and now != touching:
+            found.append({"t_s": round(t, 2), "with": now, "at_m": [round(v, 2) for v in pos]})
+        touching = now
+    return found
+
+
+def track(rec: Recording) -> list[tuple[float, Vec3]]:
+    """The drone's positions as its states reported them, by seconds into the recorded flight."""
+    return [((st.stamp_ns - (rec.t0_ns or 0)) / 1e9, st.pos_m) for _, st in rec.states]
+
+
+def world_of(config: Config) -> World:
+    """The world the drone's camera renders: `[onboard] world_file`, or the default arena."""
+    return load_world(config.onboard.world_file) if config.onboard.world_file else default_world()

@@ -311,9 +311,10 @@ def _px4_lines(s: dict[str, Any]) -> list[str]:
         return [f"- PX4 (vehicle = px4): {px4['error']}"]
     modes = " -> ".join(f"{m['mode']} {m['duration_s']:.1f} s" for m in px4["modes"])
     failsafes = ", ".join(f"{f['mode']} at {f['t_s']:.1f} s" for f in px4["failsafes"]) or "none"
+    touched = ", ".join(f"{c['with']} at {c['t_s']:.1f} s" for c in px4.get("contacts", [])) or "none"
     lines = [
         f"- PX4's own log ({px4['file']}): {modes}; OFFBOARD for the whole flight: "
-        f"{px4['offboard_whole_flight']}; failsafes: {failsafes}"
+        f"{px4['offboard_whole_flight']}; failsafes: {failsafes}; contacts with the world: {touched}"
     ]
     if px4["warnings"]:
         lines.append(

@@ -21,6 +21,8 @@ NAV_STATES = {
     22: "AUTO_VTOL_TAKEOFF",
 }  # fmt: skip
 OFFBOARD = 14
+ARMED = 2  # vehicle_status.arming_state
+DISARMED = " (disarmed)"
 WARNING_LEVEL = 4  # ULog's levels are syslog's: 0 emergency .. 4 warning .. 7 debug
 MESSAGES_KEPT = 20
 # PX4 SITL runs in lockstep with its simulator at about 0.99 of real time (its README): a flight of 30 s
@@ -45,15 +47,23 @@ class Span:
         return self.end_s - self.start_s
 
 
-def mode_spans(times_us: Sequence[int], nav_states: Sequence[int], end_us: int) -> list[Span]:
-    """Each stretch of one flight mode, in order; the last ends with the log (`end_us`)."""
+def mode_spans(
+    times_us: Sequence[int], nav_states: Sequence[int], end_us: int, armed: Sequence[bool] | None = None
+) -> list[Span]:
+    """Each stretch of one flight mode, in order; the last ends with the log (`end_us`). With `armed`, a
+    mode PX4 shows while disarmed is named so ("OFFBOARD (disarmed)"): once landed and disarmed PX4 shows
+    the mode last chosen again, which is no flight in it."""
+    names = [
+        mode_name(int(state)) + ("" if armed is None or armed[i] else DISARMED)
+        for i, state in enumerate(nav_states)
+    ]
     spans: list[Span] = []
-    for i, (t, state) in enumerate(zip(times_us, nav_states, strict=True)):
-        if i and state == nav_states[i - 1]:
+    for i, (t, name) in enumerate(zip(times_us, names, strict=True)):
+        if i and name == names[i - 1]:
             continue
         if spans:
             spans[-1] = Span(spans[-1].mode, spans[-1].start_s, t / US_PER_S)
-        spans.append(Span(mode_name(int(state)), t / US_PER_S, end_us / US_PER_S))
+        spans.append(Span(name, t / US_PER_S, end_us / US_PER_S))
     return spans
 
 
@@ -102,9 +112,9 @@ def read_ulog(path: Path, flight_s: float) -> dict[str, Any]:
     times = [int(t) for t in status.data["timestamp"]]
     states = [int(s) for s in status.data["nav_state"]]
     flags = [int(f) for f in status.data["failsafe"]]
-    figures = flight_figures(
-        mode_spans(times, states, int(ulog.last_timestamp)), failsafe_onsets(times, flags, states), flight_s
-    )
+    armed = [int(a) == ARMED for a in status.data["arming_state"]]
+    spans = mode_spans(times, states, int(ulog.last_timestamp), armed)
+    figures = flight_figures(spans, failsafe_onsets(times, flags, states), flight_s)
     warnings = [m for m in ulog.logged_messages if m.log_level <= WARNING_LEVEL]
     seen: dict[str, float] = {}
     for m in warnings:

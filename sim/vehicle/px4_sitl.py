@@ -32,6 +32,7 @@ from dynqos.common import mavsign
 from dynqos.common.config import Config, Px4Config
 from dynqos.common.errors import DynqosError
 from dynqos.common.lifecycle import ready_line, stop_on_signals
+from dynqos.sim.vehicle.px4_origin import Home, set_origin
 
 log = logging.getLogger(__name__)
 
@@ -269,8 +270,9 @@ def ulogs(workdir: Path) -> list[Path]:
     return sorted((workdir / "log").glob("**/*.ulg"))
 
 
-def run(config: Config, *, instance: int, workdir: Path) -> int:
-    """Boot PX4 instance `instance` in `workdir`, say ready, and run until SIGTERM or PX4's own exit."""
+def run(config: Config, *, instance: int, workdir: Path, start_m: tuple[float, float] = (0.0, 0.0)) -> int:
+    """Boot PX4 instance `instance` in `workdir` standing at `start_m` (north, east) of the fleet's common
+    origin, say ready, and run until SIGTERM or PX4's own exit."""
     if not 0 <= instance <= MAX_INSTANCE:
         raise DynqosError(f"--instance must be in 0..{MAX_INSTANCE}, got {instance}")
     folder = px4_folder(config.px4.dir)
@@ -279,8 +281,11 @@ def run(config: Config, *, instance: int, workdir: Path) -> int:
     workdir = workdir.resolve()
     forget_state(workdir)
     env = boot_environment(config.px4, instance, os.environ)
-    if config.px4.signing_key:
-        install_signing_key(mavsign.load_key(config.px4.signing_key), workdir)
+    origin = Home.of(env)
+    env.update(origin.shifted(start_m).environment())
+    key = mavsign.load_key(config.px4.signing_key) if config.px4.signing_key else None
+    if key is not None:
+        install_signing_key(key, workdir)
     px4 = Px4Process(folder, instance, workdir, env, workdir / "console.log")
     stop, stopped_by_signal = threading.Event(), threading.Event()
 
@@ -292,6 +297,8 @@ def run(config: Config, *, instance: int, workdir: Path) -> int:
     try:
         px4.wait_ready(config.px4.boot_timeout_s)
         ports = Px4Ports(instance)
+        if start_m != (0.0, 0.0):
+            set_origin(ports, origin, start_m, key, config.px4.boot_timeout_s)
         ready_line(
             "px4",
             px4_pid=px4.proc.pid,
@@ -302,6 +309,7 @@ def run(config: Config, *, instance: int, workdir: Path) -> int:
             gcs={"remote": ports.gcs_remote, "bind": ports.gcs_local},
             folder=str(folder),
             signing="on" if config.px4.signing_key else "off",
+            start_m=list(start_m),
         )
         log.info("px4: instance %d (pid %d) is up in %s", instance, px4.proc.pid, workdir)
 
