@@ -35,7 +35,8 @@ from dynqos.common.config import Config, OnboardConfig, Px4Config, VehicleSimCon
 from dynqos.common.errors import DynqosError
 from dynqos.experiment.processes import Processes, free_port
 from dynqos.onboard.core import hold_at
-from dynqos.onboard.fclink import PX4_MAIN_OFFBOARD, FcLink
+from dynqos.onboard.daemon import takeoff_commands
+from dynqos.onboard.fclink import FcLink
 from dynqos.onboard.takeoff import Do, TakeoffSequencer
 from dynqos.sim.vehicle.px4_sitl import Px4Ports, free_instances
 
@@ -133,12 +134,7 @@ def take_off(link: FcLink) -> Vec3:
     """The onboard daemon's own take-off sequence (onboard/takeoff.py) on this link; where it ended."""
     clock = MonotonicClock()
     sequence = TakeoffSequencer(ALTITUDE_M, 30.0, clock.now_ns())
-    commands: dict[Do, Callable[[int], int | None]] = {
-        Do.TAKEOFF_ALTITUDE: lambda _c: link.set_param("MIS_TAKEOFF_ALT", ALTITUDE_M),
-        Do.ARM: link.arm,
-        Do.TAKE_OFF: lambda c: link.takeoff(confirmation=c),
-        Do.OFFBOARD: lambda c: link.set_mode(PX4_MAIN_OFFBOARD, confirmation=c),
-    }
+    commands = takeoff_commands(link, ALTITUDE_M)
     while True:
         heard = link.last_heartbeat_ns is not None
         step = sequence.next(clock.now_ns(), link.state, heard, armed=link.armed if heard else None)

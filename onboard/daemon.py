@@ -161,12 +161,7 @@ class OnboardDaemon:
         link = self.link
         assert link is not None
         sequence = TakeoffSequencer(self.cfg.takeoff_alt_m, self.cfg.fc_timeout_s, self.clock.now_ns())
-        commands: dict[Do, Callable[[int], int | None]] = {  # each given its confirmation count
-            Do.TAKEOFF_ALTITUDE: lambda _c: link.set_param("MIS_TAKEOFF_ALT", self.cfg.takeoff_alt_m),
-            Do.ARM: link.arm,
-            Do.TAKE_OFF: lambda c: link.takeoff(confirmation=c),
-            Do.OFFBOARD: lambda c: link.set_mode(PX4_MAIN_OFFBOARD, confirmation=c),
-        }
+        commands = takeoff_commands(link, self.cfg.takeoff_alt_m)
         logged = 0
         while not self.stop.is_set():
             heard = link.last_heartbeat_ns is not None
@@ -330,6 +325,17 @@ class OnboardDaemon:
             self.bus.close()
         if self.link is not None:
             self.link.close()
+
+
+def takeoff_commands(link: FcLink, altitude_m: float) -> dict[Do, Callable[[int], int | None]]:
+    """What each command step of the take-off (onboard/takeoff.py) sends on the FC link, given its
+    confirmation count; the FC's answer (MAV_RESULT, or None) is what `TakeoffSequencer.answered` takes."""
+    return {
+        Do.TAKEOFF_ALTITUDE: lambda _c: link.set_param("MIS_TAKEOFF_ALT", altitude_m),
+        Do.ARM: link.arm,
+        Do.TAKE_OFF: lambda c: link.takeoff(confirmation=c),
+        Do.OFFBOARD: lambda c: link.set_mode(PX4_MAIN_OFFBOARD, confirmation=c),
+    }
 
 
 def fc_link(config: Config, clock: Clock | None = None) -> FcLink:

@@ -219,13 +219,17 @@ class Processes:
         self.start(name, args, program=program, config=config)
         self.down.discard(name)
 
+    def _px4_pid(self, name: str) -> int | None:
+        """The pid of the PX4 our child `name` started (`px4_pid` in its ready line), if it runs one."""
+        pid = self.info.get(name, {}).get("px4_pid")
+        return pid if isinstance(pid, int) else None
+
     def signal(self, name: str, signum: int) -> None:
         """`signum` to our child `name`, or to the PX4 it started and runs (`px4_pid` in its ready line):
         a fault that pauses the vehicle pauses PX4 itself, not its wrapper."""
         proc = self.procs[name]
         if proc.poll() is None:
-            px4 = self.info.get(name, {}).get("px4_pid")
-            if isinstance(px4, int):
+            if (px4 := self._px4_pid(name)) is not None:
                 os.kill(px4, signum)
             else:
                 proc.send_signal(signum)
@@ -236,8 +240,8 @@ class Processes:
         for name, proc in self.procs.items():
             if proc.poll() is None and (used := cpu_s(proc.pid)) is not None:
                 out[name] = round(used, 2)
-            px4 = self.info.get(name, {}).get("px4_pid")  # the PX4 it runs (not counted in its own)
-            if isinstance(px4, int) and (used := cpu_s(px4)) is not None:
+            px4 = self._px4_pid(name)  # the PX4 it runs (not counted in its own)
+            if px4 is not None and (used := cpu_s(px4)) is not None:
                 out[f"{name}-px4"] = round(used, 2)
         return out
 
@@ -247,7 +251,7 @@ class Processes:
             proc = self.procs[name]
             if proc.poll() is None:
                 proc.send_signal(signal.SIGCONT)  # in case a fault paused it
-                if isinstance(px4 := self.info.get(name, {}).get("px4_pid"), int):
+                if (px4 := self._px4_pid(name)) is not None:
                     with contextlib.suppress(OSError):
                         os.kill(px4, signal.SIGCONT)  # or the PX4 it runs
                 proc.send_signal(signal.SIGTERM)
