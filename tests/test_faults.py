@@ -22,6 +22,7 @@ from dynqos.experiment.faults import Fault, FaultInjector, FaultWindow, log_time
 from dynqos.experiment.processes import Processes
 from dynqos.experiment.runner import run_scenario
 from dynqos.experiment.scenario import Scenario, builtin_scenario
+from tests.flights import fly_for_behaviour, starved
 
 T_WD_MS = 150.0
 TICK_MS = 20.0
@@ -255,8 +256,6 @@ def test_outcome_says_what_the_drone_saw_and_did_while_a_fault_lasted() -> None:
 
 
 def _check(result: dict[str, Any], kinds_with_fallback: set[str]) -> None:
-    # A flight flown again after a starved one is asserted whatever its machine was (_fly_with_headroom).
-    assert result["ok"] or result["failure"].startswith("starved"), result["failure"]
     for fault in result["faults"]:
         kind = fault["kind"]
         assert fault["recovered"], fault
@@ -270,20 +269,8 @@ def _check(result: dict[str, Any], kinds_with_fallback: set[str]) -> None:
             assert fault["log"], fault  # a line that names what happened
 
 
-def _fly_with_headroom(scenario: Scenario, tmp_path: Path) -> dict[str, Any]:
-    """The flight, flown once more when the machine was starved during it (its summary's `machine`, more
-    than 3 s above 85% busy): then its timings are the CPU's, not the runtime's (a detector flood that
-    delays the MPC past the watchdog, a restart that misses its window). The second flight is asserted
-    on whatever its machine was, so the test still fails on a runtime that does not recover."""
-    result = run_scenario(scenario, tmp_path / "first", progress=False)
-    if (result.get("machine") or {}).get("starved"):
-        print(f"starved the first time ({result['machine']}): flying again")
-        result = run_scenario(scenario, tmp_path / "again", progress=False)
-    return result
-
-
 @pytest.mark.slow
-@pytest.mark.timeout(600)  # a starved first flight is flown again
+@pytest.mark.timeout(600)  # a flight that failed while starved is flown again
 def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
     """The shipped faults scenario, as docs/reliability.md measures it: MPC and router killed, coverage
     lost for 0.5, 2 and 10 s, the downlink lost, the FC silent for 2 s, the detector flooded."""
@@ -291,19 +278,22 @@ def test_faults_flight_falls_back_in_time_and_recovers(tmp_path: Path) -> None:
     assert {f.kind for f in scenario.faults} == {
         "mpc_kill", "router_kill", "coverage_loss", "downlink_loss", "fc_silence", "detector_flood",
     }  # fmt: skip
-    result = _fly_with_headroom(scenario, tmp_path)
+    fly_for_behaviour(lambda out: run_scenario(scenario, out, progress=False), tmp_path, _check_faults)
+
+
+def _check_faults(result: dict[str, Any], _: Path) -> None:
     _check(result, {"mpc_kill", "coverage_loss", "downlink_loss", "router_kill"})
     by_kind = {f["kind"]: f for f in result["faults"]}
     assert sorted(f["duration_s"] for f in result["faults"] if f["kind"] == "coverage_loss") == [0.5, 2, 10]
     assert any("no state from the flight controller" in line for line in by_kind["fc_silence"]["log"])
     assert "flood frames sent" in by_kind["detector_flood"]["notes"][0]
     # The flood is CPU load: on a starved machine it reaches control; with headroom it costs frames only.
-    if not (result.get("machine") or {}).get("starved"):
+    if not starved(result):
         assert not by_kind["detector_flood"]["fallback"]
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(600)  # a starved first flight is flown again
+@pytest.mark.timeout(600)  # a flight that failed while starved is flown again
 def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> None:
     """The shipped replicas scenario: two MPC and two planner replicas; the MPC replica flying the drone
     killed, a third joining, the one flying hung for 2 s, the planner replica publishing killed, the
@@ -314,7 +304,10 @@ def test_replica_faults_never_send_the_drone_to_its_fallback(tmp_path: Path) -> 
         "mpc_replica_kill", "replica_join", "mpc_replica_hang", "planner_replica_kill", "background",
         "qos_agent_kill", "qos_agent_hang",
     ]  # fmt: skip
-    result = _fly_with_headroom(scenario, tmp_path)
+    fly_for_behaviour(lambda out: run_scenario(scenario, out, progress=False), tmp_path, _check_replicas)
+
+
+def _check_replicas(result: dict[str, Any], _: Path) -> None:
     _check(result, set())
     for fault in result["faults"]:
         assert not fault["fallback"], fault

@@ -27,6 +27,7 @@ from dynqos.experiment.scenario import (
     write_config,
 )
 from dynqos.reports.fleet import _queue_delays, summarise_fleet
+from tests.flights import fly_for_behaviour
 from tests.procs import DYNQOS
 
 DRONE_KEYS = {
@@ -186,7 +187,7 @@ def test_a_short_arbitrated_fleet_flight_keeps_the_high_risk_drones_loop(tmp_pat
 
 @pytest.mark.slow
 @pytest.mark.integration
-@pytest.mark.timeout(600)  # a starved first flight is flown again
+@pytest.mark.timeout(600)  # a flight that failed while starved is flown again
 def test_a_fleet_on_a_replicated_edge_never_falls_back_when_its_replicas_are_killed_or_hung(
     tmp_path: Path,
 ) -> None:
@@ -194,13 +195,10 @@ def test_a_fleet_on_a_replicated_edge_never_falls_back_when_its_replicas_are_kil
     replica serving uav1 is killed, a third joins, the serving one is hung, the serving planner is
     killed, the active QoS agent is killed. No drone falls back, none of its setpoints pauses over 100
     ms, the standby agent serves uav1's grant, the same session, within 2 s."""
-    out = tmp_path / "run"
-    summary = _fly_fleet(out, "fleet-replicas", "45")
-    if summary["failure"].startswith("starved"):
-        print(f"starved the first time ({summary['machine']}): flying again")
-        out = tmp_path / "again"
-        summary = _fly_fleet(out, "fleet-replicas", "45")
-    assert summary["ok"] is True, summary["failure"]
+    fly_for_behaviour(lambda out: _fly_fleet(out, "fleet-replicas", "45"), tmp_path, _check_whole)
+
+
+def _check_whole(summary: dict[str, Any], out: Path) -> None:
     kinds = [f["kind"] for f in summary["faults"]]
     assert kinds == ["mpc_replica_kill", "replica_join", "mpc_replica_hang", "planner_replica_kill",
                      "qos_agent_kill"]  # fmt: skip
@@ -237,7 +235,7 @@ OTHER_MODES = {
 
 @pytest.mark.slow
 @pytest.mark.integration
-@pytest.mark.timeout(600)  # a starved first flight is flown again
+@pytest.mark.timeout(600)  # a flight that failed while starved is flown again
 @pytest.mark.parametrize("mode", sorted(OTHER_MODES))
 def test_a_replicated_edge_keeps_every_drone_out_of_its_fallback_in_the_fleets_other_modes(
     mode: str, tmp_path: Path
@@ -251,33 +249,32 @@ def test_a_replicated_edge_keeps_every_drone_out_of_its_fallback_in_the_fleets_o
                    for i, kind in enumerate(kinds))  # fmt: skip
     scenario = replace(base, name=f"fleet-replicas-{mode}", qos=qos, qos_policy="grant-all", faults=faults,
                        duration_s=faults[-1].at_s + 8.0)  # fmt: skip
-    summary = run_scenario(scenario, tmp_path / "first", progress=False)
-    if summary["failure"].startswith("starved"):
-        print(f"starved the first time ({summary['machine']}): flying again")
-        summary = run_scenario(scenario, tmp_path / "again", progress=False)
-    assert summary["ok"] is True, summary["failure"]
-    assert [f["kind"] for f in summary["faults"]] == list(kinds)
-    for fault in summary["faults"]:
-        print(f"{mode}: {fault['kind']} on {fault['target']}: fell back {fault['fell_back'] or 'none'}, "
-              f"longest setpoint gap {fault['max_setpoint_gap_ms']} ms; {fault['notes']}")  # fmt: skip
-        assert fault["target"], fault
-        assert fault["fell_back"] == [], fault
-        assert fault["max_setpoint_gap_ms"] is not None
-        assert fault["max_setpoint_gap_ms"] < 100, fault
-    assert "served the drone" in summary["faults"][0]["notes"][0]
-    for uav, drone in summary["drones"].items():
-        assert drone["fallback_entered"] is False, uav
-        if qos == "default":  # the mode does what it says: nobody is granted priority
-            assert drone["granted_time_s"] == 0, uav
-    if qos == "dynamic":  # and here the high-risk drone holds it (granted, as every drone is asked)
-        assert summary["drones"]["uav1"]["granted_time_s"] > 0.5 * scenario.duration_s
-    if "qos_agent_kill" in kinds:
-        grant = summary["faults"][kinds.index("qos_agent_kill")]["grant"]
-        assert grant["before"] == grant["after"] == "available", grant
-        assert grant["same_session"] is True, grant
-        assert grant["served_after_s"] < 2.0, grant
-    assert summary["qod_sessions"]["conflicts"] == 0
-    assert summary["qod_sessions"]["open_at_end"] == 0
+
+    def check(summary: dict[str, Any], _: Path) -> None:
+        assert [f["kind"] for f in summary["faults"]] == list(kinds)
+        for fault in summary["faults"]:
+            print(f"{mode}: {fault['kind']} on {fault['target']}: fell back {fault['fell_back'] or 'none'}, "
+                  f"longest setpoint gap {fault['max_setpoint_gap_ms']} ms; {fault['notes']}")  # fmt: skip
+            assert fault["target"], fault
+            assert fault["fell_back"] == [], fault
+            assert fault["max_setpoint_gap_ms"] is not None
+            assert fault["max_setpoint_gap_ms"] < 100, fault
+        assert "served the drone" in summary["faults"][0]["notes"][0]
+        for uav, drone in summary["drones"].items():
+            assert drone["fallback_entered"] is False, uav
+            if qos == "default":  # the mode does what it says: nobody is granted priority
+                assert drone["granted_time_s"] == 0, uav
+        if qos == "dynamic":  # and here the high-risk drone holds it (granted, as every drone is asked)
+            assert summary["drones"]["uav1"]["granted_time_s"] > 0.5 * scenario.duration_s
+        if "qos_agent_kill" in kinds:
+            grant = summary["faults"][kinds.index("qos_agent_kill")]["grant"]
+            assert grant["before"] == grant["after"] == "available", grant
+            assert grant["same_session"] is True, grant
+            assert grant["served_after_s"] < 2.0, grant
+        assert summary["qod_sessions"]["conflicts"] == 0
+        assert summary["qod_sessions"]["open_at_end"] == 0
+
+    fly_for_behaviour(lambda out: run_scenario(scenario, out, progress=False), tmp_path, check)
 
 
 def test_a_drone_never_heard_in_the_flight_fails_the_fleets_check() -> None:

@@ -5,10 +5,13 @@ daemon's log), which is how a long flight once went silent in CI."""
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+from tests.flights import fly_for_behaviour
 from tests.procs import DynqosProcess
 
 pytestmark = pytest.mark.timeout(60)
@@ -43,3 +46,30 @@ def test_lines_hands_out_the_log_as_it_comes_and_ends_with_the_child(tmp_path: P
         assert [line.strip() for line in child.lines(timeout_s=20)] == ["0", "1", "2", "3", "4"]
     finally:
         child.stop()
+
+
+def test_a_behaviour_test_flies_again_only_when_it_failed_while_starved(tmp_path: Path) -> None:
+    """tests/flights.py: a starved flight that behaved passes; one that broke the check while starved is
+    flown again and its second flight decides; one that broke it with cores to spare fails at once."""
+
+    def summaries(*flights: tuple[bool, bool]) -> Callable[[Path], dict[str, Any]]:
+        """(starved, fell back) per flight, in order."""
+        queue = list(flights)
+
+        def fly(out: Path) -> dict[str, Any]:
+            starved, fell_back = queue.pop(0)
+            failure = "starved: busy" if starved else ""
+            return {"ok": not starved, "failure": failure, "machine": {"starved": starved}, "fb": fell_back,
+                    "out": out.name}  # fmt: skip
+
+        return fly
+
+    def check(summary: dict[str, Any], _: Path) -> None:
+        assert not summary["fb"], "fell back"
+
+    assert fly_for_behaviour(summaries((True, False)), tmp_path, check)["out"] == "first"
+    assert fly_for_behaviour(summaries((True, True), (False, False)), tmp_path, check)["out"] == "again"
+    with pytest.raises(AssertionError, match="fell back"):
+        fly_for_behaviour(summaries((True, True), (True, True)), tmp_path, check)
+    with pytest.raises(AssertionError, match="fell back"):
+        fly_for_behaviour(summaries((False, True), (False, False)), tmp_path, check)
