@@ -124,8 +124,10 @@ def markdown(result: dict[str, Any]) -> str:
         "| what | CPU (share of one core) | delivered (Mbit/s) |",
         "|---|---|---|",
     ]
-    for name, key in (("cell emulator (1 ms TTI, scheduler, delay line)", "emulator"),
-                      ("floor: bare asyncio relay", "bare_relay")):  # fmt: skip
+    for name, key in (
+        ("cell emulator (1 ms TTI, scheduler, delay line)", "emulator"),
+        ("floor: bare asyncio relay", "bare_relay"),
+    ):
         figures = result[key]
         rows.append(f"| {name} | {figures['cpu_share_of_one_core']:.1%} | {figures['delivered_mbps']:.1f} |")
     return "\n".join(rows)

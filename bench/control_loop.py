@@ -48,9 +48,14 @@ class NoAnswer(RuntimeError):
 
 def _state(seq: int) -> State:
     return State(
-        uav=UAV, seq=seq, stamp_ns=time.monotonic_ns(), pos_m=(0.1, -0.2, -1.5), vel_mps=(0.0, 0.0, 0.0),
-        quat=(1.0, 0.0, 0.0, 0.0), rtt_est_ms=0.0,
-    )  # fmt: skip
+        uav=UAV,
+        seq=seq,
+        stamp_ns=time.monotonic_ns(),
+        pos_m=(0.1, -0.2, -1.5),
+        vel_mps=(0.0, 0.0, 0.0),
+        quat=(1.0, 0.0, 0.0, 0.0),
+        rtt_est_ms=0.0,
+    )
 
 
 def _summary(seconds: list[float]) -> dict[str, float]:
@@ -68,8 +73,9 @@ class Loop:
     def __init__(self, bus: ZenohBus) -> None:
         self.bus = bus
         self.presence = bus.declare_token(keys.drone_presence(UAV))  # as the drone's daemon does
-        self.state_pub = bus.publisher(keys.uplink(UAV, Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME,
-                                       express=True)  # fmt: skip
+        self.state_pub = bus.publisher(
+            keys.uplink(UAV, Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME, express=True
+        )
         self.commands: BoundedQueue[Received] = BoundedQueue(64)
         bus.subscribe(keys.downlink(UAV, Downlink.COMMAND), self.commands)
         self.ping = bus.session.declare_publisher(PING, priority=zenoh.Priority.REAL_TIME, express=True)
@@ -165,10 +171,12 @@ def run(round_trips: int) -> dict[str, Any]:
         "ratio_p50": ours_s["p50_ms"] / (bare_s["p50_ms"] + mpc["p50_ms"]),
         "target_ratio": 1.5,
         "minimal_mpc": {
-            "ours": minimal_s, "bare_zenoh": minimal_bare_s, "mpc_in_process": minimal_mpc,
+            "ours": minimal_s,
+            "bare_zenoh": minimal_bare_s,
+            "mpc_in_process": minimal_mpc,
             "ratio_p50": minimal_s["p50_ms"] / (minimal_bare_s["p50_ms"] + minimal_mpc["p50_ms"]),
         },
-    }  # fmt: skip
+    }
 
 
 def _blocks(loop: Loop, round_trips: int) -> tuple[list[float], list[float], list[float]]:
@@ -187,9 +195,15 @@ def _blocks(loop: Loop, round_trips: int) -> tuple[list[float], list[float], lis
 
 def _sample_command() -> Command:
     return Command(
-        uav=UAV, seq=1, state_seq=1, state_stamp_ns=1, edge_hold_ns=1, dt_s=0.05,
-        accel_mps2=((0.123456789, -0.987654321, 0.5),) * 10, yaw_rad=(0.1,) * 10,
-    )  # fmt: skip
+        uav=UAV,
+        seq=1,
+        state_seq=1,
+        state_stamp_ns=1,
+        edge_hold_ns=1,
+        dt_s=0.05,
+        accel_mps2=((0.123456789, -0.987654321, 0.5),) * 10,
+        yaw_rad=(0.1,) * 10,
+    )
 
 
 def verdict(result: dict[str, Any]) -> str:

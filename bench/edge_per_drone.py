@@ -82,13 +82,33 @@ def _frames(count: int) -> Frames:
 def _status(uav: str, seq: int, now: int) -> SupervisorStatus:
     """A status as a drone in q2 sends it 5 times a second, with its four RTT samples."""
     return SupervisorStatus(
-        uav=uav, seq=seq, stamp_ns=now, state=SupervisorState.Q2, flow=FlowMode.PRIORITY,
-        camera_rate_factor=1.0, control_source=ControlSource.EDGE, camera_flow=FlowMode.PRIORITY,
-        latency="LL", risk="HR", watchdog=False, t_cam_ms=50.0, t_cc_ms=20.0, spaciousness_m=2.3,
-        p_cam=0.1, p_cc=0.0, p_lat=0.05, p_cs=0.9, prev_state=SupervisorState.Q1, cause="HR",
-        changed_ns=0, rtt_ms=20.0, camera_latency_ms=50.0, rtt_samples_ms=(20.0, 21.0, 19.5, 20.2),
-        camera_latency_samples_ms=(50.0, 52.0, 49.0), camera_bytes=seq * 1000,
-    )  # fmt: skip
+        uav=uav,
+        seq=seq,
+        stamp_ns=now,
+        state=SupervisorState.Q2,
+        flow=FlowMode.PRIORITY,
+        camera_rate_factor=1.0,
+        control_source=ControlSource.EDGE,
+        camera_flow=FlowMode.PRIORITY,
+        latency="LL",
+        risk="HR",
+        watchdog=False,
+        t_cam_ms=50.0,
+        t_cc_ms=20.0,
+        spaciousness_m=2.3,
+        p_cam=0.1,
+        p_cc=0.0,
+        p_lat=0.05,
+        p_cs=0.9,
+        prev_state=SupervisorState.Q1,
+        cause="HR",
+        changed_ns=0,
+        rtt_ms=20.0,
+        camera_latency_ms=50.0,
+        rtt_samples_ms=(20.0, 21.0, 19.5, 20.2),
+        camera_latency_samples_ms=(50.0, 52.0, 49.0),
+        camera_bytes=seq * 1000,
+    )
 
 
 class _Drone:
@@ -110,9 +130,19 @@ class _Drone:
 def _tick(drone: _Drone, index: int, tick: int, seq: int, frames: Frames) -> None:
     now = time.monotonic_ns()
     messages: list[tuple[Publisher, Message]] = [
-        (drone.state, State(uav=drone.uav, seq=seq, stamp_ns=now, pos_m=(0.1 * index, 0.0, -1.5),
-                            vel_mps=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0), rtt_est_ms=20.0))
-    ]  # fmt: skip
+        (
+            drone.state,
+            State(
+                uav=drone.uav,
+                seq=seq,
+                stamp_ns=now,
+                pos_m=(0.1 * index, 0.0, -1.5),
+                vel_mps=(0.0, 0.0, 0.0),
+                quat=(1.0, 0.0, 0.0, 0.0),
+                rtt_est_ms=20.0,
+            ),
+        )
+    ]
     if tick % 4 == 0:
         messages.append((drone.status, _status(drone.uav, seq, now)))
     if tick % 20 == 0:
@@ -127,10 +157,19 @@ def _tick(drone: _Drone, index: int, tick: int, seq: int, frames: Frames) -> Non
             for part, payload in enumerate(parts):
                 pub.put(
                     CameraFrame(
-                        uav=drone.uav, seq=seq, stamp_ns=now, kind=kind, encoding=encoding, width=w, height=h,
-                        intrinsics=intrinsics, payload=payload, part=part, parts=len(parts),
+                        uav=drone.uav,
+                        seq=seq,
+                        stamp_ns=now,
+                        kind=kind,
+                        encoding=encoding,
+                        width=w,
+                        height=h,
+                        intrinsics=intrinsics,
+                        payload=payload,
+                        part=part,
+                        parts=len(parts),
                     )
-                )  # fmt: skip
+                )
 
 
 def _load(
@@ -228,9 +267,12 @@ def run(seconds: float, quick: bool) -> dict[str, Any]:
 
 def verdict(result: dict[str, Any]) -> str:
     share = result["per_drone_core_share"]
-    return judged(share <= TARGET_CORE_SHARE_PER_DRONE, f"{share:.1%} of a core per drone served at the edge "
-                  f"(bare OSQP {result['bare_osqp_core_share_per_drone']:.2%}); target <= "
-                  f"{TARGET_CORE_SHARE_PER_DRONE:.0%}")  # fmt: skip
+    return judged(
+        share <= TARGET_CORE_SHARE_PER_DRONE,
+        f"{share:.1%} of a core per drone served at the edge "
+        f"(bare OSQP {result['bare_osqp_core_share_per_drone']:.2%}); target <= "
+        f"{TARGET_CORE_SHARE_PER_DRONE:.0%}",
+    )
 
 
 def markdown(result: dict[str, Any]) -> str:

@@ -71,11 +71,15 @@ def verdict(result: dict[str, Any]) -> str:
     busy = result["busy_share"]
     runs = len(result["runs"])
     met = busy["max"] is not None and busy["max"] <= BUSY_TARGET and result["starved_runs"] == 0
-    text = "no machine figures" if busy["max"] is None else (
-        f"busy {100 * busy['min']:.0f}-{100 * busy['max']:.0f}% over {runs} run(s), "
-        f"{result['starved_runs']} starved, CPU {result['cpu_s_total']['median']:.0f} s per run "
-        f"(target: at most {100 * BUSY_TARGET:.0f}% busy and none starved)"
-    )  # fmt: skip
+    text = (
+        "no machine figures"
+        if busy["max"] is None
+        else (
+            f"busy {100 * busy['min']:.0f}-{100 * busy['max']:.0f}% over {runs} run(s), "
+            f"{result['starved_runs']} starved, CPU {result['cpu_s_total']['median']:.0f} s per run "
+            f"(target: at most {100 * BUSY_TARGET:.0f}% busy and none starved)"
+        )
+    )
     return judged(met, text)
 
 

@@ -69,9 +69,14 @@ def _load(zcfg: ZenohConfig, drones: int, seconds: float) -> dict[str, Any]:
                 if tick >= warmup:
                     sent[(uav, seq)] = time.perf_counter()
                 state = State(
-                    uav=uav, seq=seq, stamp_ns=time.monotonic_ns(), pos_m=(0.01 * i, 0.0, -1.5),
-                    vel_mps=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0), rtt_est_ms=0.0,
-                )  # fmt: skip
+                    uav=uav,
+                    seq=seq,
+                    stamp_ns=time.monotonic_ns(),
+                    pos_m=(0.01 * i, 0.0, -1.5),
+                    vel_mps=(0.0, 0.0, 0.0),
+                    quat=(1.0, 0.0, 0.0, 0.0),
+                    rtt_est_ms=0.0,
+                )
                 pub.put(state)
             _collect(commands, sent, latencies, until=start + (tick + 1) * PERIOD_S)
         _collect(commands, sent, latencies, until=time.perf_counter() + 0.2)  # the last tick's answers
@@ -118,8 +123,9 @@ def run(seconds: float, quick: bool) -> dict[str, Any]:
 
 def verdict(result: dict[str, Any]) -> str:
     one, two = result["one_process"]["max_drones_at_20hz"], result["two_processes"]["max_drones_at_20hz"]
-    return judged(one >= 100, f"{one} drones at 20 Hz with one MPC process, {two} with two (target >= 100 "
-                              "per process)")  # fmt: skip
+    return judged(
+        one >= 100, f"{one} drones at 20 Hz with one MPC process, {two} with two (target >= 100 per process)"
+    )
 
 
 def markdown(result: dict[str, Any]) -> str:

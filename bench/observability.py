@@ -80,13 +80,19 @@ def _phase(procs: Processes, index: int, mode: str, seen: Seen) -> Iterator[None
     procs.start(mpc, ["edge", "mpc", *(["--metrics-port", str(metrics_port)] if metrics else [])])
     listener = f"listener-{index}"
     if mode == "subscriber":  # the floor of any watcher: zenoh's fan-out of each state to a second session
-        procs.start(listener, ["--listen", keys.uplink_all_drones(Stream.STATE)],
-                    program=[sys.executable, "-m", "dynqos.bench.zenoh_echo"])  # fmt: skip
+        procs.start(
+            listener,
+            ["--listen", keys.uplink_all_drones(Stream.STATE)],
+            program=[sys.executable, "-m", "dynqos.bench.zenoh_echo"],
+        )
     count_file = procs.logs / f"{client}.count"
     if viewer:
         procs.start(view, ["view", "--port", str(view_port), "--no-camera"])
-        procs.start(client, ["--port", str(view_port), "--count-file", str(count_file)],
-                    program=[sys.executable, "-m", "dynqos.bench.foxglove_client"])  # fmt: skip
+        procs.start(
+            client,
+            ["--port", str(view_port), "--count-file", str(count_file)],
+            program=[sys.executable, "-m", "dynqos.bench.foxglove_client"],
+        )
     try:
         with Scraper(metrics_port) if metrics else contextlib.nullcontext() as scraper:
             yield

@@ -78,10 +78,17 @@ def run(frames: int) -> dict[str, Any]:
             ):
                 pub.put(
                     CameraFrame(
-                        uav="uav1", seq=i, stamp_ns=stamp, kind=kind, encoding=encoding, width=640,
-                        height=480, intrinsics=raw.intrinsics, payload=payload,
+                        uav="uav1",
+                        seq=i,
+                        stamp_ns=stamp,
+                        kind=kind,
+                        encoding=encoding,
+                        width=640,
+                        height=480,
+                        intrinsics=raw.intrinsics,
+                        payload=payload,
                     )
-                )  # fmt: skip
+                )
             c3 = time.process_time()
             grab_cpu, encode_cpu, publish_cpu = (
                 grab_cpu + c1 - c0,

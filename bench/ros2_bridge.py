@@ -150,10 +150,16 @@ def _drone_load(bus: ZenohBus, drones: int, seconds: float) -> None:
     start = time.perf_counter()
     for tick in range(ticks):
         for i, uav in enumerate(uavs):
-            states[uav].put(State(
-                uav=uav, seq=tick + 1, stamp_ns=time.monotonic_ns(), pos_m=(0.1 * i, 0.0, -1.5),
-                vel_mps=(0.5, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0),
-            ))  # fmt: skip
+            states[uav].put(
+                State(
+                    uav=uav,
+                    seq=tick + 1,
+                    stamp_ns=time.monotonic_ns(),
+                    pos_m=(0.1 * i, 0.0, -1.5),
+                    vel_mps=(0.5, 0.0, 0.0),
+                    quat=(1.0, 0.0, 0.0, 0.0),
+                )
+            )
             if tick % 4 == 0:
                 statuses[uav].put(_status(uav, tick + 1, time.monotonic_ns()))
         delay = start + (tick + 1) * PERIOD_S - time.perf_counter()
@@ -192,8 +198,11 @@ def _loop_phase(procs: Processes, index: int, mode: str) -> Iterator[None]:
         procs.start(f"ros2-{index}", ["edge", "ros2"])
         _listener(procs, f"ros-{index}")
     elif mode == "floor":
-        procs.start(f"states-{index}", ["--listen", keys.uplink_all_drones(Stream.STATE)],
-                    program=[sys.executable, "-m", "dynqos.bench.zenoh_echo"])  # fmt: skip
+        procs.start(
+            f"states-{index}",
+            ["--listen", keys.uplink_all_drones(Stream.STATE)],
+            program=[sys.executable, "-m", "dynqos.bench.zenoh_echo"],
+        )
     try:
         yield
     finally:
@@ -206,8 +215,11 @@ def _loop_phase(procs: Processes, index: int, mode: str) -> Iterator[None]:
 
 def control_loop(zcfg: ZenohConfig, procs: Processes, round_trips: int) -> dict[str, Any]:
     procs.start("mpc", ["edge", "mpc"])
-    procs.start("loop-echo", ["--reply-bytes", str(len(encode(_sample_command())))],
-                program=[sys.executable, "-m", "dynqos.bench.zenoh_echo"])  # fmt: skip
+    procs.start(
+        "loop-echo",
+        ["--reply-bytes", str(len(encode(_sample_command())))],
+        program=[sys.executable, "-m", "dynqos.bench.zenoh_echo"],
+    )
     samples: dict[str, list[float]] = {mode: [] for mode in LOOP_MODES}
     phase_p50: dict[str, list[float]] = {mode: [] for mode in LOOP_MODES}
     per_phase = max(BLOCK, round_trips // ROUNDS)
@@ -275,8 +287,10 @@ def markdown(result: dict[str, Any]) -> str:
         "| p50 (ms) | p99 (ms) | mean (ms) |",
         "|---|---|---|---|",
     ]
-    for key, label in (("bridged", "State -> `dynqos edge ros2` -> PoseStamped"),
-                       ("bare_zenoh", "floor: bare zenoh responder, same sizes")):  # fmt: skip
+    for key, label in (
+        ("bridged", "State -> `dynqos edge ros2` -> PoseStamped"),
+        ("bare_zenoh", "floor: bare zenoh responder, same sizes"),
+    ):
         f = latency[key]
         rows.append(f"| {label} | {f['p50_ms']:.3f} | {f['p99_ms']:.3f} | {f['mean_ms']:.3f} |")
     rows += ["", "| drones (State 20 Hz, status 5 Hz) | bridge CPU (share of a core) |", "|---|---|"]
@@ -287,8 +301,11 @@ def markdown(result: dict[str, Any]) -> str:
         "| control loop at 100 Hz | p50 (ms) | p99 (ms) | each phase's p50 (ms) |",
         "|---|---|---|---|",
     ]
-    for key, label in (("off", "bridge off"), ("floor", "floor: a bare zenoh subscriber of the states"),
-                       ("on", "bridge on, a ROS listener on every topic")):  # fmt: skip
+    for key, label in (
+        ("off", "bridge off"),
+        ("floor", "floor: a bare zenoh subscriber of the states"),
+        ("on", "bridge on, a ROS listener on every topic"),
+    ):
         f = loop[key]
         phases = ", ".join(f"{p:.2f}" for p in f["phase_p50_ms"])
         rows.append(f"| {label} | {f['p50_ms']:.3f} | {f['p99_ms']:.3f} | {phases} |")

@@ -109,10 +109,15 @@ def verdict(result: dict[str, Any]) -> str:
     runs = len(result["runs"])
     switch, recovery = result["switch_s"], result["recovery_s"]
     met = (
-        switch is not None and result["switched_runs"] == runs and switch["max"] < 1.0
-        and recovery is not None and result["recovered_runs"] == runs and recovery["max"] < 2.0
-        and result.get("setpoint_gap_max_ms") is not None and result["setpoint_gap_max_ms"] < GAP_TARGET_MS
-    )  # fmt: skip
+        switch is not None
+        and result["switched_runs"] == runs
+        and switch["max"] < 1.0
+        and recovery is not None
+        and result["recovered_runs"] == runs
+        and recovery["max"] < 2.0
+        and result.get("setpoint_gap_max_ms") is not None
+        and result["setpoint_gap_max_ms"] < GAP_TARGET_MS
+    )
     switch_text = f"switch max {switch['max']:.2f} s" if switch else "no switch"
     recovery_text = f"recovery max {recovery['max']:.2f} s" if recovery else "no recovery"
     gap = result.get("setpoint_gap_max_ms")

@@ -54,8 +54,12 @@ def camera(frames: int) -> dict[str, Any]:
     for i in range(frames):
         t = i / 30
         yaw = 0.5 * t + math.pi / 2
-        poses.append((np.array([2 * math.cos(0.5 * t), 2 * math.sin(0.5 * t), -1.5]),
-                      quat_to_rot(np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]))))  # fmt: skip
+        poses.append(
+            (
+                np.array([2 * math.cos(0.5 * t), 2 * math.sin(0.5 * t), -1.5]),
+                quat_to_rot(np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])),
+            )
+        )
 
     def run(encode: bool, render: bool) -> dict[str, float]:
         rgb, depth = renderer.render(*poses[0])
@@ -116,8 +120,11 @@ def markdown(result: dict[str, Any]) -> str:
         "| camera 640x480 RGB-D | fps (one core) | CPU ms/frame | core share at 30 fps | Mbit/s at 30 fps |",
         "|---|---|---|---|---|",
     ]
-    for name, key in (("render", "render"), ("render + JPEG + PNG16", "render_and_encode"),
-                      ("floor: encode only", "floor_encode_only")):  # fmt: skip
+    for name, key in (
+        ("render", "render"),
+        ("render + JPEG + PNG16", "render_and_encode"),
+        ("floor: encode only", "floor_encode_only"),
+    ):
         f = cam[key]
         mbps = f"{f['mbps_at_30fps']:.1f}" if "mbps_at_30fps" in f else "-"
         rows.append(

@@ -89,10 +89,15 @@ class _MinimalMpc:
         hold = np.tile(np.concatenate([x0[:3], np.zeros(3)]), (problem.horizon + 1, 1))
         inputs = problem.solve(x0, hold)[: problem.mpc.command_steps]  # as many steps as the MPC sends
         command = Command(
-            uav=state.uav, seq=state.seq, state_seq=state.seq, state_stamp_ns=state.stamp_ns,
-            edge_hold_ns=time.monotonic_ns() - arrival_ns, dt_s=problem.dt_s,
-            accel_mps2=tuple(map(tuple, inputs.tolist())), yaw_rad=(0.0,) * len(inputs),
-        )  # fmt: skip
+            uav=state.uav,
+            seq=state.seq,
+            state_seq=state.seq,
+            state_stamp_ns=state.stamp_ns,
+            edge_hold_ns=time.monotonic_ns() - arrival_ns,
+            dt_s=problem.dt_s,
+            accel_mps2=tuple(map(tuple, inputs.tolist())),
+            yaw_rad=(0.0,) * len(inputs),
+        )
         publisher.put(encode(command))
 
 

@@ -148,10 +148,14 @@ def _reader_and_writer(
         rules.append(_rule(f"{name}-publish", "ingress", ["put"], writes))
     if tokens:
         rules += [
-            _rule(f"{name}-tokens", "ingress",
-                  ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"], tokens),
+            _rule(
+                f"{name}-tokens",
+                "ingress",
+                ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
+                tokens,
+            ),
             _rule(f"{name}-tokens-seen", "egress", ["liveliness_token", "reply"], tokens),
-        ]  # fmt: skip
+        ]
     if watches:
         rules += [
             _rule(f"{name}-watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"], watches),
@@ -220,8 +224,11 @@ def access_control_policy(
             raise ValueError(f"{name!r} is an edge or drone identity, not a ROS 2 client")
         # it reads the bridge's topics and writes only a drone's mission or goal (which the bridge checks)
         own = _reader_and_writer(name, topics, steering, tokens)
-        grant(f"ros2-{name}", name, [*own, _rule(f"{name}-learn-steering", "egress", ["declare_subscriber"],
-                                                 steering)])  # fmt: skip
+        grant(
+            f"ros2-{name}",
+            name,
+            [*own, _rule(f"{name}-learn-steering", "egress", ["declare_subscriber"], steering)],
+        )
     for uav in drones:
         check_uav_id(uav)
         if reserved_name(uav):

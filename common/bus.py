@@ -20,6 +20,7 @@ from typing import Protocol
 
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.errors import DecodeError
+from dynqos.common.floods import worth_logging
 from dynqos.common.messages import Message, decode, encode
 from dynqos.common.queues import BoundedQueue
 
@@ -146,7 +147,7 @@ def delivery(
                 raise DecodeError("uav", f"drone {message.uav!r} on another drone's key")
         except DecodeError as exc:
             stats.reject(cause, str(exc))
-            if stats.rejected == 1 or stats.rejected % 1000 == 0:
+            if worth_logging(stats.rejected):
                 log.warning("rejected message on %s (%d so far): %s", key, stats.rejected, exc)
             return
         stats.received += 1

@@ -32,6 +32,20 @@ from dynqos.common.modes import Flow as Flow  # re-exported: a key names its flo
 
 ROOT = "dynqos"
 UAV_ID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,32}")
+# An edge replica's id: the last chunk of its liveliness token (MPC, planner, detector, QoS agent) and
+# what a Command's `replica` names; one rule for the config, the tokens seen and our own.
+REPLICA_ID_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,64}")
+REPLICA_ID_RULE = "use 1 to 64 characters from A-Z a-z 0-9 _ -"
+
+
+def valid_replica_id(name: str) -> bool:
+    return REPLICA_ID_PATTERN.fullmatch(name) is not None
+
+
+def check_replica_id(name: str, what: str = "replica id") -> None:
+    """ValueError naming the id (cut to 80 characters) and the rule, when `name` breaks it."""
+    if not valid_replica_id(name):
+        raise ValueError(f"{what} {name[:80]!r} is invalid: {REPLICA_ID_RULE}")
 
 
 class Stream(str, enum.Enum):

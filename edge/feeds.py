@@ -25,7 +25,8 @@ from dynqos.common.acl import reserved_name
 from dynqos.common.bus import Bus, Received, SubscriptionStats
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import Command, Message, MissionRequest, Reference, State
-from dynqos.common.queues import BoundedQueue, PendingChanges
+from dynqos.common.queues import BoundedQueue
+from dynqos.edge.presence import Presence, Watch
 
 log = logging.getLogger(__name__)
 
@@ -46,25 +47,42 @@ class Feed:
 
 
 def states() -> Feed:
-    return Feed(lambda uav: keys.uplink_any_flow(uav, Stream.STATE), keys.uplink_all_drones(Stream.STATE),
-                (State,))  # fmt: skip
+    return Feed(
+        lambda uav: keys.uplink_any_flow(uav, Stream.STATE), keys.uplink_all_drones(Stream.STATE), (State,)
+    )
 
 
 def references(*, remote_only: bool = False) -> Feed:
-    return Feed(lambda uav: keys.downlink(uav, Downlink.REFERENCE),
-                keys.downlink_all_drones(Downlink.REFERENCE), (Reference,), remote_only)  # fmt: skip
+    return Feed(
+        lambda uav: keys.downlink(uav, Downlink.REFERENCE),
+        keys.downlink_all_drones(Downlink.REFERENCE),
+        (Reference,),
+        remote_only,
+    )
 
 
 def missions() -> Feed:
     """Missions from outside the edge (the ROS 2 bridge's MissionRequest) for the drones followed."""
-    return Feed(lambda uav: keys.downlink(uav, Downlink.MISSION), keys.downlink_all_drones(Downlink.MISSION),
-                (MissionRequest,))  # fmt: skip
+    return Feed(
+        lambda uav: keys.downlink(uav, Downlink.MISSION),
+        keys.downlink_all_drones(Downlink.MISSION),
+        (MissionRequest,),
+    )
 
 
 def commands() -> Feed:
     """Other replicas' commands (ours never: zenoh drops them before decoding)."""
-    return Feed(lambda uav: keys.downlink(uav, Downlink.COMMAND), keys.downlink_all_drones(Downlink.COMMAND),
-                (Command,), remote_only=True)  # fmt: skip
+    return Feed(
+        lambda uav: keys.downlink(uav, Downlink.COMMAND),
+        keys.downlink_all_drones(Downlink.COMMAND),
+        (Command,),
+        remote_only=True,
+    )
+
+
+def drone_id(uav: str) -> bool:
+    """A drone's id as its presence token names it: the id rule, and never an edge service's name."""
+    return keys.UAV_ID_PATTERN.fullmatch(uav) is not None and not reserved_name(uav)
 
 
 class DroneFeeds:
@@ -73,60 +91,38 @@ class DroneFeeds:
         self.bus = bus
         self.queue = queue
         self.feeds = feeds
-        self.present: set[str] = set()
         self.subscribed: set[str] = set()
-        self._bad_tokens = 0  # presence tokens with an invalid drone id or beyond MAX_DRONES
-        self._pending: PendingChanges[str] = PendingChanges(MAX_PENDING_CHANGES)
         for feed in feeds:
             feed.stats.key_expr = feed.all_drones
             bus.subscriptions.append(feed.stats)
-        bus.watch_tokens(keys.drones_present(), self._on_token)
-
-    def _on_token(self, key: str, alive: bool) -> None:
-        """zenoh's thread: note the change; the worker applies it (a flood is counted there)."""
-        self._pending.offer(key, alive)
+        drones = Watch("drone", keys.drones_present(), keys.uav_of_presence)
+        self.presence = Presence(
+            bus, service, [drones], pending_limit=MAX_PENDING_CHANGES, valid=drone_id, cap=MAX_DRONES
+        )
+        self.present = self.presence.present["drone"]
 
     @property
     def refused(self) -> int:
         """Presence tokens refused: an invalid or edge id, beyond MAX_DRONES, or a flood of changes."""
-        return self._bad_tokens + self._pending.refused
-
-    def _take_presence(self) -> bool:
-        changes = self._pending.take()
-        changed = False
-        for key, alive in changes.items():
-            uav = keys.uav_of_presence(key)
-            if alive and (not keys.UAV_ID_PATTERN.fullmatch(uav) or reserved_name(uav)):
-                self._refuse(key)
-                continue
-            if alive and uav not in self.present:
-                if len(self.present) >= MAX_DRONES:
-                    self._refuse(key)
-                    continue
-                self.present.add(uav)
-                changed = True
-            elif not alive and uav in self.present:
-                self.present.discard(uav)
-                changed = True
-        return changed
-
-    def _refuse(self, key: str) -> None:
-        self._bad_tokens += 1
-        if self.refused == 1 or self.refused % 1000 == 0:  # a flood is logged once, and counted
-            log.warning("%s: drone token %r refused (invalid id or more than %d drones; %d so far)",
-                        self.service, key[:120], MAX_DRONES, self.refused)  # fmt: skip
+        return self.presence.refused
 
     def reconcile(self, wanted: Callable[[str], bool], *, assignment_changed: bool) -> None:
         """The worker: subscribe to each present drone `wanted` says this replica serves or stands by
         for, unsubscribe from the others and from drones that went."""
-        if not self._take_presence() and not assignment_changed:
+        if not self.presence.take() and not assignment_changed:
             return
         want = {uav for uav in self.present if wanted(uav)}
         for uav in want - self.subscribed:
             for feed in self.feeds:
                 # direct: no Python thread per subscriber (three per drone would be hundreds)
-                self.bus.subscribe(feed.key(uav), self.queue, expect=feed.expect,
-                                   remote_only=feed.remote_only, stats=feed.stats, direct=True)  # fmt: skip
+                self.bus.subscribe(
+                    feed.key(uav),
+                    self.queue,
+                    expect=feed.expect,
+                    remote_only=feed.remote_only,
+                    stats=feed.stats,
+                    direct=True,
+                )
             log.info("%s: following drone %s (%d followed)", self.service, uav, len(self.subscribed) + 1)
             self.subscribed.add(uav)
         for uav in self.subscribed - want:

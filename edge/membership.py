@@ -3,8 +3,7 @@ it, handed to the pure Assignment on the service's own worker thread; and `LiveS
 for a best-effort service that needs no standby.
 
 The token is declared, the live set queried (so that a replica does not serve before it knows its
-peers) and then watched. Changes arrive on zenoh's thread and wait, bounded, in a map the worker
-drains; a flood beyond the bound is refused and counted.
+peers) and then watched, by edge/presence.py; the worker applies the changes.
 """
 
 from __future__ import annotations
@@ -13,13 +12,14 @@ import logging
 import os
 import re
 import socket
-import threading
 from collections.abc import Collection
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus
-from dynqos.common.queues import PendingChanges
-from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Change, Role, ranked, valid_replica_id
+from dynqos.common.floods import worth_logging
+from dynqos.common.keys import check_replica_id, valid_replica_id
+from dynqos.edge.presence import Presence, Watch
+from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Change, Role, ranked
 
 log = logging.getLogger(__name__)
 
@@ -38,45 +38,54 @@ class Membership:
         self.assignment = assignment
         self.replica = assignment.me
         self._changed = False  # a replica joined or left, or this replica's role for a drone changed
-        self._pending: PendingChanges[str] = PendingChanges(MAX_PENDING_CHANGES)
-        bus.watch_tokens(keys.replicas_of(service, group), self._on_token)
+        # names are the Assignment's to validate and cap (its members_refused)
+        self.presence = Presence(
+            bus,
+            f"{service} {self.replica}",
+            [Watch("member", keys.replicas_of(service, group), keys.replica_of_token)],
+            pending_limit=MAX_PENDING_CHANGES,
+            me=self.replica,
+        )
         self.token = bus.declare_token(keys.replica_token(service, group, self.replica))
-        for key in bus.alive_tokens(keys.replicas_of(service, group), timeout_s=2.0):  # the live set first
-            self._on_token(key, True)
-
-    def _on_token(self, key: str, alive: bool) -> None:
-        """zenoh's thread: note the change; the worker applies it (the assignment is not shared)."""
-        self._pending.offer(key, alive)
+        self.presence.query()  # the live set first: a replica does not serve before it knows its peers
 
     @property
     def refused(self) -> int:
         """Changes beyond MAX_PENDING_CHANGES."""
-        return self._pending.refused
+        return self.presence.refused
 
     def apply(self) -> None:
         """The worker: the changes since the last call, into the assignment, each logged."""
-        changes = self._pending.take()
         a = self.assignment
-        for key, alive in changes.items():
-            replica = keys.replica_of_token(key)
-            live = len(a.members)
-            if alive and a.join(replica):
-                log.info("%s %s: replica %s joined (%d live)", self.service, self.replica, replica, live + 1)
+        for seen in self.presence.take():
+            me, peer, live = self.replica, seen.name, len(a.members)
+            if seen.alive and a.join(peer):
+                log.info("%s %s: replica %s joined (%d live)", self.service, me, peer, live + 1)
                 self._changed = True
-            elif not alive and a.leave(replica):
-                log.info("%s %s: replica %s left (%d live)", self.service, self.replica, replica, live - 1)
+            elif not seen.alive and a.leave(peer):
+                log.info("%s %s: replica %s left (%d live)", self.service, me, peer, live - 1)
                 self._changed = True
-            elif alive and replica not in a.members and replica != self.replica:
-                refused = a.counters.members_refused
-                if refused == 1 or refused % 1000 == 0:  # a flood is logged once, and counted
-                    log.warning("%s %s: replica token %r refused (invalid or too many; %d so far)",
-                                self.service, self.replica, key[:120], refused)  # fmt: skip
+            elif seen.alive and worth_logging(refused := a.counters.members_refused):
+                log.warning(
+                    "%s %s: replica %r refused (invalid or too many; %d so far)",
+                    self.service,
+                    self.replica,
+                    seen.name[:120],
+                    refused,
+                )
 
     def log_change(self, change: Change | None) -> None:
         if change is not None:
             self._changed = True
-            log.info("%s %s: drone %s: %s (term %d, now %s)", self.service, self.replica, change.uav,
-                     change.reason, change.term, change.role.value)  # fmt: skip
+            log.info(
+                "%s %s: drone %s: %s (term %d, now %s)",
+                self.service,
+                self.replica,
+                change.uav,
+                change.reason,
+                change.term,
+                change.role.value,
+            )
 
     @property
     def changed(self) -> bool:
@@ -101,38 +110,48 @@ class Membership:
 class LiveSet:
     """The live replicas of a best-effort service (the detector): no standby, no terms; each drone is
     served by the first-ranked live replica (rendezvous order), and by another as soon as that one's
-    token goes. zenoh's thread replaces the set whole; readers take it without a lock."""
+    token goes. The service's thread applies the changes (`apply`) before it asks who serves."""
 
     def __init__(self, service: str, replica: str, bus: Bus) -> None:
-        if not valid_replica_id(replica):
-            raise ValueError(f"replica id {replica[:80]!r} is invalid: use 1 to 64 of A-Z a-z 0-9 _ -")
+        check_replica_id(replica)
         self.service = service
         self.me = replica
-        self.refused = 0  # tokens with an invalid name or beyond MAX_REPLICAS
-        self._lock = threading.Lock()
+        self.presence = Presence(
+            bus,
+            f"{service} {replica}",
+            [Watch("member", keys.replicas_of(service), keys.replica_of_token)],
+            pending_limit=MAX_PENDING_CHANGES,
+            valid=valid_replica_id,
+            cap=MAX_REPLICAS - 1,
+            me=replica,
+        )
         # the live set, and per drone whether this replica serves it for that set: replaced together
         self._state: tuple[frozenset[str], dict[str, bool]] = (frozenset({replica}), {})
-        bus.watch_tokens(keys.replicas_of(service), self._on_token)
         self.token = bus.declare_token(keys.replica_token(service, "all", replica))
-        for key in bus.alive_tokens(keys.replicas_of(service), timeout_s=2.0):
-            self._on_token(key, True)
+        self.presence.query()
+        self.apply()
 
-    def _on_token(self, key: str, alive: bool) -> None:
-        replica = keys.replica_of_token(key)
-        with self._lock:
-            members = set(self._state[0])
-            if alive and replica not in members:
-                if not valid_replica_id(replica) or len(members) >= MAX_REPLICAS:
-                    self.refused += 1
-                    return
-                members.add(replica)
-            elif not alive and replica in members and replica != self.me:
-                members.discard(replica)
-            else:
-                return
-            self._state = (frozenset(members), {})
-        log.info("%s %s: replica %s %s (%d live)", self.service, self.me, replica,
-                 "joined" if alive else "left", len(members))  # fmt: skip
+    @property
+    def refused(self) -> int:
+        """Tokens with an invalid name, beyond MAX_REPLICAS, or beyond the pending bound."""
+        return self.presence.refused
+
+    def apply(self) -> None:
+        """The service's thread: the changes since the last call, each logged."""
+        changes = self.presence.take()
+        if not changes:
+            return
+        members = frozenset(self.presence.present["member"] | {self.me})
+        self._state = (members, {})
+        for seen in changes:
+            log.info(
+                "%s %s: replica %s %s (%d live)",
+                self.service,
+                self.me,
+                seen.name,
+                "joined" if seen.alive else "left",
+                len(members),
+            )
 
     def serves(self, uav: str) -> bool:
         """Whether this replica serves `uav` now (cached per drone until the set changes)."""

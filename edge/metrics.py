@@ -56,11 +56,13 @@ def planner(service: PlannerService, m: ProcessMetrics) -> None:
 
 def fleet_planner(service: FleetPlannerService, m: ProcessMetrics) -> None:
     def families() -> Iterator[Metric]:
-        yield gauge("dynqos_fleet_planner_drones_heard", "Drones of the fleet heard in offboard mode",
-                    len(service.positions))  # fmt: skip
+        yield gauge(
+            "dynqos_fleet_planner_drones_heard",
+            "Drones of the fleet heard in offboard mode",
+            len(service.positions),
+        )
         yield counter("dynqos_fleet_planner_missions", "Missions (legs) sent to the planners", service.sent)
-        yield gauge("dynqos_fleet_planner_bookings", "Bookings made and not released",
-                    len(service.bookings))  # fmt: skip
+        yield gauge("dynqos_fleet_planner_bookings", "Bookings made and not released", len(service.bookings))
         yield from bus_families(service.bus)
 
     m.add(families)
@@ -73,9 +75,11 @@ def detector(service: DetectorService, m: ProcessMetrics) -> None:
 
     def families() -> Iterator[Metric]:
         yield labelled_counter(
-            "dynqos_detector_events", "Frames, acks, detections, drops and bad frames", "event",
+            "dynqos_detector_events",
+            "Frames, acks, detections, drops and bad frames",
+            "event",
             dict(service.counters),
-        )  # fmt: skip
+        )
         yield counter(
             "dynqos_detector_incomplete_frames", "Images missing a part", service.assembler.incomplete
         )
@@ -92,12 +96,17 @@ def qos(agent: QosAgent, m: ProcessMetrics) -> None:
         yield gauge("dynqos_qos_sessions", "Quality-on-Demand sessions held", sessions)
         yield gauge("dynqos_qos_holders", "Drones granted the priority flow", holders)
         yield labelled_counter(
-            "dynqos_qos_decisions", "Arbiter decisions by action", "action",
+            "dynqos_qos_decisions",
+            "Arbiter decisions by action",
+            "action",
             {action.value: n for action, n in agent.decisions.items()},
-        )  # fmt: skip
+        )
         yield counter("dynqos_qos_errors", "Operator API errors", agent.errors)
-        yield gauge("dynqos_qos_active", "1 while this agent holds the sessions, 0 standing by",
-                    int(agent.leadership.is_active))  # fmt: skip
+        yield gauge(
+            "dynqos_qos_active",
+            "1 while this agent holds the sessions, 0 standing by",
+            int(agent.leadership.is_active),
+        )
         yield counter(
             "dynqos_qos_takeovers", "Times this agent became the active one", agent.leadership.takeovers
         )

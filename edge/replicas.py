@@ -21,12 +21,9 @@ import hashlib
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-REPLICA_ID_CHARS = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
+from dynqos.common.keys import check_replica_id, valid_replica_id
+
 MAX_REPLICAS = 256  # a token flood beyond this is ignored (and counted) rather than ranked
-
-
-def valid_replica_id(name: str) -> bool:
-    return 0 < len(name) <= 64 and set(name) <= REPLICA_ID_CHARS
 
 
 def weight(replica: str, uav: str) -> int:
@@ -80,8 +77,7 @@ class Assignment:
     def __init__(self, me: str, *, lease_ns: int, holdoff_ns: int, drone_arbitrates: bool = True) -> None:
         """`drone_arbitrates`: the drone reports whom it follows (the MPC's case), which settles two
         replicas that took the same term; otherwise (the planner's) the better ranked of them keeps it."""
-        if not valid_replica_id(me):
-            raise ValueError(f"replica id {me[:80]!r} is invalid: use 1 to 64 of A-Z a-z 0-9 _ -")
+        check_replica_id(me)
         self.me = me
         self.lease_ns = lease_ns
         self.holdoff_ns = holdoff_ns
@@ -126,8 +122,14 @@ class Assignment:
         change = None
         other_holder = bool(drone_holder) and drone_holder != seat.holder
         if drone_term > seat.term or (drone_term == seat.term and other_holder):
-            change = self._new_holder(uav, seat, drone_term, drone_holder or None, now_ns,
-                                      f"the drone follows {drone_holder or '?'}")  # fmt: skip
+            change = self._new_holder(
+                uav,
+                seat,
+                drone_term,
+                drone_holder or None,
+                now_ns,
+                f"the drone follows {drone_holder or '?'}",
+            )
         if seat.holder != self.me and seq > seat.answered_seq and seat.unanswered_since_ns is None:
             seat.unanswered_since_ns = now_ns
         return change or self._maybe_take(uav, seat, now_ns)

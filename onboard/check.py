@@ -227,8 +227,11 @@ def check_clock(config: Config, bus: ZenohBus, endpoint: str, timeout_s: float =
 
 def check_qos(config: Config) -> Item:
     cfg = config.onboard
-    what = {"dynamic": "the supervisor chooses the flow", "default": "default flow only",
-            "priority": "priority flow only"}[cfg.qos]  # fmt: skip
+    what = {
+        "dynamic": "the supervisor chooses the flow",
+        "default": "default flow only",
+        "priority": "priority flow only",
+    }[cfg.qos]
     return Item(
         "QoS", True, f"qos = {cfg.qos}: {what}; command watchdog {config.supervisor.watchdog_s * 1000:.0f} ms"
     )
@@ -264,6 +267,8 @@ def run(config: Config, measure_s: float = 2.0) -> int:
     for item in items:
         print(item.line(), flush=True)
     failed = [i.name for i in items if not i.ok]
-    print(f"{'all' if not failed else len(items) - len(failed)} of {len(items)} passed"
-          + (f"; failed: {', '.join(failed)}" if failed else ""))  # fmt: skip
+    print(
+        f"{'all' if not failed else len(items) - len(failed)} of {len(items)} passed"
+        + (f"; failed: {', '.join(failed)}" if failed else "")
+    )
     return 0 if not failed else 1

@@ -23,17 +23,15 @@ No zenoh, MAVLink, OpenCV, threads or wall clock here: tests drive it tick by ti
 from __future__ import annotations
 
 import logging
-from collections import deque
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.config import Config
+from dynqos.common.floods import worth_logging
 from dynqos.common.geometry import yaw_of
 from dynqos.common.keys import Stream
-from dynqos.common.message_base import LATENCY_LIMIT_MS, MAX_STATUS_SAMPLES
 from dynqos.common.messages import (
     CameraAck,
     Command,
@@ -49,7 +47,7 @@ from dynqos.common.reference import ReferenceTrack
 from dynqos.onboard.commands import CommandTracker
 from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint, Setpoint
 from dynqos.onboard.modem import ModemReading
-from dynqos.onboard.monitors import CameraLatencyMonitor
+from dynqos.onboard.monitors import CameraLatencyMonitor, LatencySamples
 from dynqos.onboard.pid import CascadedPid
 from dynqos.onboard.supervisor import Decision, Inputs, Supervisor
 from dynqos.onboard.supervisor_status import decision_fields
@@ -58,24 +56,6 @@ from dynqos.onboard.tick import LogEvent, Outgoing, TickInput, TickOutput
 # The setpoint period at [control] setpoint_hz's default; the daemon ticks at `setpoint_period_ns(config)`.
 SETPOINT_PERIOD_NS = NS_PER_S // 50
 STALE_STATE_NS = 500_000_000  # no position from the FC for this long: it is lost, stop using its state
-
-
-class LatencySamples:
-    """The latency samples measured since the last SupervisorStatus (bounded: the newest are kept)."""
-
-    def __init__(self) -> None:
-        self._cams: deque[float] = deque(maxlen=MAX_STATUS_SAMPLES)
-        self._rtts: deque[float] = deque(maxlen=MAX_STATUS_SAMPLES)
-
-    def extend(self, cams: Iterable[float], rtts: Iterable[float]) -> None:
-        self._cams.extend(c for c in cams if 0 <= c <= LATENCY_LIMIT_MS)
-        self._rtts.extend(r for r in rtts if 0 <= r <= LATENCY_LIMIT_MS)
-
-    def take(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
-        out = (tuple(self._cams), tuple(self._rtts))
-        self._cams.clear()
-        self._rtts.clear()
-        return out
 
 
 @dataclass
@@ -237,9 +217,14 @@ class OnboardCore:
         p_lat = signals.p_lat if signals is not None else None
         excess = 0.0 if p_lat is None else p_lat - self.config.supervisor.th_lat
         request = QosRequest(
-            uav=self.uav, seq=self._request_seq, stamp_ns=now, want=want, risk=risk,
-            latency_excess=excess, offered_mbps=self._offered(now),
-        )  # fmt: skip
+            uav=self.uav,
+            seq=self._request_seq,
+            stamp_ns=now,
+            want=want,
+            risk=risk,
+            latency_excess=excess,
+            offered_mbps=self._offered(now),
+        )
         return Outgoing(Stream.QOS, flow, request)
 
     def _offered(self, now: int) -> float:
@@ -454,10 +439,13 @@ class OnboardCore:
         if accepted and counters.controller_changes > changes:
             gap = "" if last_ns is None else f", {(arrival_ns - last_ns) / 1e6:.0f} ms after the last command"
             self._log(logging.INFO, f"{self.uav}: controller is now {sender} (term {command.term}{gap})")
-        elif counters.fenced > fenced and (counters.fenced == 1 or counters.fenced % 1000 == 0):
+        elif counters.fenced > fenced and worth_logging(counters.fenced):
             followed = f"{self.tracker.replica or '(unnamed)'} term {self.tracker.term}"
-            self._log(logging.WARNING, f"{self.uav}: refused a command from {sender} term {command.term}: "
-                      f"the drone follows {followed} ({counters.fenced} so far)")  # fmt: skip
+            self._log(
+                logging.WARNING,
+                f"{self.uav}: refused a command from {sender} term {command.term}: "
+                f"the drone follows {followed} ({counters.fenced} so far)",
+            )
 
     def _log(self, level: int, text: str) -> None:
         self._events.append(LogEvent(level, text))

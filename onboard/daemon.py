@@ -92,8 +92,9 @@ class OnboardDaemon:
         self.downlink_stats: dict[Downlink, SubscriptionStats] = {}
         self.presence: Token | None = None
         cfg = self.cfg
-        self.modem = modem_poller(cfg.modem, cfg.modem_url, cfg.modem_command, cfg.modem_interval_s,
-                                  self.clock.now_ns, self.stop)  # fmt: skip
+        self.modem = modem_poller(
+            cfg.modem, cfg.modem_url, cfg.modem_command, cfg.modem_interval_s, self.clock.now_ns, self.stop
+        )
 
     # ---- set-up ---------------------------------------------------------------------------------------
 
@@ -168,8 +169,11 @@ class OnboardDaemon:
             step = sequence.next(self.clock.now_ns(), link.state, heard, armed=link.armed if heard else None)
             if step.do in commands:
                 if step.confirmation:
-                    log.warning("onboard: the flight controller did not answer %s; sending it again (%d)",
-                                step.do.value, step.confirmation)  # fmt: skip
+                    log.warning(
+                        "onboard: the flight controller did not answer %s; sending it again (%d)",
+                        step.do.value,
+                        step.confirmation,
+                    )
                 sequence.answered(commands[step.do](step.confirmation))
                 for refusal in sequence.refusals[logged:]:
                     log.warning("onboard: %s; it said: %s", refusal, " | ".join(link.texts[-3:]) or "nothing")

@@ -149,9 +149,12 @@ class FcLink:
                 return accept_unsigned or mavsign.accepts_unsigned(message_id)
 
             self.conn.setup_signing(
-                signing_key, sign_outgoing=True, allow_unsigned_callback=unsigned_ok,
-                initial_timestamp=mavsign.timestamp_now(), link_id=link_id,
-            )  # fmt: skip
+                signing_key,
+                sign_outgoing=True,
+                allow_unsigned_callback=unsigned_ok,
+                initial_timestamp=mavsign.timestamp_now(),
+                link_id=link_id,
+            )
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None

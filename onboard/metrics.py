@@ -64,8 +64,9 @@ class DroneMetrics:
         accepted = CounterMetricFamily("dynqos_commands_accepted", "Edge commands accepted", labels=["uav"])
         accepted.add_metric([uav], c.accepted)
         yield accepted
-        rejected = CounterMetricFamily("dynqos_commands_rejected", "Edge commands refused, by cause",
-                                       labels=["uav", "cause"])  # fmt: skip
+        rejected = CounterMetricFamily(
+            "dynqos_commands_rejected", "Edge commands refused, by cause", labels=["uav", "cause"]
+        )
         for cause in ("stale", "unknown_state", "expired", "future", "wrong_drone"):
             rejected.add_metric([uav, cause], getattr(c, cause))
         yield rejected
@@ -85,22 +86,55 @@ class DroneMetrics:
 
     def _status_families(self, s: SupervisorStatus) -> Iterator[Metric]:
         uav = self.uav
-        yield one_of("dynqos_supervisor_state", "The supervisor's state (1: current)", "state",
-                     [q.value for q in SupervisorState], s.state.value, uav=uav)  # fmt: skip
-        yield one_of("dynqos_flow", "The QoS flow of commands and state (1: current)", "flow",
-                     [f.value for f in Flow], s.flow.value, uav=uav)  # fmt: skip
-        yield one_of("dynqos_camera_flow", "The QoS flow of the camera (1: current)", "flow",
-                     [f.value for f in Flow], s.camera_flow.value, uav=uav)  # fmt: skip
-        yield one_of("dynqos_control_source", "Who flies the drone (1: current)", "source",
-                     [c.value for c in ControlSource], s.control_source.value, uav=uav)  # fmt: skip
-        yield one_of("dynqos_qos_grant", "The network's grant of the priority flow (1: current)", "grant",
-                     [g.value for g in Grant], s.qos_grant.value, uav=uav)  # fmt: skip
+        yield one_of(
+            "dynqos_supervisor_state",
+            "The supervisor's state (1: current)",
+            "state",
+            [q.value for q in SupervisorState],
+            s.state.value,
+            uav=uav,
+        )
+        yield one_of(
+            "dynqos_flow",
+            "The QoS flow of commands and state (1: current)",
+            "flow",
+            [f.value for f in Flow],
+            s.flow.value,
+            uav=uav,
+        )
+        yield one_of(
+            "dynqos_camera_flow",
+            "The QoS flow of the camera (1: current)",
+            "flow",
+            [f.value for f in Flow],
+            s.camera_flow.value,
+            uav=uav,
+        )
+        yield one_of(
+            "dynqos_control_source",
+            "Who flies the drone (1: current)",
+            "source",
+            [c.value for c in ControlSource],
+            s.control_source.value,
+            uav=uav,
+        )
+        yield one_of(
+            "dynqos_qos_grant",
+            "The network's grant of the priority flow (1: current)",
+            "grant",
+            [g.value for g in Grant],
+            s.qos_grant.value,
+            uav=uav,
+        )
         gauges = (
             ("dynqos_camera_rate_factor", "Camera rate / configured rate", s.camera_rate_factor),
             ("dynqos_latency_probability", "P_lat: the probability that latency is high", s.p_lat),
-            ("dynqos_setpoint_gap_seconds", "Longest pause between setpoints since the last status",
-             (s.setpoint_gap_ms or 0.0) / 1000),
-        )  # fmt: skip
+            (
+                "dynqos_setpoint_gap_seconds",
+                "Longest pause between setpoints since the last status",
+                (s.setpoint_gap_ms or 0.0) / 1000,
+            ),
+        )
         for name, doc, value in gauges:
             gauge = GaugeMetricFamily(name, doc, labels=["uav"])
             gauge.add_metric([uav], value)

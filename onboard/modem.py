@@ -102,9 +102,14 @@ class ModemPoller:
     """Reads the modem every `interval_s` on its own thread; `latest` is the newest reading (or None)."""
 
     def __init__(
-        self, read: Read, interval_s: float, clock: Callable[[], int], stop: threading.Event, name: str,
+        self,
+        read: Read,
+        interval_s: float,
+        clock: Callable[[], int],
+        stop: threading.Event,
+        name: str,
         setup: Callable[[], None] | None = None,
-    ) -> None:  # fmt: skip
+    ) -> None:
         self.read = read
         self.setup = setup  # run once on the poller's thread before the first reading
         self.interval_s = interval_s
@@ -128,8 +133,9 @@ class ModemPoller:
             except ModemError as exc:
                 self.failures += 1
                 if not failing:
-                    log.warning("modem (%s): no reading: %s; retrying every %.1f s", self.name, exc,
-                                self.interval_s)  # fmt: skip
+                    log.warning(
+                        "modem (%s): no reading: %s; retrying every %.1f s", self.name, exc, self.interval_s
+                    )
                 failing = True
             else:
                 if failing:
@@ -139,14 +145,21 @@ class ModemPoller:
             self.stop.wait(self.interval_s)
 
 
-def modem_poller(source: str, url: str, command: str, interval_s: float, clock: Callable[[], int],
-                 stop: threading.Event) -> ModemPoller | None:  # fmt: skip
+def modem_poller(
+    source: str, url: str, command: str, interval_s: float, clock: Callable[[], int], stop: threading.Event
+) -> ModemPoller | None:
     """The poller of `[onboard] modem` (None for "none")."""
     if source == "cell":
         return ModemPoller(lambda: read_cell(url), interval_s, clock, stop, f"cell {url}")
     if source == "mmcli":
-        return ModemPoller(lambda: read_mmcli(command), interval_s, clock, stop, "mmcli",
-                           setup=lambda: mmcli_setup(command, interval_s))  # fmt: skip
+        return ModemPoller(
+            lambda: read_mmcli(command),
+            interval_s,
+            clock,
+            stop,
+            "mmcli",
+            setup=lambda: mmcli_setup(command, interval_s),
+        )
     return None
 
 
@@ -161,5 +174,6 @@ def mmcli_setup(command: str, interval_s: float) -> None:
         log.warning("modem (mmcli): %s failed: %s", shlex.join(args), exc)
         return
     if done.returncode != 0:
-        log.warning("modem (mmcli): %s exited %d: %s", shlex.join(args), done.returncode,
-                    done.stderr.strip()[:200])  # fmt: skip
+        log.warning(
+            "modem (mmcli): %s exited %d: %s", shlex.join(args), done.returncode, done.stderr.strip()[:200]
+        )

@@ -1,9 +1,12 @@
-"""Camera latency from CameraAcks: ack arrival - frame stamp - edge hold, on the drone's clock. Pure."""
+"""What the drone measures of its latency: the camera's from CameraAcks (ack arrival - frame stamp - edge
+hold, on the drone's clock), and the samples of both latencies kept for the next SupervisorStatus. Pure."""
 
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import OrderedDict, deque
+from collections.abc import Iterable
 
+from dynqos.common.message_base import LATENCY_LIMIT_MS, MAX_STATUS_SAMPLES
 from dynqos.common.messages import CameraAck
 
 
@@ -44,3 +47,21 @@ class CameraLatencyMonitor:
         if not self._outstanding:
             return None
         return (now_ns - next(iter(self._outstanding.values()))) / 1e6
+
+
+class LatencySamples:
+    """The latency samples measured since the last SupervisorStatus (bounded: the newest are kept)."""
+
+    def __init__(self) -> None:
+        self._cams: deque[float] = deque(maxlen=MAX_STATUS_SAMPLES)
+        self._rtts: deque[float] = deque(maxlen=MAX_STATUS_SAMPLES)
+
+    def extend(self, cams: Iterable[float], rtts: Iterable[float]) -> None:
+        self._cams.extend(c for c in cams if 0 <= c <= LATENCY_LIMIT_MS)
+        self._rtts.extend(r for r in rtts if 0 <= r <= LATENCY_LIMIT_MS)
+
+    def take(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        out = (tuple(self._cams), tuple(self._rtts))
+        self._cams.clear()
+        self._rtts.clear()
+        return out

@@ -11,7 +11,7 @@ from dynqos.common.config import ZenohConfig
 from dynqos.common.geometry import yaw_of
 from dynqos.experiment.camera_sizing import attitude, flight_views, frame_bits
 from dynqos.experiment.scenario import builtin_scenario, scenario_config
-from dynqos.sim.network.cell import MIN_SOCKET_BUFFER, SOCKET_BUFFER, socket_buffer_bytes
+from dynqos.sim.network.bearer import MIN_SOCKET_BUFFER, SOCKET_BUFFER, socket_buffer_bytes
 
 
 def tilt_of(quat: tuple[float, float, float, float]) -> float:

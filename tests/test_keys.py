@@ -65,3 +65,21 @@ def test_parse_names_what_is_wrong(key: str, reason: str) -> None:
 def test_parse_rejects_non_string() -> None:
     with pytest.raises(KeyExprError, match="must be a string"):
         keys.parse(b"dynqos/uav1/down/cmd")  # type: ignore[arg-type]
+
+
+def test_one_replica_id_rule_for_config_tokens_and_our_own() -> None:
+    from dynqos.common.keys import check_replica_id, valid_replica_id
+
+    assert valid_replica_id("mpc-a_1")
+    assert valid_replica_id("x" * 64)
+    for bad in ("", "x" * 65, "a/b", "a b", "é", "a\n"):
+        assert not valid_replica_id(bad), bad
+    with pytest.raises(ValueError, match=r"agent id 'a/b' is invalid: use 1 to 64 characters"):
+        check_replica_id("a/b", "agent id")
+
+
+def test_a_flood_is_logged_at_its_first_and_every_thousandth() -> None:
+    from dynqos.common.floods import worth_logging
+
+    assert [n for n in range(0, 3001) if worth_logging(n)] == [1, 1000, 2000, 3000]
+    assert [n for n in range(0, 201) if worth_logging(n, every=100)] == [1, 100, 200]

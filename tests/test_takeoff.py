@@ -3,6 +3,10 @@ each refusal, with no FC and no thread."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
+import pytest
+
 from dynqos.onboard.fc import FcState
 from dynqos.onboard.takeoff import (
     ARM_RETRY_S,
@@ -12,8 +16,11 @@ from dynqos.onboard.takeoff import (
     DISARM_GRACE_S,
     NO_ALTITUDE,
     PRIME_SETPOINTS,
+    TRANSITIONS,
     Do,
+    Event,
     ExitAction,
+    Phase,
     TakeoffSequencer,
     on_exit,
 )
@@ -156,3 +163,116 @@ def test_only_a_drone_flying_from_the_edge_is_handed_a_mode_when_the_daemon_stop
     assert on_exit(offloading=False, on_exit_setting="land") is ExitAction.NOTHING
     assert on_exit(offloading=True, on_exit_setting="land") is ExitAction.LAND
     assert on_exit(offloading=True, on_exit_setting="hold") is ExitAction.HOLD
+
+
+# ---- the table, row by row -----------------------------------------------------------------------------
+
+
+def _reach(phase: Phase) -> TakeoffSequencer:
+    """A sequencer brought to `phase` by an FC that accepts everything, at t = 0 (the climb at 1 s)."""
+    seq = TakeoffSequencer(altitude_m=2.0, fc_timeout_s=5.0, start_ns=0)
+    order = [Phase.ALTITUDE, Phase.ARM, Phase.TAKE_OFF, Phase.CLIMB]
+    if phase is Phase.WAIT_FC:
+        return seq
+    seq.next(0, at(0.0), fc_heard=True)
+    for reached in order:
+        if seq.phase is phase:
+            return seq
+        if phase is Phase.ARM_AGAIN and seq.phase is Phase.ARM:
+            seq.answered(1)
+            return seq
+        seq.answered(0)
+        if reached is not Phase.TAKE_OFF:
+            seq.next(0, at(0.0), fc_heard=True)
+    for _ in range(PRIME_SETPOINTS + 1):  # climbed: the hold setpoints, then offboard is asked for
+        seq.next(1 * S, at(2.0), fc_heard=True)
+        if seq.phase is phase:
+            return seq
+    raise AssertionError(f"{phase} not reached: {seq.phase}")
+
+
+def _unanswered(seq: TakeoffSequencer) -> None:
+    for _ in range(COMMAND_ATTEMPTS):
+        seq.answered(None)
+        if seq.phase in (Phase.ALTITUDE, Phase.ARM, Phase.TAKE_OFF, Phase.OFFBOARD):
+            seq.next(0, at(2.0), fc_heard=True)
+
+
+def _arm_refused_late(seq: TakeoffSequencer) -> None:
+    seq.answered(1)  # the first refusal, at 0: asked again after ARM_RETRY_S ...
+    late = int((ARM_WINDOW_S + 1) * S)
+    assert seq.next(late, at(0.0), fc_heard=True).do is Do.ARM
+    seq.answered(1)  # ... and refused once the window has closed
+
+
+def _climb_then(seq: TakeoffSequencer, after_s: float, fc: FcState | None, armed: bool | None = None) -> None:
+    seq.next(1 * S, at(1.0), fc_heard=True, armed=armed)  # the climb's clock starts
+    seq.next(int((1 + after_s) * S), fc, fc_heard=True, armed=armed)
+
+
+def _retry_due(seq: TakeoffSequencer) -> None:
+    seq.next(int(ARM_RETRY_S * S), at(0.0), fc_heard=True)
+
+
+def _disarmed(seq: TakeoffSequencer) -> None:
+    _climb_then(seq, DISARM_GRACE_S, at(0.0), armed=False)
+
+
+def _prime(seq: TakeoffSequencer) -> None:
+    for _ in range(PRIME_SETPOINTS):  # one was sent on the way here
+        seq.next(1 * S, at(2.0), fc_heard=True)
+
+
+# Each transition: how the test makes it happen, and where the take-off must then be (written here, not
+# read from the table, so that a row changed by mistake fails).
+DRIVE: dict[tuple[Phase, Event], tuple[Callable[[TakeoffSequencer], object], Phase]] = {
+    (Phase.WAIT_FC, Event.FC_HEARD): (lambda seq: seq.next(0, at(0.0), fc_heard=True), Phase.ALTITUDE),
+    (Phase.WAIT_FC, Event.FC_SILENT): (lambda seq: seq.next(5 * S, None, fc_heard=False), Phase.FAILED),
+    (Phase.ALTITUDE, Event.ACCEPTED): (lambda seq: seq.answered(0), Phase.ARM),
+    (Phase.ALTITUDE, Event.REFUSED): (lambda seq: seq.answered(4), Phase.ARM),
+    (Phase.ALTITUDE, Event.UNANSWERED): (_unanswered, Phase.ARM),
+    (Phase.ALTITUDE, Event.FC_SILENT): (lambda seq: seq.next(6 * S, at(0.0), fc_heard=False), Phase.FAILED),
+    (Phase.ARM, Event.ACCEPTED): (lambda seq: seq.answered(0), Phase.TAKE_OFF),
+    (Phase.ARM, Event.REFUSED_EARLY): (lambda seq: seq.answered(1), Phase.ARM_AGAIN),
+    (Phase.ARM, Event.REFUSED): (_arm_refused_late, Phase.FAILED),
+    (Phase.ARM, Event.UNANSWERED): (_unanswered, Phase.FAILED),
+    (Phase.ARM, Event.FC_SILENT): (lambda seq: seq.next(6 * S, None, fc_heard=True), Phase.FAILED),
+    (Phase.ARM_AGAIN, Event.RETRY_DUE): (
+        _retry_due,
+        Phase.ARM,
+    ),
+    (Phase.ARM_AGAIN, Event.FC_SILENT): (lambda seq: seq.next(6 * S, at(0.0), fc_heard=False), Phase.FAILED),
+    (Phase.TAKE_OFF, Event.ACCEPTED): (lambda seq: seq.answered(0), Phase.CLIMB),
+    (Phase.TAKE_OFF, Event.REFUSED): (lambda seq: seq.answered(4), Phase.FAILED),
+    (Phase.TAKE_OFF, Event.UNANSWERED): (_unanswered, Phase.FAILED),
+    (Phase.CLIMB, Event.CLIMBED): (lambda seq: seq.next(1 * S, at(1.9), fc_heard=True), Phase.PRIME),
+    (Phase.CLIMB, Event.CLIMB_TIMEOUT): (lambda seq: _climb_then(seq, CLIMB_TIMEOUT_S, at(1.0)), Phase.PRIME),
+    (Phase.CLIMB, Event.POSITION_LOST): (lambda seq: _climb_then(seq, CLIMB_TIMEOUT_S, None), Phase.FAILED),
+    (Phase.CLIMB, Event.DISARMED): (
+        _disarmed,
+        Phase.FAILED,
+    ),
+    (Phase.PRIME, Event.PRIMED): (
+        _prime,
+        Phase.OFFBOARD,
+    ),
+    (Phase.OFFBOARD, Event.ACCEPTED): (lambda seq: seq.answered(0), Phase.DONE),
+    (Phase.OFFBOARD, Event.REFUSED): (lambda seq: seq.answered(4), Phase.FAILED),
+    (Phase.OFFBOARD, Event.UNANSWERED): (_unanswered, Phase.FAILED),
+}
+
+
+def test_every_row_of_the_table_has_its_own_test_below() -> None:
+    assert set(DRIVE) == set(TRANSITIONS)
+
+
+@pytest.mark.parametrize(("phase", "event"), list(TRANSITIONS), ids=lambda x: x.name)
+def test_each_transition_leads_where_the_table_says(phase: Phase, event: Event) -> None:
+    seq = _reach(phase)
+    assert seq.phase is phase
+    drive, expected = DRIVE[(phase, event)]
+    drive(seq)
+    assert seq.phase is expected
+    if seq.phase is Phase.FAILED:
+        assert seq.failed
+        assert seq.next(10**12, at(2.0), fc_heard=True).do is Do.FAILED  # a failure sticks

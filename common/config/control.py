@@ -129,8 +129,11 @@ def _check_replica(
     replica_id: str, takeover_after_s: float, holdoff_s: float, *, max_takeover_s: float
 ) -> None:
     _check_replica_id(replica_id)
-    _require(0.005 <= takeover_after_s <= max_takeover_s, "takeover_after_s",
-             f"must be in 0.005..{max_takeover_s:g} s")  # fmt: skip
+    _require(
+        0.005 <= takeover_after_s <= max_takeover_s,
+        "takeover_after_s",
+        f"must be in 0.005..{max_takeover_s:g} s",
+    )
     _require(0 <= holdoff_s <= 600, "holdoff_s", "must be in 0..600 s")
 
 
@@ -139,8 +142,11 @@ def _check_mission(m: PlannerConfig | DroneMissionConfig) -> None:
     _require(0.1 <= m.radius_m <= 100, "radius_m", "must be in 0.1..100 m")
     _require(1.0 <= m.period_s <= 3600, "period_s", "must be in 1..3600 s")
     _require(0.05 <= m.speed_mps <= 20, "speed_mps", "must be in 0.05..20 m/s")
-    _require(m.mission != "waypoints" or bool(m.waypoints_file), "waypoints_file",
-             "the waypoints mission needs a waypoints_file")  # fmt: skip
+    _require(
+        m.mission != "waypoints" or bool(m.waypoints_file),
+        "waypoints_file",
+        "the waypoints mission needs a waypoints_file",
+    )
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -196,8 +202,11 @@ class PlannerConfig:
     def __post_init__(self) -> None:
         _check_mission(self)
         _check_replica(self.replica_id, self.takeover_after_s, self.holdoff_s, max_takeover_s=10.0)
-        _require(all(lo < hi for lo, hi in zip(self.arena_min_m, self.arena_max_m, strict=True)),
-                 "arena_max_m", "must exceed arena_min_m on every axis")  # fmt: skip
+        _require(
+            all(lo < hi for lo, hi in zip(self.arena_min_m, self.arena_max_m, strict=True)),
+            "arena_max_m",
+            "must exceed arena_min_m on every axis",
+        )
         for uav in self.drones:
             _require(UAV_ID_PATTERN.fullmatch(uav) is not None, f"drones.{uav}", "is not a drone id")
 
@@ -221,8 +230,11 @@ class DetectorConfig:
     replica_id: str = ""
 
     def __post_init__(self) -> None:
-        _require(1 <= self.min_radius_px < self.max_radius_px <= 4000, "max_radius_px",
-                 "need 1 <= min_radius_px < max_radius_px <= 4000")  # fmt: skip
+        _require(
+            1 <= self.min_radius_px < self.max_radius_px <= 4000,
+            "max_radius_px",
+            "need 1 <= min_radius_px < max_radius_px <= 4000",
+        )
         _require(self.blur_px in (0, 3, 5, 7, 9), "blur_px", "must be 0, 3, 5, 7 or 9")
         _check_replica_id(self.replica_id)
 
@@ -285,8 +297,11 @@ class OnboardConfig:
     modem_interval_s: Annotated[float, In(0.1, 60, "must be in 0.1..60 s")] = 1.0
 
     def __post_init__(self) -> None:
-        _require(self.modem != "cell" or self.modem_url.startswith(("http://", "https://")), "modem_url",
-                 "the cell modem needs the cell's radio URL (http://HOST:PORT/radio/<uav>)")  # fmt: skip
+        _require(
+            self.modem != "cell" or self.modem_url.startswith(("http://", "https://")),
+            "modem_url",
+            "the cell modem needs the cell's radio URL (http://HOST:PORT/radio/<uav>)",
+        )
         _require(
             self.modem != "mmcli" or bool(self.modem_command.strip()), "modem_command", "must not be empty"
         )
@@ -296,8 +311,11 @@ class OnboardConfig:
         for name in ("connect_default", "connect_priority"):
             if getattr(self, name):
                 _host_port(getattr(self, name), name)
-        _require(16 <= self.camera_width <= 4096 and 16 <= self.camera_height <= 4096, "camera_width",
-                 "image size must be 16..4096 pixels")  # fmt: skip
+        _require(
+            16 <= self.camera_width <= 4096 and 16 <= self.camera_height <= 4096,
+            "camera_width",
+            "image size must be 16..4096 pixels",
+        )
         _require(
             self.camera != "files" or bool(self.files_dir), "files_dir", "the files camera needs files_dir"
         )
@@ -322,7 +340,13 @@ class Ros2Config:
     publish_period_s: Annotated[float, In(0, 1, "must be in 0..1 s")] = 0.05
 
     def __post_init__(self) -> None:
-        _require(ROS_NAME.fullmatch(self.prefix) is not None, "prefix",
-                 "must be a ROS name: a letter, then letters, digits or _")  # fmt: skip
-        _require(ROS_NAME.fullmatch(self.frame_id) is not None, "frame_id",
-                 "must be a ROS frame name: a letter, then letters, digits or _")  # fmt: skip
+        _require(
+            ROS_NAME.fullmatch(self.prefix) is not None,
+            "prefix",
+            "must be a ROS name: a letter, then letters, digits or _",
+        )
+        _require(
+            ROS_NAME.fullmatch(self.frame_id) is not None,
+            "frame_id",
+            "must be a ROS frame name: a letter, then letters, digits or _",
+        )

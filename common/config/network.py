@@ -82,19 +82,31 @@ class ZenohConfig:
             ok = UAV_ID_PATTERN.fullmatch(name) is not None and not reserved_name(name)
             _require(ok, "acl_ros2_clients", f"{name!r}: 1 to 32 of A-Z a-z 0-9 _ -, not an edge identity")
             _require(name not in self.acl_drones, "acl_ros2_clients", f"{name!r} is a drone's identity")
-        _require(not self.acl_ros2_clients or bool(self.acl_drones), "acl_ros2_clients",
-                 "needs the router's access control (acl_drones)")  # fmt: skip
-        _require(re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", self.acl_ros2_prefix) is not None, "acl_ros2_prefix",
-                 "must be a ROS name: a letter, then letters, digits, _")  # fmt: skip
+        _require(
+            not self.acl_ros2_clients or bool(self.acl_drones),
+            "acl_ros2_clients",
+            "needs the router's access control (acl_drones)",
+        )
+        _require(
+            re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", self.acl_ros2_prefix) is not None,
+            "acl_ros2_prefix",
+            "must be a ROS name: a letter, then letters, digits, _",
+        )
         _require(self.acl in ("on", "off"), "acl", f'must be "on" or "off", got {self.acl!r}')
         for link in self.router_links:
             scheme = "tls" if self.tls else "tcp"
-            _require(re.fullmatch(rf"{scheme}/\S+:\d{{1,5}}", link) is not None, "router_links",
-                     f"{link!r} is not a zenoh endpoint: write {scheme}/<host>:<port>")  # fmt: skip
-        _require(not (self.router_links and self.acl_drones), "router_links",
-                 "cannot link routers under access control yet: the policy has no rule for another "
-                 "router (link the sites over a private network with acl_drones empty, or run zenohd "
-                 "with a policy of your own)")  # fmt: skip
+            _require(
+                re.fullmatch(rf"{scheme}/\S+:\d{{1,5}}", link) is not None,
+                "router_links",
+                f"{link!r} is not a zenoh endpoint: write {scheme}/<host>:<port>",
+            )
+        _require(
+            not (self.router_links and self.acl_drones),
+            "router_links",
+            "cannot link routers under access control yet: the policy has no rule for another "
+            "router (link the sites over a private network with acl_drones empty, or run zenohd "
+            "with a policy of your own)",
+        )
         _require(
             not (self.acl == "off" and self.acl_drones),
             "acl",
@@ -121,8 +133,11 @@ class BearerConfig:
 
     def __post_init__(self) -> None:
         _require(not self.ue or UAV_ID_PATTERN.fullmatch(self.ue) is not None, "ue", "must be a drone id")
-        _require(bool(self.name) and self.name.replace("-", "").replace("_", "").isalnum(), "name",
-                 "must be letters, digits, - or _")  # fmt: skip
+        _require(
+            bool(self.name) and self.name.replace("-", "").replace("_", "").isalnum(),
+            "name",
+            "must be letters, digits, - or _",
+        )
         _host_port(self.target, "target")
 
     @property
@@ -190,8 +205,11 @@ class CellEventConfig:
             _require(0 < self.weight <= 1000, "weight", "a weight event needs a weight in (0, 1000]")
         elif self.kind == "qod_profile":
             _require(bool(self.profile), "profile", "a qod_profile event names its profile")
-            _require(bool(self.status) or self.max_duration_s > 0, "status",
-                     "a qod_profile event sets a status or a max_duration_s (or both)")  # fmt: skip
+            _require(
+                bool(self.status) or self.max_duration_s > 0,
+                "status",
+                "a qod_profile event sets a status or a max_duration_s (or both)",
+            )
         if self.kind == "trace":
             _require(self.mean_mbps >= 0, "mean_mbps", "must be >= 0")
 
@@ -273,11 +291,21 @@ class CellConfig:
             return self.bearers
         host = zenoh.edge_host
         return (
-            BearerConfig(name=f"{uav}-default", target=f"{host}:{zenoh.default_port}",
-                         listen_port=self.default_listen_port, weight=1.0, ue=uav),
-            BearerConfig(name=f"{uav}-priority", target=f"{host}:{zenoh.priority_port}",
-                         listen_port=self.priority_listen_port, weight=self.priority_weight, ue=uav),
-        )  # fmt: skip
+            BearerConfig(
+                name=f"{uav}-default",
+                target=f"{host}:{zenoh.default_port}",
+                listen_port=self.default_listen_port,
+                weight=1.0,
+                ue=uav,
+            ),
+            BearerConfig(
+                name=f"{uav}-priority",
+                target=f"{host}:{zenoh.priority_port}",
+                listen_port=self.priority_listen_port,
+                weight=self.priority_weight,
+                ue=uav,
+            ),
+        )
 
 
 SERIAL_BAUDS = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 921600, 1000000, 1500000)

@@ -70,10 +70,16 @@ class FleetPlanConfig:
         _require(len(set(self.drones)) == len(self.drones), "drones", "drone ids must be unique")
         ids = [t.id for t in self.tasks]
         _require(len(set(ids)) == len(ids), "tasks", "task ids must be unique")
-        _require(bool(self.heights_m) and all(0.3 <= h <= 120 for h in self.heights_m), "heights_m",
-                 "needs one or more heights in 0.3..120 m")  # fmt: skip
+        _require(
+            bool(self.heights_m) and all(0.3 <= h <= 120 for h in self.heights_m),
+            "heights_m",
+            "needs one or more heights in 0.3..120 m",
+        )
         _require(all(0 < h <= 10_000 for h in self.half_m), "half_m", "must be positive")
         for task in self.tasks:
             for x, y in task.points_m:
-                _require(abs(x) <= self.half_m[0] and abs(y) <= self.half_m[1], f"tasks.{task.id}",
-                         f"({x:g}, {y:g}) is outside the arena (half_m {self.half_m})")  # fmt: skip
+                _require(
+                    abs(x) <= self.half_m[0] and abs(y) <= self.half_m[1],
+                    f"tasks.{task.id}",
+                    f"({x:g}, {y:g}) is outside the arena (half_m {self.half_m})",
+                )

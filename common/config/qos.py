@@ -40,8 +40,11 @@ class DeviceIpv4Config:
                 bool(self.publicAddress), "publicAddress", "is required with privateAddress or publicPort"
             )
         if self.publicAddress:
-            _require(bool(self.privateAddress or self.publicPort), "publicAddress",
-                     "needs privateAddress or publicPort as well (CAMARA DeviceIpv4Addr)")  # fmt: skip
+            _require(
+                bool(self.privateAddress or self.publicPort),
+                "publicAddress",
+                "needs privateAddress or publicPort as well (CAMARA DeviceIpv4Addr)",
+            )
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -56,8 +59,11 @@ class DeviceConfig:
 
     def __post_init__(self) -> None:
         if self.phoneNumber:
-            _require(_PHONE_NUMBER.fullmatch(self.phoneNumber) is not None, "phoneNumber",
-                     f"{self.phoneNumber!r} is not E.164 with a leading + (e.g. +46700000001)")  # fmt: skip
+            _require(
+                _PHONE_NUMBER.fullmatch(self.phoneNumber) is not None,
+                "phoneNumber",
+                f"{self.phoneNumber!r} is not E.164 with a leading + (e.g. +46700000001)",
+            )
         if self.ipv6Address:
             try:
                 ipaddress.IPv6Address(self.ipv6Address)
@@ -146,8 +152,12 @@ class CamaraConfig:
             # tokens, device identities and the sink's credential cross these: TLS, except on this host
             plain_http_ok = not url.startswith("http://") or _loopback(url)
             _require(plain_http_ok, name, "must be https:// (plain http only to 127.0.0.0/8, ::1, localhost)")
-        _require(len(self.qos_profile) >= 3 and re.fullmatch(r"[A-Za-z0-9_.-]{3,256}", self.qos_profile)
-                 is not None, "qos_profile", "must be 3..256 of A-Z a-z 0-9 _ . -")  # fmt: skip
+        _require(
+            len(self.qos_profile) >= 3
+            and re.fullmatch(r"[A-Za-z0-9_.-]{3,256}", self.qos_profile) is not None,
+            "qos_profile",
+            "must be 3..256 of A-Z a-z 0-9 _ . -",
+        )
         _require(0 <= self.extend_before_s < self.duration_s, "extend_before_s", "must be in 0..duration_s")
         _require(0 <= self.renew_before_s < self.duration_s, "renew_before_s", "must be in 0..duration_s")
         self._check_addresses()
@@ -183,8 +193,11 @@ class CamaraConfig:
         key = "application_server_addresses"
         _require(self.api_version == "1.2.0", key, 'needs api_version = "1.2.0" (1.1.0 has no address list)')
         _require(not self.application_server, key, "is instead of application_server, not with it")
-        _require(len(addresses) <= 16 and len(set(addresses)) == len(addresses), key,
-                 "must be at most 16 different addresses")  # fmt: skip
+        _require(
+            len(addresses) <= 16 and len(set(addresses)) == len(addresses),
+            key,
+            "must be at most 16 different addresses",
+        )
         for address in addresses:
             try:
                 ipaddress.ip_address(address)
@@ -225,8 +238,11 @@ class ArbiterConfig:
     )
 
     def __post_init__(self) -> None:
-        _require(self.max_share == 1 or self.uplink_mbps > 0, "uplink_mbps",
-                 "is required (> 0) when max_share is below 1")  # fmt: skip
+        _require(
+            self.max_share == 1 or self.uplink_mbps > 0,
+            "uplink_mbps",
+            "is required (> 0) when max_share is below 1",
+        )
         _require(self.rotate_after_s >= self.min_hold_s, "rotate_after_s", "must be at least min_hold_s")
 
 
@@ -264,14 +280,21 @@ class QosConfig:
     arbiter: ArbiterConfig = field(default_factory=ArbiterConfig)
 
     def __post_init__(self) -> None:
-        _require(self.drone_timeout_s > self.request_interval_s, "drone_timeout_s",
-                 "must exceed request_interval_s")  # fmt: skip
-        _require(self.agent_timeout_s > self.grant_interval_s, "agent_timeout_s",
-                 "must exceed grant_interval_s")  # fmt: skip
+        _require(
+            self.drone_timeout_s > self.request_interval_s,
+            "drone_timeout_s",
+            "must exceed request_interval_s",
+        )
+        _require(
+            self.agent_timeout_s > self.grant_interval_s, "agent_timeout_s", "must exceed grant_interval_s"
+        )
         _check_replica_id(self.replica_id)
         if self.backend == "camara":
             _require(bool(self.camara.api_root), "camara.api_root", 'is required with backend = "camara"')
         # With links the network prioritises whoever uses the priority port: a revoked grant could not
         # be taken back, so the arbiter's budget would be a wish.
-        _require(self.policy != "arbiter" or self.backend == "camara", "policy",
-                 'the arbiter needs backend = "camara" (a network that enforces its grants)')  # fmt: skip
+        _require(
+            self.policy != "arbiter" or self.backend == "camara",
+            "policy",
+            'the arbiter needs backend = "camara" (a network that enforces its grants)',
+        )

@@ -105,5 +105,8 @@ class PredictionConfig:
     max_values: Annotated[int, In(1, 10**7, "must be in 1..10000000")] = 200_000  # cells x layers x slots
 
     def __post_init__(self) -> None:
-        _require(bool(self.precisions) and all(1 <= p <= 12 for p in self.precisions), "precisions",
-                 "geohash levels are 1..12")  # fmt: skip
+        _require(
+            bool(self.precisions) and all(1 <= p <= 12 for p in self.precisions),
+            "precisions",
+            "geohash levels are 1..12",
+        )

@@ -8,12 +8,12 @@ code, before its own `__post_init__` checks what relates one key to another."""
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar, get_type_hints
 
 from dynqos.common.errors import ConfigError
+from dynqos.common.keys import REPLICA_ID_RULE, valid_replica_id
 
 C = TypeVar("C", bound=type)
 
@@ -78,8 +78,8 @@ def _require(condition: bool, key: str, reason: str) -> None:
 
 def _check_replica_id(replica_id: str) -> None:
     """An edge replica's id (its liveliness token's last chunk); empty: <host>-<pid> at start."""
-    _require(replica_id == "" or re.fullmatch(r"[A-Za-z0-9_-]{1,64}", replica_id) is not None,
-             "replica_id", "use 1 to 64 characters from A-Z a-z 0-9 _ - (or leave it empty)")  # fmt: skip
+    rule = f"{REPLICA_ID_RULE} (or leave it empty)"
+    _require(replica_id == "" or valid_replica_id(replica_id), "replica_id", rule)
 
 
 def _host_port(text: str, key: str) -> tuple[str, int]:

@@ -14,19 +14,21 @@ def add(commands: Commands) -> None:
     config_cmd = commands.add_parser("config", help="inspect configuration", parents=[common_options(1)])
     actions = config_cmd.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     show = actions.add_parser(
-        "show", parents=[common_options(2)],
+        "show",
+        parents=[common_options(2)],
         help="print the effective config (defaults + file + --set) as TOML",
         description="Print the effective configuration: built-in defaults, then FILE, then --set overrides.",
-    )  # fmt: skip
+    )
     show.add_argument("file", nargs="?", metavar="FILE", help="config file (same as --config FILE)")
     show.set_defaults(handler=show_config)
     zenoh = actions.add_parser(
-        "zenoh", parents=[common_options(2)],
+        "zenoh",
+        parents=[common_options(2)],
         help="print the zenoh config (JSON5) a router, edge or drone session opens with",
         description="Print the zenoh settings dynqos derives from [zenoh] for one role: endpoints with their "
         "priority ranges, TLS files and, for the router, the access-control policy from acl_drones. Use it "
         "to run the official zenohd with the same setup (zenohd -c FILE) or to see what a session does.",
-    )  # fmt: skip
+    )
     zenoh.add_argument("file", nargs="?", metavar="FILE", help="config file (same as --config FILE)")
     zenoh.add_argument(
         "--role", choices=["router", "edge", "drone"], default="router", help="whose session (default router)"

@@ -71,26 +71,35 @@ def add(commands: Commands) -> None:
     for name, (_, text) in SERVICES.items():
         how = ROUTER if name == "router" else CLIENT
         sub = services.add_parser(
-            name, parents=[common_options(2)], help=text,
-            description=described(text, f"{how} Prints one JSON line when ready, a health line every few "
-                                  "seconds, stops on SIGTERM."),
-        )  # fmt: skip
+            name,
+            parents=[common_options(2)],
+            help=text,
+            description=described(
+                text,
+                f"{how} Prints one JSON line when ready, a health line every few seconds, stops on SIGTERM.",
+            ),
+        )
         sub.add_argument(
-            "--health-file", metavar="FILE",
+            "--health-file",
+            metavar="FILE",
             help="also write each health line to FILE (for `dynqos health FILE`, e.g. a Kubernetes probe)",
-        )  # fmt: skip
+        )
         metrics_options(sub)
         sub.set_defaults(handler=run_edge)
 
     onboard = commands.add_parser(
-        "onboard", parents=[common_options(1)], description=ONBOARD,
+        "onboard",
+        parents=[common_options(1)],
+        description=ONBOARD,
         help="the drone's daemon: MAVLink to the FC, uplink to the edge, supervisor, fallback PID",
-    )  # fmt: skip
+    )
     onboard.add_argument(
-        "action", nargs="?", choices=["check"],
+        "action",
+        nargs="?",
+        choices=["check"],
         help="check: the preflight (FC, signing, camera, router on both flows, QoS, systemd unit), one "
         "line per item, exit 0 only if all pass; nothing is armed or sent (docs/onboard.md)",
-    )  # fmt: skip
+    )
     onboard.add_argument("--takeoff", action="store_true", help="arm, take off and start offloading")
     metrics_options(onboard)
     onboard.set_defaults(handler=run_onboard)

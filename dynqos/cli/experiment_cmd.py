@@ -30,11 +30,13 @@ def add(commands: Commands) -> None:
             sub.add_argument("scenario_file", metavar="FILE", help="scenario file")
         else:
             sub.add_argument(
-                "--scenario", action="append", metavar="NAME",
+                "--scenario",
+                action="append",
+                metavar="NAME",
                 help="baseline, bg-noqos, bg-dynqos, bg-staticqos (repeatable; default: these four), or "
                 "bg-dynqos-hover, bg-dynqos-refused, capacity-drop, faults, replicas, soak, fleet-noqos, "
                 "fleet-allprio, fleet-arbiter, fleet-replicas, coverage-hole, fleet-blind, fleet-planned",
-            )  # fmt: skip
+            )
         _flight_options(sub)
         sub.set_defaults(handler=run_demo, own_config=OWN_CONFIG)
 

@@ -27,18 +27,25 @@ def common_options(level: int, *, settings: bool = True) -> argparse.ArgumentPar
     group = common.add_argument_group("common options (accepted before or after any subcommand)")
     if settings:
         group.add_argument(
-            "--config", metavar="FILE", dest=f"config_{level}",
+            "--config",
+            metavar="FILE",
+            dest=f"config_{level}",
             help="TOML config file (default: built-in defaults)",
-        )  # fmt: skip
+        )
         group.add_argument(
-            "--set", metavar="KEY=VALUE", action="append", dest=f"overrides_{level}",
+            "--set",
+            metavar="KEY=VALUE",
+            action="append",
+            dest=f"overrides_{level}",
             help="override one setting, e.g. --set supervisor.th_lat=0.6 (repeatable; wins over the "
             "environment's DYNQOS_<SECTION>__<KEY> and the config file)",
-        )  # fmt: skip
+        )
     group.add_argument(
-        "--log-level", dest=f"log_level_{level}", choices=["debug", "info", "warning", "error"],
+        "--log-level",
+        dest=f"log_level_{level}",
+        choices=["debug", "info", "warning", "error"],
         help="logging verbosity (default: info)",
-    )  # fmt: skip
+    )
     return common
 
 
@@ -56,10 +63,12 @@ def join_common_options(args: argparse.Namespace) -> None:
 
 def metrics_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--metrics-port", type=int, metavar="PORT",
+        "--metrics-port",
+        type=int,
+        metavar="PORT",
         help="serve Prometheus metrics on http://HOST:PORT/metrics and a probe on /healthz "
         "([metrics] port; default 0 = off)",
-    )  # fmt: skip
+    )
     parser.add_argument(
         "--metrics-host",
         metavar="HOST",

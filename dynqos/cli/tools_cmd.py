@@ -41,9 +41,11 @@ OBSERVE = (
 def add(commands: Commands) -> None:
     own = common_options(1, settings=False)
     bench = commands.add_parser(
-        "bench", parents=[own], description=BENCH,
+        "bench",
+        parents=[own],
+        description=BENCH,
         help="run the benchmarks (what the runtime costs, beside its floor) and write bench-results.json",
-    )  # fmt: skip
+    )
     bench.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (default: all)")
     bench.add_argument("--smoke", action="store_true", help="each in a few seconds (what CI runs)")
     bench.add_argument(
@@ -57,11 +59,12 @@ def add(commands: Commands) -> None:
     bench.set_defaults(handler=run_bench, own_config="each benchmark sets up what it measures")
 
     health = commands.add_parser(
-        "health", parents=[own],
+        "health",
+        parents=[own],
         help="check a service's health file (exit 0 if fresh): for Kubernetes exec probes",
         description="Prints the last health line written by a service started with --health-file FILE "
         "and exits 0 if it is at most --max-age seconds old; otherwise says why and exits 2.",
-    )  # fmt: skip
+    )
     health.add_argument("health_path", metavar="FILE", help="the service's --health-file")
     health.add_argument(
         "--max-age", type=float, default=15.0, metavar="S", help="oldest acceptable line (default 15 s)"
@@ -93,10 +96,11 @@ def add(commands: Commands) -> None:
         else:
             observe.add_argument("--out", metavar="FILE.mcap", required=True, help="the MCAP file to write")
             observe.add_argument(
-                "--ros2", action="store_true",
+                "--ros2",
+                action="store_true",
                 help="write ROS 2 messages (ros2msg schemas, cdr), the topics of `dynqos edge ros2`, for "
                 "`ros2 bag` and Foxglove's ROS 2 support; needs the ros2 extra (docs/ros2.md)",
-            )  # fmt: skip
+            )
         observe.set_defaults(handler=observe_flight)
 
     version = commands.add_parser("version", help="print the version", parents=[own])
@@ -106,17 +110,23 @@ def add(commands: Commands) -> None:
 def _add_keys(commands: Commands, own: argparse.ArgumentParser) -> None:
     """`dynqos certs` and `dynqos signing-key`: the keys a deployment needs."""
     certs = commands.add_parser(
-        "certs", parents=[own], description=CERTS,
+        "certs",
+        parents=[own],
+        description=CERTS,
         help="make a development CA and mTLS certificates: the router, each edge service, each drone",
-    )  # fmt: skip
+    )
     certs.add_argument("--out", metavar="DIR", required=True, help="folder for the PEM files")
     certs.add_argument(
         "--drone", metavar="ID", action="append", default=[], dest="drones", help="a drone id (repeatable)"
     )
     certs.add_argument(
-        "--router-host", metavar="NAME", action="append", default=[], dest="router_hosts",
+        "--router-host",
+        metavar="NAME",
+        action="append",
+        default=[],
+        dest="router_hosts",
         help="a DNS name or IP the drones dial the router by (repeatable), e.g. dynqos-router.dynqos.svc",
-    )  # fmt: skip
+    )
     certs.add_argument(
         "--days", type=int, default=365, metavar="N", help="validity of new certificates (default 365 days)"
     )
@@ -129,13 +139,14 @@ def _add_keys(commands: Commands, own: argparse.ArgumentParser) -> None:
     certs.set_defaults(handler=make_certs, own_config="it reads only its own options")
 
     signing = commands.add_parser(
-        "signing-key", parents=[own],
+        "signing-key",
+        parents=[own],
         help="make a MAVLink 2 signing key for the drone's flight-controller link (docs/onboard.md)",
         description="Writes 32 random bytes as 64 hexadecimal characters to --out, a new file of mode 0600 "
         "(never through a link). Give the same file to [onboard] mavlink_signing_key and, for the "
         "simulator, [vehicle] signing_key; provision a real PX4 or ArduPilot with it over USB (MAVProxy: "
         "signing setup). The key is never printed or logged.",
-    )  # fmt: skip
+    )
     signing.add_argument("--out", metavar="FILE", required=True, help="the key file to write")
     signing.add_argument("--force", action="store_true", help="replace an existing key file")
     signing.set_defaults(handler=make_signing_key, own_config="it reads only its own options")
@@ -172,9 +183,13 @@ def make_certs(args: argparse.Namespace, config: Config) -> int:
         raise DynqosError("give at least one --drone ID")
     try:
         issued = make_dev_pki(
-            Path(args.out), args.drones, args.router_hosts, days=args.days, ca_days=args.ca_days,
+            Path(args.out),
+            args.drones,
+            args.router_hosts,
+            days=args.days,
+            ca_days=args.ca_days,
             force=args.force,
-        )  # fmt: skip
+        )
     except KeyExprError as exc:
         raise DynqosError(f"--drone: {exc}") from None
     for name, pair in issued.items():
@@ -193,9 +208,16 @@ def observe_flight(args: argparse.Namespace, config: Config) -> int:
     view = args.command == "view"
     record = Path(args.record) if view and args.record else (None if view else Path(args.out))
     return observer.run(
-        config, view=view, record=record, uav=args.uav, world_file=args.world, camera=not args.no_camera,
-        host=getattr(args, "host", "127.0.0.1"), port=getattr(args, "port", 8765), scenario=args.scenario,
-    )  # fmt: skip
+        config,
+        view=view,
+        record=record,
+        uav=args.uav,
+        world_file=args.world,
+        camera=not args.no_camera,
+        host=getattr(args, "host", "127.0.0.1"),
+        port=getattr(args, "port", 8765),
+        scenario=args.scenario,
+    )
 
 
 def print_version(args: argparse.Namespace, config: Config) -> int:

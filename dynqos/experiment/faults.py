@@ -37,10 +37,22 @@ log = logging.getLogger(__name__)
 SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zenoh reconnects take seconds)
 
 FaultKind = Literal[
-    "mpc_kill", "router_kill", "coverage_loss", "downlink_loss", "fc_silence", "detector_flood", "background",
-    "capacity", "trace", "mpc_replica_kill", "mpc_replica_hang", "replica_join", "planner_replica_kill",
-    "qos_agent_kill", "qos_agent_hang",
-]  # fmt: skip
+    "mpc_kill",
+    "router_kill",
+    "coverage_loss",
+    "downlink_loss",
+    "fc_silence",
+    "detector_flood",
+    "background",
+    "capacity",
+    "trace",
+    "mpc_replica_kill",
+    "mpc_replica_hang",
+    "replica_join",
+    "planner_replica_kill",
+    "qos_agent_kill",
+    "qos_agent_hang",
+]
 FLOOD_FPS = 100.0  # several times what the detector can process
 FLOOD_MAX_FRAMES = 20_000
 
@@ -115,9 +127,16 @@ class Flood:
         while not self.stop.is_set() and self.sent < FLOOD_MAX_FRAMES and time.monotonic() < self.deadline:
             self.sent += 1
             frame = CameraFrame(
-                uav="flood", seq=self.sent, stamp_ns=time.monotonic_ns(), kind="rgb", encoding="jpeg",
-                width=640, height=480, intrinsics=(500.0, 500.0, 320.0, 240.0), payload=self.jpeg,
-            )  # fmt: skip
+                uav="flood",
+                seq=self.sent,
+                stamp_ns=time.monotonic_ns(),
+                kind="rgb",
+                encoding="jpeg",
+                width=640,
+                height=480,
+                intrinsics=(500.0, 500.0, 320.0, 240.0),
+                payload=self.jpeg,
+            )
             self.pub.put(frame)
             next_due += period
             self.stop.wait(max(0.0, next_due - time.monotonic()))  # the flood's rate

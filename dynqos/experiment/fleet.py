@@ -67,17 +67,7 @@ def run_fleet(
     folder = folder or out / scenario.run_id
     logs = folder / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    zenoh = ZenohConfig(**flow_ports())
-    shared, drones = fleet_configs(
-        scenario,
-        zenoh=zenoh,
-        fc_base=free_udp_block(len(scenario.drones)),
-        gcs_port=free_port(socket.SOCK_DGRAM),
-    )
-    shared, drones, px4 = with_px4_fleet(scenario, shared, drones)  # px4: None, dynqos's vehicles fly
-    if shared.fleet_plan.tasks:  # the fleet's plan: for these drones, into the run folder
-        fleet_plan = replace(shared.fleet_plan, drones=tuple(drones), plan_file=str(folder / "plan.json"))
-        shared = replace(shared, fleet_plan=fleet_plan)
+    shared, drones, px4 = _configs(scenario, folder)  # px4: None, dynqos's vehicles fly
     shared_path = folder / "dynqos.toml"
     paths = {uav: folder / f"{uav}.toml" for uav in drones}
     write_config(shared_path, scenario, shared)
@@ -103,15 +93,29 @@ def run_fleet(
         start_replicas(procs, "mpc", scenario.mpc_replicas)
         if shared.fleet_plan.tasks:  # it waits until every drone offloads, then plans and sends the legs
             # below the control path, as the detector: its planning is a burst of CPU, not a deadline
-            procs.start("fleet-planner", ["edge", "fleet-planner"],
-                        program=["nice", "-n", str(DETECTOR_NICE), procs.exe])  # fmt: skip
+            procs.start(
+                "fleet-planner",
+                ["edge", "fleet-planner"],
+                program=["nice", "-n", str(DETECTOR_NICE), procs.exe],
+            )
         # The detector is best effort (it drops the frames it cannot keep up with): on one machine it
         # runs below the control path, as it would on its own cores at a real edge.
         procs.start("detector", ["edge", "detector"], program=["nice", "-n", str(DETECTOR_NICE), procs.exe])
         if scenario.ros2_bridge:  # best effort as well
             procs.start("ros2", ["edge", "ros2"], program=["nice", "-n", str(DETECTOR_NICE), procs.exe])
-        _record_fleet(scenario, shared.zenoh, procs, paths, cell["control_port"], rec, recs, decisions, stop,
-                      progress, shared.cell.uplink_mbps)  # fmt: skip
+        _record_fleet(
+            scenario,
+            shared.zenoh,
+            procs,
+            paths,
+            cell["control_port"],
+            rec,
+            recs,
+            decisions,
+            stop,
+            progress,
+            shared.cell.uplink_mbps,
+        )
 
     ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
     onboard_logs = {uav: _read(logs / f"onboard-{uav}.log") for uav in drones}
@@ -127,6 +131,22 @@ def run_fleet(
         summary["checks"]["nothing_left_booked"] = not plan["release_failed"]
     write_fleet(folder, scenario, rec, recs, decisions, summary)
     return summary
+
+
+def _configs(scenario: Scenario, folder: Path) -> tuple[Config, dict[str, Config], list[int] | None]:
+    """The fleet's shared config and each drone's, on free ports; the PX4 instances that fly them (None:
+    dynqos's vehicles); a planned mission's plan written into the run folder."""
+    shared, drones = fleet_configs(
+        scenario,
+        zenoh=ZenohConfig(**flow_ports()),
+        fc_base=free_udp_block(len(scenario.drones)),
+        gcs_port=free_port(socket.SOCK_DGRAM),
+    )
+    shared, drones, px4 = with_px4_fleet(scenario, shared, drones)
+    if shared.fleet_plan.tasks:  # the fleet's plan: for these drones, into the run folder
+        fleet_plan = replace(shared.fleet_plan, drones=tuple(drones), plan_file=str(folder / "plan.json"))
+        shared = replace(shared, fleet_plan=fleet_plan)
+    return shared, drones, px4
 
 
 def _start_vehicles(
@@ -177,8 +197,13 @@ def _record_fleet(
         rec.t0_ns = rec.offload_ns = time.monotonic_ns()
         # a replica fault acts on the replica serving the first drone (the others' may be another)
         watched = next(iter(paths)) if any(f.kind in REPLICA_FAULTS for f in scenario.faults) else None
-        injector = FaultInjector(procs, lambda event: post_json(cell_port, "/events", event), bus,
-                                 uplink_mbps=uplink_mbps, watch_uav=watched)  # fmt: skip
+        injector = FaultInjector(
+            procs,
+            lambda event: post_json(cell_port, "/events", event),
+            bus,
+            uplink_mbps=uplink_mbps,
+            watch_uav=watched,
+        )
         try:
             fly(scenario, procs, cell_port, injector, rec, stop, progress)
         finally:

@@ -134,9 +134,12 @@ def _record_flight(
         rec.offload_ns = rec.t0_ns = wait_for_offload(streams.states, procs, stop)
         replica_faults = any(f.kind in REPLICA_FAULTS for f in scenario.faults)
         injector = FaultInjector(
-            procs, lambda event: post_json(cell_port, "/events", event), bus, uplink_mbps=uplink_mbps,
+            procs,
+            lambda event: post_json(cell_port, "/events", event),
+            bus,
+            uplink_mbps=uplink_mbps,
             watch_uav=UAV if replica_faults else None,
-        )  # fmt: skip
+        )
         try:
             fly(scenario, procs, cell_port, injector, rec, stop, progress)
         finally:

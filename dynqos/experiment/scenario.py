@@ -34,7 +34,7 @@ from dynqos.common.errors import ConfigError
 from dynqos.common.keys import UAV_ID_PATTERN
 from dynqos.experiment.camera_sizing import camera_size_for, flight_views
 from dynqos.experiment.faults import Fault
-from dynqos.sim.network.cell import socket_buffer_bytes
+from dynqos.sim.network.bearer import socket_buffer_bytes
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -67,9 +67,12 @@ class FleetDrone:
 
     def mission_config(self) -> DroneMissionConfig:
         return DroneMissionConfig(
-            mission=self.mission, center_m=self.center_m, radius_m=self.radius_m, period_s=self.period_s,
+            mission=self.mission,
+            center_m=self.center_m,
+            radius_m=self.radius_m,
+            period_s=self.period_s,
             yaw=self.yaw,
-        )  # fmt: skip
+        )
 
     @property
     def start_m(self) -> tuple[float, float]:
@@ -193,9 +196,12 @@ class Scenario:
             raise ConfigError("drones", f"at most {MAX_FLEET} drones on one machine")
         for i, fault in enumerate(self.faults if self.drones else ()):
             if fault.kind not in FLEET_FAULTS:
-                raise ConfigError(f"faults[{i}].kind", f"a fleet scenario injects only "
-                                  f"{', '.join(FLEET_FAULTS)}: {fault.kind} acts on one drone's link or "
-                                  "flight controller")  # fmt: skip
+                raise ConfigError(
+                    f"faults[{i}].kind",
+                    f"a fleet scenario injects only "
+                    f"{', '.join(FLEET_FAULTS)}: {fault.kind} acts on one drone's link or "
+                    "flight controller",
+                )
         if not 0.1 <= self.bg_weight <= 100:
             raise ConfigError("bg_weight", "must be in 0.1..100")
         if self.world:
@@ -213,21 +219,33 @@ class Scenario:
 MAX_REPLICAS = 8
 # Scenario keys that were settings under another name, and the section that holds each now
 MOVED = {
-    "wind_mps": "vehicle", "gust_std_mps": "vehicle", "gust_tau_s": "vehicle", "qod_max_sessions": "cell",
+    "wind_mps": "vehicle",
+    "gust_std_mps": "vehicle",
+    "gust_tau_s": "vehicle",
+    "qod_max_sessions": "cell",
     "camera_part_bytes": "onboard",
-}  # fmt: skip
+}
 # the faults that act on the replica serving the drone, and the setting that must give it a standby
 REPLICA_FAULTS = {
-    "mpc_replica_kill": "mpc_replicas", "mpc_replica_hang": "mpc_replicas",
+    "mpc_replica_kill": "mpc_replicas",
+    "mpc_replica_hang": "mpc_replicas",
     "planner_replica_kill": "planner_replicas",
-    "qos_agent_kill": "qos_agents", "qos_agent_hang": "qos_agents",
-}  # fmt: skip
+    "qos_agent_kill": "qos_agents",
+    "qos_agent_hang": "qos_agents",
+}
 
 
 # the faults a fleet scenario may inject: they act on the edge's processes or the whole cell, and each
 # replica fault on the replica serving the fleet's first drone
-FLEET_FAULTS = ("mpc_replica_kill", "mpc_replica_hang", "planner_replica_kill", "qos_agent_kill",
-                "qos_agent_hang", "replica_join", "background")  # fmt: skip
+FLEET_FAULTS = (
+    "mpc_replica_kill",
+    "mpc_replica_hang",
+    "planner_replica_kill",
+    "qos_agent_kill",
+    "qos_agent_hang",
+    "replica_join",
+    "background",
+)
 
 
 def replica_names(service: str, count: int) -> list[str]:
@@ -420,8 +438,11 @@ def with_radio(config: Config) -> Config:
     radio = config.cell.radio
     if not radio.enabled:
         return config
-    radio = replace(radio, position_port=config.vehicle.gcs_remote_port,
-                    world_file=radio.world_file or config.vehicle.world_file)  # fmt: skip
+    radio = replace(
+        radio,
+        position_port=config.vehicle.gcs_remote_port,
+        world_file=radio.world_file or config.vehicle.world_file,
+    )
     return replace(config, cell=replace(config.cell, radio=radio))
 
 

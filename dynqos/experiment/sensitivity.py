@@ -35,8 +35,15 @@ WEIGHTS = (1.0, 2.0, 4.0, 8.0)
 LOADS_MBPS = (40.0, 80.0, 120.0)
 MAX_POINTS = 64
 MAX_REPEAT = 20
-FIGURES = ("rtt_baseline_mean_ms", "rtt_loaded_mean_ms", "rtt_loaded_p95_ms", "uav_offered_mbps",
-           "uav_admitted_mbps", "uav_delivered_mbps", "bg_delivered_mbps")  # fmt: skip
+FIGURES = (
+    "rtt_baseline_mean_ms",
+    "rtt_loaded_mean_ms",
+    "rtt_loaded_p95_ms",
+    "uav_offered_mbps",
+    "uav_admitted_mbps",
+    "uav_delivered_mbps",
+    "bg_delivered_mbps",
+)
 
 
 def run_sensitivity(
@@ -90,8 +97,15 @@ def _flights(
     for seed in seeds:
         log.info("sensitivity: priority weight %g, background %g Mbit/s, seed %d", weight, load, seed)
         name = f"w{weight:g}-bg{load:g}" + (f"-seed{seed}" if len(seeds) > 1 else "")
-        yield replace(base, name=name, priority_weight=weight, bg_mbps=load, duration_s=duration_s,
-                      bg_start_s=duration_s / 2, seed=seed)  # fmt: skip
+        yield replace(
+            base,
+            name=name,
+            priority_weight=weight,
+            bg_mbps=load,
+            duration_s=duration_s,
+            bg_start_s=duration_s / 2,
+            seed=seed,
+        )
 
 
 def _point(weight: float, load: float, summary: dict[str, Any]) -> dict[str, Any]:
@@ -184,8 +198,14 @@ def _plot(out: Path, points: list[dict[str, Any]]) -> None:
         mine = sorted((p for p in points if p["bg_mbps"] == load), key=lambda p: p["priority_weight"])
         weights = [p["priority_weight"] for p in mine]
         for ax, name in ((rtt_ax, "rtt_loaded_mean_ms"), (rate_ax, "uav_delivered_mbps")):
-            ax.errorbar(weights, [p[name] for p in mine], yerr=_errors(mine, name), marker="o", capsize=3,
-                        label=f"background {load:g}")  # fmt: skip
+            ax.errorbar(
+                weights,
+                [p[name] for p in mine],
+                yerr=_errors(mine, name),
+                marker="o",
+                capsize=3,
+                label=f"background {load:g}",
+            )
     rtt_ax.set(xscale="log", yscale="log", xlabel="priority weight", ylabel="C&C RTT mean under load (ms)")
     rate_ax.set(xscale="log", xlabel="priority weight", ylabel="drone delivered (Mbit/s)")
     for ax in (rtt_ax, rate_ax):

@@ -75,9 +75,14 @@ def layout(uav: str = "uav1") -> fl.Layout:
     )
     right = fl.SplitContainer(
         direction="column",
-        items=[fl.SplitItem(content=latency), fl.SplitItem(content=probabilities),
-               fl.SplitItem(content=states), fl.SplitItem(content=logs), fl.SplitItem(content=status)],
-    )  # fmt: skip
+        items=[
+            fl.SplitItem(content=latency),
+            fl.SplitItem(content=probabilities),
+            fl.SplitItem(content=states),
+            fl.SplitItem(content=logs),
+            fl.SplitItem(content=status),
+        ],
+    )
     return fl.Layout(
         content=fl.SplitContainer(items=[fl.SplitItem(content=left), fl.SplitItem(content=right)])
     )

@@ -138,8 +138,9 @@ class Observer:
         channel = self.channels.get(topic)
         if channel is None:
             if isinstance(payload, dict):
-                channel = foxglove.Channel(topic, schema=json_schema_for(topic), message_encoding="json",
-                                           context=self.context)  # fmt: skip
+                channel = foxglove.Channel(
+                    topic, schema=json_schema_for(topic), message_encoding="json", context=self.context
+                )
             else:
                 typed = getattr(foxglove.channels, type(payload).__name__ + "Channel")
                 channel = typed(topic, context=self.context)
@@ -168,9 +169,13 @@ def open_recording(observer: Observer, path: Path, scenario: str = "") -> Any:
         raise DynqosError(f"cannot write {path}: {exc.strerror or exc}") from None
     writer.write_metadata(
         "dynqos",
-        {"version": __version__, "scenario": scenario, "keys": " ".join(observer.keys),
-         "started_unix_ns": str(observer.now_ns())},
-    )  # fmt: skip
+        {
+            "version": __version__,
+            "scenario": scenario,
+            "keys": " ".join(observer.keys),
+            "started_unix_ns": str(observer.now_ns()),
+        },
+    )
     writer.write_metadata("dynqos.config", {"toml": to_toml(observer.config)})
     return writer
 

@@ -19,8 +19,17 @@ from typing import Any
 
 from scipy import stats as scipy_stats
 
-SKIP = {"seed", "duration_s", "scale", "settle_s", "bg_mbps", "states_recorded",  # settings, not figures
-        "arbiter_max_grants", "bg_weight", "uav_mbps_each"}  # fmt: skip
+SKIP = {
+    "seed",
+    "duration_s",
+    "scale",
+    "settle_s",
+    "bg_mbps",
+    "states_recorded",  # settings, not figures
+    "arbiter_max_grants",
+    "bg_weight",
+    "uav_mbps_each",
+}
 
 
 def _numbers(summary: dict[str, Any], prefix: str = "") -> Iterator[tuple[str, float]]:

@@ -23,10 +23,22 @@ from dynqos.reports.summary import _cell_rates, summarise, write_scenario
 
 # What each drone's entry carries of the single-drone summary.
 DRONE_FIELDS = (
-    "uav_offered_mbps", "uav_admitted_mbps", "uav_delivered_mbps", "rtt_ms", "camera_latency_ms",
-    "tracking_rmse_m", "states_time_s", "transitions", "first_qos_switch_after_bg_s", "camera_fps",
-    "fallback_entered", "setpoint_gap_max_ms", "states_recorded", "faults", "radio",
-)  # fmt: skip
+    "uav_offered_mbps",
+    "uav_admitted_mbps",
+    "uav_delivered_mbps",
+    "rtt_ms",
+    "camera_latency_ms",
+    "tracking_rmse_m",
+    "states_time_s",
+    "transitions",
+    "first_qos_switch_after_bg_s",
+    "camera_fps",
+    "fallback_entered",
+    "setpoint_gap_max_ms",
+    "states_recorded",
+    "faults",
+    "radio",
+)
 PRIORITY_STATES = sorted(s.value for s in SUPERVISOR_PRIORITY_STATES)  # q2, q3, q5, q6
 RATE_ADAPTATION_STATES = sorted(s.value for s in SUPERVISOR_RATE_ADAPTATION_STATES)  # q4, q5, q6
 RTT_LIMIT = 1.2  # a high-risk drone's loaded RTT mean within this factor of its own baseline...
@@ -105,35 +117,18 @@ def summarise_fleet(
     loaded_start = rec.bg_on_ns if rec.bg_on_ns is not None else rec.t0_ns
     cell = _cell_rates(rec, loaded_start, end_ns + 1, scenario.scale)
     counts = {a: sum(d.action == a for d in decisions) for a in ("grant", "deny", "revoke", "release")}
-    high = {u: d for u, d in drones.items() if d["risk_zone"] == "high"}
-    gaps = [d["setpoint_gap_max_ms"] for d in drones.values() if d["setpoint_gap_max_ms"] is not None]
-    checks: dict[str, bool] = (
-        {}
-        if rec.bg_on_ns is None
-        else {  # the arbiter's bar is for a loaded cell
-            "high_risk_rtt_within_1_2x": all(
-                d["rtt_loaded_over_baseline"] is not None and d["rtt_loaded_over_baseline"] <= RTT_LIMIT
-                for d in high.values()
-            ),
-            "high_risk_delivered_95pct": all(
-                d["delivered_share"] is not None and d["delivered_share"] >= DELIVERED_SHARE
-                for d in high.values()
-            ),
-        }
-    )
-    checks["setpoint_gaps_within_100ms"] = bool(gaps) and max(gaps) <= GAP_LIMIT_MS
-    # a drone whose link never carried a state during the flight (stuck in a coverage hole, say) has no
-    # figures at all: the run says so rather than leaving a quiet entry
-    checks["every_drone_heard"] = all(d["states_recorded"] > 0 for d in drones.values())
     faults = _faults(rec, drones)
-    if faults:  # the edge's faults (replicas killed, hung) must not send any drone to its fallback
-        checks["no_fallback_in_faults"] = not any(f["fallback"] for f in faults)
+    checks = _checks(rec, drones, faults)
     qod = rec.qod or {}
     memory = rec.memory_kb.items()  # name -> (t_s, VmRSS kB, RssAnon kB)
     arbiter = None
     if scenario.qos_policy == "arbiter":
-        arbiter = {"grants": counts["grant"], "denials": counts["deny"], "revocations": counts["revoke"],
-                   "releases": counts["release"]}  # fmt: skip
+        arbiter = {
+            "grants": counts["grant"],
+            "denials": counts["deny"],
+            "revocations": counts["revoke"],
+            "releases": counts["release"],
+        }
     return {
         "scenario": scenario.name,
         "profile": scenario.profile,
@@ -170,20 +165,55 @@ def summarise_fleet(
     }
 
 
+def _checks(
+    rec: Recording, drones: dict[str, dict[str, Any]], faults: list[dict[str, Any]]
+) -> dict[str, bool]:
+    """What a fleet's flight must show: the arbiter's bar for the high-risk drones under load, steady
+    setpoints, every drone heard, and no fallback in the edge's faults."""
+    high = {u: d for u, d in drones.items() if d["risk_zone"] == "high"}
+    gaps = [d["setpoint_gap_max_ms"] for d in drones.values() if d["setpoint_gap_max_ms"] is not None]
+    checks: dict[str, bool] = (
+        {}
+        if rec.bg_on_ns is None
+        else {  # the arbiter's bar is for a loaded cell
+            "high_risk_rtt_within_1_2x": all(
+                d["rtt_loaded_over_baseline"] is not None and d["rtt_loaded_over_baseline"] <= RTT_LIMIT
+                for d in high.values()
+            ),
+            "high_risk_delivered_95pct": all(
+                d["delivered_share"] is not None and d["delivered_share"] >= DELIVERED_SHARE
+                for d in high.values()
+            ),
+        }
+    )
+    checks["setpoint_gaps_within_100ms"] = bool(gaps) and max(gaps) <= GAP_LIMIT_MS
+    # a drone whose link never carried a state during the flight (stuck in a coverage hole, say) has no
+    # figures at all: the run says so rather than leaving a quiet entry
+    checks["every_drone_heard"] = all(d["states_recorded"] > 0 for d in drones.values())
+    if faults:  # the edge's faults (replicas killed, hung) must not send any drone to its fallback
+        checks["no_fallback_in_faults"] = not any(f["fallback"] for f in faults)
+    return checks
+
+
 def _faults(rec: Recording, drones: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     """Each fault, with what it did on every drone (each drone's own outcome is in its entry)."""
     out = []
     for i, window in enumerate(rec.faults):
         outcomes = {uav: d["faults"][i] for uav, d in drones.items()}
         gaps = [o["max_setpoint_gap_ms"] for o in outcomes.values() if o["max_setpoint_gap_ms"] is not None]
-        out.append({
-            "kind": window.fault.kind, "at_s": window.fault.at_s, "duration_s": window.fault.duration_s,
-            "target": window.target, "notes": window.notes,
-            "fell_back": sorted(uav for uav, o in outcomes.items() if o["fallback"]),
-            "fallback": any(o["fallback"] for o in outcomes.values()),
-            "max_setpoint_gap_ms": max(gaps) if gaps else None,
-            **({"grant": window.grant} if window.grant is not None else {}),
-        })  # fmt: skip
+        out.append(
+            {
+                "kind": window.fault.kind,
+                "at_s": window.fault.at_s,
+                "duration_s": window.fault.duration_s,
+                "target": window.target,
+                "notes": window.notes,
+                "fell_back": sorted(uav for uav, o in outcomes.items() if o["fallback"]),
+                "fallback": any(o["fallback"] for o in outcomes.values()),
+                "max_setpoint_gap_ms": max(gaps) if gaps else None,
+                **({"grant": window.grant} if window.grant is not None else {}),
+            }
+        )
     return out
 
 
@@ -204,8 +234,17 @@ def write_fleet(
         writer = csv.writer(f)
         writer.writerow(["t_s", "uav", "action", "risk", "latency_excess", "holders", "reason"])
         for d in decisions:
-            writer.writerow([f"{(d.stamp_ns - rec.t0_ns) / 1e9:.3f}", d.uav, d.action, d.risk,
-                             f"{d.latency_excess:.2f}", " ".join(d.holders), d.reason])  # fmt: skip
+            writer.writerow(
+                [
+                    f"{(d.stamp_ns - rec.t0_ns) / 1e9:.3f}",
+                    d.uav,
+                    d.action,
+                    d.risk,
+                    f"{d.latency_excess:.2f}",
+                    " ".join(d.holders),
+                    d.reason,
+                ]
+            )
     (folder / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     _timeline(folder, scenario, rec, recs, summary)
 

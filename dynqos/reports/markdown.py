@@ -275,8 +275,10 @@ def _spread_plot(out: Path, summaries: list[dict[str, Any]]) -> None:
 
     fig, ax = plt.subplots(figsize=(max(6.0, 1.6 * len(summaries)), 4.0))
     for i, s in enumerate(summaries):
-        for offset, path, colour in ((-0.15, "rtt_ms.baseline.mean", "tab:blue"),
-                                     (0.15, "rtt_ms.loaded.mean", "tab:red")):  # fmt: skip
+        for offset, path, colour in (
+            (-0.15, "rtt_ms.baseline.mean", "tab:blue"),
+            (0.15, "rtt_ms.loaded.mean", "tab:red"),
+        ):
             values = [v for run in s.get("runs", [s]) if isinstance(v := lookup(run, path), (int, float))]
             if not values:
                 continue

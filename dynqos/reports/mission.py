@@ -50,10 +50,16 @@ def mission_figures(
             task = tasks[leg["task"]]
             lo, hi = start + round(leg["start_s"] * NS_PER_S), start + round(leg["end_s"] * NS_PER_S)
             near, arrived = _near(tracks.get(uav, []), leg["path_m"], lo, hi)
-            row = {"task": task["id"], "kind": task["kind"], "drone": uav, "risk": task["risk"],
-                   "start_s": round(leg["start_s"], 2), "end_s": round(leg["end_s"], 2),
-                   "near_share": None if near is None else round(near, 3),
-                   "completed": near is not None and near >= DONE_SHARE}  # fmt: skip
+            row = {
+                "task": task["id"],
+                "kind": task["kind"],
+                "drone": uav,
+                "risk": task["risk"],
+                "start_s": round(leg["start_s"], 2),
+                "end_s": round(leg["end_s"], 2),
+                "near_share": None if near is None else round(near, 3),
+                "completed": near is not None and near >= DONE_SHARE,
+            }
             if arrived is not None:
                 arrivals.append((arrived - start) / NS_PER_S + (leg["end_s"] - leg["start_s"]))
             if task["kind"] == "inspect":
@@ -156,8 +162,13 @@ def fallback_s(rec: Recording, lo: int, hi: int, watchdog_ns: int) -> float:
     """Seconds in [lo, hi) flown by the fallback: where the statuses say so (from when each says its
     control source began) or where no state reached the edge for longer than the watchdog."""
     statuses = sorted(rec.status, key=lambda s: s.stamp_ns)
-    changes = sorted({(s.control_changed_ns, str(getattr(s.control_source, "value", s.control_source)))
-                      for s in statuses if s.control_changed_ns})  # fmt: skip
+    changes = sorted(
+        {
+            (s.control_changed_ns, str(getattr(s.control_source, "value", s.control_source)))
+            for s in statuses
+            if s.control_changed_ns
+        }
+    )
     spans = [
         (t, t_next)
         for (t, source), (t_next, _) in itertools.pairwise([*changes, (hi, "")])

@@ -15,11 +15,25 @@ from typing import Any
 US_PER_S = 1_000_000
 # vehicle_status.nav_state (PX4's msg/VehicleStatus.msg)
 NAV_STATES = {
-    0: "MANUAL", 1: "ALTCTL", 2: "POSCTL", 3: "AUTO_MISSION", 4: "AUTO_LOITER", 5: "AUTO_RTL",
-    6: "POSITION_SLOW", 10: "ACRO", 12: "DESCEND", 13: "TERMINATION", 14: "OFFBOARD", 15: "STAB",
-    17: "AUTO_TAKEOFF", 18: "AUTO_LAND", 19: "AUTO_FOLLOW_TARGET", 20: "AUTO_PRECLAND", 21: "ORBIT",
+    0: "MANUAL",
+    1: "ALTCTL",
+    2: "POSCTL",
+    3: "AUTO_MISSION",
+    4: "AUTO_LOITER",
+    5: "AUTO_RTL",
+    6: "POSITION_SLOW",
+    10: "ACRO",
+    12: "DESCEND",
+    13: "TERMINATION",
+    14: "OFFBOARD",
+    15: "STAB",
+    17: "AUTO_TAKEOFF",
+    18: "AUTO_LAND",
+    19: "AUTO_FOLLOW_TARGET",
+    20: "AUTO_PRECLAND",
+    21: "ORBIT",
     22: "AUTO_VTOL_TAKEOFF",
-}  # fmt: skip
+}
 OFFBOARD = 14
 ARMED = 2  # vehicle_status.arming_state
 DISARMED = " (disarmed)"

@@ -255,8 +255,11 @@ def _qos_network(
     under load, how long until the network's grant was AVAILABLE and until the mean of the next ten RTTs
     was back within 1.2x of the unloaded mean; the grant at the end; and the QoD sessions the emulated
     operator saw."""
-    out: dict[str, Any] = {"backend": scenario.qos_backend, "decision_to_available_s": None,
-                           "decision_to_rtt_back_s": None}  # fmt: skip
+    out: dict[str, Any] = {
+        "backend": scenario.qos_backend,
+        "decision_to_available_s": None,
+        "decision_to_rtt_back_s": None,
+    }
     switch_s, _ = _first_qos_switch(statuses, bg_ns)  # 0.0: already on the priority flow at the load
     if bg_ns is not None and switch_s is not None:
         decided = bg_ns + round(switch_s * 1e9)
@@ -318,8 +321,9 @@ def write_scenario(
         for lat, st in rec.states:
             error = errors.get(st.stamp_ns)
             t_s, yaw = f"{(st.stamp_ns - t0) / 1e9:.3f}", f"{yaw_of(st.quat):.4f}"
-            writer.writerow([t_s, *st.pos_m, yaw, f"{lat:.3f}", st.mode,
-                             "" if error is None else f"{error:.4f}"])  # fmt: skip
+            writer.writerow(
+                [t_s, *st.pos_m, yaw, f"{lat:.3f}", st.mode, "" if error is None else f"{error:.4f}"]
+            )
     columns = [
         "state",
         "flow",

@@ -84,9 +84,15 @@ def find_circles(rgb: NDArray[np.uint8], cfg: DetectorConfig) -> list[tuple[floa
     if cfg.blur_px:
         gray = cv2.medianBlur(gray, cfg.blur_px)
     found = cv2.HoughCircles(
-        gray, cv2.HOUGH_GRADIENT, dp=cfg.dp, minDist=cfg.min_dist_px, param1=cfg.canny_high,
-        param2=cfg.accumulator, minRadius=cfg.min_radius_px, maxRadius=cfg.max_radius_px,
-    )  # fmt: skip
+        gray,
+        cv2.HOUGH_GRADIENT,
+        dp=cfg.dp,
+        minDist=cfg.min_dist_px,
+        param1=cfg.canny_high,
+        param2=cfg.accumulator,
+        minRadius=cfg.min_radius_px,
+        maxRadius=cfg.max_radius_px,
+    )
     if found is None:
         return []
     edges = cv2.Canny(gray, cfg.canny_high / 2, cfg.canny_high)

@@ -55,9 +55,14 @@ class DetectorService:
         self._ack_pubs: dict[str, Publisher] = {}
         self._det_pubs: dict[str, Publisher] = {}
         self.counters = {
-            "frames": 0, "acks": 0, "detections": 0, "dropped": 0, "bad_frames": 0, "circles": 0,
+            "frames": 0,
+            "acks": 0,
+            "detections": 0,
+            "dropped": 0,
+            "bad_frames": 0,
+            "circles": 0,
             "others": 0,  # parts of frames of drones another detector serves
-        }  # fmt: skip
+        }
         self.detect_ms: list[float] = []
         self.service = Service("detector", self.cfg.health_interval_s)
         self.detect_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
@@ -73,6 +78,7 @@ class DetectorService:
     def ack_pending(self, timeout_s: float = 0.1) -> int:
         """Ack every frame that has arrived; hand the newest of each drone and kind to the detector."""
         first = self.acks.get(timeout_s)
+        self.replicas.apply()  # a detector that came or went since: who serves whom now
         if first is None:
             return 0
         done = 0
@@ -90,9 +96,13 @@ class DetectorService:
                 item = replace(item, message=frame)
             self.counters["frames"] += 1
             ack = CameraAck(
-                uav=frame.uav, seq=frame.seq, frame_seq=frame.seq, kind=frame.kind, stamp_ns=frame.stamp_ns,
+                uav=frame.uav,
+                seq=frame.seq,
+                frame_seq=frame.seq,
+                kind=frame.kind,
+                stamp_ns=frame.stamp_ns,
                 edge_hold_ns=max(0, self.clock.now_ns() - item.arrival_ns),
-            )  # fmt: skip
+            )
             self._publisher(self._ack_pubs, frame.uav, Downlink.CAMERA_ACK, Priority.REAL_TIME).put(ack)
             self.counters["acks"] += 1
             done += 1
@@ -131,10 +141,13 @@ class DetectorService:
             self.detect_seconds.observe(self.detect_ms[-1] / 1000)
         del self.detect_ms[:-500]
         detections = Detections(
-            uav=uav, seq=frame.seq, frame_seq=frame.seq, stamp_ns=frame.stamp_ns,
+            uav=uav,
+            seq=frame.seq,
+            frame_seq=frame.seq,
+            stamp_ns=frame.stamp_ns,
             circles_px=tuple((c.u_px, c.v_px, c.r_px) for c in circles),
             centers_m=tuple(c.center_m for c in circles),
-        )  # fmt: skip
+        )
         self._publisher(self._det_pubs, uav, Downlink.DETECTIONS, Priority.DATA_HIGH).put(detections)
         self.counters["detections"] += 1
         self.counters["circles"] += len(circles)

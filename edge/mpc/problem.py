@@ -82,10 +82,18 @@ class MpcProblem:
         self._l, self._u = np.maximum(self._l, -infinity), np.minimum(self._u, infinity)
         self.solver = osqp.OSQP()
         self.solver.setup(
-            p, self._qvec, self.a, self._l, self._u,
-            warm_starting=True, verbose=False, polishing=False,
-            eps_abs=s.eps, eps_rel=s.eps, max_iter=s.max_iter,
-        )  # fmt: skip
+            p,
+            self._qvec,
+            self.a,
+            self._l,
+            self._u,
+            warm_starting=True,
+            verbose=False,
+            polishing=False,
+            eps_abs=s.eps,
+            eps_rel=s.eps,
+            max_iter=s.max_iter,
+        )
         # The compiled solver under osqp's Python class. Its update() and solve() wrap these two calls in
         # a module lookup, two clamps, a derivative cache and a namespace of every info field: a quarter
         # of the MPC's time per command at 100 drones (docs/benchmarks.md). The bounds are clamped once

@@ -199,11 +199,17 @@ class MpcService:
         if len(self.counters.solve_ms) > 2000:
             del self.counters.solve_ms[:1000]
         command = Command(
-            uav=uav, seq=state.seq, state_seq=plan.state_seq, state_stamp_ns=plan.state_stamp_ns,
-            edge_hold_ns=max(0, self.clock.now_ns() - item.arrival_ns), dt_s=plan.dt_s,
-            accel_mps2=plan.accel_mps2, yaw_rad=plan.yaw_rad, term=self.assignment.term(uav),
+            uav=uav,
+            seq=state.seq,
+            state_seq=plan.state_seq,
+            state_stamp_ns=plan.state_stamp_ns,
+            edge_hold_ns=max(0, self.clock.now_ns() - item.arrival_ns),
+            dt_s=plan.dt_s,
+            accel_mps2=plan.accel_mps2,
+            yaw_rad=plan.yaw_rad,
+            term=self.assignment.term(uav),
             replica=self.replica,
-        )  # fmt: skip
+        )
         self.publishers[uav].put(command)
         self.counters.commands += 1
         return 1

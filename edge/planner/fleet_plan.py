@@ -228,9 +228,13 @@ def _length(path: Sequence[Point]) -> float:
 
 
 def plan(
-    tasks: Sequence[Task], drones: Sequence[PlanDrone], conn: Connectivity | None, settings: PlanSettings,
-    *, blind: bool = False,
-) -> Plan:  # fmt: skip
+    tasks: Sequence[Task],
+    drones: Sequence[PlanDrone],
+    conn: Connectivity | None,
+    settings: PlanSettings,
+    *,
+    blind: bool = False,
+) -> Plan:
     """The fleet's plan: `blind` ignores the network (and `conn`), as a fleet that has no prediction."""
     if not drones:
         raise ValueError("a plan needs at least one drone")
@@ -302,11 +306,12 @@ def _assign(
         load[i, i * n_t : (i + 1) * n_t] = cost[i]
         load[i, n] = -1.0
     result = milp(
-        c, integrality=np.concatenate([np.ones(n), [0]]),
+        c,
+        integrality=np.concatenate([np.ones(n), [0]]),
         bounds=Bounds(np.zeros(n + 1), np.concatenate([np.ones(n), [np.inf]])),
         constraints=[LinearConstraint(once, 1, 1), LinearConstraint(load, -np.inf, 0)],
         options={"time_limit": 10.0},
-    )  # fmt: skip
+    )
     if result.x is None:
         raise RuntimeError(f"the assignment found no solution: {result.message}")
     x = np.round(result.x[:n]).reshape(n_d, n_t)
@@ -314,9 +319,13 @@ def _assign(
 
 
 def _legs_of(
-    drone: PlanDrone, assignment: dict[str, str], tasks: Sequence[Task], router: Router,
-    heights: dict[str, float], blind: bool = False,
-) -> list[Leg]:  # fmt: skip
+    drone: PlanDrone,
+    assignment: dict[str, str],
+    tasks: Sequence[Task],
+    router: Router,
+    heights: dict[str, float],
+    blind: bool = False,
+) -> list[Leg]:
     mine = _nearest_first([t for t in tasks if assignment[t.id] == drone.id], drone.start_m)
     return _timeline(drone, mine, router, heights, blind)
 
@@ -330,9 +339,12 @@ def _score(legs: dict[str, list[Leg]], bad_weight_s: float) -> float:
 
 
 def _improve(
-    assignment: dict[str, str], tasks: Sequence[Task], drones: Sequence[PlanDrone], router: Router,
+    assignment: dict[str, str],
+    tasks: Sequence[Task],
+    drones: Sequence[PlanDrone],
+    router: Router,
     heights: dict[str, float],
-) -> dict[str, str]:  # fmt: skip
+) -> dict[str, str]:
     """Local search from the MILP's assignment on the objective of the timelines themselves (which the
     MILP prices only from each drone's start): move one task to another drone, or swap two drones'
     tasks, while that lowers it; first improvement, in a fixed order, so the same inputs give the same
@@ -430,13 +442,15 @@ def _book(out: Plan, tasks: dict[str, Task], settings: PlanSettings) -> None:
     """Book each high-risk inspection's window, earliest first, within the budget of windows at once."""
     windows = sorted(
         (leg.start_s, leg.end_s, drone, leg.task)
-        for drone, legs in out.legs.items() for leg in legs
+        for drone, legs in out.legs.items()
+        for leg in legs
         if leg.kind == "task" and tasks[leg.task].risk == "high" and tasks[leg.task].kind == "inspect"
-    )  # fmt: skip
+    )
     for start, end, drone, task in windows:
         at_once = sum(1 for b in out.bookings if b.start_s < end and start < b.start_s + b.duration_s)
         if at_once >= settings.max_bookings:
             out.unbooked.append(task)
             continue
-        out.bookings.append(BookingPlan(drone, task, start, end - start, tasks[task].points_m[0],
-                                        settings.booking_radius_m))  # fmt: skip
+        out.bookings.append(
+            BookingPlan(drone, task, start, end - start, tasks[task].points_m[0], settings.booking_radius_m)
+        )

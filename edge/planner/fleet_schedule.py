@@ -32,10 +32,15 @@ def tasks_of(cfg: FleetPlanConfig) -> list[Task]:
 
 def settings_of(cfg: FleetPlanConfig) -> PlanSettings:
     return PlanSettings(
-        half_m=cfg.half_m, grid_m=cfg.grid_m, heights_m=cfg.heights_m, nc_cost=cfg.nc_cost,
-        mc_cost=cfg.mc_cost, bad_weight_s=cfg.bad_weight_s, max_bookings=cfg.max_bookings,
+        half_m=cfg.half_m,
+        grid_m=cfg.grid_m,
+        heights_m=cfg.heights_m,
+        nc_cost=cfg.nc_cost,
+        mc_cost=cfg.mc_cost,
+        bad_weight_s=cfg.bad_weight_s,
+        max_bookings=cfg.max_bookings,
         booking_radius_m=cfg.booking_radius_m,
-    )  # fmt: skip
+    )
 
 
 def drones_at(positions: dict[str, Ned], speed_mps: float) -> list[PlanDrone]:

@@ -43,11 +43,11 @@ from dynqos.edge.planner.fleet_schedule import (
 from dynqos.edge.qos.booking import BookingClient, BookingInfo, circle
 from dynqos.edge.qos.client import QodClient, QodError
 from dynqos.edge.qos.connectivity import ConnectivityClient, PredictedLevels
+from dynqos.edge.resend import LatestMissions
 from dynqos.edge.service import Service, serve
 
 log = logging.getLogger(__name__)
 
-RESEND_S = 1.0  # the leg being flown is sent again this often, for a planner replica that starts later
 DONE_AFTER_S = 1.0  # past the plan's last leg, the mission is over and its bookings are released
 
 
@@ -78,8 +78,7 @@ class FleetPlannerService:
         self.release_failed: list[str] = []
         self.phase = "waiting"
         self._due: list[TimedMission] = []  # the missions not sent yet, in time order
-        self._current: dict[str, MissionRequest] = {}  # each drone's last, sent again for late replicas
-        self._resent_ns = 0
+        self._latest = LatestMissions(0)  # each drone's leg being flown, sent again for late replicas
         self._seq = time.time_ns() // 1_000_000  # newer than any earlier life's (planner.service's rule)
 
     # ---- phases ----------------------------------------------------------------------------------------
@@ -103,8 +102,10 @@ class FleetPlannerService:
                 return
             if self.clock.now_ns() > deadline:
                 missing = sorted(self.publishers.keys() - self.positions.keys())
-                raise DynqosError(f"fleet planner: never heard {', '.join(missing)} in offboard mode "
-                                  f"within {self.cfg.wait_s:g} s ([fleet_plan] wait_s)")  # fmt: skip
+                raise DynqosError(
+                    f"fleet planner: never heard {', '.join(missing)} in offboard mode "
+                    f"within {self.cfg.wait_s:g} s ([fleet_plan] wait_s)"
+                )
             self.service.maybe_health(self.health)
             self.service.stop.wait(0.1)  # the states' pace, not synchronisation
 
@@ -132,9 +133,16 @@ class FleetPlannerService:
         self._due = list(self.missions)
         log.info(
             "fleet planner: %s plan (%s): %d tasks on %d drones, mission %.1f s, %d legs, %d booked, %d "
-            "left to QoD on demand", self.cfg.mode, self.planned_with, len(tasks), len(drones),
-            self.plan.mission_s, len(self.missions), len(self.booked), len(self.plan.unbooked),
-        )  # fmt: skip
+            "left to QoD on demand",
+            self.cfg.mode,
+            self.planned_with,
+            len(tasks),
+            len(drones),
+            self.plan.mission_s,
+            len(self.missions),
+            len(self.booked),
+            len(self.plan.unbooked),
+        )
 
     async def _predict(self, qod: QodClient, horizon_s: float) -> PredictedLevels | None:
         hx, hy = self.cfg.half_m
@@ -142,9 +150,12 @@ class FleetPlannerService:
         end = self.start_unix + horizon_s
         try:
             prediction = await ConnectivityClient(qod).retrieve(
-                corners, self.start_unix, end, service_level=self.cfg.service_level,
+                corners,
+                self.start_unix,
+                end,
+                service_level=self.cfg.service_level,
                 precision=self.cfg.precision,
-            )  # fmt: skip
+            )
         except QodError as exc:
             self.planned_with = f"blind: the prediction failed ({exc})"
             log.warning("fleet planner: no prediction, flying the blind plan: %s", exc)
@@ -162,46 +173,62 @@ class FleetPlannerService:
             entry: dict[str, Any] = {**asdict(want), "booking_id": "", "status": ""}
             if device is None:
                 entry["status"] = "no device"
-                log.warning("fleet planner: %s has no [qos.camara.devices] entry: %s left to QoD on demand",
-                            want.drone, want.task)  # fmt: skip
+                log.warning(
+                    "fleet planner: %s has no [qos.camara.devices] entry: %s left to QoD on demand",
+                    want.drone,
+                    want.task,
+                )
             else:
                 try:
                     area = circle(self.geo.to_latlon(*want.center_m), want.radius_m)
                     info = await client.book(
-                        device.as_api(), self.start_unix + want.start_s, max(1, math.ceil(want.duration_s)),
-                        area, qos_profile=camara.qos_profile, server=server,
+                        device.as_api(),
+                        self.start_unix + want.start_s,
+                        max(1, math.ceil(want.duration_s)),
+                        area,
+                        qos_profile=camara.qos_profile,
+                        server=server,
                         server_ports=[self.config.zenoh.priority_port],
-                    )  # fmt: skip
+                    )
                     entry.update(booking_id=info.booking_id, status=info.status)
                 except QodError as exc:
                     entry["status"] = f"refused: {exc}"
-                    log.warning("fleet planner: booking for %s's %s refused, left to QoD on demand: %s",
-                                want.drone, want.task, exc)  # fmt: skip
+                    log.warning(
+                        "fleet planner: booking for %s's %s refused, left to QoD on demand: %s",
+                        want.drone,
+                        want.task,
+                        exc,
+                    )
             if not entry["booking_id"]:
                 self.plan.unbooked.append(want.task)
             self.booked.append(entry)
 
     def send_due(self, now_ns: int) -> bool:
-        """Send the missions due by now (each drone's current one again every RESEND_S); False once the
+        """Send the missions due by now (each drone's current one again every second); False once the
         mission is over."""
         assert self.plan is not None
         t_s = (now_ns - self.start_ns) / 1e9
         while self._due and self._due[0].at_s <= t_s:
             leg = self._due.pop(0)
             self._seq += 1
-            self._current[leg.uav] = MissionRequest(
-                uav=leg.uav, seq=self._seq, stamp_ns=now_ns, waypoints_m=leg.waypoints_m,
-                speed_mps=self.cfg.speed_mps, source=f"fleet-planner:{leg.task}",
-            )  # fmt: skip
-            self.publishers[leg.uav].put(self._current[leg.uav])
-            self._resent_ns = now_ns
+            request = MissionRequest(
+                uav=leg.uav,
+                seq=self._seq,
+                stamp_ns=now_ns,
+                waypoints_m=leg.waypoints_m,
+                speed_mps=self.cfg.speed_mps,
+                source=f"fleet-planner:{leg.task}",
+            )
+            self._latest.send(request, self.publishers[leg.uav], now_ns)
             self.sent += 1
-            log.info("fleet planner: %s leaves for %s at t=%.1f s (%d waypoints)", leg.uav, leg.task, t_s,
-                     len(leg.waypoints_m))  # fmt: skip
-        if now_ns - self._resent_ns >= RESEND_S * 1e9:
-            self._resent_ns = now_ns
-            for uav, request in self._current.items():
-                self.publishers[uav].put(request)
+            log.info(
+                "fleet planner: %s leaves for %s at t=%.1f s (%d waypoints)",
+                leg.uav,
+                leg.task,
+                t_s,
+                len(leg.waypoints_m),
+            )
+        self._latest.resend_due(now_ns)
         return t_s < self.plan.mission_s + DONE_AFTER_S
 
     def fly(self) -> None:
@@ -221,8 +248,11 @@ class FleetPlannerService:
             ids = list(self.bookings)
             self.release_failed = await BookingClient(qod, self.bookings).release_all()
             self.released = [i for i in ids if i not in self.release_failed]
-        log.info("fleet planner: released %d bookings%s", len(self.released),
-                 f"; could not release {self.release_failed}" if self.release_failed else "")  # fmt: skip
+        log.info(
+            "fleet planner: released %d bookings%s",
+            len(self.released),
+            f"; could not release {self.release_failed}" if self.release_failed else "",
+        )
 
     # ---- what it says ----------------------------------------------------------------------------------
 
@@ -230,15 +260,22 @@ class FleetPlannerService:
         if not self.cfg.plan_file or self.plan is None:
             return
         record = {
-            "mode": self.cfg.mode, "planned_with": self.planned_with, "phase": self.phase,
-            "start_unix": self.start_unix, "start_monotonic_ns": self.start_ns,
-            "mission_s": self.plan.mission_s, "predicted_nc_s": self.plan.predicted_nc_s,
+            "mode": self.cfg.mode,
+            "planned_with": self.planned_with,
+            "phase": self.phase,
+            "start_unix": self.start_unix,
+            "start_monotonic_ns": self.start_ns,
+            "mission_s": self.plan.mission_s,
+            "predicted_nc_s": self.plan.predicted_nc_s,
             "tasks": [asdict(t) for t in self.cfg.tasks],
             "start_m": {uav: list(p) for uav, p in self.positions.items()},
             "legs": {uav: [asdict(leg) for leg in legs] for uav, legs in self.plan.legs.items()},
-            "bookings": self.booked, "unbooked": self.plan.unbooked, "missions_sent": self.sent,
-            "released": self.released, "release_failed": self.release_failed,
-        }  # fmt: skip
+            "bookings": self.booked,
+            "unbooked": self.plan.unbooked,
+            "missions_sent": self.sent,
+            "released": self.released,
+            "release_failed": self.release_failed,
+        }
         path = Path(self.cfg.plan_file)
         tmp = path.with_name(path.name + ".tmp")
         tmp.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")

@@ -37,10 +37,17 @@ def mission_from_config(cfg: PlannerConfig, uav: str | None = None) -> Mission:
     m: PlannerConfig | DroneMissionConfig = cfg.drones.get(uav, cfg) if uav is not None else cfg
     waypoints = load_waypoints(m.waypoints_file) if m.mission == "waypoints" else ()
     return Mission(
-        kind=m.mission, center_m=m.center_m, altitude_m=m.altitude_m, radius_m=m.radius_m,
-        period_s=m.period_s, yaw=m.yaw, fixed_yaw_rad=m.fixed_yaw_rad, lead_in_s=cfg.lead_in_s,
-        waypoints=waypoints, speed_mps=m.speed_mps,
-    )  # fmt: skip
+        kind=m.mission,
+        center_m=m.center_m,
+        altitude_m=m.altitude_m,
+        radius_m=m.radius_m,
+        period_s=m.period_s,
+        yaw=m.yaw,
+        fixed_yaw_rad=m.fixed_yaw_rad,
+        lead_in_s=cfg.lead_in_s,
+        waypoints=waypoints,
+        speed_mps=m.speed_mps,
+    )
 
 
 class PlannerService:
@@ -48,9 +55,11 @@ class PlannerService:
         self._init_mission(config, bus, clock)
         cfg = self.cfg
         self.assignment = Assignment(
-            cfg.replica_id or default_replica_id(), lease_ns=round(cfg.takeover_after_s * 1e9),
-            holdoff_ns=round(cfg.holdoff_s * 1e9), drone_arbitrates=False,
-        )  # fmt: skip
+            cfg.replica_id or default_replica_id(),
+            lease_ns=round(cfg.takeover_after_s * 1e9),
+            holdoff_ns=round(cfg.holdoff_s * 1e9),
+            drone_arbitrates=False,
+        )
         self.replica = self.assignment.me
         self.membership = Membership("planner", "all", self.assignment, bus)
         self.state_seq: dict[str, int] = {}  # the newest state seen per drone
@@ -89,9 +98,11 @@ class PlannerService:
                 self._on_state(message, item.arrival_ns)
             elif isinstance(message, Reference) and message.uav in self.started_ns:
                 seq = self.state_seq.get(message.uav, -1)
-                self.membership.log_change(self.assignment.on_command(
-                    message.uav, seq, message.term, message.replica, item.arrival_ns
-                ))  # fmt: skip
+                self.membership.log_change(
+                    self.assignment.on_command(
+                        message.uav, seq, message.term, message.replica, item.arrival_ns
+                    )
+                )
                 if message.replica == self.assignment.seats[message.uav].holder:
                     # follow the mission where the publishing replica has it (to the arrival: ~1 ms)
                     self.started_ns[message.uav] = item.arrival_ns - round(message.mission_t_s * 1e9)
@@ -126,19 +137,34 @@ class PlannerService:
         why = outside_arena(request.waypoints_m, self.cfg.arena_min_m, self.cfg.arena_max_m)
         if why is not None:
             self.missions_refused += 1
-            log.warning("planner: refused mission %d for %s from %s, never flown: %s", request.seq, uav,
-                        request.source or "?", why)  # fmt: skip
+            log.warning(
+                "planner: refused mission %d for %s from %s, never flown: %s",
+                request.seq,
+                uav,
+                request.source or "?",
+                why,
+            )
             return
         self.missions[uav] = Mission(
-            kind="waypoints", waypoints=request.waypoints_m, lead_in_s=0.0,
+            kind="waypoints",
+            waypoints=request.waypoints_m,
+            lead_in_s=0.0,
             speed_mps=request.speed_mps or self.cfg.speed_mps,
-        )  # fmt: skip
+        )
         if uav in self.started_ns:
             self.started_ns[uav] = arrival_ns
         self.missions_flown += 1
         north, east, down = request.waypoints_m[-1]
-        log.info("planner: %s flies mission %d from %s: %d waypoints to (%.2f, %.2f, %.2f) NED", uav,
-                 request.seq, request.source or "?", len(request.waypoints_m), north, east, down)  # fmt: skip
+        log.info(
+            "planner: %s flies mission %d from %s: %d waypoints to (%.2f, %.2f, %.2f) NED",
+            uav,
+            request.seq,
+            request.source or "?",
+            len(request.waypoints_m),
+            north,
+            east,
+            down,
+        )
 
     def publish(self) -> None:
         now = self.clock.now_ns()
@@ -150,10 +176,18 @@ class PlannerService:
             pos, vel, yaw = mission.samples(t, self.dt_s, self.cfg.samples)
             self.seq += 1
             reference = Reference(
-                uav=uav, seq=self.seq, stamp_ns=now, dt_s=self.dt_s, pos_m=pos, vel_mps=vel, yaw_rad=yaw,
-                mission=mission.kind, mission_t_s=max(0.0, t), term=self.assignment.term(uav),
+                uav=uav,
+                seq=self.seq,
+                stamp_ns=now,
+                dt_s=self.dt_s,
+                pos_m=pos,
+                vel_mps=vel,
+                yaw_rad=yaw,
+                mission=mission.kind,
+                mission_t_s=max(0.0, t),
+                term=self.assignment.term(uav),
                 replica=self.replica,
-            )  # fmt: skip
+            )
             self.publishers[uav].put(reference)
             self.sent += 1
 

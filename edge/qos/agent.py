@@ -64,6 +64,7 @@ SHUTDOWN_S = 10.0  # deleting every session on SIGTERM ends within this
 SETTLE_S = 0.5  # after start, before an agent takes over: peers starting with it declare their tokens
 HANDOVER_S = 2.0  # a stopping active agent waits this long for a standby to take its sessions over
 FORGET_AFTER = 10  # a silent drone with no session is forgotten after this many drone timeouts
+READY = "qos agent %s: backend %s, policy %s, priority port %d, %s, ready (%d agent(s) live)"
 
 
 class QosAgent:
@@ -142,11 +143,8 @@ class QosAgent:
                 stack.push_async_callback(
                     _cancel, asyncio.get_running_loop().create_task(self._arbitrate_loop())
                 )
-            lead_ = self.leadership
-            log.info(
-                "qos agent %s: backend %s, policy %s, priority port %d, %s, ready (%d agent(s) live)",
-                lead_.me, self.qos.backend, self.qos.policy, self.port, lead_.role.value, len(lead_.members),
-            )  # fmt: skip
+            lead_, q = self.leadership, self.qos
+            log.info(READY, lead_.me, q.backend, q.policy, self.port, lead_.role.value, len(lead_.members))
             if ready is not None:
                 ready()
             self.service.write_health("ready")
@@ -270,11 +268,16 @@ class QosAgent:
         self.seq += 1
         publisher.put(
             QosDecision(
-                uav=uav, seq=self.seq, stamp_ns=now, action=action.value, reason=decision.reason[:500],
-                risk=decision.need.risk, latency_excess=max(-1.0, min(1.0, decision.need.latency_excess)),
+                uav=uav,
+                seq=self.seq,
+                stamp_ns=now,
+                action=action.value,
+                reason=decision.reason[:500],
+                risk=decision.need.risk,
+                latency_excess=max(-1.0, min(1.0, decision.need.latency_excess)),
                 holders=tuple(sorted(self.arbiter.holders)),
             )
-        )  # fmt: skip
+        )
 
     # ---- one drone --------------------------------------------------------------------------------------
 
@@ -331,10 +334,15 @@ class QosAgent:
         session_id = grant.session.session_id if grant.session else ""
         record.publisher.put(
             QosGrant(
-                uav=grant.uav, seq=self.seq, grant=state, backend=self.qos.backend, session_id=session_id,
-                reason=grant.why()[:300], answers_seq=grant.request_seq,
+                uav=grant.uav,
+                seq=self.seq,
+                grant=state,
+                backend=self.qos.backend,
+                session_id=session_id,
+                reason=grant.why()[:300],
+                answers_seq=grant.request_seq,
             )
-        )  # fmt: skip
+        )
 
     # ---- which agent is active (edge/qos/leadership.py) --------------------------------------------
 
@@ -449,9 +457,7 @@ class QosAgent:
     def health(self) -> str:
         sessions = sum(r.grant.session is not None for r in self.drones.values())
         lead = self.leadership
-        role = (
-            f" agent={lead.me} role={lead.role.value} agents={len(lead.members)} takeovers={lead.takeovers}"
-        )
+        role = f" agent={lead.me} role={lead.role.value} agents={len(lead.members)}"
         calls = f" api_calls={self.client.calls} retries={self.client.retries}" if self.client else ""
         arbiter = ""
         if self.arbiter is not None:
@@ -469,7 +475,8 @@ class QosAgent:
             )
         return (
             f"drones={len(self.drones)} sessions={sessions} errors={self.errors} "
-            f"leftovers_cleaned={self.cleaned}{calls}{arbiter}{sink} rejected={self.stats.rejected}{role}"
+            f"leftovers_cleaned={self.cleaned}{calls}{arbiter}{sink} rejected={self.stats.rejected}{role} "
+            f"takeovers={lead.takeovers}"
         )
 
 

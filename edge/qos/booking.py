@@ -37,8 +37,13 @@ class BookingInfo:
             duration = body["duration"]
             if not isinstance(duration, int) or duration < 1:
                 raise ValueError("duration is not a positive integer")
-            return cls(str(body["bookingId"]), body["status"], unix_time(body["startTime"]), duration,
-                       str(body.get("statusInfo", "")))  # fmt: skip
+            return cls(
+                str(body["bookingId"]),
+                body["status"],
+                unix_time(body["startTime"]),
+                duration,
+                str(body.get("statusInfo", "")),
+            )
         except (KeyError, TypeError, ValueError) as exc:
             raise QodError(502, "BAD_RESPONSE", f"qos booking: not a BookingInfo ({exc})") from None
 
@@ -68,13 +73,23 @@ class BookingClient:
         self.made: dict[str, BookingInfo] = {} if made is None else made
 
     async def book(
-        self, device: dict[str, Any], start_unix: float, duration_s: int, area: dict[str, Any], *,
-        qos_profile: str, server: dict[str, Any] | None = None, server_ports: list[int] | None = None,
-    ) -> BookingInfo:  # fmt: skip
+        self,
+        device: dict[str, Any],
+        start_unix: float,
+        duration_s: int,
+        area: dict[str, Any],
+        *,
+        qos_profile: str,
+        server: dict[str, Any] | None = None,
+        server_ports: list[int] | None = None,
+    ) -> BookingInfo:
         body: dict[str, Any] = {
-            "device": device, "qosProfile": qos_profile, "startTime": rfc3339(start_unix),
-            "duration": int(duration_s), "serviceArea": area,
-        }  # fmt: skip
+            "device": device,
+            "qosProfile": qos_profile,
+            "startTime": rfc3339(start_unix),
+            "duration": int(duration_s),
+            "serviceArea": area,
+        }
         if server is not None:
             body["applicationServer"] = server
         if server_ports:

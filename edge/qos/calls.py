@@ -134,8 +134,11 @@ class OperatorCalls:
                 if grant.extended(self.session(info), self.clock.now_ns()):
                     log.info(
                         "qos agent: %s session %s is at the operator's maximum duration: replaced "
-                        "%.1f s before it ends", grant.uav, info.session_id, self.camara.renew_before_s,
-                    )  # fmt: skip
+                        "%.1f s before it ends",
+                        grant.uav,
+                        info.session_id,
+                        self.camara.renew_before_s,
+                    )
                 else:
                     log.info("qos agent: %s session %s extended", grant.uav, info.session_id)
                 return

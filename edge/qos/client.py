@@ -228,9 +228,12 @@ class QodClient:
             if token:
                 headers["Authorization"] = f"Bearer {token}"
             async with self.http.request(
-                method, url, json=body, headers=headers,
+                method,
+                url,
+                json=body,
+                headers=headers,
                 timeout=aiohttp.ClientTimeout(total=max(0.01, deadline - time.monotonic())),
-            ) as response:  # fmt: skip
+            ) as response:
                 answer: Any = None
                 if response.content_length != 0 and response.status != 204:
                     with contextlib.suppress(aiohttp.ContentTypeError, ValueError):
@@ -297,8 +300,14 @@ class QodClient:
 
         assert self.key is not None, "client assertions need [qos.camara] client_key_file"
         now = int(time.time())
-        claims = {"iss": self.cfg.client_id, "sub": subject, "aud": self.cfg.token_url,
-                  "jti": str(uuid.uuid4()), "iat": now, "exp": now + ASSERTION_LIFETIME_S}  # fmt: skip
+        claims = {
+            "iss": self.cfg.client_id,
+            "sub": subject,
+            "aud": self.cfg.token_url,
+            "jti": str(uuid.uuid4()),
+            "iat": now,
+            "exp": now + ASSERTION_LIFETIME_S,
+        }
         return str(jwt.encode(claims, self.key, algorithm=signing_algorithm(self.key)))
 
 

@@ -25,7 +25,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-from dynqos.edge.replicas import MAX_REPLICAS, ranked, valid_replica_id
+from dynqos.common.keys import check_replica_id, valid_replica_id
+from dynqos.edge.replicas import MAX_REPLICAS, ranked
 
 RANK_KEY = "qos-active"  # what the agents are ranked for (one choice for the whole group)
 
@@ -45,8 +46,7 @@ class Leadership:
     def __init__(self, me: str, *, now_ns: int, settle_ns: int) -> None:
         """`settle_ns`: how long after start an agent waits before it takes over, so that peers that
         start with it have declared their tokens (only the first-ranked of them then takes over)."""
-        if not valid_replica_id(me):
-            raise ValueError(f"agent id {me[:80]!r} is invalid: use 1 to 64 of A-Z a-z 0-9 _ -")
+        check_replica_id(me, "agent id")
         self.me = me
         self.role = AgentRole.STANDBY
         self.members: set[str] = {me}

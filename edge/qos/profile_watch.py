@@ -95,8 +95,11 @@ class ProfileWatch:
             return False
         self.changes += 1
         if self.withdrawn:
-            log.error("qos agent: no new sessions: %s (read again every %g s)",
-                      self.withdrawn, self.configured.profile_recheck_s)  # fmt: skip
+            log.error(
+                "qos agent: no new sessions: %s (read again every %g s)",
+                self.withdrawn,
+                self.configured.profile_recheck_s,
+            )
         else:
             log.warning("qos agent: the operator's profile changed: %s", self._note)
         return True
@@ -118,9 +121,12 @@ class ProfileWatch:
             if self.reads == 1:
                 log.warning(
                     "qos agent: the QoS Profiles API at %s did not answer (%s): profile %s and duration "
-                    "%d s are not checked", self.client.profiles_root, exc, self.configured.qos_profile,
+                    "%d s are not checked",
+                    self.client.profiles_root,
+                    exc,
+                    self.configured.qos_profile,
                     self.configured.duration_s,
-                )  # fmt: skip
+                )
             else:
                 log.info("qos agent: the QoS Profiles API did not answer (%s); settings kept", exc)
             return None

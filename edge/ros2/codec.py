@@ -188,9 +188,12 @@ def diagnostics(
     """One diagnostic_msgs/DiagnosticStatus in a DiagnosticArray (what rqt_robot_monitor shows)."""
     t = STORE.types
     status = t["diagnostic_msgs/msg/DiagnosticStatus"](
-        level=level, name=name, message=message, hardware_id=hardware_id,
+        level=level,
+        name=name,
+        message=message,
+        hardware_id=hardware_id,
         values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values.items()],
-    )  # fmt: skip
+    )
     return encode(t[DIAGNOSTICS](header=_header(stamp_ns, ""), status=[status]))
 
 
@@ -209,14 +212,20 @@ def camera_info(
     fx, fy, cx, cy = intrinsics
     t = STORE.types
     message = t[CAMERA_INFO](
-        header=_header(stamp_ns, frame), height=height, width=width, distortion_model="plumb_bob",
-        d=np.zeros(5), k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=np.float64),
-        r=np.eye(3).ravel(), p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], dtype=np.float64),
-        binning_x=0, binning_y=0,
+        header=_header(stamp_ns, frame),
+        height=height,
+        width=width,
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=np.float64),
+        r=np.eye(3).ravel(),
+        p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], dtype=np.float64),
+        binning_x=0,
+        binning_y=0,
         roi=t["sensor_msgs/msg/RegionOfInterest"](
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
         ),
-    )  # fmt: skip
+    )
     return encode(message)
 
 

@@ -29,18 +29,19 @@ import zenoh
 from dynqos.common import keys
 from dynqos.common.config import Config
 from dynqos.common.errors import KeyExprError
+from dynqos.common.floods import worth_logging
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import (
     CameraFrame,
     Detections,
-    MissionRequest,
     QosDecision,
     QosGrant,
     State,
     SupervisorStatus,
 )
 from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Priority, Publisher, Received, ZenohBus
+from dynqos.common.transport import Priority, Received, ZenohBus
+from dynqos.edge.resend import LatestMissions
 from dynqos.edge.ros2 import codec, wire
 from dynqos.edge.ros2.steer import KINDS, STEER_QOS, Refusal, Steering, Vec
 from dynqos.edge.ros2.translate import STATUS_QOS, Translator
@@ -50,7 +51,6 @@ from dynqos.edge.service import Service, serve
 log = logging.getLogger(__name__)
 
 NODE_NAME = "dynqos_edge"
-RESEND_S = 1.0  # a mission is re-sent this often, for planner replicas that start later
 
 
 @dataclass
@@ -106,20 +106,20 @@ class Ros2Face:
         self.positions: dict[str, Vec] = {}  # each drone's last position: where a mission starts
         self.steered: dict[str, list[Any]] = {}  # each drone's subscriber tokens
         self.steer_queue: BoundedQueue[tuple[str, bytes]] = BoundedQueue(64)
-        self.requests: dict[str, tuple[MissionRequest, Publisher]] = {}  # the last mission sent per drone
+        self.missions = LatestMissions(time.monotonic_ns())  # the last sent per drone, re-sent each second
         self.mission_seq = time.time_ns() // 1_000_000  # newer than a restarted bridge's last
         self.missions_sent = 0
         self.missions_refused = 0
-        self.resent_ns = time.monotonic_ns()
         self._topic_root = f"{self.cfg.domain_id}/{self.cfg.prefix}/"
         self.steer_subscribers = [
             self.session.declare_subscriber(
-                wire.topic_key(self.cfg.domain_id, f"/{self.cfg.prefix}/*/{kind}", ros_type,
-                               codec.type_hash(ros_type)),
+                wire.topic_key(
+                    self.cfg.domain_id, f"/{self.cfg.prefix}/*/{kind}", ros_type, codec.type_hash(ros_type)
+                ),
                 lambda sample: self.steer_queue.put((str(sample.key_expr), sample.payload.to_bytes())),
             )
             for kind, ros_type in KINDS.items()
-        ]  # fmt: skip
+        ]
 
     def _entity(self) -> int:
         self.entities += 1
@@ -156,12 +156,18 @@ class Ros2Face:
     def _listen_for_steering(self, uav: str) -> None:
         """Subscriber tokens for the drone's mission and goal: ROS 2 sees who listens there."""
         self.steered[uav] = [
-            self.session.liveliness().declare_token(self.node.endpoint_token(
-                self._entity(), Entity.SUBSCRIPTION, f"/{self.cfg.prefix}/{uav}/{kind}", ros_type,
-                codec.type_hash(ros_type), STEER_QOS,
-            ))
+            self.session.liveliness().declare_token(
+                self.node.endpoint_token(
+                    self._entity(),
+                    Entity.SUBSCRIPTION,
+                    f"/{self.cfg.prefix}/{uav}/{kind}",
+                    ros_type,
+                    codec.type_hash(ros_type),
+                    STEER_QOS,
+                )
+            )
             for kind, ros_type in KINDS.items()
-        ]  # fmt: skip
+        ]
         log.info("ros2: listening for %s's mission and goal", uav)
 
     def steer(self, key: str, payload: bytes) -> None:
@@ -179,40 +185,38 @@ class Ros2Face:
         if isinstance(result, Refusal):
             self._refused(result)
             return
-        known = self.requests.get(uav)
-        publisher = (
-            known[1] if known else self.bus.publisher(keys.downlink(uav, Downlink.MISSION), Priority.DATA)
+        publisher = self.missions.publisher(uav) or self.bus.publisher(
+            keys.downlink(uav, Downlink.MISSION), Priority.DATA
         )
-        publisher.put(result)
-        self.requests[uav] = (result, publisher)
+        self.missions.send(result, publisher, time.monotonic_ns())
         self.missions_sent += 1
         count = len(result.waypoints_m) - 1
         log.info(
             "ros2: %s for %s sent to its planner as mission %d (%d waypoints)", kind, uav, result.seq, count
         )
-        self._mission_status(uav, codec.OK, f"{kind} sent to the planner as mission {result.seq}",
-                             {"seq": str(result.seq), "waypoints": str(count)})  # fmt: skip
+        self._mission_status(
+            uav,
+            codec.OK,
+            f"{kind} sent to the planner as mission {result.seq}",
+            {"seq": str(result.seq), "waypoints": str(count)},
+        )
 
     def _refused(self, refusal: Refusal) -> None:
         self.missions_refused += 1
-        if self.missions_refused == 1 or self.missions_refused % 100 == 0:
-            log.warning("ros2: refused a %s for %s (%d refused so far), never flown: %s", refusal.kind,
-                        refusal.uav or "an unknown drone", self.missions_refused, refusal.reason)  # fmt: skip
+        if worth_logging(self.missions_refused, every=100):
+            log.warning(
+                "ros2: refused a %s for %s (%d refused so far), never flown: %s",
+                refusal.kind,
+                refusal.uav or "an unknown drone",
+                self.missions_refused,
+                refusal.reason,
+            )
         if refusal.uav:
             self._mission_status(refusal.uav, codec.ERROR, f"{refusal.kind} refused: {refusal.reason}", {})
 
     def _mission_status(self, uav: str, level: int, message: str, values: dict[str, str]) -> None:
         payload = codec.diagnostics(time.time_ns(), f"dynqos/{uav}/mission", uav, level, message, values)
         self.topic(f"/{self.cfg.prefix}/{uav}/mission/status", codec.DIAGNOSTICS, STATUS_QOS).publish(payload)
-
-    def resend(self) -> None:
-        """Every mission sent, once more each RESEND_S: a planner replica that starts later flies it."""
-        now = time.monotonic_ns()
-        if now - self.resent_ns < RESEND_S * 1e9:
-            return
-        self.resent_ns = now
-        for request, publisher in self.requests.values():
-            publisher.put(request)
 
     def health(self) -> str:
         received = sum(s.received for s in self.stats)
@@ -240,7 +244,7 @@ class Ros2Face:
                     self.handle(item)
                 for key, payload in self.steer_queue.drain():
                     self.steer(key, payload)
-                self.resend()
+                self.missions.resend_due(time.monotonic_ns())
                 self.service.maybe_health(self.health)
         finally:
             for subscriber in self.steer_subscribers:

@@ -60,9 +60,12 @@ class Steering:
             return Refusal(uav, kind, why)
         try:
             return MissionRequest(
-                uav=uav, seq=seq, stamp_ns=now_ns, waypoints_m=(position, *points),
+                uav=uav,
+                seq=seq,
+                stamp_ns=now_ns,
+                waypoints_m=(position, *points),
                 source=f"ros2:{kind}",
-            )  # fmt: skip
+            )
         except MessageError as exc:
             return Refusal(uav, kind, str(exc))
 

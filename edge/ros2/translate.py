@@ -66,23 +66,33 @@ class Translator:
     def _state(self, uav: str, state: State, now: int) -> list[RosSample]:
         frame, body, base = self.frame_id, f"{uav}/base_link", f"/{self.prefix}/{uav}"
         return [
-            RosSample(f"{base}/pose", codec.POSE, POSE_QOS,
-                      codec.pose_stamped(now, frame, state.pos_m, state.quat)),
-            RosSample(f"{base}/odom", codec.ODOMETRY, POSE_QOS,
-                      codec.odometry(now, frame, body, state.pos_m, state.vel_mps, state.quat)),
+            RosSample(
+                f"{base}/pose", codec.POSE, POSE_QOS, codec.pose_stamped(now, frame, state.pos_m, state.quat)
+            ),
+            RosSample(
+                f"{base}/odom",
+                codec.ODOMETRY,
+                POSE_QOS,
+                codec.odometry(now, frame, body, state.pos_m, state.vel_mps, state.quat),
+            ),
             RosSample("/tf", codec.TF, TF_QOS, codec.transform(now, frame, body, state.pos_m, state.quat)),
-        ]  # fmt: skip
+        ]
 
     def _status(self, uav: str, status: SupervisorStatus, now: int) -> RosSample:
         state = status.state.value
         level = codec.ERROR if state == "qA" else codec.WARN if state in ADAPTING else codec.OK
         values = {
-            "state": state, "flow": status.flow.value, "control": status.control_source.value,
-            "risk": status.risk, "latency": status.latency,
-            "camera_rate_factor": f"{status.camera_rate_factor:g}", "rtt_ms": _ms(status.rtt_ms),
-            "camera_latency_ms": _ms(status.camera_latency_ms), "qos_grant": status.qos_grant.value,
+            "state": state,
+            "flow": status.flow.value,
+            "control": status.control_source.value,
+            "risk": status.risk,
+            "latency": status.latency,
+            "camera_rate_factor": f"{status.camera_rate_factor:g}",
+            "rtt_ms": _ms(status.rtt_ms),
+            "camera_latency_ms": _ms(status.camera_latency_ms),
+            "qos_grant": status.qos_grant.value,
             "depth_lost": str(status.depth_lost).lower(),
-        }  # fmt: skip
+        }
         message = f"{state} on the {status.flow.value} flow, {status.control_source.value} flies"
         payload = codec.diagnostics(now, f"dynqos/{uav}/supervisor", uav, level, message, values)
         return RosSample(f"/{self.prefix}/{uav}/status", codec.DIAGNOSTICS, STATUS_QOS, payload)
@@ -92,15 +102,22 @@ class Translator:
             grant = message.grant.value
             name, level = f"dynqos/{uav}/qos/grant", GRANT_LEVELS.get(grant, codec.WARN)
             text = f"priority flow {grant}" + (f": {message.reason}" if message.reason else "")
-            values = {"grant": grant, "backend": message.backend, "session_id": message.session_id,
-                      "reason": message.reason}  # fmt: skip
+            values = {
+                "grant": grant,
+                "backend": message.backend,
+                "session_id": message.session_id,
+                "reason": message.reason,
+            }
         else:
             name, level = f"dynqos/{uav}/qos/decision", codec.OK
             text = f"{message.action}: {message.reason}"
             values = {
-                "action": message.action, "reason": message.reason, "risk": message.risk,
-                "latency_excess": f"{message.latency_excess:g}", "holders": " ".join(message.holders),
-            }  # fmt: skip
+                "action": message.action,
+                "reason": message.reason,
+                "risk": message.risk,
+                "latency_excess": f"{message.latency_excess:g}",
+                "holders": " ".join(message.holders),
+            }
         payload = codec.diagnostics(now, name, uav, level, text, values)
         return RosSample(f"/{self.prefix}/{uav}/qos", codec.DIAGNOSTICS, QOS_QOS, payload)
 
@@ -110,11 +127,19 @@ class Translator:
             return []
         optical, base = f"{uav}/camera_optical", f"/{self.prefix}/{uav}/camera"
         return [
-            RosSample(f"{base}/compressed", codec.COMPRESSED_IMAGE, CAMERA_QOS,
-                      codec.compressed_image(now, optical, "jpeg", whole.payload)),
-            RosSample(f"{base}/camera_info", codec.CAMERA_INFO, CAMERA_QOS,
-                      codec.camera_info(now, optical, whole.width, whole.height, whole.intrinsics)),
-        ]  # fmt: skip
+            RosSample(
+                f"{base}/compressed",
+                codec.COMPRESSED_IMAGE,
+                CAMERA_QOS,
+                codec.compressed_image(now, optical, "jpeg", whole.payload),
+            ),
+            RosSample(
+                f"{base}/camera_info",
+                codec.CAMERA_INFO,
+                CAMERA_QOS,
+                codec.camera_info(now, optical, whole.width, whole.height, whole.intrinsics),
+            ),
+        ]
 
 
 def _ms(value: float | None) -> str:

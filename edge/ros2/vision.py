@@ -63,9 +63,12 @@ def detection_array(
         )
         box = t["vision_msgs/msg/BoundingBox2D"](
             center=t["vision_msgs/msg/Pose2D"](position=t["vision_msgs/msg/Point2D"](x=u, y=v), theta=0.0),
-            size_x=2 * r, size_y=2 * r,
-        )  # fmt: skip
-        detections.append(t["vision_msgs/msg/Detection2D"](
-            header=header, results=[hypothesis] if center is not None else [], bbox=box, id=str(index)
-        ))  # fmt: skip
+            size_x=2 * r,
+            size_y=2 * r,
+        )
+        detections.append(
+            t["vision_msgs/msg/Detection2D"](
+                header=header, results=[hypothesis] if center is not None else [], bbox=box, id=str(index)
+            )
+        )
     return t[DETECTIONS](header=header, detections=detections)

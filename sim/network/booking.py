@@ -56,8 +56,15 @@ class Bookings:
     """Bookings of one emulated operator; `wall` is its clock (Unix seconds), `where` the cell's view of
     each drone's position, `covered` whether a local (x, y) is inside the operator's coverage."""
 
-    def __init__(self, operator: Operator, wall: Callable[[], float], geo: Geo, where: Where,
-                 covered: Callable[[float, float], bool], max_concurrent: int = -1) -> None:  # fmt: skip
+    def __init__(
+        self,
+        operator: Operator,
+        wall: Callable[[], float],
+        geo: Geo,
+        where: Where,
+        covered: Callable[[float, float], bool],
+        max_concurrent: int = -1,
+    ) -> None:
         self.operator = operator
         self.wall = wall
         self.geo = geo
@@ -112,8 +119,14 @@ class Bookings:
         booking = Booking(str(uuid.uuid4()), uav, body, start, duration)
         self.bookings[booking.booking_id] = booking
         self.created += 1
-        busy = sum(1 for b in self.bookings.values() if b is not booking and b.status != "UNAVAILABLE"
-                   and b.start < booking.end and booking.start < b.end)  # fmt: skip
+        busy = sum(
+            1
+            for b in self.bookings.values()
+            if b is not booking
+            and b.status != "UNAVAILABLE"
+            and b.start < booking.end
+            and booking.start < b.end
+        )
         if 0 <= self.max_concurrent <= busy:
             booking.status = "UNAVAILABLE"  # refused synchronously: 201 with UNAVAILABLE (the API)
             booking.ended = now
@@ -194,8 +207,12 @@ class Bookings:
         }
         if "device" in body:
             out["device"] = dict([next(iter(body["device"].items()))])
-        out |= {"bookingId": booking.booking_id, "status": booking.status,
-                "startTime": rfc3339(booking.start), "duration": booking.duration_s}  # fmt: skip
+        out |= {
+            "bookingId": booking.booking_id,
+            "status": booking.status,
+            "startTime": rfc3339(booking.start),
+            "duration": booking.duration_s,
+        }
         if booking.started is not None:
             out["startedAt"] = rfc3339(booking.started)
             if booking.status == "UNAVAILABLE" and booking.ended is not None:

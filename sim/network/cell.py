@@ -15,222 +15,23 @@ import logging
 import socket
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
 from dynqos.common.config import BearerConfig, CellConfig, CellEventConfig
 from dynqos.common.errors import ConfigError
+from dynqos.sim.network.bearer import Bearer, Connection, DroneSide, EdgeSide, socket_buffer_bytes
 from dynqos.sim.network.cell_core import CellCore, describe
-from dynqos.sim.network.delayline import DelayLine
 from dynqos.sim.network.operator import Notification, Operator
 from dynqos.sim.network.radio_feed import RadioFeed
 from dynqos.sim.network.traces import Trace, TraceError
-from dynqos.sim.network.uebuffer import UeBuffer
 
 log = logging.getLogger(__name__)
 
-READ_CHUNK = 64 * 1024
-SOCKET_BUFFER = 64 * 1024  # at full scale; divided by `scale` like every rate (socket_buffer_bytes)
-MIN_SOCKET_BUFFER = 4096
-UPSTREAM_HIGH_WATER = 256 * 1024  # edge side slow: stop granting this bearer
-DOWNLINK_HIGH_WATER = 4 * 1024 * 1024
 QOD_CHECK_TICKS = 10  # sessions settle and expire at this many TTIs' resolution
 
 
 _now_ns = time.monotonic_ns
-
-
-class _DroneSide(asyncio.BufferedProtocol):
-    """Reads the drone's bytes straight into its connection's UE buffer, never past the bound."""
-
-    def __init__(self, conn: Connection) -> None:
-        self.conn = conn
-        self._buf = bytearray(READ_CHUNK)
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self.conn.drone = transport
-        transport.pause_reading()  # until the edge side is connected
-        self.conn.bearer.emulator.open_upstream(self.conn)
-
-    def get_buffer(self, sizehint: int) -> memoryview:
-        return memoryview(self._buf)[: max(1, min(READ_CHUNK, self.conn.bearer.free_bytes()))]
-
-    def buffer_updated(self, nbytes: int) -> None:
-        self.conn.bearer.receive(self.conn, bytes(self._buf[:nbytes]))
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self.conn.close()
-
-
-class _EdgeSide(asyncio.Protocol):
-    def __init__(self, conn: Connection) -> None:
-        self.conn = conn
-
-    def data_received(self, data: bytes) -> None:
-        self.conn.bearer.downlink(self.conn, data)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self.conn.close()
-
-
-@dataclass(eq=False)
-class Connection:
-    bearer: Bearer
-    drone: asyncio.Transport | None = None
-    edge: asyncio.Transport | None = None
-    ue: UeBuffer = field(init=False)
-    closed: bool = False
-    reading_paused: bool = True
-
-    def __post_init__(self) -> None:
-        self.ue = UeBuffer(self.bearer.ue_capacity)
-
-    def close(self) -> None:
-        if self.closed:
-            return
-        self.closed = True
-        for transport in (self.drone, self.edge):
-            if transport is not None:
-                transport.close()
-        self.bearer.forget(self)
-
-
-class Bearer:
-    """One QoS flow: its connections, their UE buffers, its weight, its counters."""
-
-    def __init__(self, emulator: CellEmulator, cfg: BearerConfig, cell: CellConfig) -> None:
-        self.emulator = emulator
-        self.name = cfg.name
-        self.target = cfg.target_host_port
-        self.ue = cfg.ue
-        self.ue_capacity = cfg.ue_buffer_bytes or cell.ue_buffer_bytes
-        self.connections: list[Connection] = []
-        self.up_line: DelayLine[tuple[Connection, bytes]] = DelayLine(
-            round(cell.base_delay_up_ms * 1e6), round(cell.jitter_ms * 1e6), seed=cell.seed
-        )
-        self.down_line: DelayLine[tuple[Connection, bytes]] = DelayLine(
-            round(cell.base_delay_down_ms * 1e6), round(cell.jitter_ms * 1e6), seed=cell.seed + 1
-        )
-        self._down_tx_end_ns = 0
-        self.credit_bits = 0.0
-        self.listen_port = cfg.listen_port
-        self.port = 0
-        self.server: asyncio.Server | None = None
-        self.totals = {"offered_bytes": 0, "delivered_bytes": 0, "downlink_bytes": 0, "dropped_bytes": 0}
-        self.interval = dict.fromkeys(self.totals, 0)
-
-    @property
-    def granted(self) -> bool:
-        """A QoD session grants this bearer its weight (with [cell] qod = true)."""
-        return self.emulator.core.granted[self.name]
-
-    def effective_weight(self) -> float:
-        return self.emulator.core.effective_weight(self.name)
-
-    def _count(self, key: str, nbytes: int) -> None:
-        self.totals[key] += nbytes
-        self.interval[key] += nbytes
-
-    @property
-    def buffered(self) -> int:
-        return sum(c.ue.size for c in self.connections)
-
-    def free_bytes(self) -> int:
-        return max(0, self.ue_capacity - self.buffered)
-
-    def receive(self, conn: Connection, data: bytes) -> None:
-        conn.ue.append(data, _now_ns())
-        self._count("offered_bytes", len(data))
-        if self.free_bytes() == 0:
-            self._pause_all()
-
-    def _pause_all(self) -> None:
-        for conn in self.connections:
-            if conn.drone is not None and not conn.reading_paused:
-                conn.drone.pause_reading()
-                conn.reading_paused = True
-
-    def resume_if_room(self) -> None:
-        if self.free_bytes() < min(16 * 1024, self.ue_capacity):
-            return
-        for conn in self.connections:
-            if conn.drone is not None and conn.edge is not None and conn.reading_paused and not conn.closed:
-                conn.drone.resume_reading()
-                conn.reading_paused = False
-
-    def demand_bits(self) -> float:
-        writable = [c for c in self.connections if c.edge is not None and not c.closed]
-        if any(c.edge.get_write_buffer_size() > UPSTREAM_HIGH_WATER for c in writable if c.edge):
-            return 0.0
-        return 8.0 * sum(c.ue.size for c in writable)
-
-    def grant(self, bits: float, now_ns: int) -> None:
-        """Move granted bytes from the UE buffers into the uplink delay line."""
-        self.credit_bits += bits
-        budget = int(self.credit_bits // 8)
-        for conn in self.connections:
-            if budget <= 0:
-                break
-            if conn.ue.size == 0 or conn.edge is None:
-                continue
-            data = conn.ue.take(budget)
-            budget -= len(data)
-            self.credit_bits -= 8 * len(data)
-            self.up_line.push((conn, data), len(data), now_ns)
-        if self.buffered == 0:
-            self.credit_bits = 0.0  # an idle bearer saves up no capacity
-
-    def flush(self, now_ns: int) -> None:
-        for conn, data in self.up_line.pop_due(now_ns):
-            if not conn.closed and conn.edge is not None:
-                conn.edge.write(data)
-                self._count("delivered_bytes", len(data))
-        if not self.emulator.core.downlink_up(now_ns):
-            return  # no downlink radio: the edge's bytes wait in the cell (TCP backs the edge off)
-        for conn, data in self.down_line.pop_due(now_ns):
-            if not conn.closed and conn.drone is not None:
-                conn.drone.write(data)
-                self._count("downlink_bytes", len(data))
-
-    def downlink(self, conn: Connection, data: bytes) -> None:
-        now = _now_ns()
-        rate = self.emulator.core.downlink_bps
-        self._down_tx_end_ns = max(now, self._down_tx_end_ns) + round(len(data) * 8 / rate * 1e9)
-        self.down_line.push((conn, data), len(data), self._down_tx_end_ns)
-        if self.down_line.size > DOWNLINK_HIGH_WATER and conn.edge is not None:
-            conn.edge.pause_reading()
-            self.emulator.loop.call_later(0.01, self._resume_downlink, conn)
-
-    def _resume_downlink(self, conn: Connection) -> None:
-        if conn.closed or conn.edge is None:
-            return
-        if self.down_line.size > DOWNLINK_HIGH_WATER:
-            self.emulator.loop.call_later(0.01, self._resume_downlink, conn)
-        else:
-            conn.edge.resume_reading()
-
-    def queue_delay_ms(self, now_ns: int) -> float:
-        ages = [age for c in self.connections if (age := c.ue.head_age_ns(now_ns)) is not None]
-        return max(ages) / 1e6 if ages else 0.0
-
-    def forget(self, conn: Connection) -> None:
-        if conn in self.connections:
-            self._count("dropped_bytes", conn.ue.clear())
-            self.connections.remove(conn)
-
-    def drop_connections(self) -> None:
-        for conn in list(self.connections):
-            conn.close()
-
-
-def socket_buffer_bytes(scale: float) -> int:
-    """The kernel socket buffer in front of (and behind) the emulated UE buffer. Bytes waiting in it
-    are queued as surely as bytes in the UE buffer, but the emulator cannot see them; unscaled, 64 KiB on
-    each side held ~0.5 s at a tenth of the rate and ~50 ms at full rate, so the scaled experiment's
-    latencies were not the full-scale ones. Scaled like the rates, it holds the same time at any scale."""
-    return max(MIN_SOCKET_BUFFER, round(SOCKET_BUFFER / scale))
 
 
 class CellEmulator:
@@ -243,11 +44,13 @@ class CellEmulator:
         self.loop = asyncio.get_running_loop()
         self.start_ns = _now_ns()
         self.core = CellCore(
-            cell, {b.name: b.weight for b in bearers}, self.start_ns,
+            cell,
+            {b.name: b.weight for b in bearers},
+            self.start_ns,
             ue_bearers=frozenset(b.name for b in bearers if b.ue),
-        )  # fmt: skip
+        )
         self.core.qod = False  # until an operator is attached (`operator`)
-        self.bearers = [Bearer(self, b, cell) for b in bearers]
+        self.bearers = [Bearer(self.core, self.loop, self.open_upstream, b, cell) for b in bearers]
         self.background = self.core.background
         self.tti_ns = self.core.tti_ns
         self._next_record_ns = self.start_ns + round(cell.record_interval_s * 1e9)
@@ -269,8 +72,19 @@ class CellEmulator:
             out_dir.mkdir(parents=True, exist_ok=True)
             self._csv_file = (out_dir / "cell.csv").open("w", newline="")
             self._csv = csv.writer(self._csv_file)
-            self._csv.writerow(["t_s", "name", "kind", "capacity_mbps", "offered_bits", "delivered_bits",
-                                "buffer_bytes", "queue_delay_ms", "dropped_bytes"])  # fmt: skip
+            self._csv.writerow(
+                [
+                    "t_s",
+                    "name",
+                    "kind",
+                    "capacity_mbps",
+                    "offered_bits",
+                    "delivered_bits",
+                    "buffer_bytes",
+                    "queue_delay_ms",
+                    "dropped_bytes",
+                ]
+            )
 
     # ---- set-up ------------------------------------------------------------------------------------
 
@@ -314,19 +128,24 @@ class CellEmulator:
         self._next_tick_ns = _now_ns()
         self._schedule_tick()
 
-    def _accept(self, bearer: Bearer) -> _DroneSide:
+    def _accept(self, bearer: Bearer) -> DroneSide:
         conn = Connection(bearer)
         bearer.connections.append(conn)
-        return _DroneSide(conn)
+        return DroneSide(conn)
 
     def open_upstream(self, conn: Connection) -> None:
         async def connect() -> None:
             host, port = conn.bearer.target
             try:
-                transport, _ = await self.loop.create_connection(lambda: _EdgeSide(conn), host, port)
+                transport, _ = await self.loop.create_connection(lambda: EdgeSide(conn), host, port)
             except OSError as exc:
-                log.warning("bearer %s: cannot reach edge %s:%d (%s); dropping the drone's connection",
-                            conn.bearer.name, host, port, exc.strerror or exc)  # fmt: skip
+                log.warning(
+                    "bearer %s: cannot reach edge %s:%d (%s); dropping the drone's connection",
+                    conn.bearer.name,
+                    host,
+                    port,
+                    exc.strerror or exc,
+                )
                 conn.close()
                 return
             if conn.closed:
@@ -387,8 +206,12 @@ class CellEmulator:
             granted = bool(bearer.ue) and self.operator.granted(bearer.ue, bearer.target[1])
             if granted != bearer.granted:
                 self.core.grant(bearer.name, granted)
-                log.info("bearer %s: weight %g (%s)", bearer.name, bearer.effective_weight(),
-                         "QoD session available" if granted else "no QoD session")  # fmt: skip
+                log.info(
+                    "bearer %s: weight %g (%s)",
+                    bearer.name,
+                    bearer.effective_weight(),
+                    "QoD session available" if granted else "no QoD session",
+                )
 
     # ---- events -------------------------------------------------------------------------------------
 
@@ -429,8 +252,19 @@ class CellEmulator:
                 "buffer_bytes": bearer.buffered,
                 "queue_delay_ms": delay_ms,
             }
-            rows.append([t_s, bearer.name, "bearer", capacity, offered_bits, delivered_bits, bearer.buffered,
-                         f"{delay_ms:.3f}", bearer.interval["dropped_bytes"]])  # fmt: skip
+            rows.append(
+                [
+                    t_s,
+                    bearer.name,
+                    "bearer",
+                    capacity,
+                    offered_bits,
+                    delivered_bits,
+                    bearer.buffered,
+                    f"{delay_ms:.3f}",
+                    bearer.interval["dropped_bytes"],
+                ]
+            )
             bearer.interval = dict.fromkeys(bearer.interval, 0)
         for user in self.background.values():
             previous = self.last_interval.get("bg:" + user.name, {})
@@ -443,8 +277,19 @@ class CellEmulator:
                 "delivered_mbps": bg_delivered / interval_s / 1e6,
                 "backlog_bits": user.backlog_bits,
             }
-            rows.append([t_s, user.name, "background", capacity, round(bg_offered), round(bg_delivered),
-                         round(user.backlog_bits / 8), "", 0])  # fmt: skip
+            rows.append(
+                [
+                    t_s,
+                    user.name,
+                    "background",
+                    capacity,
+                    round(bg_offered),
+                    round(bg_delivered),
+                    round(user.backlog_bits / 8),
+                    "",
+                    0,
+                ]
+            )
         if self._csv is not None and self._csv_file is not None:
             self._csv.writerows(rows)
             self._csv_file.flush()

@@ -207,8 +207,13 @@ class ControlApi:
                 self._authorise(request)
             elif request.path.startswith(CONNECTIVITY_PREFIX):
                 if self.emulator.radio is None:
-                    return _json(error(404, "NOT_FOUND", "this cell serves no Predictive Connectivity Data "
-                                       "([cell.radio] enabled = false)"))  # fmt: skip
+                    return _json(
+                        error(
+                            404,
+                            "NOT_FOUND",
+                            "this cell serves no Predictive Connectivity Data ([cell.radio] enabled = false)",
+                        )
+                    )
                 self._authorise(request)
             return await handler(request)
         except _Reply as reply:
@@ -218,8 +223,10 @@ class ControlApi:
                 return _json(
                     error(exc.status, "NOT_FOUND" if exc.status == 404 else "INVALID_ARGUMENT", exc.reason)
                 )
-            return web.json_response({"error": f"no {request.method} {request.path}; use GET /counters or "
-                                      "POST /events"}, status=exc.status)  # fmt: skip
+            return web.json_response(
+                {"error": f"no {request.method} {request.path}; use GET /counters or POST /events"},
+                status=exc.status,
+            )
 
     def _authorise(self, request: web.Request) -> None:
         if not self.emulator.cell.qod_auth:
@@ -297,8 +304,9 @@ class ControlApi:
         uav = request.match_info["uav"]
         feed = self.emulator.radio
         if feed is None:
-            return web.json_response({"error": "this cell has no radio map ([cell.radio] enabled = false)"},
-                                     status=404)  # fmt: skip
+            return web.json_response(
+                {"error": "this cell has no radio map ([cell.radio] enabled = false)"}, status=404
+            )
         report = feed.report(uav)
         if report is None:
             return web.json_response({"error": f"no position heard for {uav!r} lately"}, status=404)
@@ -464,10 +472,12 @@ class ControlApi:
 
         try:
             claims: dict[str, Any] = jwt.decode(
-                assertion, self.client_key, algorithms=[signing_algorithm(self.client_key)],
+                assertion,
+                self.client_key,
+                algorithms=[signing_algorithm(self.client_key)],
                 issuer=self.client_id,
                 options={"require": ["exp", "iat", "jti", "aud", "sub"], "verify_aud": False},
-            )  # fmt: skip
+            )
         except jwt.PyJWTError as exc:
             log.info("qod: assertion refused: %s", exc)
             return None

@@ -405,9 +405,14 @@ class Operator:
         if not sink:
             return []
         event = {
-            "id": str(uuid.uuid4()), "source": self.source, "type": event_type, "specversion": "1.0",
-            "datacontenttype": "application/json", "time": _rfc3339(self.wall()), "data": data,
-        }  # fmt: skip
+            "id": str(uuid.uuid4()),
+            "source": self.source,
+            "type": event_type,
+            "specversion": "1.0",
+            "datacontenttype": "application/json",
+            "time": _rfc3339(self.wall()),
+            "data": data,
+        }
         return [Notification(sink, body.get("sinkCredential"), event)]
 
     def info(self, session: Session) -> dict[str, Any]:

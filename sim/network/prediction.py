@@ -50,8 +50,9 @@ def parse_time(text: str, key: str) -> float:
         raise Refused(400, "INVALID_ARGUMENT", f"{key} is not an RFC 3339 date-time with a zone") from None
 
 
-def _segments_cross(a: tuple[float, float], b: tuple[float, float], c: tuple[float, float],
-                    d: tuple[float, float]) -> bool:  # fmt: skip
+def _segments_cross(
+    a: tuple[float, float], b: tuple[float, float], c: tuple[float, float], d: tuple[float, float]
+) -> bool:
     def side(p: tuple[float, float], q: tuple[float, float], r: tuple[float, float]) -> float:
         return (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])
 
@@ -109,8 +110,10 @@ class Predictor:
     def background_weight(self, start_unix: float, end_unix: float) -> float:
         """The most weight of background users the cell's timeline has sending within the slot."""
         offered = {b.name: (b.offered_mbps, b.weight) for b in self.cell.background}
-        events = sorted((e for e in self.cell.events if e.kind == "background" and e.user in offered),
-                        key=lambda e: e.at_s)  # fmt: skip
+        events = sorted(
+            (e for e in self.cell.events if e.kind == "background" and e.user in offered),
+            key=lambda e: e.at_s,
+        )
         start_s, end_s = start_unix - self.start_unix, end_unix - self.start_unix
 
         def weight() -> float:
@@ -146,27 +149,36 @@ class Predictor:
         """The ConnectivityDataResponse for a request the schema already accepted; Refused otherwise."""
         c = self.config
         if request.get("sink"):
-            raise Refused(422, f"{CODE}.UNSUPPORTED_REQUEST",
-                          "this operator answers synchronously only: no sink")  # fmt: skip
+            raise Refused(
+                422, f"{CODE}.UNSUPPORTED_REQUEST", "this operator answers synchronously only: no sink"
+            )
         precision = int(request.get("precision", 7))
         if precision not in c.precisions:
             levels = ", ".join(map(str, c.precisions))
-            raise Refused(422, f"{CODE}.UNSUPPORTED_PRECISION", "Indicated cell precision (Geohash level) is "
-                          f"not supported: this operator answers levels {levels}")  # fmt: skip
+            raise Refused(
+                422,
+                f"{CODE}.UNSUPPORTED_PRECISION",
+                "Indicated cell precision (Geohash level) is "
+                f"not supported: this operator answers levels {levels}",
+            )
         start = parse_time(request["startTime"], "startTime")
         end = parse_time(request["endTime"], "endTime")
         self._check_times(start, end, now_unix)
         boundary = [(p["latitude"], p["longitude"]) for p in request["area"]["boundary"]]
         if not simple_polygon(boundary):
-            raise Refused(400, f"{CODE}.INVALID_AREA",
-                          "The area is not a polygon shape or has an arbitrary complexity")  # fmt: skip
+            raise Refused(
+                400, f"{CODE}.INVALID_AREA", "The area is not a polygon shape or has an arbitrary complexity"
+            )
         cells = self._cells(boundary, precision)
         height = request.get("height")
         layers = self._layers(height)
         slots = self._slots(start, end)
         if len(cells) * len(layers) * len(slots) > c.max_values:
-            raise Refused(422, f"{CODE}.UNSUPPORTED_REQUEST", "The indicated request is too big for both "
-                          "synchronous and asynchronous processing")  # fmt: skip
+            raise Refused(
+                422,
+                f"{CODE}.UNSUPPORTED_REQUEST",
+                "The indicated request is too big for both synchronous and asynchronous processing",
+            )
         places = {gh: self._place(gh) for gh in cells}  # each cell's centre in local metres, decoded once
         supported = [self.covers(*places[gh]) for gh in cells]
         status = "SUPPORTED_AREA" if all(supported) else "PART_OF_AREA_NOT_SUPPORTED"
@@ -206,16 +218,29 @@ class Predictor:
             raise Refused(400, f"{CODE}.INVALID_END_TIME", "Indicated endTime is earlier than the startTime")
         if start < now - 1.0:
             if end > now:
-                raise Refused(400, f"{CODE}.INVALID_TIME_PERIOD",
-                              "time period is partially in the past and partially in the future")  # fmt: skip
-            raise Refused(400, f"{CODE}.MIN_STARTTIME_EXCEEDED", "Indicated startTime is earlier than the "
-                          "minimum allowed: this operator predicts, it does not report the past")  # fmt: skip
+                raise Refused(
+                    400,
+                    f"{CODE}.INVALID_TIME_PERIOD",
+                    "time period is partially in the past and partially in the future",
+                )
+            raise Refused(
+                400,
+                f"{CODE}.MIN_STARTTIME_EXCEEDED",
+                "Indicated startTime is earlier than the "
+                "minimum allowed: this operator predicts, it does not report the past",
+            )
         if start > now + c.horizon_s:
-            raise Refused(400, f"{CODE}.MAX_STARTTIME_EXCEEDED", "Indicated startTime is greater than the "
-                          f"maximum allowed ({c.horizon_s:g} s ahead)")  # fmt: skip
+            raise Refused(
+                400,
+                f"{CODE}.MAX_STARTTIME_EXCEEDED",
+                f"Indicated startTime is greater than the maximum allowed ({c.horizon_s:g} s ahead)",
+            )
         if end - start > c.max_period_s:
-            raise Refused(400, f"{CODE}.MAX_TIME_PERIOD_EXCEEDED", "Indicated time period is greater than "
-                          f"the maximum allowed ({c.max_period_s:g} s)")  # fmt: skip
+            raise Refused(
+                400,
+                f"{CODE}.MAX_TIME_PERIOD_EXCEEDED",
+                f"Indicated time period is greater than the maximum allowed ({c.max_period_s:g} s)",
+            )
 
     def _cells(self, boundary: list[tuple[float, float]], precision: int) -> list[str]:
         """The geohash cells of `precision` whose centre is inside the polygon, south-west first."""
@@ -257,8 +282,16 @@ class Predictor:
             out.append(None if middle_m > c.max_height_m else self.map.at((place[0], place[1], -middle_m)))
         return out
 
-    def _cell(self, gh: str, layers: list[int], radios: list[Radio | None], slot_start: float,
-              weight: float, need: float, signal: bool) -> dict[str, Any]:  # fmt: skip
+    def _cell(
+        self,
+        gh: str,
+        layers: list[int],
+        radios: list[Radio | None],
+        slot_start: float,
+        weight: float,
+        need: float,
+        signal: bool,
+    ) -> dict[str, Any]:
         c = self.config
         levels: list[str] = []
         strengths: list[float | None] = []

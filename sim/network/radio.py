@@ -21,9 +21,22 @@ from dynqos.sim.vehicle.world import Box, Cylinder, World
 
 # TS 38.214 Table 5.2.2.1-2 (4-bit CQI table 1): spectral efficiency (bits per resource element) of CQI 1-15.
 CQI_EFFICIENCY = (
-    0.1523, 0.2344, 0.3770, 0.6016, 0.8770, 1.1758, 1.4766, 1.9141,
-    2.4063, 2.7305, 3.3223, 3.9023, 4.5234, 5.1152, 5.5547,
-)  # fmt: skip
+    0.1523,
+    0.2344,
+    0.3770,
+    0.6016,
+    0.8770,
+    1.1758,
+    1.4766,
+    1.9141,
+    2.4063,
+    2.7305,
+    3.3223,
+    3.9023,
+    4.5234,
+    5.1152,
+    5.5547,
+)
 # TR 36.942 Annex A.2: link-level throughput as an attenuated Shannon bound, alpha * log2(1 + SINR).
 SHANNON_ALPHA = 0.6
 SPEED_OF_LIGHT_MPS = 299_792_458.0
@@ -105,9 +118,11 @@ def _blocks(obstacle: Box | Cylinder, a: tuple[float, float, float], b: tuple[fl
 
 
 def _segment_hits_box(
-    lo: tuple[float, float, float], hi: tuple[float, float, float],
-    a: tuple[float, float, float], b: tuple[float, float, float],
-) -> bool:  # fmt: skip
+    lo: tuple[float, float, float],
+    hi: tuple[float, float, float],
+    a: tuple[float, float, float],
+    b: tuple[float, float, float],
+) -> bool:
     """The slab method: the segment's parameter range inside every axis's slab is not empty."""
     t0, t1 = 0.0, 1.0
     for axis in range(3):

@@ -60,9 +60,13 @@ class RadioFeed:
     """The drones' positions as heard, and their radio from the map."""
 
     def __init__(
-        self, config: RadioConfig, radio_map: RadioMap, bearers: tuple[BearerConfig, ...], clock: Any,
+        self,
+        config: RadioConfig,
+        radio_map: RadioMap,
+        bearers: tuple[BearerConfig, ...],
+        clock: Any,
         predictor: Predictor,
-    ) -> None:  # fmt: skip
+    ) -> None:
         self.config = config
         self.map = radio_map
         self.predictor = predictor  # what the operator predicts from the same map (GET is the truth)
@@ -151,8 +155,19 @@ class RadioFeed:
             return
         for uav, radio in self.radio.items():
             x, y, z = self.positions[uav][0]
-            self._csv.writerow([t_s, uav, f"{x:.2f}", f"{y:.2f}", f"{z:.2f}", f"{radio.rsrp_dbm:.1f}",
-                                f"{radio.sinr_db:.1f}", radio.cqi, f"{radio.rate_factor:.3f}"])  # fmt: skip
+            self._csv.writerow(
+                [
+                    t_s,
+                    uav,
+                    f"{x:.2f}",
+                    f"{y:.2f}",
+                    f"{z:.2f}",
+                    f"{radio.rsrp_dbm:.1f}",
+                    f"{radio.sinr_db:.1f}",
+                    radio.cqi,
+                    f"{radio.rate_factor:.3f}",
+                ]
+            )
         self._csv_file.flush()
 
     def report(self, uav: str) -> dict[str, Any] | None:
@@ -161,11 +176,18 @@ class RadioFeed:
         if radio is None:
             return None
         # a modem reports within 3GPP's ranges: a value below the range is reported as its lowest
-        rsrp, sinr = (min(max(v, lo), hi) for v, (lo, hi) in
-                      ((radio.rsrp_dbm, RSRP_RANGE_DBM), (radio.sinr_db, SINR_RANGE_DB)))  # fmt: skip
-        return {"rsrp_dbm": round(rsrp, 1), "sinr_db": round(sinr, 1), "cqi": radio.cqi,
-                "rate_factor": round(radio.rate_factor, 3), "site": radio.site,
-                "position_m": [round(c, 2) for c in self.positions[uav][0]]}  # fmt: skip
+        rsrp, sinr = (
+            min(max(v, lo), hi)
+            for v, (lo, hi) in ((radio.rsrp_dbm, RSRP_RANGE_DBM), (radio.sinr_db, SINR_RANGE_DB))
+        )
+        return {
+            "rsrp_dbm": round(rsrp, 1),
+            "sinr_db": round(sinr, 1),
+            "cqi": radio.cqi,
+            "rate_factor": round(radio.rate_factor, 3),
+            "site": radio.site,
+            "position_m": [round(c, 2) for c in self.positions[uav][0]],
+        }
 
     def counters(self) -> dict[str, Any]:
         return {

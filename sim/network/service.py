@@ -56,12 +56,18 @@ def run(config: Config, *, out_dir: Path | None = None, duration_s: float | None
     with serving_metrics("cell", config) as metrics:
         asyncio.run(
             run_cell(
-                config.cell, config.cell.bearer_list(config.zenoh, config.drone.id), out_dir=out_dir,
-                duration_s=duration_s, ready=print_ready, qod_devices=devices,
-                qod_client=(camara.client_id, secret), qod_client_key=client_key, qod_api_headers=api_headers,
+                config.cell,
+                config.cell.bearer_list(config.zenoh, config.drone.id),
+                out_dir=out_dir,
+                duration_s=duration_s,
+                ready=print_ready,
+                qod_devices=devices,
+                qod_client=(camara.client_id, secret),
+                qod_client_key=client_key,
+                qod_api_headers=api_headers,
                 metrics=metrics,
             )
-        )  # fmt: skip
+        )
     return 0
 
 
@@ -104,15 +110,14 @@ async def run_cell(
     try:
         if cell.control_port >= 0:
             control = ControlApi(
-                emulator, emulator.operator, *qod_client,
-                client_key=qod_client_key, api_headers=qod_api_headers, tap=tap,
-            )  # fmt: skip
-            try:
-                control_port = await control.start(cell.control_port)
-            except OSError as exc:
-                raise ConfigError(
-                    "cell.control_port", f"cannot listen on 127.0.0.1:{cell.control_port} ({exc.strerror})"
-                ) from None
+                emulator,
+                emulator.operator,
+                *qod_client,
+                client_key=qod_client_key,
+                api_headers=qod_api_headers,
+                tap=tap,
+            )
+            control_port = await _listen(control, cell.control_port)
             emulator.notify = control.send
         stop_loop_on_signals("cell", emulator.loop, emulator.stopped.set)
         info = {
@@ -143,6 +148,16 @@ async def run_cell(
             radio.close()
         await emulator.stop()
     return counters
+
+
+async def _listen(control: ControlApi, port: int) -> int:
+    """The control API on 127.0.0.1:port (0: any free port); the port it took."""
+    try:
+        return await control.start(port)
+    except OSError as exc:
+        raise ConfigError(
+            "cell.control_port", f"cannot listen on 127.0.0.1:{port} ({exc.strerror})"
+        ) from None
 
 
 def _bookings(cell: CellConfig, operator: Operator, radio: RadioFeed | None) -> Bookings:
@@ -183,8 +198,12 @@ async def _start_radio(
         raise ConfigError(
             "cell.radio.position_port", f"cannot listen on {where} for the vehicles' MAVLink ({exc.strerror})"
         ) from None
-    log.info("radio map on: %d site(s), %d coverage hole(s); positions heard on udp port %d",
-             len(config.sites), len(config.holes), feed.port)  # fmt: skip
+    log.info(
+        "radio map on: %d site(s), %d coverage hole(s); positions heard on udp port %d",
+        len(config.sites),
+        len(config.holes),
+        feed.port,
+    )
     return feed
 
 
@@ -218,8 +237,11 @@ def cell_families(emulator: CellEmulator) -> Iterator[Metric]:
     yield delay
     yield buffered
     yield gauge("dynqos_cell_scale", "Every rate of the emulated cell is divided by this", emulator.scale)
-    yield gauge("dynqos_cell_capacity_bits_per_second", "Uplink capacity now (emulated, unscaled)",
-                emulator.current_capacity_mbps(now) * 1e6 * emulator.scale)  # fmt: skip
+    yield gauge(
+        "dynqos_cell_capacity_bits_per_second",
+        "Uplink capacity now (emulated, unscaled)",
+        emulator.current_capacity_mbps(now) * 1e6 * emulator.scale,
+    )
     yield counter("dynqos_cell_late_ticks", "Scheduler ticks that ran late", emulator.late_ticks)
 
 

@@ -14,8 +14,14 @@ from dynqos.sim.vehicle.world import World, default_world, load_world
 
 class SimCamera:
     def __init__(self, world: World, width: int, height: int, seed: int = 0) -> None:
-        intrinsics = Intrinsics(width=width, height=height, fx=525.0 * width / 640, fy=525.0 * height / 480,
-                                cx=(width - 1) / 2, cy=(height - 1) / 2)  # fmt: skip
+        intrinsics = Intrinsics(
+            width=width,
+            height=height,
+            fx=525.0 * width / 640,
+            fy=525.0 * height / 480,
+            cx=(width - 1) / 2,
+            cy=(height - 1) / 2,
+        )
         # Rays are cast at 160 x 120 at most and the image resized; a smaller image (a fleet's scaled
         # camera) casts no more rays than it has pixels.
         render_size = (min(160, width), min(120, height))

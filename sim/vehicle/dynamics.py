@@ -131,7 +131,12 @@ class Quadrotor:
         az = -thrust * col[2] / p.mass_kg + GRAVITY - drag[2] * (vz - air[2])
         i0, i1, i2 = inertia[0] * r0, inertia[1] * r1, inertia[2] * r2  # rates x (I rates): gyroscopic
         return [
-            vx, vy, vz, ax, ay, az,
+            vx,
+            vy,
+            vz,
+            ax,
+            ay,
+            az,
             0.5 * (-qx * r0 - qy * r1 - qz * r2),
             0.5 * (w * r0 + qy * r2 - qz * r1),
             0.5 * (w * r1 - qx * r2 + qz * r0),
@@ -140,8 +145,10 @@ class Quadrotor:
             (t1 - (r2 * i0 - r0 * i2)) / inertia[1],
             (t2 - (r0 * i1 - r1 * i0)) / inertia[2],
             (thrust_cmd - thrust) / tau,
-            (torque_cmd[0] - t0) / tau, (torque_cmd[1] - t1) / tau, (torque_cmd[2] - t2) / tau,
-        ]  # fmt: skip
+            (torque_cmd[0] - t0) / tau,
+            (torque_cmd[1] - t1) / tau,
+            (torque_cmd[2] - t2) / tau,
+        ]
 
     def step(self, thrust_cmd: float, torque_cmd: Vec, dt_s: float) -> QuadState:
         p = self.params

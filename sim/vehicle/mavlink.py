@@ -277,8 +277,9 @@ class MavlinkVehicle:
             if self.counters["unsigned_refused"] + self.counters["bad_signature"] == 1:
                 what = "a badly signed or replayed" if kind == "bad_signature" else "an unsigned"
                 origin = "the serial link" if sender is None else f"{sender[0]}:{sender[1]}"
-                log.warning("vehicle: signing is on: refused %s message from %s (counted from now on)",
-                            what, origin)  # fmt: skip
+                log.warning(
+                    "vehicle: signing is on: refused %s message from %s (counted from now on)", what, origin
+                )
 
     def _handle(self, msg: Any, link: Link | SerialLink) -> None:
         kind = msg.get_type()

@@ -75,9 +75,13 @@ class Setpoint:
 
     @classmethod
     def from_mavlink(
-        cls, type_mask: int, pos: tuple[float, float, float], vel: tuple[float, float, float],
-        accel: tuple[float, float, float], yaw: float,
-    ) -> Setpoint | None:  # fmt: skip
+        cls,
+        type_mask: int,
+        pos: tuple[float, float, float],
+        vel: tuple[float, float, float],
+        accel: tuple[float, float, float],
+        yaw: float,
+    ) -> Setpoint | None:
         """None when the setpoint is unusable (nothing set, or a non-finite value)."""
 
         def pick(values: tuple[float, float, float], ignore: int) -> tuple[float, float, float] | None:
@@ -321,8 +325,10 @@ class FlightController:
         i0, i1, i2 = inertia[0] * r0, inertia[1] * r1, inertia[2] * r2
         gyro = (r1 * i2 - r2 * i1, r2 * i0 - r0 * i2, r0 * i1 - r1 * i0)  # rates x (I rates)
         rates = (r0, r1, r2)
-        torque = np.array([
-            -inertia[k] * wn[k] ** 2 * e_rot[k] - inertia[k] * 2 * g.att_zeta * wn[k] * rates[k] + gyro[k]
-            for k in range(3)
-        ])  # fmt: skip
+        torque = np.array(
+            [
+                -inertia[k] * wn[k] ** 2 * e_rot[k] - inertia[k] * 2 * g.att_zeta * wn[k] * rates[k] + gyro[k]
+                for k in range(3)
+            ]
+        )
         return thrust, torque

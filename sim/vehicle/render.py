@@ -39,9 +39,13 @@ class Intrinsics:
     def scaled(self, width: int, height: int) -> Intrinsics:
         sx, sy = width / self.width, height / self.height
         return Intrinsics(
-            width=width, height=height, fx=self.fx * sx, fy=self.fy * sy,
-            cx=(self.cx + 0.5) * sx - 0.5, cy=(self.cy + 0.5) * sy - 0.5,
-        )  # fmt: skip
+            width=width,
+            height=height,
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=(self.cx + 0.5) * sx - 0.5,
+            cy=(self.cy + 0.5) * sy - 0.5,
+        )
 
     def as_tuple(self) -> tuple[float, float, float, float]:
         return (self.fx, self.fy, self.cx, self.cy)
