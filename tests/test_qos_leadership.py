@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from dynqos.edge.qos.leadership import RANK_KEY, AgentRole, Leadership
+from dynqos.edge.qos.leadership import RANK_KEY, TRANSITIONS, AgentRole, Guard, Leadership
 from dynqos.edge.replicas import MAX_REPLICAS, ranked
 
 SETTLE = 500
@@ -120,3 +120,30 @@ def test_own_tokens_invalid_names_and_a_flood_are_not_counted_as_peers() -> None
 def test_an_invalid_own_id_is_refused() -> None:
     with pytest.raises(ValueError, match="invalid"):
         Leadership("no spaces", now_ns=0, settle_ns=SETTLE)
+
+
+def test_each_row_of_the_role_table_with_its_guard_held_and_not() -> None:
+    """TRANSITIONS, row by row: the guard not yet held changes nothing, held it gives the row's role."""
+    assert set(TRANSITIONS) == {(AgentRole.STANDBY, Guard.TAKE_OVER), (AgentRole.ACTIVE, Guard.STEP_DOWN)}
+    first, second = first_and_second("a", "b")
+    # STANDBY --TAKE_OVER--> ACTIVE: no active token, settled, ranked first among the members
+    group = agents("a", "b")
+    assert group[second].decide(SETTLE) is None  # settled, no active token, but not ranked first
+    assert group[first].decide(SETTLE - 1) is None  # ranked first, not settled
+    group[first].active(second, True)
+    assert group[first].decide(SETTLE) is None  # another holds the active token
+    group[first].active(second, False)
+    change = group[first].decide(SETTLE)
+    assert change is not None
+    assert (change.role, group[first].role) == (AgentRole.ACTIVE, AgentRole.ACTIVE)
+    # ACTIVE --STEP_DOWN--> STANDBY: another active agent that ranks first
+    lead = Leadership(second, now_ns=0, settle_ns=SETTLE)
+    assert lead.decide(SETTLE) is not None  # alone, it took over
+    lead.active(f"{second}-lower", True)
+    if ranked(RANK_KEY, [second, f"{second}-lower"])[0] == second:
+        assert lead.decide(SETTLE + 1) is None  # one that ranks below: it stays
+    lead.active(first, True)
+    change = lead.decide(SETTLE + 2)
+    assert change is not None
+    assert (change.role, lead.role) == (AgentRole.STANDBY, AgentRole.STANDBY)
+    assert first in change.reason

@@ -36,6 +36,21 @@ class AgentRole(str, enum.Enum):
     STANDBY = "standby"  # follows the drones' requests, calls nothing, tells nothing
 
 
+class Guard(enum.Enum):
+    """What moves an agent from one role to the other, read from the tokens and the clock."""
+
+    TAKE_OVER = "no agent holds an active token, the settle time is over, and this one ranks first"
+    STEP_DOWN = "another agent holds an active token too and ranks first"
+
+
+# Every change of role; nothing else changes one (an agent that lives stays active). An enum and a table
+# as the drone's take-off has (onboard/takeoff.py): two rows do not need a library.
+TRANSITIONS: dict[tuple[AgentRole, Guard], AgentRole] = {
+    (AgentRole.STANDBY, Guard.TAKE_OVER): AgentRole.ACTIVE,
+    (AgentRole.ACTIVE, Guard.STEP_DOWN): AgentRole.STANDBY,
+}
+
+
 @dataclass(frozen=True, slots=True)
 class Transition:
     role: AgentRole
@@ -81,21 +96,24 @@ class Leadership:
 
     def decide(self, now_ns: int) -> Transition | None:
         """The role this agent should take now, when it changes."""
+        guard, reason = self._guard(now_ns)
+        if guard is None:
+            return None
+        self.role = TRANSITIONS[(self.role, guard)]
+        if self.role is AgentRole.ACTIVE:
+            self.takeovers += 1
+        return Transition(self.role, reason)
+
+    def _guard(self, now_ns: int) -> tuple[Guard | None, str]:
         if self.role is AgentRole.ACTIVE:
             first = ranked(RANK_KEY, self.actives | {self.me})[0]
             if first != self.me:
-                self.role = AgentRole.STANDBY
-                return Transition(AgentRole.STANDBY, f"{first} is active too and ranks first")
-            return None
-        if self.actives or now_ns < self._settled_ns:
-            return None
-        first = ranked(RANK_KEY, self.members)[0]
-        if first != self.me:
-            return None
-        self.role = AgentRole.ACTIVE
-        self.takeovers += 1
+                return Guard.STEP_DOWN, f"{first} is active too and ranks first"
+            return None, ""
+        if self.actives or now_ns < self._settled_ns or ranked(RANK_KEY, self.members)[0] != self.me:
+            return None, ""
         peers = len(self.members) - 1
-        return Transition(AgentRole.ACTIVE, f"no agent is active ({peers} other agent(s) standing by)")
+        return Guard.TAKE_OVER, f"no agent is active ({peers} other agent(s) standing by)"
 
     def next_deadline_ns(self, now_ns: int) -> int | None:
         """When `decide` may change its answer without a token changing (the end of the settle time)."""
