@@ -203,7 +203,7 @@ class OnboardCore:
         if self.qos == "default" or not self.offloading:
             return None  # never asks; and nobody asks on the ground
         # qA flies its state on the priority flow, but asks the network for it only when it came from
-        # a state that already wanted it: not on the first offboard ticks, nor after a watchdog in q1.
+        # a state that already wanted it: not after a watchdog in q1.
         in_qa = self.decision is not None and self.decision.state is SupervisorState.QA
         want = self.qos == "priority" or (flow is Flow.PRIORITY and (not in_qa or bool(self._requested)))
         signals = self.decision.signals if self.decision is not None else None
@@ -278,7 +278,9 @@ class OnboardCore:
             camera_outstanding_ms=self.camera_monitor.oldest_outstanding_ms(now),
             cc_outstanding_ms=self.tracker.oldest_unanswered_ms(now),
             spaciousness_m=self._space,
-            watchdog_expired=watchdog,
+            # before offloading nothing is flown from the edge, so no command is missed: the watchdog on
+            # the ground would start the flight in qA, and a quick take-off offload into the fallback
+            watchdog_expired=watchdog and self.offloading,
             priority_denied=bool(self._requested) and self.reported_grant(now) is Grant.UNAVAILABLE,
             sinr_db=modem.sinr_db if (modem := self._fresh_modem(now)) else None,
         )

@@ -238,7 +238,7 @@ def test_the_loop_closes_with_the_flight_controller_link_signed_or_not(tmp_path:
     assert "'unsigned_refused': 0, 'bad_signature': 0" in vehicle
     setpoints = int(re.search(r"'setpoints': (\d+)", vehicle).group(1))  # type: ignore[union-attr]
     assert setpoints > 250
-    # Flown by the edge throughout the measured span. (Before the first command the supervisor is in qA,
-    # signed or not, and the fallback PID may hold the drone for a tick or two: not measured here.)
+    # Flown by the edge throughout the measured span. (Until the first command reaches the offloading
+    # drone, signed or not, the fallback PID may hold it for a tick or two: not measured here.)
     late = [m for t, m in log_times(onboard) if t >= start_wall and "fallback PID" in m]
     assert late == []
