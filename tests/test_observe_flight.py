@@ -12,6 +12,7 @@ import json
 import queue
 import signal
 import struct
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -100,6 +101,7 @@ def test_view_and_record_a_short_flight(tmp_path: Path) -> None:
     counted: dict[str, int] = {"state": 0, "status": 0}
     status_seqs: set[int] = set()
     seen: queue.Queue[str] = queue.Queue()
+    enough_states = threading.Event()  # over a second of the drone's states: a recording worth reading
     observer = sentinel_drone = None
     logs: dict[str, str] = {}
     try:
@@ -120,6 +122,8 @@ def test_view_and_record_a_short_flight(tmp_path: Path) -> None:
                 seen.put(type(message).__name__)
             elif isinstance(message, State):
                 counted["state"] += 1
+                if counted["state"] > 20:
+                    enough_states.set()
             elif isinstance(message, SupervisorStatus):
                 counted["status"] += 1
                 status_seqs.add(message.seq)
@@ -132,7 +136,8 @@ def test_view_and_record_a_short_flight(tmp_path: Path) -> None:
         url = f"ws://127.0.0.1:{view_port}"
         with websockets.connect(url, subprotocols=[SUBPROTOCOL], open_timeout=10) as ws:
             _check_the_live_view(FoxgloveClient(ws))
-
+        # the live view may be seen within a second of the drone's start: record more than that
+        assert enough_states.wait(timeout=30), f"the drone sent {counted['state']} states in 30 s"
         procs.pop("onboard").stop()  # every state and status the drone sent is now on its way
         # Sentinels from a drone's session like uav1's (two links, the same priorities): a state on the
         # priority flow and a status on the default flow, each behind what uav1 sent on that path.
