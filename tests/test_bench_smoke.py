@@ -17,7 +17,8 @@ from dynqos.bench.suite import NAMES, spread
 from dynqos.common.errors import DynqosError
 from tests.procs import DYNQOS
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(400)]
+# A slow test: every benchmark flies or serves for real, about 160 s in all; CI runs it in its slow pass.
+pytestmark = [pytest.mark.slow, pytest.mark.integration, pytest.mark.timeout(400)]
 
 
 @pytest.fixture(scope="module")
