@@ -139,7 +139,7 @@ class OnboardCore:
         grant_before = self.reported_grant(now)  # before this tick's grants are taken in
         self._take_in(inp)
         if inp.offboard and not self.offloading and inp.fc is not None:
-            self._engage(inp.fc)
+            self._engage(inp.fc, now)
         fresh = inp.fc is not None and now - inp.fc.stamp_ns <= STALE_STATE_NS
         watchdog = self.tracker.watchdog_expired(now)
         if fresh and inp.fc is not None and self._state_due(now):
@@ -235,11 +235,16 @@ class OnboardCore:
             self._offered_at = (now, self.counters.camera_bytes)
         return self._offered_mbps
 
-    def _engage(self, fc: FcState) -> None:
-        """The FC flies offboard: from now on every tick sends a setpoint, starting from a hold here."""
+    def _engage(self, fc: FcState, now: int) -> None:
+        """The FC flies offboard: from now on every tick sends a setpoint, starting from a hold here.
+
+        The supervisor judges the flight from here, in q1, on fresh windows: on the ground it only
+        observes (`Supervisor.observe`), since nothing is flown from the edge there."""
         self.offloading = True
         self._hold.set(fc)
         self.pid.reset()
+        self.supervisor = Supervisor(self.config.supervisor, start_ns=now)
+        self._log(logging.INFO, "supervisor: judging the flight from q1 (offloading)")
 
     def _state_due(self, now: int) -> bool:
         if self._next_state_ns is None:
@@ -278,14 +283,14 @@ class OnboardCore:
             camera_outstanding_ms=self.camera_monitor.oldest_outstanding_ms(now),
             cc_outstanding_ms=self.tracker.oldest_unanswered_ms(now),
             spaciousness_m=self._space,
-            # before offloading nothing is flown from the edge, so no command is missed: the watchdog on
-            # the ground would start the flight in qA, and a quick take-off offload into the fallback
-            watchdog_expired=watchdog and self.offloading,
+            watchdog_expired=watchdog,
             priority_denied=bool(self._requested) and self.reported_grant(now) is Grant.UNAVAILABLE,
             sinr_db=modem.sinr_db if (modem := self._fresh_modem(now)) else None,
         )
         self._space = None
-        decision = self.supervisor.step(inputs, now)
+        # on the ground: observed, not judged (see _engage)
+        step = self.supervisor.step if self.offloading else self.supervisor.observe
+        decision = step(inputs, now)
         if decision.transition is not None:
             t = decision.transition
             p_lat = "NA" if t.p_lat is None else f"{t.p_lat:.2f}"

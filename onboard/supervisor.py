@@ -466,6 +466,13 @@ class Supervisor:
             self._end_probe(now_ns, f"latency {signals.latency.value}")
         return Decision(self.state, self.actions(), signals, transition, self._note)
 
+    def observe(self, inputs: Inputs, now_ns: int) -> Decision:
+        """What the supervisor reads from the inputs, without acting on it: the drone on the ground.
+
+        Nothing is flown from the edge there, the edge's first answers carry its start-up and the depth
+        camera sees the ground, so what those signals would call for says nothing about the flight."""
+        return Decision(self.state, self.actions(), self._signals(inputs, now_ns), None, "")
+
     def _recovering(self, signals: Signals) -> bool:
         """Whether the recovery condition that started the probe still holds."""
         high = _read_risk(signals) is Risk.HR

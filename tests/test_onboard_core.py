@@ -125,17 +125,27 @@ def test_before_offboard_nothing_flies_and_the_state_says_standby() -> None:
     assert rig.outputs[-1].setpoint is not None
 
 
-def test_on_the_ground_the_watchdog_does_not_send_the_supervisor_to_qa() -> None:
-    """No command reaches a drone before its edge follows it; that is no missed command. A take-off that
-    ends before qA would recover must offload to the edge, not to the fallback (seen: a 2 s take-off)."""
-    rig = Rig.make(offboard=False, edge_up=False)
+def test_on_the_ground_the_supervisor_observes_and_judges_the_flight_from_offload() -> None:
+    """No command reaches a drone before its edge follows it; that is no missed command. The edge's first
+    answers are slow (its start-up) and the depth camera sees the ground: none of it is the flight's. Seen
+    in CI: a flight that moved to qA or q2 on the ground was still on the priority flow when the load came,
+    and a take-off shorter than qA's recovery offloaded into the fallback PID."""
+    rig = Rig.make(offboard=False, edge_up=False, spaciousness_m=0.3)
     rig.run(1.0)  # on the ground, no command at all
-    assert {s.state for s in rig.statuses()} == {SupervisorState.Q1}
-    rig.edge_up = True
-    rig.run(0.2)
+    rig.edge_up, rig.rtt_ms = True, 300.0
+    rig.run(3.0)  # slow answers
+    ground = rig.statuses()
+    on_the_ground = {(s.state, s.flow, s.camera_rate_factor) for s in ground}
+    assert on_the_ground == {(SupervisorState.Q1, Flow.DEFAULT, 1.0)}
+    assert (ground[-1].latency, ground[-1].risk) == ("HL", "HR")  # read, not acted on
+    assert not any("supervisor:" in e for e in rig.events())
+    rig.rtt_ms, rig.spaciousness_m = 20.0, 8.0
+    rig.run(0.5)
     rig.offboard = True
     rig.run_until(ControlSource.EDGE, 0.2)
+    rig.run(2.0)
     assert not any("fallback PID" in e for e in rig.events())
+    assert {s.state for s in rig.statuses()[len(ground) :]} == {SupervisorState.Q1}
     rig.edge_up = False  # once offloading, the watchdog acts as before
     rig.run_until(ControlSource.FALLBACK, 0.5)
     rig.run(0.2)

@@ -331,6 +331,23 @@ def test_qa_needs_fresh_evidence_to_recover() -> None:
     assert flight.decisions[-1][1].signals.latency is Latency.NA
 
 
+def test_observing_reads_the_signals_and_never_moves() -> None:
+    """The drone on the ground: HL, HR and a missed command are all read, and none moves the machine."""
+    flight = Flight()
+    ground = link(90.0, 160.0, space_m=0.3, watchdog=True)
+    for _ in range(round(10.0 / TICK_S)):
+        flight.clock.advance_s(TICK_S)
+        decision = flight.sup.observe(ground(flight.t), flight.clock.now_ns())
+        assert (decision.state, decision.transition) == (Q1, None)
+    assert decision.signals.latency is Latency.HL
+    assert decision.signals.risk is Risk.HR
+    assert decision.signals.watchdog
+    assert decision.actions.flow == "default"
+    assert not flight.sup.log
+    # the same signals, judged, move it at once
+    assert flight.sup.step(ground(flight.t), flight.clock.now_ns() + 1).state is QA
+
+
 def test_status_message_carries_the_decision() -> None:
     flight = Flight()
     flight.run(2.0, UNLOADED)
