@@ -11,7 +11,7 @@ import pytest
 from dynqos.common.clock import NS_PER_S
 from dynqos.common.config import CamaraConfig, QosConfig
 from dynqos.common.modes import Grant
-from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
+from dynqos.edge.qos.grants import OPS, DroneGrant, Need, Op, QodStatus, Session, SessionState
 
 S = NS_PER_S
 CAMARA = QosConfig(
@@ -368,3 +368,98 @@ def test_settings_fitted_to_a_shorter_profile_move_the_extend_and_renew_margins(
         g.observed(available(20 * S), 0)
     assert (due(before, 11), due(fitted, 11)) == (Op.EXTEND, None)  # 9 s left
     assert due(fitted, 16) is Op.EXTEND
+
+
+# ---- the declared table (OPS), row by row: each need held and not ----------------------------------------
+
+NOW = 100 * S
+
+
+def grant_in(state: SessionState, left_s: float = 60.0) -> DroneGrant:
+    """A grant whose drone wants priority now, in `state`, its session (if any) just read at NOW and ending
+    `left_s` later."""
+    g = DroneGrant("uav1", CAMARA, 0)
+    g.request(True, 1, NOW)
+    status = {
+        SessionState.REQUESTED: QodStatus.REQUESTED,
+        SessionState.AVAILABLE: QodStatus.AVAILABLE,
+        SessionState.CAPPED: QodStatus.AVAILABLE,
+        SessionState.ENDED: QodStatus.UNAVAILABLE,
+    }
+    if state in status:
+        g.observed(Session("s1", status[state], "", NOW + round(left_s * S)), NOW)
+    if state is SessionState.CAPPED:
+        g.capped = "s1"
+    assert g.state is state
+    return g
+
+
+def test_the_table_has_a_row_for_each_need_and_every_state_a_row() -> None:
+    assert [need for _, need, _ in OPS] == list(Need)
+    assert set().union(*(states for states, _, _ in OPS)) == set(SessionState)
+
+
+def test_row_create_due() -> None:
+    assert grant_in(SessionState.NONE).next_op(NOW) is Op.CREATE
+    unwanted = grant_in(SessionState.NONE)
+    unwanted.request(False, 2, NOW)
+    refused_by_arbiter = grant_in(SessionState.NONE)
+    refused_by_arbiter.admit(False, "budget")
+    bad_settings = grant_in(SessionState.NONE)
+    bad_settings.refused_settings("fix [qos.camara.devices]")
+    withdrawn = grant_in(SessionState.NONE)
+    withdrawn.profile_withdrawn("profile QOS_E is INACTIVE")
+    backing_off = grant_in(SessionState.NONE)
+    backing_off.denied("403", NOW)
+    for g in (unwanted, refused_by_arbiter, bad_settings, withdrawn, backing_off):
+        assert g.next_op(NOW) is None, g.why()
+    retry = NOW + round(CAMARA.camara.retry_after_denied_s * S)
+    backing_off.request(True, 2, retry)  # still asking
+    assert backing_off.next_op(retry) is Op.CREATE
+
+
+def test_row_go_due_and_go_wait() -> None:
+    ended = grant_in(SessionState.ENDED)
+    revoked = grant_in(SessionState.AVAILABLE)
+    revoked.admit(False, "budget")
+    unwanted = grant_in(SessionState.AVAILABLE)
+    unwanted.request(False, 2, NOW)
+    for g in (ended, revoked):
+        assert g.next_op(NOW) is Op.DELETE
+    assert unwanted.next_op(NOW + 4 * S) is not Op.DELETE  # within the hold-down
+    assert unwanted.next_op(NOW + 5 * S) is Op.DELETE
+    ended.failed(Op.DELETE, "timeout", NOW)
+    past_its_end = NOW + 61 * S  # a read would be due: the delete waiting for its retry comes first
+    assert ended.next_op(NOW + S // 2) is None
+    assert ended.next_op(past_its_end) is Op.DELETE
+    ended.failed(Op.DELETE, "timeout", past_its_end)
+    assert ended.next_op(past_its_end) is None
+
+
+def test_row_read_due() -> None:
+    for state in (SessionState.REQUESTED, SessionState.AVAILABLE, SessionState.CAPPED):
+        g = grant_in(state)
+        assert g.next_op(NOW) is None
+        interval = CAMARA.camara.poll_interval_s if state is SessionState.REQUESTED else 1.0
+        assert g.next_op(NOW + round(interval * S)) is Op.POLL, state
+
+
+@pytest.mark.parametrize(
+    ("state", "margin_s", "op"),
+    [
+        (SessionState.CAPPED, CAMARA.camara.renew_before_s, Op.RENEW),
+        (SessionState.AVAILABLE, 10.0, Op.EXTEND),
+    ],
+)
+def test_rows_renew_due_and_extend_due(state: SessionState, margin_s: float, op: Op) -> None:
+    assert grant_in(state, left_s=margin_s).next_op(NOW) is op
+    assert grant_in(state, left_s=margin_s + 0.5).next_op(NOW) is None  # not yet
+    # a capped session is replaced, never extended, even within the extend margin
+    assert grant_in(state, left_s=10.0).next_op(NOW) is (op if state is SessionState.AVAILABLE else None)
+    unwanted = grant_in(state, left_s=margin_s)
+    unwanted.request(False, 2, NOW)
+    assert unwanted.next_op(NOW) is None  # released after the hold-down, not kept alive
+    failed = grant_in(state, left_s=margin_s)
+    failed.failed(op, "timeout", NOW)
+    assert failed.next_op(NOW) is None  # waits for the failed call's retry
+    assert failed.next_op(NOW + S) is Op.POLL  # its retry time is also a read's: the end is read first

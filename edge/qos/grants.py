@@ -62,6 +62,43 @@ class QodStatus(str, enum.Enum):
     UNAVAILABLE = "UNAVAILABLE"
 
 
+class SessionState(enum.Enum):
+    """The drone's session as the agent knows it. The operator moves it (its answers to create, poll,
+    extend and delete, and its notifications: `observed`, `extended`, `deleted`); what the agent decides
+    is the call each state calls for, `OPS`."""
+
+    NONE = "none"  # no session: created when priority is wanted
+    REQUESTED = "requested"  # created; the network has not decided
+    AVAILABLE = "available"  # the priority flow has its weight
+    CAPPED = "capped"  # available, but an extend did not move its end: replaced shortly before it ends
+    ENDED = "ended"  # the network ended it (UNAVAILABLE): deleted at once
+
+
+class Need(enum.Enum):
+    """What a row of `OPS` asks of the drone's want, the arbiter, the settings and the clock."""
+
+    CREATE_DUE = "wanted and admitted; no refused setting, no withdrawn profile; the back-off is over"
+    GO_DUE = "ended, revoked by the arbiter, or unwanted for the hold-down; no failed delete waiting"
+    GO_WAIT = "to be deleted, and a failed delete waits its retry time: nothing else until then"
+    READ_DUE = "the poll interval is over, or the session's end has passed"
+    RENEW_DUE = "wanted, within renew_before_s of its end; no failed renewal waiting"
+    EXTEND_DUE = "wanted, within extend_before_s of its end; no failed extend waiting"
+
+
+_HELD = frozenset({SessionState.REQUESTED, SessionState.AVAILABLE, SessionState.CAPPED, SessionState.ENDED})
+
+# The call due now: the first row whose state matches and whose need holds (None: wait). An enum and a
+# table, as the drone's take-off and the agents' leadership have: six rows do not need a library.
+OPS: tuple[tuple[frozenset[SessionState], Need, Op | None], ...] = (
+    (frozenset({SessionState.NONE}), Need.CREATE_DUE, Op.CREATE),
+    (_HELD, Need.GO_DUE, Op.DELETE),
+    (_HELD, Need.GO_WAIT, None),
+    (_HELD, Need.READ_DUE, Op.POLL),
+    (frozenset({SessionState.CAPPED}), Need.RENEW_DUE, Op.RENEW),
+    (frozenset({SessionState.AVAILABLE}), Need.EXTEND_DUE, Op.EXTEND),
+)
+
+
 @dataclass(frozen=True, slots=True)
 class Session:
     """What the API last said of the drone's session; `expires_ns` on the agent's monotonic clock."""
@@ -149,27 +186,48 @@ class DroneGrant:
 
     # ---- what to do -------------------------------------------------------------------------------------
 
+    @property
+    def state(self) -> SessionState:
+        s = self.session
+        if s is None:
+            return SessionState.NONE
+        if s.status is QodStatus.UNAVAILABLE:
+            return SessionState.ENDED
+        if s.status is QodStatus.REQUESTED:
+            return SessionState.REQUESTED
+        return SessionState.CAPPED if s.session_id == self.capped else SessionState.AVAILABLE
+
     def next_op(self, now_ns: int) -> Op | None:
+        """The call due now (`OPS`); None: none."""
         wants = self._track(now_ns) and self.admitted
         if not self.camara:
             return None
-        s = self.session
-        if s is None:
-            may_create = not self.misconfigured and not self.withdrawn
-            return Op.CREATE if wants and now_ns >= self._retry_at_ns and may_create else None
-        revoked = not self.admitted
-        if s.status is QodStatus.UNAVAILABLE or revoked or (not wants and self._released(now_ns)):
-            return Op.DELETE if now_ns >= self._next_delete_ns else None
-        if now_ns >= self._next_read_ns or (s.expires_ns is not None and now_ns >= s.expires_ns):
-            return Op.POLL
-        if not wants or s.status is not QodStatus.AVAILABLE or s.expires_ns is None:
-            return None
-        left = s.expires_ns - now_ns
-        if s.session_id == self.capped:
-            return Op.RENEW if left <= self._renew_ns and now_ns >= self._next_delete_ns else None
-        if left <= self._extend_ns and now_ns >= self._next_extend_ns:
-            return Op.EXTEND
+        state = self.state
+        for states, need, op in OPS:
+            if state in states and self._holds(need, wants, now_ns):
+                return op
         return None
+
+    def _holds(self, need: Need, wants: bool, now_ns: int) -> bool:
+        s = self.session
+        if need is Need.CREATE_DUE:
+            return wants and now_ns >= self._retry_at_ns and not self.misconfigured and not self.withdrawn
+        assert s is not None  # every other row is a held session's
+        if need in (Need.GO_DUE, Need.GO_WAIT):
+            to_go = (
+                s.status is QodStatus.UNAVAILABLE
+                or not self.admitted
+                or (not wants and self._released(now_ns))
+            )
+            return to_go and (now_ns >= self._next_delete_ns) == (need is Need.GO_DUE)
+        if need is Need.READ_DUE:
+            return now_ns >= self._next_read_ns or (s.expires_ns is not None and now_ns >= s.expires_ns)
+        if not wants or s.expires_ns is None:
+            return False
+        left = s.expires_ns - now_ns
+        if need is Need.RENEW_DUE:
+            return left <= self._renew_ns and now_ns >= self._next_delete_ns
+        return left <= self._extend_ns and now_ns >= self._next_extend_ns  # EXTEND_DUE
 
     def _released(self, now_ns: int) -> bool:
         since = self._unwanted_since_ns
