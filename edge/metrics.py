@@ -62,7 +62,9 @@ def fleet_planner(service: FleetPlannerService, m: ProcessMetrics) -> None:
             len(service.positions),
         )
         yield counter("dynqos_fleet_planner_missions", "Missions (legs) sent to the planners", service.sent)
-        yield gauge("dynqos_fleet_planner_bookings", "Bookings made and not released", len(service.bookings))
+        yield gauge(
+            "dynqos_fleet_planner_bookings", "Bookings made and not released", service.bookings_held()
+        )
         yield from bus_families(service.bus)
 
     m.add(families)

@@ -209,6 +209,22 @@ def test_a_failing_operator_is_a_transient_error_and_a_hanging_one_is_cut_off() 
                 await ConnectivityClient(qod).retrieve(ARENA, time.time() + 1, time.time() + 11)
             assert hung.value.code == "TIMEOUT"
             assert time.monotonic() - started < 2.0
+        # one client for every call (the fleet planner's): the prediction's own time-out, longer or shorter
+        async with (
+            scripted([(200, {}, GOOD, 1.0), (200, {}, GOOD, 5.0)]) as (root, _),
+            QodClient(CamaraConfig(api_root=root, timeout_s=0.3)) as qod,
+        ):
+            answer = await ConnectivityClient(qod).retrieve(
+                ARENA, time.time() + 1, time.time() + 11, timeout_s=3
+            )
+            assert answer.status == GOOD["status"]
+            started = time.monotonic()
+            with pytest.raises(QodError) as hung:
+                await ConnectivityClient(qod).retrieve(
+                    ARENA, time.time() + 1, time.time() + 11, timeout_s=0.2
+                )
+            assert (hung.value.code, hung.value.message) == ("TIMEOUT", "no answer within 0.2 s")
+            assert time.monotonic() - started < 1.0
 
     run(main())
 

@@ -104,7 +104,12 @@ def test_the_blind_plan_is_sent_leg_by_leg_when_due_from_where_each_drone_is() -
     service.hear()
     assert service.everyone_heard()
 
-    asyncio.run(service.plan_and_book())  # blind: no operator is asked
+    async def blind() -> None:
+        async with QodClient(service.config.qos.camara) as qod:
+            await service.plan_and_book(BookingClient(qod))  # blind: no operator is asked
+            assert qod.calls == 0
+
+    asyncio.run(blind())
     assert service.planned_with == "blind ([fleet_plan] mode)"
     assert service.booked == []
     assert service.plan is not None
@@ -150,12 +155,15 @@ def _planned(radio: RadioConfig | None) -> tuple[FleetPlannerService, list[objec
             )
             service = FleetPlannerService(config, MemoryBus(FakeClock(time.monotonic_ns())))
             service.positions = {"uav1": (-5.0, -5.0, -1.5)}
-            await service.plan_and_book()
-            seen.append(service)
-            async with QodClient(op.camara()) as qod:
-                seen.append(await BookingClient(qod).retrieve(DEVICE))
-                await service.release()
-                return len(await BookingClient(qod).retrieve(DEVICE))
+            async with QodClient(config.qos.camara) as qod:  # the planner's one client, from plan to release
+                booking = BookingClient(qod)
+                await service.plan_and_book(booking)
+                seen.append(service)
+                seen.append(await booking.retrieve(DEVICE))
+                assert service.bookings_held() == sum(1 for b in service.booked if b["booking_id"])
+                await service.release(booking)
+                assert service.bookings_held() == 0
+                return len(await booking.retrieve(DEVICE))
 
     left = 0
 

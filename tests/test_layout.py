@@ -340,3 +340,28 @@ def test_the_formatter_lays_out_the_source() -> None:
         if "# fmt: skip" in line and str(path.relative_to(ROOT)) not in ALIGNED_TABLES
     ]
     assert skipped == []
+
+
+def event_loops_started(source: str) -> int:
+    """How many times a module starts an event loop (`asyncio.run(...)` calls, by the syntax tree)."""
+    return sum(
+        1
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and node.func.attr == "run"
+        and isinstance(node.func.value, ast.Name)
+        and node.func.value.id == "asyncio"
+    )
+
+
+def test_no_edge_service_starts_a_second_event_loop() -> None:
+    """One event loop per edge process, for its life: a second `asyncio.run` would open a second operator
+    client session and hand state between them (the fleet planner did, twice)."""
+    started = {
+        str(path.relative_to(ROOT)): n
+        for path in (ROOT / "edge").rglob("*.py")
+        if (n := event_loops_started(path.read_text(encoding="utf-8")))
+    }
+    assert all(n == 1 for n in started.values()), started
+    assert event_loops_started("import asyncio\nasyncio.run(a())\nasyncio.run(b())\n") == 2

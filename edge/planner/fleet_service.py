@@ -17,7 +17,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +40,7 @@ from dynqos.edge.planner.fleet_schedule import (
     settings_of,
     tasks_of,
 )
-from dynqos.edge.qos.booking import BookingClient, BookingInfo, circle
+from dynqos.edge.qos.booking import BookingClient, circle
 from dynqos.edge.qos.client import QodClient, QodError
 from dynqos.edge.qos.connectivity import ConnectivityClient, PredictedLevels
 from dynqos.edge.resend import LatestMissions
@@ -73,7 +73,7 @@ class FleetPlannerService:
         self.missions: list[TimedMission] = []
         self.sent = 0  # missions sent (each once; re-sends not counted)
         self.booked: list[dict[str, Any]] = []
-        self.bookings: dict[str, BookingInfo] = {}  # those made and not yet released, by id
+        self.booking: BookingClient | None = None  # the one booking client, once planning starts
         self.released: list[str] = []
         self.release_failed: list[str] = []
         self.phase = "waiting"
@@ -109,8 +109,10 @@ class FleetPlannerService:
             self.service.maybe_health(self.health)
             self.service.stop.wait(0.1)  # the states' pace, not synchronisation
 
-    async def plan_and_book(self) -> None:
-        """The plan (from the prediction unless blind or it failed), then its bookings."""
+    async def plan_and_book(self, booking: BookingClient) -> None:
+        """The plan (from the prediction unless blind or it failed), then its bookings, over the planner's
+        one operator client (`booking.qod`)."""
+        self.booking = booking
         self.start_unix = time.time() + self.cfg.lead_s
         self.start_ns = self.clock.now_ns() + round(self.cfg.lead_s * 1e9)
         tasks, settings = tasks_of(self.cfg), settings_of(self.cfg)
@@ -119,16 +121,13 @@ class FleetPlannerService:
         if self.cfg.mode == "blind":
             self.plan, self.planned_with = blind, "blind ([fleet_plan] mode)"
         else:
-            camara = self.config.qos.camara
-            async with QodClient(replace(camara, timeout_s=self.cfg.prediction_timeout_s)) as qod:
-                # as far ahead as a plan some 50% longer than the blind one may need (past it: ND)
-                levels = await self._predict(qod, horizon_s=1.5 * blind.mission_s + 30.0)
+            # as far ahead as a plan some 50% longer than the blind one may need (past it: ND)
+            levels = await self._predict(booking.qod, horizon_s=1.5 * blind.mission_s + 30.0)
             if levels is None:
                 self.plan = blind
             else:
                 self.plan, self.planned_with = plan(tasks, drones, levels, settings), "prediction"
-            async with QodClient(camara) as qod:
-                await self._book(qod)
+            await self._book(booking)
         self.missions = missions_of(self.plan)
         self._due = list(self.missions)
         log.info(
@@ -155,6 +154,7 @@ class FleetPlannerService:
                 end,
                 service_level=self.cfg.service_level,
                 precision=self.cfg.precision,
+                timeout_s=self.cfg.prediction_timeout_s,
             )
         except QodError as exc:
             self.planned_with = f"blind: the prediction failed ({exc})"
@@ -162,11 +162,10 @@ class FleetPlannerService:
             return None
         return PredictedLevels(prediction, self.geo, self.start_unix, self.cfg.precision)
 
-    async def _book(self, qod: QodClient) -> None:
+    async def _book(self, client: BookingClient) -> None:
         """Book each planned window; a refusal leaves that inspection to QoD on demand."""
         assert self.plan is not None
         camara = self.config.qos.camara
-        client = BookingClient(qod, self.bookings)
         server = {"ipv4Address": camara.application_server or self.config.zenoh.edge_host}
         for want in self.plan.bookings:
             device = camara.devices.get(want.drone)
@@ -241,13 +240,13 @@ class FleetPlannerService:
             self.service.stop.wait(min(0.1, max(0.005, ahead)))  # the schedule's pace, not synchronisation
         self.phase = "stopped" if self.service.stop.is_set() else "done"
 
-    async def release(self) -> None:
-        if not self.bookings:
+    async def release(self, booking: BookingClient) -> None:
+        """Delete every booking `booking` made that has not ended."""
+        if not booking.made:
             return
-        async with QodClient(self.config.qos.camara) as qod:  # the session that booked closed with its plan
-            ids = list(self.bookings)
-            self.release_failed = await BookingClient(qod, self.bookings).release_all()
-            self.released = [i for i in ids if i not in self.release_failed]
+        ids = list(booking.made)
+        self.release_failed = await booking.release_all()
+        self.released = [i for i in ids if i not in self.release_failed]
         log.info(
             "fleet planner: released %d bookings%s",
             len(self.released),
@@ -255,6 +254,10 @@ class FleetPlannerService:
         )
 
     # ---- what it says ----------------------------------------------------------------------------------
+
+    def bookings_held(self) -> int:
+        """Bookings made and not released."""
+        return len(self.booking.made) if self.booking is not None else 0
 
     def write_plan(self) -> None:
         if not self.cfg.plan_file or self.plan is None:
@@ -291,18 +294,25 @@ class FleetPlannerService:
         )
 
     def run(self) -> None:
-        try:
-            self.wait_for_drones()
-            if self.service.stop.is_set():
-                return
-            self.phase = "planning"
-            asyncio.run(self.plan_and_book())
-            self.fly()
-        finally:
-            asyncio.run(self.release())
-            self.write_plan()
+        asyncio.run(self._run())
         log.info("fleet planner: mission %s; %s", self.phase, self.health())
         self.service.stop.wait()  # stays up (healthy) until stopped, as every edge service
+
+    async def _run(self) -> None:
+        """One event loop and one operator client for the planner's life: the prediction, the bookings and
+        their release; waiting for the drones and flying the schedule block, so they run in a thread."""
+        async with QodClient(self.config.qos.camara) as qod:
+            booking = BookingClient(qod)
+            try:
+                await asyncio.to_thread(self.wait_for_drones)
+                if self.service.stop.is_set():
+                    return
+                self.phase = "planning"
+                await self.plan_and_book(booking)
+                await asyncio.to_thread(self.fly)
+            finally:
+                await self.release(booking)
+                self.write_plan()
 
 
 def run(config: Config, *, health_file: Path | None = None) -> int:

@@ -171,11 +171,19 @@ class QodClient:
         return await self._call("POST", "/retrieve-qos-profiles", {}, expect=(200,), root=self.profiles_root)
 
     async def request(
-        self, method: str, path: str, body: dict[str, Any] | None, *, expect: tuple[int, ...], root: str
+        self,
+        method: str,
+        path: str,
+        body: dict[str, Any] | None,
+        *,
+        expect: tuple[int, ...],
+        root: str,
+        timeout_s: float | None = None,
     ) -> Any:
         """A call to another CAMARA API of the same operator (under `root`), with this client's token,
-        correlator, retries and time-out: the answer's JSON, or a QodError."""
-        return await self._call(method, path, body, expect=expect, root=root)
+        correlator, retries and time-out (`timeout_s` in its place for this call): the answer's JSON, or a
+        QodError."""
+        return await self._call(method, path, body, expect=expect, root=root, timeout_s=timeout_s)
 
     # ---- one call: token, timeout, retries --------------------------------------------------------------
 
@@ -187,15 +195,17 @@ class QodClient:
         *,
         expect: tuple[int, ...],
         root: str = "",
+        timeout_s: float | None = None,
     ) -> Any:
-        deadline = time.monotonic() + self.cfg.timeout_s
+        limit_s = self.cfg.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + limit_s
         correlator = str(uuid.uuid4())
         refreshed = False
         attempt = 0
         while True:
             self.calls += 1
             url = (root or self.root) + path
-            status, answer, retry_after = await self._once(method, url, body, deadline, correlator)
+            status, answer, retry_after = await self._once(method, url, body, (deadline, limit_s), correlator)
             if status in expect:
                 return answer
             # the token endpoint refused the credential: asking it again now would be refused too
@@ -216,12 +226,15 @@ class QodClient:
             await asyncio.sleep(pause)  # the back-off itself
 
     async def _once(
-        self, method: str, url: str, body: dict[str, Any] | None, deadline: float, correlator: str
+        self, method: str, url: str, body: dict[str, Any] | None, limit: tuple[float, float], correlator: str
     ) -> tuple[int, Any, float | None]:
+        """One attempt; `limit`: the call's deadline (monotonic) and its time-out (for the message)."""
         assert self.http is not None, "use `async with QodClient(...)`"
+        deadline, limit_s = limit
+        timed_out = {"code": "TIMEOUT", "message": f"no answer within {limit_s:g} s"}
         left = deadline - time.monotonic()
         if left <= 0:
-            return 0, {"code": "TIMEOUT", "message": f"no answer within {self.cfg.timeout_s:g} s"}, None
+            return 0, timed_out, None
         headers = {**self.fixed_headers, "Accept": "application/json", "x-correlator": correlator}
         try:
             token = await asyncio.wait_for(self._bearer(), left)
@@ -242,7 +255,7 @@ class QodClient:
         except QodError as exc:
             return exc.status, {"code": exc.code, "message": exc.message}, None
         except (TimeoutError, asyncio.TimeoutError):
-            return 0, {"code": "TIMEOUT", "message": f"no answer within {self.cfg.timeout_s:g} s"}, None
+            return 0, timed_out, None
         except aiohttp.ClientError as exc:
             return 0, {"code": "UNREACHABLE", "message": f"{type(exc).__name__}: {exc}"[:300]}, None
 

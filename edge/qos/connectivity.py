@@ -107,8 +107,10 @@ class ConnectivityClient:
         precision: int = 7,
         height_m: int | None = None,
         signal_strength: bool = False,
+        timeout_s: float | None = None,
     ) -> Prediction:
-        """The prediction for a polygon of (latitude, longitude) corners over [start, end)."""
+        """The prediction for a polygon of (latitude, longitude) corners over [start, end) (`timeout_s`:
+        this call's time-out, in place of the client's)."""
         body: dict[str, Any] = {
             "serviceLevel": service_level,
             "area": {
@@ -123,7 +125,9 @@ class ConnectivityClient:
             body["height"] = height_m
         if signal_strength:
             body["includeSignalStrength"] = True
-        answer = await self.qod.request("POST", "/retrieve", body, expect=(200,), root=self.root)
+        answer = await self.qod.request(
+            "POST", "/retrieve", body, expect=(200,), root=self.root, timeout_s=timeout_s
+        )
         try:
             return parse_prediction(answer)
         except ValueError as exc:
