@@ -48,28 +48,35 @@ def test_lines_hands_out_the_log_as_it_comes_and_ends_with_the_child(tmp_path: P
         child.stop()
 
 
-def test_a_behaviour_test_flies_again_only_when_it_failed_while_starved(tmp_path: Path) -> None:
-    """tests/flights.py: a starved flight that behaved passes; one that broke the check while starved is
-    flown again and its second flight decides; one that broke it with cores to spare fails at once."""
+def summaries(how: str, *flights: tuple[bool, bool]) -> Callable[[Path], dict[str, Any]]:
+    """Made-up flights, one per (not its own, fell back) in order; `how` the cores were not its own:
+    "starved" (its machine: not ok) or "stolen" (the host: the verdict stands)."""
+    queue = list(flights)
 
-    def summaries(*flights: tuple[bool, bool]) -> Callable[[Path], dict[str, Any]]:
-        """(starved, fell back) per flight, in order."""
-        queue = list(flights)
+    def fly(out: Path) -> dict[str, Any]:
+        taken, fell_back = queue.pop(0)
+        starved = how == "starved" and taken
+        machine = {"starved": starved, "stolen": how == "stolen" and taken}
+        failure = "starved: busy" if starved else ""
+        return {"ok": not starved, "failure": failure, "machine": machine, "fb": fell_back, "out": out.name}
 
-        def fly(out: Path) -> dict[str, Any]:
-            starved, fell_back = queue.pop(0)
-            failure = "starved: busy" if starved else ""
-            return {"ok": not starved, "failure": failure, "machine": {"starved": starved}, "fb": fell_back,
-                    "out": out.name}  # fmt: skip
+    return fly
 
-        return fly
 
-    def check(summary: dict[str, Any], _: Path) -> None:
-        assert not summary["fb"], "fell back"
+def check(summary: dict[str, Any], _: Path) -> None:
+    assert not summary["fb"], "fell back"
 
-    assert fly_for_behaviour(summaries((True, False)), tmp_path, check)["out"] == "first"
-    assert fly_for_behaviour(summaries((True, True), (False, False)), tmp_path, check)["out"] == "again"
+
+@pytest.mark.parametrize("how", ["starved", "stolen"])
+def test_a_behaviour_test_flies_again_only_when_it_failed_on_cores_not_its_own(
+    tmp_path: Path, how: str
+) -> None:
+    """tests/flights.py: a flight that behaved on cores not its own (starved by its machine, or stolen by
+    the host: steal above a tenth) passes; one that broke the check on them is flown again and its second
+    flight decides; one that broke it with cores to spare fails at once."""
+    assert fly_for_behaviour(summaries(how, (True, False)), tmp_path, check)["out"] == "first"
+    assert fly_for_behaviour(summaries(how, (True, True), (False, False)), tmp_path, check)["out"] == "again"
     with pytest.raises(AssertionError, match="fell back"):
-        fly_for_behaviour(summaries((True, True), (True, True)), tmp_path, check)
+        fly_for_behaviour(summaries(how, (True, True), (True, True)), tmp_path, check)
     with pytest.raises(AssertionError, match="fell back"):
-        fly_for_behaviour(summaries((False, True), (False, False)), tmp_path, check)
+        fly_for_behaviour(summaries(how, (False, True), (False, False)), tmp_path, check)
