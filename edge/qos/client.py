@@ -205,7 +205,7 @@ class QodClient:
         while True:
             self.calls += 1
             url = (root or self.root) + path
-            status, answer, retry_after = await self._once(method, url, body, (deadline, limit_s), correlator)
+            status, answer, retry_after = await self._once(method, url, body, deadline, limit_s, correlator)
             if status in expect:
                 return answer
             # the token endpoint refused the credential: asking it again now would be refused too
@@ -226,11 +226,16 @@ class QodClient:
             await asyncio.sleep(pause)  # the back-off itself
 
     async def _once(
-        self, method: str, url: str, body: dict[str, Any] | None, limit: tuple[float, float], correlator: str
+        self,
+        method: str,
+        url: str,
+        body: dict[str, Any] | None,
+        deadline: float,
+        limit_s: float,
+        correlator: str,
     ) -> tuple[int, Any, float | None]:
-        """One attempt; `limit`: the call's deadline (monotonic) and its time-out (for the message)."""
+        """One attempt before the call's `deadline` (monotonic); `limit_s`, its time-out, for the message."""
         assert self.http is not None, "use `async with QodClient(...)`"
-        deadline, limit_s = limit
         timed_out = {"code": "TIMEOUT", "message": f"no answer within {limit_s:g} s"}
         left = deadline - time.monotonic()
         if left <= 0:
