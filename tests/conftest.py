@@ -63,3 +63,13 @@ def librealsense() -> None:
         if os.environ.get("CI"):
             raise
         pytest.skip(f"librealsense cannot load here ({exc}): apt install libusb-1.0-0")
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """CI's slow pass flies a failed flight once more (`--reruns 1`, .ci/run): the first flight's
+    failure is printed here, so a pass on the second flight never hides what broke the first."""
+    if report.outcome == "rerun":
+        lines = report.longreprtext.splitlines()
+        took = f"{report.duration:.0f} s"
+        print(f"\nRERUN {report.nodeid}: its first try failed ({took}); the end of its report:")
+        print("\n".join(f"    {line}" for line in lines[-25:]))
