@@ -54,6 +54,17 @@ def stop_loop_on_signals(name: str, loop: asyncio.AbstractEventLoop, stop: Calla
             loop.add_signal_handler(sig, handler, sig)
 
 
+def waker(loop: asyncio.AbstractEventLoop, callback: Callable[[], None]) -> Callable[[], None]:
+    """What a zenoh thread calls to have `callback` run on `loop` (a BoundedQueue's `wake`): once the loop
+    has closed, nothing (the process is stopping)."""
+
+    def wake() -> None:
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(callback)
+
+    return wake
+
+
 @contextlib.contextmanager
 def serving_metrics(name: str, config: Config) -> Iterator[ProcessMetrics]:
     """The process's metrics registry, its /metrics and /healthz served while the block runs ([metrics]

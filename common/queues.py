@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Callable
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -17,6 +18,10 @@ K = TypeVar("K")
 
 
 class BoundedQueue(Generic[T]):
+    """`wake`, when set, is called (outside the lock, on the putting thread) by a put into an empty
+    queue: an event loop's consumer schedules one drain per wake (`loop.call_soon_threadsafe`) instead
+    of a thread blocking in `get` to forward each item."""
+
     def __init__(self, maxlen: int) -> None:
         if maxlen < 1:
             raise ValueError(f"maxlen must be >= 1, got {maxlen}")
@@ -24,17 +29,21 @@ class BoundedQueue(Generic[T]):
         self._ready = threading.Condition()
         self.dropped = 0
         self.put_count = 0
+        self.wake: Callable[[], None] | None = None
 
     def __len__(self) -> int:
         return len(self._items)
 
     def put(self, item: T) -> None:
         with self._ready:
+            first = not self._items
             if len(self._items) == self._items.maxlen:
                 self.dropped += 1
             self._items.append(item)
             self.put_count += 1
             self._ready.notify()
+        if first and self.wake is not None:
+            self.wake()
 
     def get(self, timeout_s: float | None = None) -> T | None:
         """The oldest item, waiting up to timeout_s (None: forever); None on timeout."""

@@ -1,5 +1,5 @@
 """CAMARA QoS Booking 0.1.0: the emulated operator's bookings (sim/network/booking.py) on a made-up clock,
-and the edge's client (edge/qos/booking.py) against the emulated operator in this process, every
+and the edge's client (edge/operator/booking.py) against the emulated operator in this process, every
 exchange checked against the official CAMARA document where the checkout has it."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import pytest
 from dynqos.common.camara import rfc3339
 from dynqos.common.config import CellConfig, PredictionConfig, RadioConfig
 from dynqos.common.geo import Geo
-from dynqos.edge.qos.booking import BookingClient, BookingInfo, booking_root, circle
-from dynqos.edge.qos.client import QodClient, QodError
+from dynqos.edge.operator.booking import BookingApi, BookingInfo, booking_root, circle
+from dynqos.edge.operator.client import OperatorClient, OperatorError
 from dynqos.sim.network.booking import KEEP_UNAVAILABLE_S, Bookings
 from dynqos.sim.network.operator import Operator
 from tests.test_qod_api import DEVICE, SECRET, emulated_operator, run
@@ -125,14 +125,14 @@ def test_the_root_is_beside_the_qod_api() -> None:
 
 def test_the_client_books_reads_lists_and_releases_everything_it_made() -> None:
     async def main() -> None:
-        async with emulated_operator() as op, QodClient(op.camara()) as qod:
-            client = BookingClient(qod)
+        async with emulated_operator() as op, OperatorClient(op.camara()) as operator:
+            client = BookingApi(operator)
             now = time.time()
             area = circle(GEO.to_latlon(0.0, 0.0), 10.0)
             soon = await client.book(DEVICE, now + 2, 20, area, qos_profile="QOS_E", server_ports=[7448])
             later = await client.book(DEVICE, now + 60, 20, area, qos_profile="QOS_E", server_ports=[7448])
             assert soon.status == later.status == "SCHEDULED"
-            with pytest.raises(QodError) as conflict:
+            with pytest.raises(OperatorError) as conflict:
                 await client.book(DEVICE, now + 5, 20, area, qos_profile="QOS_E", server_ports=[7448])
             assert (conflict.value.status, conflict.value.code) == (409, "CONFLICT")
 
@@ -161,21 +161,19 @@ def test_bookings_need_a_token_with_their_scope(tmp_path: Path) -> None:
         async with emulated_operator(qod_auth=True) as op:
             token_url = f"http://127.0.0.1:{op.port}/oauth2/token"
             area = circle(GEO.to_latlon(0.0, 0.0), 10.0)
-            async with QodClient(op.camara()) as anonymous:
-                with pytest.raises(QodError) as unauthenticated:
-                    await BookingClient(anonymous).book(
-                        DEVICE, time.time() + 5, 10, area, qos_profile="QOS_E"
-                    )
+            async with OperatorClient(op.camara()) as anonymous:
+                with pytest.raises(OperatorError) as unauthenticated:
+                    await BookingApi(anonymous).book(DEVICE, time.time() + 5, 10, area, qos_profile="QOS_E")
                 assert unauthenticated.value.status == 401
             narrow = op.camara(token_url=token_url, client_id="dynqos-test", client_secret_file=str(secret),
                                scope="quality-on-demand:sessions:create")  # fmt: skip
-            async with QodClient(narrow) as qod:
-                with pytest.raises(QodError) as forbidden:
-                    await BookingClient(qod).book(DEVICE, time.time() + 5, 10, area, qos_profile="QOS_E")
+            async with OperatorClient(narrow) as operator:
+                with pytest.raises(OperatorError) as forbidden:
+                    await BookingApi(operator).book(DEVICE, time.time() + 5, 10, area, qos_profile="QOS_E")
                 assert (forbidden.value.status, forbidden.value.code) == (403, "PERMISSION_DENIED")
             agent = op.camara(token_url=token_url, client_id="dynqos-test", client_secret_file=str(secret))
-            async with QodClient(agent) as qod:
-                client = BookingClient(qod)
+            async with OperatorClient(agent) as operator:
+                client = BookingApi(operator)
                 made = await client.book(DEVICE, time.time() + 5, 10, area, qos_profile="QOS_E")
                 assert made.status == "SCHEDULED"
                 assert await client.release_all() == []
@@ -186,9 +184,9 @@ def test_bookings_need_a_token_with_their_scope(tmp_path: Path) -> None:
 def test_without_the_qod_operator_there_are_no_bookings() -> None:
     async def main() -> None:
         radio = RadioConfig(enabled=True, position_port=0)
-        async with emulated_operator(qod=False, radio=radio) as op, QodClient(op.camara()) as qod:
-            with pytest.raises(QodError) as missing:
-                await BookingClient(qod).get("6f0d8f5e-1c7c-4d5b-9b1e-2a9d7c3e4f50")
+        async with emulated_operator(qod=False, radio=radio) as op, OperatorClient(op.camara()) as operator:
+            with pytest.raises(OperatorError) as missing:
+                await BookingApi(operator).get("6f0d8f5e-1c7c-4d5b-9b1e-2a9d7c3e4f50")
             assert missing.value.status == 404
 
     run(main())

@@ -1,4 +1,4 @@
-"""The Predictive Connectivity Data client (edge/qos/connectivity.py) against the emulated operator (its
+"""The Predictive Connectivity Data client (edge/operator/connectivity.py) against the emulated operator (its
 control API in this process, every exchange checked against the official CAMARA document where the
 checkout has it), and against a scripted server for what only a misbehaving operator does: throttle,
 fail, hang, answer nonsense."""
@@ -18,14 +18,14 @@ from aiohttp import web
 
 from dynqos.common.config import CamaraConfig, CoverageHoleConfig, PredictionConfig, RadioConfig
 from dynqos.common.geo import Geo
-from dynqos.edge.planner.fleet_plan import PlanDrone, PlanSettings, Router, Task, plan
-from dynqos.edge.qos.client import QodClient, QodError
-from dynqos.edge.qos.connectivity import (
-    ConnectivityClient,
+from dynqos.edge.operator.client import OperatorClient, OperatorError
+from dynqos.edge.operator.connectivity import (
+    ConnectivityApi,
     PredictedLevels,
     connectivity_root,
     parse_prediction,
 )
+from dynqos.edge.planner.fleet_plan import PlanDrone, PlanSettings, Router, Task, plan
 from tests.test_qod_api import SECRET, emulated_operator, run
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
@@ -52,8 +52,8 @@ def test_the_root_is_beside_the_qod_api_unless_set() -> None:
 
 def test_a_prediction_of_the_arena_marks_the_hole_and_clears_above_it() -> None:
     async def main() -> None:
-        async with emulated_operator(radio=RADIO) as op, QodClient(op.camara()) as qod:
-            client = ConnectivityClient(qod)
+        async with emulated_operator(radio=RADIO) as op, OperatorClient(op.camara()) as operator:
+            client = ConnectivityApi(operator)
             now = time.time()
             low = await client.retrieve(ARENA, now + 1, now + 21, service_level="STREAM_4K", precision=9,
                                         signal_strength=True)  # fmt: skip
@@ -97,11 +97,14 @@ def test_a_prediction_of_the_arena_marks_the_hole_and_clears_above_it() -> None:
 )
 def test_refusals_reach_the_caller_as_the_apis_codes(changes: dict[str, Any], status: int, code: str) -> None:
     async def main() -> None:
-        async with emulated_operator(radio=RADIO, requests_valid=False) as op, QodClient(op.camara()) as qod:
+        async with (
+            emulated_operator(radio=RADIO, requests_valid=False) as op,
+            OperatorClient(op.camara()) as operator,
+        ):
             now = time.time()
             start, end = now + changes.pop("start", 1.0), now + changes.pop("end", 11.0)
-            with pytest.raises(QodError) as refused:
-                await ConnectivityClient(qod).retrieve(ARENA, start, end, **{"precision": 9, **changes})
+            with pytest.raises(OperatorError) as refused:
+                await ConnectivityApi(operator).retrieve(ARENA, start, end, **{"precision": 9, **changes})
             assert (refused.value.status, refused.value.code) == (status, code)
             assert not refused.value.transient  # asking again cannot help
 
@@ -110,9 +113,11 @@ def test_refusals_reach_the_caller_as_the_apis_codes(changes: dict[str, Any], st
 
 def test_no_radio_map_is_a_404() -> None:
     async def main() -> None:
-        async with emulated_operator() as op, QodClient(op.camara()) as qod:
-            with pytest.raises(QodError) as missing:
-                await ConnectivityClient(qod).retrieve(ARENA, time.time() + 1, time.time() + 11, precision=9)
+        async with emulated_operator() as op, OperatorClient(op.camara()) as operator:
+            with pytest.raises(OperatorError) as missing:
+                await ConnectivityApi(operator).retrieve(
+                    ARENA, time.time() + 1, time.time() + 11, precision=9
+                )
             assert (missing.value.status, missing.value.code) == (404, "NOT_FOUND")
 
     run(main())
@@ -125,19 +130,19 @@ def test_a_token_is_needed_and_must_carry_the_scope(tmp_path: Path) -> None:
         async with emulated_operator(radio=RADIO, qod_auth=True) as op:
             token_url = f"http://127.0.0.1:{op.port}/oauth2/token"
             now = time.time()
-            async with QodClient(op.camara()) as anonymous:
-                with pytest.raises(QodError) as unauthenticated:
-                    await ConnectivityClient(anonymous).retrieve(ARENA, now + 1, now + 11, precision=9)
+            async with OperatorClient(op.camara()) as anonymous:
+                with pytest.raises(OperatorError) as unauthenticated:
+                    await ConnectivityApi(anonymous).retrieve(ARENA, now + 1, now + 11, precision=9)
                 assert unauthenticated.value.status == 401
             narrow = op.camara(token_url=token_url, client_id="dynqos-test", client_secret_file=str(secret),
                                scope="quality-on-demand:sessions:create")  # fmt: skip
-            async with QodClient(narrow) as qod:
-                with pytest.raises(QodError) as forbidden:
-                    await ConnectivityClient(qod).retrieve(ARENA, now + 1, now + 11, precision=9)
+            async with OperatorClient(narrow) as operator:
+                with pytest.raises(OperatorError) as forbidden:
+                    await ConnectivityApi(operator).retrieve(ARENA, now + 1, now + 11, precision=9)
                 assert (forbidden.value.status, forbidden.value.code) == (403, "PERMISSION_DENIED")
             agent = op.camara(token_url=token_url, client_id="dynqos-test", client_secret_file=str(secret))
-            async with QodClient(agent) as qod:  # the agent's own scopes include the prediction's
-                answer = await ConnectivityClient(qod).retrieve(ARENA, now + 1, now + 11, precision=9)
+            async with OperatorClient(agent) as operator:  # the agent's own scopes include the prediction's
+                answer = await ConnectivityApi(operator).retrieve(ARENA, now + 1, now + 11, precision=9)
                 assert answer.status == "SUPPORTED_AREA"
 
     run(main())
@@ -180,9 +185,9 @@ def test_throttling_and_failures_are_retried_then_answered() -> None:
         script = [(429, {"Retry-After": "0.05"}, BUSY, 0.0), (503, {}, DOWN, 0.0), (200, {}, GOOD, 0.0)]
         async with (
             scripted(script) as (root, seen),
-            QodClient(CamaraConfig(api_root=root, timeout_s=3)) as qod,
+            OperatorClient(CamaraConfig(api_root=root, timeout_s=3)) as operator,
         ):
-            answer = await ConnectivityClient(qod).retrieve(ARENA, time.time() + 1, time.time() + 11)
+            answer = await ConnectivityApi(operator).retrieve(ARENA, time.time() + 1, time.time() + 11)
             assert answer.status == "AREA_NOT_SUPPORTED"
             assert seen == [429, 503, 200]
 
@@ -193,34 +198,34 @@ def test_a_failing_operator_is_a_transient_error_and_a_hanging_one_is_cut_off() 
     async def main() -> None:
         async with (
             scripted([(500, {}, DOWN, 0.0)]) as (root, seen),
-            QodClient(CamaraConfig(api_root=root, timeout_s=2)) as qod,
+            OperatorClient(CamaraConfig(api_root=root, timeout_s=2)) as operator,
         ):
-            with pytest.raises(QodError) as failed:
-                await ConnectivityClient(qod).retrieve(ARENA, time.time() + 1, time.time() + 11)
+            with pytest.raises(OperatorError) as failed:
+                await ConnectivityApi(operator).retrieve(ARENA, time.time() + 1, time.time() + 11)
             assert failed.value.status == 500
             assert failed.value.transient
             assert len(seen) == 4  # the first try and three retries
         async with (
             scripted([(200, {}, GOOD, 5.0)]) as (root, _),
-            QodClient(CamaraConfig(api_root=root, timeout_s=0.3)) as qod,
+            OperatorClient(CamaraConfig(api_root=root, timeout_s=0.3)) as operator,
         ):
             started = time.monotonic()
-            with pytest.raises(QodError) as hung:
-                await ConnectivityClient(qod).retrieve(ARENA, time.time() + 1, time.time() + 11)
+            with pytest.raises(OperatorError) as hung:
+                await ConnectivityApi(operator).retrieve(ARENA, time.time() + 1, time.time() + 11)
             assert hung.value.code == "TIMEOUT"
             assert time.monotonic() - started < 2.0
         # one client for every call (the fleet planner's): the prediction's own time-out, longer or shorter
         async with (
             scripted([(200, {}, GOOD, 1.0), (200, {}, GOOD, 5.0)]) as (root, _),
-            QodClient(CamaraConfig(api_root=root, timeout_s=0.3)) as qod,
+            OperatorClient(CamaraConfig(api_root=root, timeout_s=0.3)) as operator,
         ):
-            answer = await ConnectivityClient(qod).retrieve(
+            answer = await ConnectivityApi(operator).retrieve(
                 ARENA, time.time() + 1, time.time() + 11, timeout_s=3
             )
             assert answer.status == GOOD["status"]
             started = time.monotonic()
-            with pytest.raises(QodError) as hung:
-                await ConnectivityClient(qod).retrieve(
+            with pytest.raises(OperatorError) as hung:
+                await ConnectivityApi(operator).retrieve(
                     ARENA, time.time() + 1, time.time() + 11, timeout_s=0.2
                 )
             assert (hung.value.code, hung.value.message) == ("TIMEOUT", "no answer within 0.2 s")
@@ -252,10 +257,10 @@ def test_an_answer_without_the_apis_shape_is_a_bad_response(body: Any) -> None:
     async def main() -> None:
         async with (
             scripted([(200, {}, body, 0.0)]) as (root, _),
-            QodClient(CamaraConfig(api_root=root)) as qod,
+            OperatorClient(CamaraConfig(api_root=root)) as operator,
         ):
-            with pytest.raises(QodError) as bad:
-                await ConnectivityClient(qod).retrieve(ARENA, time.time() + 1, time.time() + 11)
+            with pytest.raises(OperatorError) as bad:
+                await ConnectivityApi(operator).retrieve(ARENA, time.time() + 1, time.time() + 11)
             assert (bad.value.status, bad.value.code) == (502, "BAD_RESPONSE")
 
     run(main())

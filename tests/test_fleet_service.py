@@ -30,11 +30,11 @@ from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import MissionRequest, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received
+from dynqos.edge.operator.booking import BookingApi
+from dynqos.edge.operator.client import OperatorClient
 from dynqos.edge.planner.fleet_plan import Leg, Plan
 from dynqos.edge.planner.fleet_schedule import missions_of
 from dynqos.edge.planner.fleet_service import FleetPlannerService
-from dynqos.edge.qos.booking import BookingClient
-from dynqos.edge.qos.client import QodClient
 from tests.test_qod_api import DEVICE, emulated_operator, run
 
 TASKS = (
@@ -105,9 +105,9 @@ def test_the_blind_plan_is_sent_leg_by_leg_when_due_from_where_each_drone_is() -
     assert service.everyone_heard()
 
     async def blind() -> None:
-        async with QodClient(service.config.qos.camara) as qod:
-            await service.plan_and_book(BookingClient(qod))  # blind: no operator is asked
-            assert qod.calls == 0
+        async with OperatorClient(service.config.qos.camara) as operator:
+            await service.plan_and_book(BookingApi(operator))  # blind: no operator is asked
+            assert operator.calls == 0
 
     asyncio.run(blind())
     assert service.planned_with == "blind ([fleet_plan] mode)"
@@ -155,8 +155,10 @@ def _planned(radio: RadioConfig | None) -> tuple[FleetPlannerService, list[objec
             )
             service = FleetPlannerService(config, MemoryBus(FakeClock(time.monotonic_ns())))
             service.positions = {"uav1": (-5.0, -5.0, -1.5)}
-            async with QodClient(config.qos.camara) as qod:  # the planner's one client, from plan to release
-                booking = BookingClient(qod)
+            async with OperatorClient(
+                config.qos.camara
+            ) as operator:  # the planner's one client, from plan to release
+                booking = BookingApi(operator)
                 await service.plan_and_book(booking)
                 seen.append(service)
                 seen.append(await booking.retrieve(DEVICE))

@@ -43,7 +43,7 @@ PURE = (
     "dynqos.edge.mpc.problem",
     "dynqos.edge.qos.arbiter",
     "dynqos.edge.qos.grants",
-    "dynqos.edge.qos.profiles",
+    "dynqos.edge.operator.profile_fit",
     "dynqos.edge.replicas",
     "dynqos.edge.ros2.codec",
     "dynqos.edge.ros2.translate",
@@ -238,7 +238,7 @@ def test_the_cycle_finder_finds_a_cycle() -> None:
 def test_each_forbidden_direction_is_caught() -> None:
     graph = import_graph()
     for module, target in [
-        ("dynqos.edge.qos.client", "dynqos.sim.network.operator_schema"),  # edge -> sim (the old defect)
+        ("dynqos.edge.operator.client", "dynqos.sim.network.operator_schema"),  # edge -> sim (the old defect)
         ("dynqos.onboard.camera", "dynqos.sim.vehicle.render"),  # onboard -> sim
         ("dynqos.sim.network.cell", "dynqos.edge.qos.grants"),  # sim -> edge
         ("dynqos.common.config", "dynqos.onboard.pid"),  # common -> a component

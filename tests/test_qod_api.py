@@ -1,4 +1,4 @@
-"""The CAMARA QoD client (edge/qos/client.py) against the emulated operator (sim/network/operator.py,
+"""The CAMARA QoD client (edge/operator/client.py) against the emulated operator (sim/network/operator.py,
 served by the cell's control API) over real HTTP on 127.0.0.1. Every request the client sends and every
 answer the emulator returns is checked against the schemas written from the spec
 (sim/network/operator_schema.py); what an operator may do that the emulator does not (throttle, fail,
@@ -21,12 +21,13 @@ import pytest
 from aiohttp import web
 
 from dynqos.common.config import CamaraConfig, CellConfig, ZenohConfig
+from dynqos.edge.operator.client import OperatorError, retry_after_s
 from dynqos.edge.qos.calls import settings_at_fault
-from dynqos.edge.qos.client import QodClient, QodError, retry_after_s
 from dynqos.edge.qos.profile_watch import ProfileWatch
 from dynqos.sim.network import operator_schema as schema
 from dynqos.sim.network.service import run_cell
 from tests import camara_spec
+from tests.operator_apis import qod_api
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
@@ -157,7 +158,7 @@ def run(coro: Awaitable[None]) -> None:
 
 def test_create_poll_to_available_extend_and_delete_grant_the_bearer_while_it_lives() -> None:
     async def main() -> None:
-        async with emulated_operator() as op, QodClient(op.camara()) as client:
+        async with emulated_operator() as op, qod_api(op.camara()) as client:
             created = await client.create(session_body())
             assert created.qos_status == "REQUESTED"
             assert not await op.granted()
@@ -176,7 +177,7 @@ def test_create_poll_to_available_extend_and_delete_grant_the_bearer_while_it_li
             assert [s.session_id for s in await client.retrieve(DEVICE)] == [sid]
             await client.delete(sid)
             assert not await op.granted()
-            with pytest.raises(QodError) as gone:
+            with pytest.raises(OperatorError) as gone:
                 await client.get(sid)
             assert gone.value.status == 404
         assert op.final["qod"]["created"] == 1
@@ -189,9 +190,9 @@ def test_create_poll_to_available_extend_and_delete_grant_the_bearer_while_it_li
 
 def test_a_second_session_for_the_flow_is_a_409_and_retrieve_finds_the_first() -> None:
     async def main() -> None:
-        async with emulated_operator() as op, QodClient(op.camara()) as client:
+        async with emulated_operator() as op, qod_api(op.camara()) as client:
             first = await client.create(session_body())
-            with pytest.raises(QodError) as conflict:
+            with pytest.raises(OperatorError) as conflict:
                 await client.create(session_body())
             assert conflict.value.status == 409
             assert conflict.value.code == "CONFLICT"
@@ -215,12 +216,12 @@ def test_what_the_operator_refuses_is_an_error_with_its_code_and_no_retry(
     changes: dict[str, Any], status: int, code: str
 ) -> None:
     async def main() -> None:
-        async with emulated_operator() as op, QodClient(op.camara()) as client:
-            with pytest.raises(QodError) as refused:
+        async with emulated_operator() as op, qod_api(op.camara()) as client:
+            with pytest.raises(OperatorError) as refused:
                 await client.create(session_body(**changes))
             assert (refused.value.status, refused.value.code) == (status, code)
             assert not refused.value.transient
-            assert client.retries == 0
+            assert client.operator.retries == 0
         assert op.final["qod"]["sessions"] == []
 
     run(main())
@@ -260,14 +261,14 @@ def test_an_expired_token_is_refreshed_once_and_the_call_retried() -> None:
                 token_url=f"http://127.0.0.1:{op.port}/oauth2/token", client_id="dynqos-test",
                 client_secret_file=str(secret_file),
             )  # fmt: skip
-            async with QodClient(cfg) as client:
+            async with qod_api(cfg) as client:
                 created = await client.create(session_body())
-                assert client.token_refreshes == 1
+                assert client.operator.token_refreshes == 1
                 async with aiohttp.ClientSession() as http:  # the operator revokes every token
                     await http.delete(f"http://127.0.0.1:{op.port}/oauth2/tokens")
                 info = await client.get(created.session_id)
                 assert info.session_id == created.session_id
-                assert client.token_refreshes == 2
+                assert client.operator.token_refreshes == 2
                 await client.delete(created.session_id)
             async with (
                 aiohttp.ClientSession() as http,
@@ -302,7 +303,7 @@ def test_sessions_expire_and_the_network_can_end_them_with_a_notification() -> N
         await site.start()
         sink_url = f"http://127.0.0.1:{runner.addresses[0][1]}/sink"
         try:
-            async with emulated_operator() as op, QodClient(op.camara()) as client:
+            async with emulated_operator() as op, qod_api(op.camara()) as client:
                 short = await client.create(session_body(duration=1))
 
                 async def ended() -> bool:
@@ -323,7 +324,7 @@ def test_sessions_expire_and_the_network_can_end_them_with_a_notification() -> N
                 info = await client.get(long.session_id)
                 assert (info.qos_status, info.status_info) == ("UNAVAILABLE", "NETWORK_TERMINATED")
                 assert not await op.granted()
-                with pytest.raises(QodError) as conflict:  # its resources stay until deleted
+                with pytest.raises(OperatorError) as conflict:  # its resources stay until deleted
                     await client.create(session_body())
                 assert conflict.value.status == 409
                 await client.delete(long.session_id)
@@ -339,7 +340,7 @@ def test_sessions_expire_and_the_network_can_end_them_with_a_notification() -> N
 
 def test_an_operator_that_cannot_grant_ends_the_request_network_terminated() -> None:
     async def main() -> None:
-        async with emulated_operator(qod_max_sessions=0) as op, QodClient(op.camara()) as client:
+        async with emulated_operator(qod_max_sessions=0) as op, qod_api(op.camara()) as client:
             created = await client.create(session_body())
 
             async def settled() -> bool:
@@ -403,12 +404,12 @@ def test_429_and_5xx_are_retried_with_backoff_then_succeed() -> None:
         script = [(429, {"Retry-After": "0.05"}, BUSY, 0.0), (503, {}, DOWN, 0.0), (201, {}, SESSION, 0.0)]
         async with (
             scripted(script) as (root, seen),
-            QodClient(CamaraConfig(api_root=root, timeout_s=3)) as client,
+            qod_api(CamaraConfig(api_root=root, timeout_s=3)) as client,
         ):
             info = await client.create(session_body())
             assert info.session_id == SESSION["sessionId"]
             assert seen == ["429", "503", "201"]
-            assert client.retries == 2
+            assert client.operator.retries == 2
 
     run(main())
 
@@ -417,33 +418,56 @@ def test_a_failing_operator_is_a_transient_error_within_the_timeout_naming_its_c
     async def main() -> None:
         async with (
             scripted([(503, {}, DOWN, 0.0)]) as (root, seen),
-            QodClient(CamaraConfig(api_root=root, timeout_s=2)) as client,
+            qod_api(CamaraConfig(api_root=root, timeout_s=2)) as client,
         ):
-            with pytest.raises(QodError) as failed:
+            with pytest.raises(OperatorError) as failed:
                 await client.create(session_body())
             assert failed.value.status == 503
             assert failed.value.transient
+            assert failed.value.kind == "server"
             assert len(seen) == 4  # the first try and three retries
             first = list(correlators)
             assert len(set(first)) == 1  # one x-correlator across the retries of one call
             uuid.UUID(first[0])
             assert failed.value.correlator == first[0]
             assert first[0] in str(failed.value)
-            with pytest.raises(QodError):
+            with pytest.raises(OperatorError):
                 await client.create(session_body())
             assert correlators[-1] != first[0]  # a new call, a new correlator
 
     run(main())
 
 
+@pytest.mark.parametrize(
+    ("status", "kind", "transient"),
+    [
+        (0, "unreachable", True),
+        (429, "throttled", True),
+        (500, "server", True),
+        (503, "server", True),
+        (401, "credentials", False),
+        (403, "forbidden", False),
+        (404, "not_found", False),
+        (409, "conflict", False),
+        (400, "refused", False),
+        (422, "refused", False),
+    ],
+)
+def test_an_error_says_its_kind_and_whether_asking_again_may_help(
+    status: int, kind: str, transient: bool
+) -> None:
+    error = OperatorError(status, "CODE", "message", correlator="c-1")
+    assert (error.kind, error.transient) == (kind, transient)
+
+
 def test_a_hanging_operator_is_cut_off_at_the_timeout() -> None:
     async def main() -> None:
         async with (
             scripted([(201, {}, SESSION, 5.0)]) as (root, _),
-            QodClient(CamaraConfig(api_root=root, timeout_s=0.3)) as client,
+            qod_api(CamaraConfig(api_root=root, timeout_s=0.3)) as client,
         ):
             started = time.monotonic()
-            with pytest.raises(QodError) as hung:
+            with pytest.raises(OperatorError) as hung:
                 await client.create(session_body())
             assert hung.value.status == 0
             assert hung.value.code == "TIMEOUT"
@@ -462,9 +486,9 @@ def test_a_retry_after_longer_than_the_call_is_handed_to_the_agent_in_seconds_or
     async def main() -> None:
         async with (
             scripted([(429, {"Retry-After": "30"}, BUSY, 0.0)]) as (root, seen),
-            QodClient(CamaraConfig(api_root=root, timeout_s=1)) as client,
+            qod_api(CamaraConfig(api_root=root, timeout_s=1)) as client,
         ):
-            with pytest.raises(QodError) as throttled:
+            with pytest.raises(OperatorError) as throttled:
                 await client.create(session_body())
             assert seen == ["429"]  # 30 s does not fit in the call's 1 s: not retried within it
             assert throttled.value.retry_after_s == 30.0
@@ -495,8 +519,8 @@ def test_a_failing_token_endpoint_is_transient_and_refused_credentials_are_not(t
                     api_root=f"{url}/qod", token_url=f"{url}/token", client_id="c",
                     client_secret_file=str(secret_file), timeout_s=1,
                 )  # fmt: skip
-                async with QodClient(cfg) as client:
-                    with pytest.raises(QodError) as failed:
+                async with qod_api(cfg) as client:
+                    with pytest.raises(OperatorError) as failed:
                         await client.create(session_body())
                 assert (failed.value.status, failed.value.transient) == (status, transient)
         finally:
@@ -511,8 +535,8 @@ def test_the_agents_profile_check_and_the_profiles_api_fit_the_official_document
 
     async def main() -> None:
         async with emulated_operator(qod_max_duration_s=20, qod_inactive_profiles=("QOS_M",)) as op:
-            async with QodClient(op.camara(duration_s=600, extend_before_s=30)) as client:
-                fitted = await ProfileWatch(client, client.cfg).start()
+            async with qod_api(op.camara(duration_s=600, extend_before_s=30)) as client:
+                fitted = await ProfileWatch(client.operator, client.operator.cfg).start()
             assert (fitted.duration_s, fitted.extend_before_s, fitted.renew_before_s) == (20, 10.0, 2.0)
             root = f"http://127.0.0.1:{op.port}/qos-profiles/v1/qos-profiles"
             async with aiohttp.ClientSession() as http:
@@ -573,8 +597,8 @@ def test_too_many_sessions_is_a_429_with_retry_after(monkeypatch: pytest.MonkeyP
             other_port = session_body(applicationServerPorts={"ports": [7449]})
             async with http.post(op.root + "/sessions", json=other_port) as r:
                 assert (r.status, r.headers.get("Retry-After")) == (429, "5")
-            async with QodClient(op.camara(timeout_s=0.5)) as client:
-                with pytest.raises(QodError) as throttled:
+            async with qod_api(op.camara(timeout_s=0.5)) as client:
+                with pytest.raises(OperatorError) as throttled:
                     await client.create(other_port)
             assert (throttled.value.status, throttled.value.retry_after_s) == (429, 5.0)  # too long to wait
 
@@ -605,7 +629,7 @@ def test_the_sink_credential_the_agent_sends_fits_the_document_and_is_never_echo
 
     async def main() -> None:
         credential = SinkGuard().credential(60, time.time())
-        async with emulated_operator() as op, QodClient(op.camara()) as client:
+        async with emulated_operator() as op, qod_api(op.camara()) as client:
             body = session_body(sink=f"http://127.0.0.1:{op.port}/nowhere", sinkCredential=credential)
             created = await client.create(body)
             assert "sinkCredential" not in created.raw  # a secret the operator keeps
@@ -636,10 +660,10 @@ def test_private_key_jwt_gets_a_token_with_a_signed_assertion_and_a_foreign_key_
             mine = op.camara(
                 token_url=token_url, client_id="dynqos-test", client_key_file=str(tmp_path / "client.pem")
             )
-            async with QodClient(mine) as client:
+            async with qod_api(mine) as client:
                 created = await client.create(session_body())
                 await client.delete(created.session_id)
-                form = client._token_form()
+                form = client.operator._token_form()
             assert "client_secret" not in form
             assert form["client_assertion_type"] == "urn:ietf:params:oauth:client-assertion-type:jwt-bearer"
             async with aiohttp.ClientSession() as http:
@@ -648,8 +672,8 @@ def test_private_key_jwt_gets_a_token_with_a_signed_assertion_and_a_foreign_key_
                 async with http.post(token_url, data=form) as replayed:
                     assert replayed.status == 401  # an assertion is used once (jti)
             stranger = replace(mine, client_key_file=str(tmp_path / "stranger.pem"))
-            async with QodClient(stranger) as client:
-                with pytest.raises(QodError) as refused:
+            async with qod_api(stranger) as client:
+                with pytest.raises(OperatorError) as refused:
                     await client.create(session_body())
             assert (refused.value.status, refused.value.code) == (401, "TOKEN")
             assert settings_at_fault(refused.value)  # one error line naming the setting, no retries
@@ -667,15 +691,15 @@ def test_a_token_without_the_calls_scope_is_a_403_that_names_the_setting(tmp_pat
                 token_url=f"http://127.0.0.1:{op.port}/oauth2/token", client_id="dynqos-test",
                 client_secret_file=str(secret_file), scope="quality-on-demand:sessions:read",
             )  # fmt: skip
-            async with QodClient(narrow) as client:
-                with pytest.raises(QodError) as denied:
+            async with qod_api(narrow) as client:
+                with pytest.raises(OperatorError) as denied:
                     await client.create(session_body())
                 assert (denied.value.status, denied.value.code) == (403, "PERMISSION_DENIED")
                 assert "scopes" in (settings_at_fault(denied.value) or "")
-                with pytest.raises(QodError) as unknown:  # the scope it has lets a read through
+                with pytest.raises(OperatorError) as unknown:  # the scope it has lets a read through
                     await client.get(str(uuid.uuid4()))
                 assert unknown.value.status == 404
-                with pytest.raises(QodError) as by_device:
+                with pytest.raises(OperatorError) as by_device:
                     await client.retrieve(DEVICE)
                 assert by_device.value.status == 403
         assert op.final["qod"]["created"] == 0
@@ -691,11 +715,11 @@ def test_an_aggregators_fixed_api_key_headers_instead_of_a_token(tmp_path: Path)
     async def main() -> None:
         wanted = {"X-API-Key": "k3y-for-tests", "X-API-Host": "qod.example"}
         async with emulated_operator(qod_auth=True, api_headers=wanted) as op:
-            async with QodClient(op.camara(headers_file=str(keys_file))) as client:
+            async with qod_api(op.camara(headers_file=str(keys_file))) as client:
                 created = await client.create(session_body())
                 await client.delete(created.session_id)
-            async with QodClient(op.camara(headers_file=str(tmp_path / "wrong"))) as client:
-                with pytest.raises(QodError) as refused:
+            async with qod_api(op.camara(headers_file=str(tmp_path / "wrong"))) as client:
+                with pytest.raises(OperatorError) as refused:
                     await client.create(session_body())
             assert refused.value.status == 401
             assert settings_at_fault(refused.value)
@@ -705,7 +729,7 @@ def test_an_aggregators_fixed_api_key_headers_instead_of_a_token(tmp_path: Path)
 
 
 def test_three_legged_a_token_per_device_and_bodies_that_name_none(tmp_path: Path) -> None:
-    from dynqos.edge.qos.client import SUBJECT
+    from dynqos.edge.operator.client import SUBJECT
 
     registered = _ec_key(tmp_path / "client.pem")
 
@@ -715,17 +739,17 @@ def test_three_legged_a_token_per_device_and_bodies_that_name_none(tmp_path: Pat
             cfg = op.camara(token_url=token_url, client_id="dynqos-test",
                             client_key_file=str(tmp_path / "client.pem"), three_legged=True)  # fmt: skip
             body = {k: v for k, v in session_body().items() if k != "device"}
-            async with QodClient(cfg) as client:
+            async with qod_api(cfg) as client:
                 SUBJECT.set(f"tel:{DEVICE['phoneNumber']}")
                 created = await client.create(body)
                 assert "device" not in created.raw  # the token names it; the answer does not repeat it
                 assert [s.session_id for s in await client.retrieve(None)] == [created.session_id]
-                with pytest.raises(QodError) as named:
+                with pytest.raises(OperatorError) as named:
                     await client.create(session_body())  # device in the body as well
                 assert (named.value.status, named.value.code) == (422, "UNNECESSARY_IDENTIFIER")
                 await client.delete(created.session_id)
                 SUBJECT.set("tel:+46799999999")  # a phone the operator does not know: no token
-                with pytest.raises(QodError) as stranger:
+                with pytest.raises(OperatorError) as stranger:
                     await client.create(body)
                 assert (stranger.value.status, stranger.value.code) == (401, "TOKEN")
         assert op.final["qod"]["created"] == 1

@@ -447,7 +447,7 @@ def test_camara_each_oauth2_mode_flies_a_drone_to_priority_against_the_real_cell
         finally:
             drone.close()
         log = rig.procs.pop("agent").stop()
-    assert "qod: new access token" in log
+    assert "operator: new access token" in log
     assert ("for tel:+46700000001" in log) == (mode == "three-legged")  # whose token it was
 
 

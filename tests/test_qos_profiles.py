@@ -1,6 +1,6 @@
-"""Profiles first (edge/qos/profiles.py): the QoS Profiles API's answer decides whether the agent may
-start and what duration it asks for; the emulated operator serves that API as CAMARA qos-profiles
-v1.1.0 describes it."""
+"""Profiles first (edge/operator/profile_fit.py, profiles.py): the QoS Profiles API's answer decides
+whether the agent may start and what duration it asks for; the emulated operator serves that API as
+CAMARA qos-profiles v1.1.0 describes it."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 
 from dynqos.common.config import CamaraConfig, CellConfig
-from dynqos.edge.qos.client import profiles_root
-from dynqos.edge.qos.profiles import ProfileError, duration_s, fit
+from dynqos.edge.operator.profile_fit import ProfileError, duration_s, fit
+from dynqos.edge.operator.profiles import profiles_root
 from dynqos.sim.network.operator import Operator
 
 

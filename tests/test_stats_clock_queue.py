@@ -110,6 +110,38 @@ def test_queue_wakes_a_waiting_consumer() -> None:
     assert got == ["hello"]
 
 
+def test_a_put_into_an_empty_queue_wakes_an_event_loop_once_and_its_drain_takes_all() -> None:
+    import asyncio
+
+    from dynqos.common.lifecycle import waker
+
+    queue: BoundedQueue[int] = BoundedQueue(3)
+    wakes: list[int] = []
+    taken: list[list[int]] = []
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+
+        def take() -> None:
+            wakes.append(len(queue))
+            taken.append(queue.drain())
+
+        queue.wake = waker(loop, take)
+        putter = threading.Thread(target=lambda: [queue.put(i) for i in range(5)])  # from a zenoh-like thread
+        putter.start()
+        putter.join()  # the loop is held meanwhile: the drain it was woken for waits its turn
+        await asyncio.sleep(0)  # the scheduled drain runs (a loop turn, not a wait for time)
+        queue.put(5)  # empty again: wakes again
+        await asyncio.sleep(0)
+
+    asyncio.run(main())
+    assert taken == [[2, 3, 4], [5]]  # bounded: the oldest two dropped and counted
+    assert queue.dropped == 2
+    assert wakes == [3, 1]  # one wake per empty-to-waiting, not one per item
+    queue.put(6)  # the loop has closed: the wake does nothing, the item waits
+    assert queue.drain() == [6]
+
+
 def test_pending_changes_keep_the_newest_per_key_and_refuse_a_flood_of_new_keys() -> None:
     pending: PendingChanges[str] = PendingChanges(2)
     assert pending.offer("a", True) is True  # the first waiting change: wake the worker

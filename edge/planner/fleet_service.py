@@ -31,6 +31,9 @@ from dynqos.common.messages import MissionRequest, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received
 from dynqos.edge import metrics
+from dynqos.edge.operator.booking import BookingApi, circle
+from dynqos.edge.operator.client import OperatorClient, OperatorError
+from dynqos.edge.operator.connectivity import ConnectivityApi, PredictedLevels
 from dynqos.edge.planner.fleet_plan import Plan, plan
 from dynqos.edge.planner.fleet_schedule import (
     Ned,
@@ -40,9 +43,6 @@ from dynqos.edge.planner.fleet_schedule import (
     settings_of,
     tasks_of,
 )
-from dynqos.edge.qos.booking import BookingClient, circle
-from dynqos.edge.qos.client import QodClient, QodError
-from dynqos.edge.qos.connectivity import ConnectivityClient, PredictedLevels
 from dynqos.edge.resend import LatestMissions
 from dynqos.edge.service import Service, serve
 
@@ -73,7 +73,7 @@ class FleetPlannerService:
         self.missions: list[TimedMission] = []
         self.sent = 0  # missions sent (each once; re-sends not counted)
         self.booked: list[dict[str, Any]] = []
-        self.booking: BookingClient | None = None  # the one booking client, once planning starts
+        self.booking: BookingApi | None = None  # the one booking client, once planning starts
         self.released: list[str] = []
         self.release_failed: list[str] = []
         self.phase = "waiting"
@@ -109,9 +109,9 @@ class FleetPlannerService:
             self.service.maybe_health(self.health)
             self.service.stop.wait(0.1)  # the states' pace, not synchronisation
 
-    async def plan_and_book(self, booking: BookingClient) -> None:
+    async def plan_and_book(self, booking: BookingApi) -> None:
         """The plan (from the prediction unless blind or it failed), then its bookings, over the planner's
-        one operator client (`booking.qod`)."""
+        one operator client (`booking.operator`)."""
         self.booking = booking
         self.start_unix = time.time() + self.cfg.lead_s
         self.start_ns = self.clock.now_ns() + round(self.cfg.lead_s * 1e9)
@@ -122,7 +122,7 @@ class FleetPlannerService:
             self.plan, self.planned_with = blind, "blind ([fleet_plan] mode)"
         else:
             # as far ahead as a plan some 50% longer than the blind one may need (past it: ND)
-            levels = await self._predict(booking.qod, horizon_s=1.5 * blind.mission_s + 30.0)
+            levels = await self._predict(booking.operator, horizon_s=1.5 * blind.mission_s + 30.0)
             if levels is None:
                 self.plan = blind
             else:
@@ -143,12 +143,12 @@ class FleetPlannerService:
             len(self.plan.unbooked),
         )
 
-    async def _predict(self, qod: QodClient, horizon_s: float) -> PredictedLevels | None:
+    async def _predict(self, operator: OperatorClient, horizon_s: float) -> PredictedLevels | None:
         hx, hy = self.cfg.half_m
         corners = [self.geo.to_latlon(x, y) for x, y in ((-hx, -hy), (-hx, hy), (hx, hy), (hx, -hy))]
         end = self.start_unix + horizon_s
         try:
-            prediction = await ConnectivityClient(qod).retrieve(
+            prediction = await ConnectivityApi(operator).retrieve(
                 corners,
                 self.start_unix,
                 end,
@@ -156,13 +156,13 @@ class FleetPlannerService:
                 precision=self.cfg.precision,
                 timeout_s=self.cfg.prediction_timeout_s,
             )
-        except QodError as exc:
+        except OperatorError as exc:
             self.planned_with = f"blind: the prediction failed ({exc})"
             log.warning("fleet planner: no prediction, flying the blind plan: %s", exc)
             return None
         return PredictedLevels(prediction, self.geo, self.start_unix, self.cfg.precision)
 
-    async def _book(self, client: BookingClient) -> None:
+    async def _book(self, client: BookingApi) -> None:
         """Book each planned window; a refusal leaves that inspection to QoD on demand."""
         assert self.plan is not None
         camara = self.config.qos.camara
@@ -190,7 +190,7 @@ class FleetPlannerService:
                         server_ports=[self.config.zenoh.priority_port],
                     )
                     entry.update(booking_id=info.booking_id, status=info.status)
-                except QodError as exc:
+                except OperatorError as exc:
                     entry["status"] = f"refused: {exc}"
                     log.warning(
                         "fleet planner: booking for %s's %s refused, left to QoD on demand: %s",
@@ -240,7 +240,7 @@ class FleetPlannerService:
             self.service.stop.wait(min(0.1, max(0.005, ahead)))  # the schedule's pace, not synchronisation
         self.phase = "stopped" if self.service.stop.is_set() else "done"
 
-    async def release(self, booking: BookingClient) -> None:
+    async def release(self, booking: BookingApi) -> None:
         """Delete every booking `booking` made that has not ended."""
         if not booking.made:
             return
@@ -301,8 +301,8 @@ class FleetPlannerService:
     async def _run(self) -> None:
         """One event loop and one operator client for the planner's life: the prediction, the bookings and
         their release; waiting for the drones and flying the schedule block, so they run in a thread."""
-        async with QodClient(self.config.qos.camara) as qod:
-            booking = BookingClient(qod)
+        async with OperatorClient(self.config.qos.camara) as operator:
+            booking = BookingApi(operator)
             try:
                 await asyncio.to_thread(self.wait_for_drones)
                 if self.service.stop.is_set():

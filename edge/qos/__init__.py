@@ -1,2 +1,2 @@
-"""The QoS agent: per-drone session records, the arbiter that shares the priority budget, and the
-client of the operator's CAMARA Quality-on-Demand API."""
+"""The QoS agent: per-drone session records, the arbiter that shares the priority budget, and the calls
+that keep each drone's grant with the operator (over edge/operator/)."""

@@ -7,7 +7,7 @@ never do. Backends ([qos] backend, docs/qos.md):
 
 - `links`: the network maps the priority port to a dedicated QoS flow by static policy; switching links
   is all there is to do, so priority is AVAILABLE as soon as it is wanted.
-- `camara`: one CAMARA Quality-on-Demand session per drone (edge/qos/client.py), created, followed,
+- `camara`: one CAMARA Quality-on-Demand session per drone (edge/operator/client.py), created, followed,
   extended and deleted by the rules in edge/qos/grants.py.
 
 With `[qos] policy = "arbiter"` (camara only) a drone gets a session only while the arbiter
@@ -28,7 +28,6 @@ import asyncio
 import contextlib
 import functools
 import logging
-import threading
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -40,16 +39,16 @@ from dynqos.common.bus import Bus, Priority, Received
 from dynqos.common.clock import NS_PER_S, Clock, MonotonicClock, to_ns
 from dynqos.common.config import CamaraConfig, Config
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.lifecycle import ready_line, serving_metrics, stop_loop_on_signals
+from dynqos.common.lifecycle import ready_line, serving_metrics, stop_loop_on_signals, waker
 from dynqos.common.messages import QosDecision, QosGrant, QosRequest
 from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Role, open_bus
 from dynqos.edge import metrics as edge_metrics
 from dynqos.edge.membership import default_replica_id
+from dynqos.edge.operator.client import OperatorClient
 from dynqos.edge.qos.arbiter import Action, Arbiter, Decision, Need
 from dynqos.edge.qos.calls import OperatorCalls, preflight
-from dynqos.edge.qos.client import QodClient
 from dynqos.edge.qos.grants import DroneGrant
 from dynqos.edge.qos.leadership import AgentRole, Leadership
 from dynqos.edge.qos.peers import AgentPeers
@@ -78,7 +77,7 @@ class QosAgent:
         self.requests: BoundedQueue[Received] = BoundedQueue(1024)
         self.stats = bus.subscribe(keys.uplink_all_drones(Stream.QOS), self.requests, expect=(QosRequest,))
         self.drones: dict[str, DroneRecord] = {}  # everything kept of a drone, forgotten in one step
-        self.client: QodClient | None = None
+        self.client: OperatorClient | None = None
         self.calls: OperatorCalls | None = None  # with backend "camara", once the client is open
         self.profile: ProfileWatch | None = None  # the operator's profile as last read (check_profile)
         self.sink_guard = SinkGuard()  # what the operator's notifications must carry
@@ -106,11 +105,10 @@ class QosAgent:
     async def main(self, ready: Any = None) -> None:
         loop = asyncio.get_running_loop()
         stop_loop_on_signals("qos agent", loop, self.stopping.set)
-        forward = threading.Thread(target=self._forward, args=(loop,), name="qos-requests", daemon=True)
         sink: web.AppRunner | None = None
         async with contextlib.AsyncExitStack() as stack:
             if self.qos.backend == "camara":
-                self.client = await stack.enter_async_context(QodClient(self.camara))
+                self.client = await stack.enter_async_context(OperatorClient(self.camara))
                 if self.camara.check_profile:
                     self.profile = ProfileWatch(self.client, self.camara)
                     self._use(await self.profile.start())
@@ -129,7 +127,8 @@ class QosAgent:
                     sink = await serve_sink(
                         self.camara.sink, self.camara.sink_listen, self._notified, self.sink_guard
                     )
-            forward.start()
+            self.requests.wake = waker(loop, self._take_requests)
+            self._take_requests()  # what came before the loop could be woken
             self.peers = AgentPeers(self.bus, "all", self.leadership, loop)
             stack.callback(self.peers.close)
             await loop.run_in_executor(None, self.peers.query)
@@ -152,12 +151,11 @@ class QosAgent:
                 with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
                     await asyncio.wait_for(self.stopping.wait(), self.qos.health_interval_s)
                 self.service.maybe_health(self.health)
-            self.service.stop.set()
+            self.requests.wake = None
             await _cancel(lead)  # no takeover while stopping
             await self._shut_down()
             if sink is not None:
                 await sink.cleanup()
-        forward.join(timeout=2)
         log.info("qos agent: stopped; %s", self.health())
 
     def _use(self, camara: CamaraConfig) -> None:
@@ -176,13 +174,11 @@ class QosAgent:
             record.grant.profile_withdrawn(self.profile.withdrawn)
             record.wake.set()
 
-    def _forward(self, loop: asyncio.AbstractEventLoop) -> None:
-        """zenoh delivers on its own threads into a bounded queue; this hands each request to the loop."""
-        while not self.service.stop.is_set():
-            item = self.requests.get(0.5)
-            if item is not None:
-                with contextlib.suppress(RuntimeError):  # the loop has closed: we are stopping
-                    loop.call_soon_threadsafe(self._on_request, item)
+    def _take_requests(self) -> None:
+        """zenoh delivers on its own threads into the bounded queue, whose put into an empty queue wakes
+        the loop (`wake`): every request waiting is handled here, on the loop."""
+        for item in self.requests.drain():
+            self._on_request(item)
 
     def _on_request(self, item: Received) -> None:
         message = item.message

@@ -15,7 +15,8 @@ from dynqos.common.camara import load_private_key, read_headers, read_secret, tl
 from dynqos.common.clock import NS_PER_S, Clock
 from dynqos.common.config import CamaraConfig, Config
 from dynqos.common.errors import ConfigError
-from dynqos.edge.qos.client import CREDENTIAL, SUBJECT, QodClient, QodError, SessionInfo
+from dynqos.edge.operator.client import CREDENTIAL, SUBJECT, OperatorClient, OperatorError
+from dynqos.edge.operator.qod import QodApi, SessionInfo
 from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
 from dynqos.edge.qos.profile_watch import ProfileWatch
 from dynqos.edge.qos.sink import SinkGuard
@@ -50,7 +51,7 @@ PROFILE_CHANGED = {
 }
 
 
-def settings_at_fault(exc: QodError) -> str | None:
+def settings_at_fault(exc: OperatorError) -> str | None:
     """The setting an error points at when it is the agent's configuration, not the network (None)."""
     if exc.code in SETTINGS_AT_FAULT:
         return SETTINGS_AT_FAULT[exc.code]
@@ -62,7 +63,7 @@ def settings_at_fault(exc: QodError) -> str | None:
 class OperatorCalls:
     def __init__(
         self,
-        client: QodClient,
+        operator: OperatorClient,
         camara: CamaraConfig,
         port: int,
         server: str,
@@ -73,7 +74,7 @@ class OperatorCalls:
         """`port`: the zenoh priority port the sessions name; `server`: the edge address the network sees;
         `sink_guard`: the credential each session gives the operator for its notifications; `profile`:
         the operator's profile as last read (None: not checked)."""
-        self.client = client
+        self.qod = QodApi(operator)  # its sessions, over the agent's one operator client
         self.sink_guard = sink_guard
         self.camara = camara
         self.port = port
@@ -100,16 +101,15 @@ class OperatorCalls:
             SUBJECT.reset(token)
 
     async def _do(self, op: Op, grant: DroneGrant) -> None:
-        client = self.client
-        assert client is not None
+        qod = self.qod
         device = self.camara.devices.get(grant.uav)
         asked_s = self.camara.duration_s  # what a create asks for: the profile may change meanwhile
         try:
             if op is Op.RENEW:  # one session per device (409 otherwise): the capped one goes first
                 assert grant.session is not None
                 old = grant.session.session_id
-                with contextlib.suppress(QodError):  # gone already (404) or failing: the create says
-                    await client.delete(old)
+                with contextlib.suppress(OperatorError):  # gone already (404) or failing: the create says
+                    await qod.delete(old)
                 grant.deleted(self.clock.now_ns())
                 log.info("qos agent: %s session %s deleted at its maximum duration; renewing", grant.uav, old)
                 op = Op.CREATE
@@ -120,17 +120,17 @@ class OperatorCalls:
                         f"no device identity for {grant.uav} in [qos.camara.devices]", self.clock.now_ns()
                     )
                     return
-                info = await client.create(self._session_body(device.as_api()))
+                info = await qod.create(self._session_body(device.as_api()))
                 log.info("qos agent: %s session %s created (%s)", grant.uav, info.session_id, info.qos_status)
             elif op is Op.DELETE:
                 assert grant.session is not None
-                await client.delete(grant.session.session_id)
+                await qod.delete(grant.session.session_id)
                 log.info("qos agent: %s session %s deleted", grant.uav, grant.session.session_id)
                 grant.deleted(self.clock.now_ns())
                 return
             elif op is Op.EXTEND:
                 assert grant.session is not None
-                info = await client.extend(grant.session.session_id, self.camara.duration_s)
+                info = await qod.extend(grant.session.session_id, self.camara.duration_s)
                 if grant.extended(self.session(info), self.clock.now_ns()):
                     log.info(
                         "qos agent: %s session %s is at the operator's maximum duration: replaced "
@@ -144,12 +144,12 @@ class OperatorCalls:
                 return
             else:
                 assert grant.session is not None
-                info = await client.get(grant.session.session_id)
+                info = await qod.get(grant.session.session_id)
             grant.observed(self.session(info), self.clock.now_ns())
-        except QodError as exc:
+        except OperatorError as exc:
             await self._failed(op, grant, exc, asked_s)
 
-    async def _failed(self, op: Op, grant: DroneGrant, exc: QodError, asked_s: int = 0) -> None:
+    async def _failed(self, op: Op, grant: DroneGrant, exc: OperatorError, asked_s: int = 0) -> None:
         now = self.clock.now_ns()
         self.errors += 1
         reason = f"{op.value}: {exc.status or 'no answer'} {exc.code}: {exc.message}"
@@ -194,12 +194,11 @@ class OperatorCalls:
     async def _resolve_conflict(self, grant: DroneGrant) -> None:
         """409 on create: a session for this flow exists (ours from before a restart, or ended and not
         deleted). Reuse it if it is alive; delete it if it has ended, and create afresh."""
-        assert self.client is not None
         device = self.camara.devices[grant.uav].as_api()
         try:
             with self.as_drone(grant.uav):
                 mine = await self.ours(device)
-        except QodError as exc:
+        except OperatorError as exc:
             grant.failed(Op.CREATE, f"409, then retrieve-sessions: {exc}", self.clock.now_ns())
             return
         if not mine:
@@ -211,15 +210,14 @@ class OperatorCalls:
             grant.observed(self.session(alive[0]), self.clock.now_ns())
             return
         for info in mine:
-            with contextlib.suppress(QodError), self.as_drone(grant.uav):
-                await self.client.delete(info.session_id)
+            with contextlib.suppress(OperatorError), self.as_drone(grant.uav):
+                await self.qod.delete(info.session_id)
                 log.info("qos agent: %s deleted ended session %s (409 on create)", grant.uav, info.session_id)
 
     async def ours(self, device: dict[str, Any]) -> list[SessionInfo]:
         """The device's sessions that name our priority port: the ones this agent (or an earlier one) made."""
-        assert self.client is not None
         named = None if self.camara.three_legged else device  # the drone's token names it already
-        return [s for s in await self.client.retrieve(named) if self.port in s.server_ports()]
+        return [s for s in await self.qod.retrieve(named) if self.port in s.server_ports()]
 
     def _session_body(self, device: dict[str, Any]) -> dict[str, Any]:
         listed = self.camara.application_server_addresses  # 1.2.0: the server by its addresses
@@ -256,7 +254,6 @@ class OperatorCalls:
         `heard` keeps its live one (returned, to be followed as if this agent had made it: an agent that
         takes over creates no duplicate); every other one is deleted (an ended one, a second one, or a
         drone nobody hears: left by a crashed agent)."""
-        assert self.client is not None
         adopted: dict[str, SessionInfo] = {}
         for uav, device in self.camara.devices.items():
             try:
@@ -270,10 +267,10 @@ class OperatorCalls:
                         )
                         continue
                     with self.as_drone(uav):
-                        await self.client.delete(info.session_id)
+                        await self.qod.delete(info.session_id)
                     self.cleaned += 1
                     log.warning("qos agent: deleted %s's session %s %s", uav, info.session_id, whose)
-            except QodError as exc:
+            except OperatorError as exc:
                 log.warning("qos agent: cannot check %s for sessions (%s)", uav, exc)
         return adopted
 
@@ -287,9 +284,9 @@ class OperatorCalls:
         session_id = grant.session.session_id
         try:
             with self.as_drone(grant.uav):
-                await self.client.delete(session_id)
+                await self.qod.delete(session_id)
             log.info("qos agent: %s session %s deleted (stopping)", grant.uav, session_id)
-        except QodError as exc:
+        except OperatorError as exc:
             if exc.status != 404:
                 log.error("qos agent: could not delete %s's session %s: %s", grant.uav, session_id, exc)
         grant.deleted(self.clock.now_ns())

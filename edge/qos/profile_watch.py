@@ -2,7 +2,7 @@
 and at once when a create is answered as if the profile had changed (422 QOS_PROFILE_NOT_APPLICABLE or
 DURATION_OUT_OF_RANGE). An operator may withdraw a profile, make it INACTIVE, or change its duration
 range while an agent runs for days; the agent should say so and follow, not refuse every drone until
-someone restarts it. The rules of one read are pure (edge/qos/profiles.py); this is the shell."""
+someone restarts it. The rules of one read are pure (edge/operator/profile_fit.py); this is the shell."""
 
 from __future__ import annotations
 
@@ -14,8 +14,9 @@ from typing import Any
 
 from dynqos.common.config import CamaraConfig
 from dynqos.common.errors import ConfigError
-from dynqos.edge.qos import profiles
-from dynqos.edge.qos.client import CREDENTIAL, QodClient, QodError
+from dynqos.edge.operator import profile_fit
+from dynqos.edge.operator.client import CREDENTIAL, OperatorClient, OperatorError
+from dynqos.edge.operator.profiles import ProfilesApi
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +37,8 @@ class ProfileWatch:
     """`camara`: the settings to use now (the configured ones, the duration fitted to the profile);
     `withdrawn`: why the profile cannot start a session now ("" = it can)."""
 
-    def __init__(self, client: QodClient, configured: CamaraConfig) -> None:
-        self.client = client
+    def __init__(self, operator: OperatorClient, configured: CamaraConfig) -> None:
+        self.api = ProfilesApi(operator)
         self.listeners: list[Callable[[], None]] = []  # told of each change, after it is logged
         self._lock = asyncio.Lock()  # one read at a time: several drones may doubt the profile at once
         self.configured = configured
@@ -53,16 +54,16 @@ class ProfileWatch:
         unchecked, said once."""
         try:
             answer = await self._answer()
-        except QodError as exc:  # the token endpoint refused the client: nothing the agent does can work
+        except OperatorError as exc:  # the token endpoint refused the client: nothing the agent does can work
             raise ConfigError(
                 "qos.camara.client_id", f"{exc}: fix client_id and {CREDENTIAL} (or token_url)"
             ) from None
         if answer is None:
             return self.camara
         try:
-            fit = profiles.fit(answer, self.configured.qos_profile, self.configured.duration_s)
-        except profiles.ProfileError as exc:
-            raise ConfigError("qos.camara.qos_profile", f"{exc}, says {self.client.profiles_root}") from None
+            fit = profile_fit.fit(answer, self.configured.qos_profile, self.configured.duration_s)
+        except profile_fit.ProfileError as exc:
+            raise ConfigError("qos.camara.qos_profile", f"{exc}, says {self.api.root}") from None
         log.info("qos agent: %s", fit.note)
         self._note = fit.note
         self.camara = fitted(self.configured, fit.duration_s)
@@ -84,9 +85,9 @@ class ProfileWatch:
             return False
         before = (self.withdrawn, self.camara.duration_s)
         try:
-            fit = profiles.fit(answer, self.configured.qos_profile, self.configured.duration_s)
-        except profiles.ProfileError as exc:
-            self.withdrawn = f"{exc}, says {self.client.profiles_root}; fix [qos.camara] qos_profile"
+            fit = profile_fit.fit(answer, self.configured.qos_profile, self.configured.duration_s)
+        except profile_fit.ProfileError as exc:
+            self.withdrawn = f"{exc}, says {self.api.root}; fix [qos.camara] qos_profile"
         else:
             self.withdrawn = ""
             self.camara = fitted(self.configured, fit.duration_s)
@@ -114,15 +115,15 @@ class ProfileWatch:
         """The retrieve-qos-profiles answer (checked by profiles.fit), or None when there is none."""
         self.reads += 1
         try:
-            return await self.client.retrieve_profiles()
-        except QodError as exc:
+            return await self.api.retrieve()
+        except OperatorError as exc:
             if self.reads == 1 and exc.code == "TOKEN":
                 raise
             if self.reads == 1:
                 log.warning(
                     "qos agent: the QoS Profiles API at %s did not answer (%s): profile %s and duration "
                     "%d s are not checked",
-                    self.client.profiles_root,
+                    self.api.root,
                     exc,
                     self.configured.qos_profile,
                     self.configured.duration_s,

@@ -1,15 +1,17 @@
-"""A client of the CAMARA Quality-on-Demand API (quality-on-demand v1.1.0, CAMARA release r3.2).
+"""The one client of an operator's network APIs (CAMARA QoD, QoS Profiles, QoS Booking, Predictive
+Connectivity): one HTTP session per process, its OAuth2 tokens, retries, correlators and errors. The
+per-API modules beside it (qod.py, profiles.py, booking.py, connectivity.py) only say their paths and
+the shapes of their answers, and call `OperatorClient.request`.
 
-Only the calls dynqos needs: create, get, extend and delete a session, and retrieve a device's
-sessions (to clean up after a crashed agent and to resolve a 409). Every call is bounded by
-[qos.camara] timeout_s; 429 and 5xx are retried with jittered exponential back-off inside that bound
-(a Retry-After header, in seconds or as an HTTP-date, is honoured when it fits; when it does not, the
-error carries it for the agent to wait that long); a 401 refreshes the OAuth2 token once and retries.
-Every call carries an `x-correlator` (one per call, the same across its retries), which the provider
-echoes and an operator's support asks for; every error names it. Other errors raise QodError with the
-API's `code` and `message`. A token endpoint that fails (5xx, 429, no answer) is a transient error like
-the API's own; one that refuses the credentials is a 401. aiohttp, because the agent is an
-asyncio program and the emulated cell serves the API with the same library.
+Every call is bounded by [qos.camara] timeout_s (or its own `timeout_s`); 429 and 5xx are retried with
+jittered exponential back-off inside that bound (a Retry-After header, in seconds or as an HTTP-date, is
+honoured when it fits; when it does not, the error carries it for the caller to wait that long); a 401
+refreshes the OAuth2 token once and retries. Every call carries an `x-correlator` (one per call, the
+same across its retries), which the provider echoes and an operator's support asks for; every error
+names it. Other errors raise OperatorError with the API's `code` and `message`, and a `kind` a caller
+branches on. A token endpoint that fails (5xx, 429, no answer) is a transient error like the API's own;
+one that refuses the credentials is a 401. aiohttp, because the QoS agent is an asyncio program and the
+emulated cell serves the APIs with the same library.
 """
 
 from __future__ import annotations
@@ -22,8 +24,6 @@ import logging
 import random
 import time
 import uuid
-from dataclasses import dataclass
-from datetime import datetime
 from typing import Any
 
 import aiohttp
@@ -31,9 +31,7 @@ import aiohttp
 from dynqos.common.camara import (
     JWT_BEARER,
     JWT_BEARER_GRANT,
-    QOS_STATUS,
     load_private_key,
-    ports_named,
     read_headers,
     read_secret,
     signing_algorithm,
@@ -46,14 +44,15 @@ log = logging.getLogger(__name__)
 RETRIES = 3  # attempts after the first, for 429 and 5xx, within the call's timeout
 BACKOFF_S = 0.1  # first back-off; doubles, with full jitter
 # The drone a call is for, with `three_legged`: its login hint, set by the agent around that drone's calls
-SUBJECT: contextvars.ContextVar[str] = contextvars.ContextVar("qod_subject", default="")
+SUBJECT: contextvars.ContextVar[str] = contextvars.ContextVar("operator_subject", default="")
 ASSERTION_LIFETIME_S = 300  # a client assertion is good for this long (and used once)
 CREDENTIAL = "its credential (client_secret_file, client_key_file or headers_file)"  # as errors name it
 TOKEN_MARGIN_S = 30.0  # a token is refreshed this long (at most a quarter of its life) before it expires
 
 
-class QodError(Exception):
-    """The API answered with an error (status, CAMARA `code`, `message`), or did not answer (status 0)."""
+class OperatorError(Exception):
+    """An operator API answered with an error (status, CAMARA `code`, `message`), or did not answer
+    (status 0)."""
 
     def __init__(
         self,
@@ -78,46 +77,26 @@ class QodError(Exception):
         """Worth asking again later: no answer, throttled, or a server error."""
         return self.status in (0, 429) or self.status >= 500
 
-
-@dataclass(frozen=True, slots=True)
-class SessionInfo:
-    """The fields of a CAMARA SessionInfo the agent acts on; `raw` is the whole object."""
-
-    session_id: str
-    qos_status: str
-    status_info: str
-    expires_in_s: float | None  # from expiresAt, on the local wall clock (None when not given)
-    raw: dict[str, Any]
-
-    @classmethod
-    def parse(cls, body: Any) -> SessionInfo:
-        if not isinstance(body, dict) or not isinstance(body.get("sessionId"), str):
-            raise QodError(502, "BAD_RESPONSE", f"not a SessionInfo: {str(body)[:200]}")
-        status = body.get("qosStatus")
-        if status not in QOS_STATUS:
-            raise QodError(502, "BAD_RESPONSE", f"unknown qosStatus {status!r}")
-        expires = None
-        if isinstance(body.get("expiresAt"), str):
-            try:
-                at = datetime.fromisoformat(body["expiresAt"].replace("Z", "+00:00"))
-                expires = at.timestamp() - time.time()
-            except ValueError:
-                raise QodError(
-                    502, "BAD_RESPONSE", f"expiresAt {body['expiresAt']!r} is not RFC 3339"
-                ) from None
-        return cls(body["sessionId"], status, str(body.get("statusInfo", "")), expires, body)
-
-    def server_ports(self) -> list[int]:
-        return sorted(ports_named(self.raw.get("applicationServerPorts")))
+    @property
+    def kind(self) -> str:
+        """What went wrong, as a caller branches on it: "unreachable" (no answer), "throttled" (429),
+        "server" (5xx), "credentials" (401: the token or the client), "forbidden" (403: the scopes or the
+        device), "not_found" (404), "conflict" (409), or "refused" (any other 4xx: the request itself)."""
+        if self.status == 0:
+            return "unreachable"
+        if self.status >= 500:
+            return "server"
+        named = {429: "throttled", 401: "credentials", 403: "forbidden", 404: "not_found", 409: "conflict"}
+        return named.get(self.status, "refused")
 
 
-class QodClient:
-    """One operator's QoD API. Create with `async with QodClient(cfg) as client`."""
+class OperatorClient:
+    """One operator's network APIs. Create with `async with OperatorClient(cfg) as operator`; the
+    per-API modules take it (`QodApi(operator)`, `BookingApi(operator)`, ...)."""
 
     def __init__(self, cfg: CamaraConfig, *, rng: random.Random | None = None) -> None:
         self.cfg = cfg
         self.root = cfg.api_root.rstrip("/")
-        self.profiles_root = profiles_root(cfg)
         self.secret = read_secret(cfg.client_secret_file) if cfg.token_url else ""
         self.fixed_headers = read_headers(cfg.headers_file)
         self.tls = tls_context(cfg.ca_file, cfg.tls_cert_file, cfg.tls_key_file)
@@ -130,7 +109,7 @@ class QodClient:
         self.retries = 0
         self.token_refreshes = 0
 
-    async def __aenter__(self) -> QodClient:
+    async def __aenter__(self) -> OperatorClient:
         connector = aiohttp.TCPConnector(ssl=self.tls) if self.tls is not None else None
         self.http = aiohttp.ClientSession(
             timeout=aiohttp.ClientTimeout(total=self.cfg.timeout_s), connector=connector
@@ -141,35 +120,6 @@ class QodClient:
         if self.http is not None:
             await self.http.close()
 
-    # ---- the API ----------------------------------------------------------------------------------------
-
-    async def create(self, body: dict[str, Any]) -> SessionInfo:
-        return SessionInfo.parse(await self._call("POST", "/sessions", body, expect=(201, 200)))
-
-    async def get(self, session_id: str) -> SessionInfo:
-        return SessionInfo.parse(await self._call("GET", f"/sessions/{session_id}", expect=(200,)))
-
-    async def extend(self, session_id: str, seconds: int) -> SessionInfo:
-        body = {"requestedAdditionalDuration": seconds}
-        return SessionInfo.parse(
-            await self._call("POST", f"/sessions/{session_id}/extend", body, expect=(200,))
-        )
-
-    async def delete(self, session_id: str) -> None:
-        await self._call("DELETE", f"/sessions/{session_id}", expect=(204, 200))
-
-    async def retrieve(self, device: dict[str, Any] | None) -> list[SessionInfo]:
-        """The device's sessions; `device` None when a three-legged token names it."""
-        query = {} if device is None else {"device": device}
-        body = await self._call("POST", "/retrieve-sessions", query, expect=(200,))
-        if not isinstance(body, list):
-            raise QodError(502, "BAD_RESPONSE", "retrieve-sessions did not answer an array")
-        return [SessionInfo.parse(item) for item in body]
-
-    async def retrieve_profiles(self) -> Any:
-        """Every QoS profile the operator offers this client (QoS Profiles API, retrieve-qos-profiles)."""
-        return await self._call("POST", "/retrieve-qos-profiles", {}, expect=(200,), root=self.profiles_root)
-
     async def request(
         self,
         method: str,
@@ -177,12 +127,12 @@ class QodClient:
         body: dict[str, Any] | None,
         *,
         expect: tuple[int, ...],
-        root: str,
+        root: str = "",
         timeout_s: float | None = None,
     ) -> Any:
-        """A call to another CAMARA API of the same operator (under `root`), with this client's token,
-        correlator, retries and time-out (`timeout_s` in its place for this call): the answer's JSON, or a
-        QodError."""
+        """A call to one of the operator's APIs (under `root`; the QoD API's root when empty), with this
+        client's token, correlator, retries and time-out (`timeout_s` in its place for this call): the
+        answer's JSON, or an OperatorError."""
         return await self._call(method, path, body, expect=expect, root=root, timeout_s=timeout_s)
 
     # ---- one call: token, timeout, retries --------------------------------------------------------------
@@ -222,7 +172,7 @@ class QodClient:
                 raise error
             attempt += 1
             self.retries += 1
-            log.debug("qod: %s %s: %s; retrying in %.2f s", method, path, error, pause)
+            log.debug("operator: %s %s: %s; retrying in %.2f s", method, path, error, pause)
             await asyncio.sleep(pause)  # the back-off itself
 
     async def _once(
@@ -235,7 +185,7 @@ class QodClient:
         correlator: str,
     ) -> tuple[int, Any, float | None]:
         """One attempt before the call's `deadline` (monotonic); `limit_s`, its time-out, for the message."""
-        assert self.http is not None, "use `async with QodClient(...)`"
+        assert self.http is not None, "use `async with OperatorClient(...)`"
         timed_out = {"code": "TIMEOUT", "message": f"no answer within {limit_s:g} s"}
         left = deadline - time.monotonic()
         if left <= 0:
@@ -257,7 +207,7 @@ class QodClient:
                     with contextlib.suppress(aiohttp.ContentTypeError, ValueError):
                         answer = await response.json(content_type=None)
                 return response.status, answer, retry_after_s(response.headers.get("Retry-After"))
-        except QodError as exc:
+        except OperatorError as exc:
             return exc.status, {"code": exc.code, "message": exc.message}, None
         except (TimeoutError, asyncio.TimeoutError):
             return 0, timed_out, None
@@ -279,17 +229,19 @@ class QodClient:
             async with self.http.post(self.cfg.token_url, data=form) as response:
                 answer = await response.json(content_type=None) if response.status == 200 else None
                 if response.status == 429 or response.status >= 500:  # the endpoint's trouble, not ours
-                    raise QodError(
+                    raise OperatorError(
                         response.status, "TOKEN_ENDPOINT", f"the token endpoint answered {response.status}"
                     )
                 if not isinstance(answer, dict) or not isinstance(answer.get("access_token"), str):
-                    raise QodError(401, "TOKEN", f"the token endpoint answered {response.status}")
+                    raise OperatorError(401, "TOKEN", f"the token endpoint answered {response.status}")
             token = answer["access_token"]
             ttl = float(answer.get("expires_in", 3600))
             # refreshed ahead of its expiry: a call never starts with a token about to lapse
             self._tokens[subject] = (token, time.monotonic() + ttl - min(TOKEN_MARGIN_S, ttl / 4))
             self.token_refreshes += 1
-            log.info("qod: new access token%s (expires in %.0f s)", f" for {subject}" if subject else "", ttl)
+            log.info(
+                "operator: new access token%s (expires in %.0f s)", f" for {subject}" if subject else "", ttl
+            )
             return str(token)
 
     def _token_form(self, subject: str = "") -> dict[str, str]:
@@ -339,16 +291,11 @@ def beside(cfg: CamaraConfig, explicit: str, api: str) -> str:
     return f"{base or root.rsplit('/', 2)[0]}/{api}"
 
 
-def profiles_root(cfg: CamaraConfig) -> str:
-    """Where the QoS Profiles API is: `profiles_root`, or beside the QoD API."""
-    return beside(cfg, cfg.profiles_root, "qos-profiles/v1")
-
-
-def _error(status: int, answer: Any, correlator: str, retry_after: float | None) -> QodError:
+def _error(status: int, answer: Any, correlator: str, retry_after: float | None) -> OperatorError:
     code, message = "", "no error body"
     if isinstance(answer, dict):
         code, message = str(answer.get("code", "")), str(answer.get("message", ""))[:300]
-    return QodError(status, code, message, correlator=correlator, retry_after_s=retry_after)
+    return OperatorError(status, code, message, correlator=correlator, retry_after_s=retry_after)
 
 
 def retry_after_s(value: str | None, now_unix: float | None = None) -> float | None:

@@ -1,10 +1,10 @@
 """The edge's client of CAMARA Predictive Connectivity Data (0.1.0): what the network predicts a drone's
 link will carry, by grid cell, height layer and time slot, so that a planner can route and schedule by it.
 
-Calls go through the QoD client's plumbing (edge/qos/client.py): the same token (the agent's scopes
+Calls go through the operator client (edge/operator/client.py): the same token (the agent's scopes
 include `predictive-connectivity-data:read`), x-correlator, retries of 429 and 5xx with back-off within
-the call's time-out, and a QodError that names the API's code. An answer that does not have the API's
-shape is a QodError too (502 BAD_RESPONSE): a planner never plans on half an answer.
+the call's time-out, and an OperatorError that names the API's code. An answer that does not have the API's
+shape is an OperatorError too (502 BAD_RESPONSE): a planner never plans on half an answer.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import pygeohash
 from dynqos.common.camara import rfc3339, unix_time
 from dynqos.common.config import CamaraConfig
 from dynqos.common.geo import Geo
-from dynqos.edge.qos.client import QodClient, QodError, beside
+from dynqos.edge.operator.client import OperatorClient, OperatorError, beside
 
 LEVELS = ("GC", "MC", "NC", "ND")
 STATUSES = ("SUPPORTED_AREA", "PART_OF_AREA_NOT_SUPPORTED", "AREA_NOT_SUPPORTED", "OPERATION_NOT_COMPLETED")
@@ -90,12 +90,12 @@ def parse_prediction(body: Any) -> Prediction:
     return Prediction(status, float(thickness), tuple(slots), int(height) if height is not None else None)
 
 
-class ConnectivityClient:
-    """Predictive Connectivity Data over an open QodClient (`async with QodClient(cfg) as qod`)."""
+class ConnectivityApi:
+    """Predictive Connectivity Data over an open OperatorClient."""
 
-    def __init__(self, qod: QodClient) -> None:
-        self.qod = qod
-        self.root = connectivity_root(qod.cfg)
+    def __init__(self, operator: OperatorClient) -> None:
+        self.operator = operator
+        self.root = connectivity_root(operator.cfg)
 
     async def retrieve(
         self,
@@ -125,13 +125,13 @@ class ConnectivityClient:
             body["height"] = height_m
         if signal_strength:
             body["includeSignalStrength"] = True
-        answer = await self.qod.request(
+        answer = await self.operator.request(
             "POST", "/retrieve", body, expect=(200,), root=self.root, timeout_s=timeout_s
         )
         try:
             return parse_prediction(answer)
         except ValueError as exc:
-            raise QodError(502, "BAD_RESPONSE", f"predictive connectivity: {exc}") from None
+            raise OperatorError(502, "BAD_RESPONSE", f"predictive connectivity: {exc}") from None
 
 
 class PredictedLevels:

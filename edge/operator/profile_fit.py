@@ -2,7 +2,8 @@
 set to ask for, read once before any session: a profile that does not exist or is not ACTIVE is a
 setting to fix before flying, not an error to meet at the first create mid-flight; a duration outside
 the profile's minDuration..maxDuration is fitted into it (maxDuration bounds a session with all its
-extensions, so asking for more only earns a capped session). Pure: the answer is passed in."""
+extensions, so asking for more only earns a capped session). Pure: the answer is passed in (profiles.py
+asks for it)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The edge's client of CAMARA QoS Booking (0.1.0): priority booked ahead for a drone, a time and an area.
 
-Calls go through the QoD client's plumbing (edge/qos/client.py): the same token (the agent's scopes
+Calls go through the operator client (edge/operator/client.py): the same token (the agent's scopes
 include the booking API's), x-correlator, retries of 429 and 5xx within the call's time-out, errors that
 carry the API's code. An answer without the API's shape is a 502 BAD_RESPONSE. Whoever books releases:
 `release_all` deletes every booking this client made that has not ended, for a mission's end or an
@@ -15,7 +15,7 @@ from typing import Any
 
 from dynqos.common.camara import rfc3339, unix_time
 from dynqos.common.config import CamaraConfig
-from dynqos.edge.qos.client import QodClient, QodError, beside
+from dynqos.edge.operator.client import OperatorClient, OperatorError, beside
 
 STATUSES = ("REQUESTED", "SCHEDULED", "AVAILABLE", "UNAVAILABLE")
 
@@ -45,7 +45,7 @@ class BookingInfo:
                 str(body.get("statusInfo", "")),
             )
         except (KeyError, TypeError, ValueError) as exc:
-            raise QodError(502, "BAD_RESPONSE", f"qos booking: not a BookingInfo ({exc})") from None
+            raise OperatorError(502, "BAD_RESPONSE", f"qos booking: not a BookingInfo ({exc})") from None
 
 
 def booking_root(cfg: CamaraConfig) -> str:
@@ -62,12 +62,12 @@ def circle(center: tuple[float, float], radius_m: float) -> dict[str, Any]:
     }
 
 
-class BookingClient:
-    """QoS Booking over an open QodClient (`async with QodClient(cfg) as qod`)."""
+class BookingApi:
+    """QoS Booking over an open OperatorClient."""
 
-    def __init__(self, qod: QodClient, made: dict[str, BookingInfo] | None = None) -> None:
-        self.qod = qod
-        self.root = booking_root(qod.cfg)
+    def __init__(self, operator: OperatorClient, made: dict[str, BookingInfo] | None = None) -> None:
+        self.operator = operator
+        self.root = booking_root(operator.cfg)
         # every booking made, by id, as last seen: this client's, or (`made`) one that an earlier
         # session's client made, shared, so that this one releases them
         self.made: dict[str, BookingInfo] = {} if made is None else made
@@ -106,7 +106,7 @@ class BookingClient:
     async def delete(self, booking_id: str) -> None:
         try:
             await self._call("DELETE", f"/device-qos-bookings/{booking_id}", None, (204,))
-        except QodError as exc:
+        except OperatorError as exc:
             if exc.status != 404:  # already gone: released all the same
                 raise
         self.made.pop(booking_id, None)
@@ -114,7 +114,7 @@ class BookingClient:
     async def retrieve(self, device: dict[str, Any]) -> list[BookingInfo]:
         body = await self._call("POST", "/retrieve-device-qos-bookings", {"device": device}, (200,))
         if not isinstance(body, list):
-            raise QodError(502, "BAD_RESPONSE", "retrieve-device-qos-bookings did not answer an array")
+            raise OperatorError(502, "BAD_RESPONSE", "retrieve-device-qos-bookings did not answer an array")
         return [BookingInfo.parse(item) for item in body]
 
     async def release_all(self) -> list[str]:
@@ -126,11 +126,11 @@ class BookingClient:
                 continue
             try:
                 await self.delete(booking_id)
-            except QodError:
+            except OperatorError:
                 failed.append(booking_id)
         return failed
 
     async def _call(
         self, method: str, path: str, body: dict[str, Any] | None, expect: tuple[int, ...]
     ) -> Any:
-        return await self.qod.request(method, path, body, expect=expect, root=self.root)
+        return await self.operator.request(method, path, body, expect=expect, root=self.root)
