@@ -24,6 +24,7 @@ from dynqos.common.message_base import (
     CAMERA_KINDS,
     COMMON,
     CONSTRUCTION,
+    FC_TEXT_MAX,
     LATENCY_LIMIT_MS,
     LATENCY_MS,
     MAX_DETECTIONS,
@@ -54,6 +55,7 @@ __all__ = [
     "ACCEL_LIMIT_MPS2",
     "CAMERA_ENCODINGS",
     "CAMERA_KINDS",
+    "FC_TEXT_MAX",
     "LATENCY_LIMIT_MS",
     "MAX_DETECTIONS",
     "MAX_FRAME_PARTS",
@@ -341,6 +343,8 @@ class SupervisorStatus(Message):
         "camera_latency_samples_ms": f.sequence(LATENCY_MS, 0, MAX_STATUS_SAMPLES),
         "rsrp_dbm": f.optional(f.real(*RSRP_RANGE_DBM)),
         "sinr_db": f.optional(f.real(*SINR_RANGE_DB)),
+        "fc_text": f.text(FC_TEXT_MAX),
+        "fc_severity": f.optional(f.integer(0, 7)),
     }
 
     stamp_ns: int
@@ -377,6 +381,10 @@ class SupervisorStatus(Message):
     depth_lost: bool = False  # depth stopped for risk_stale_s: risk is NA and read as HR
     rsrp_dbm: float | None = None  # what the drone's modem reports lately (None: no modem, or no reading)
     sinr_db: float | None = None
+    # what the flight controller said last (STATUSTEXT, or a PX4 event), while it is recent, and its
+    # MAV_SEVERITY (0 emergency .. 7 debug): "" and None when it said nothing lately
+    fc_text: str = ""
+    fc_severity: int | None = None
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

@@ -45,7 +45,7 @@ from dynqos.common.messages import (
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 from dynqos.common.reference import ReferenceTrack
 from dynqos.onboard.commands import CommandTracker
-from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint, Setpoint
+from dynqos.onboard.fc import AccelSetpoint, FcSaid, FcState, PositionSetpoint, Setpoint
 from dynqos.onboard.modem import ModemReading
 from dynqos.onboard.monitors import CameraLatencyMonitor, LatencySamples
 from dynqos.onboard.pid import CascadedPid
@@ -113,6 +113,7 @@ class OnboardCore:
         self._t_mpc_ns = to_ns(config.control.t_mpc_s)
         self._status_period_ns = round(NS_PER_S / config.onboard.status_hz)
         self.modem: ModemReading | None = None
+        self.fc_said: FcSaid | None = None
         self._modem_stale_ns = to_ns(3 * config.onboard.modem_interval_s)
         self._next_state_ns: int | None = None
         self._next_status_ns = start_ns
@@ -174,6 +175,7 @@ class OnboardCore:
             self._space = inp.spaciousness_m
         if inp.modem is not None:
             self.modem = inp.modem
+        self.fc_said = inp.fc_said or self.fc_said
         for item in inp.downlink:
             message = item.message
             if isinstance(message, Command):
@@ -408,6 +410,7 @@ class OnboardCore:
         cams, rtts = self.samples.take()
         gap, self._status_gap_ms = self._status_gap_ms, 0.0
         modem = self._fresh_modem(now)
+        said = self.fc_said if self.fc_said and self.fc_said.fresh(now) else None
         return SupervisorStatus(
             uav=self.uav,
             seq=self._status_seq,
@@ -430,6 +433,8 @@ class OnboardCore:
             qos_agent=self.agent_heard(now),
             rsrp_dbm=modem.rsrp_dbm if modem else None,
             sinr_db=modem.sinr_db if modem else None,
+            fc_text=said.text if said else "",
+            fc_severity=said.severity if said else None,
             **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),
         )
 

@@ -226,6 +226,7 @@ class OnboardDaemon:
                 offboard=self.offboard.is_set(),
                 uplink_bytes=self.uplink_bytes(),
                 modem=self.modem.latest if self.modem else None,
+                fc_said=link.said,
             )
         )
         for event in out.events:

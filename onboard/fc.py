@@ -19,6 +19,23 @@ class FcState:
     quat: tuple[float, float, float, float]  # w, x, y, z
 
 
+FC_SAID_FRESH_S = 10.0  # the FC's last words ride in the status this long after they came
+
+
+@dataclass(frozen=True, slots=True)
+class FcSaid:
+    """What the FC said last (a STATUSTEXT, or a PX4 event described), its MAV_SEVERITY (0 emergency ..
+    7 debug) and when it arrived (onboard clock)."""
+
+    text: str
+    severity: int
+    stamp_ns: int
+
+    def fresh(self, now_ns: int) -> bool:
+        """Recent enough to ride in the drone's status (FC_SAID_FRESH_S after it came)."""
+        return now_ns - self.stamp_ns <= FC_SAID_FRESH_S * 1_000_000_000
+
+
 @dataclass(frozen=True, slots=True)
 class AccelSetpoint:
     """Fly this acceleration (the edge's horizon setpoint, or the fallback PID's) and turn to this yaw."""

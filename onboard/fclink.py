@@ -34,8 +34,9 @@ from pymavlink.dialects.v20 import common as mavlink
 from dynqos.common import mavsign
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.errors import TransportError
+from dynqos.common.message_base import FC_TEXT_MAX
 from dynqos.onboard import px4_events
-from dynqos.onboard.fc import FcState
+from dynqos.onboard.fc import FcSaid, FcState
 from dynqos.onboard.px4_events import EventCatalogue
 
 log = logging.getLogger(__name__)
@@ -166,6 +167,7 @@ class FcLink:
         self._acks: dict[int, int] = {}
         self._params: dict[str, float] = {}  # PARAM_VALUE echoes waited for by `set_param`
         self.texts: list[str] = []  # the FC's last STATUSTEXTs, newest last
+        self.said: FcSaid | None = None  # the newest of them, with its severity and arrival
         self.texts_heard = 0
         self._text_logged: dict[str, float] = {}
         self.events = events  # PX4's event catalogue, to read its EVENT messages
@@ -276,6 +278,7 @@ class FcLink:
             return
         self.texts_heard += 1
         self.texts = [*self.texts[-(TEXTS_KEPT - 1) :], text]
+        self.said = FcSaid(text[:FC_TEXT_MAX], min(max(int(severity), 0), 7), self.clock.now_ns())
         now = time.monotonic()
         if now - self._text_logged.get(text, -math.inf) >= TEXT_REPEAT_S:
             if len(self._text_logged) >= MAX_TEXTS_TRACKED:

@@ -10,7 +10,7 @@ from dynqos.common.bus import Received
 from dynqos.common.keys import Stream
 from dynqos.common.messages import Message
 from dynqos.common.modes import Flow
-from dynqos.onboard.fc import FcState, Setpoint
+from dynqos.onboard.fc import FcSaid, FcState, Setpoint
 from dynqos.onboard.modem import ModemReading
 
 
@@ -36,6 +36,7 @@ class TickInput:
     offboard: bool = False
     uplink_bytes: int | None = None  # every byte the drone's publishers put so far (None: unknown)
     modem: ModemReading | None = None  # the modem's newest reading (None: no modem, or none yet)
+    fc_said: FcSaid | None = None  # what the FC said last (None: nothing yet)
 
 
 @dataclass(frozen=True, slots=True)

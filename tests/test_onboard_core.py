@@ -25,7 +25,7 @@ from dynqos.common.messages import (
 )
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 from dynqos.onboard.core import SETPOINT_PERIOD_NS, STALE_STATE_NS, OnboardCore
-from dynqos.onboard.fc import AccelSetpoint, FcState, PositionSetpoint
+from dynqos.onboard.fc import FC_SAID_FRESH_S, AccelSetpoint, FcSaid, FcState, PositionSetpoint
 from dynqos.onboard.modem import ModemReading
 from dynqos.onboard.tick import FrameSent, TickInput, TickOutput
 
@@ -58,6 +58,7 @@ class Rig:
     outputs: list[TickOutput] = field(default_factory=list)
     extra: list[Received] = field(default_factory=list)
     modem: ModemReading | None = None  # the modem's reading handed in every tick
+    fc_said: FcSaid | None = None  # what the FC said last, handed in every tick
 
     @classmethod
     def make(cls, qos: str = "dynamic", **kwargs: object) -> Rig:
@@ -73,7 +74,8 @@ class Rig:
         frames = [FrameSent(len(self.outputs), "rgb", self.now, self.frame_bytes)] if self.frame_bytes else []
         out = self.core.tick(
             TickInput(now_ns=self.now, fc=self.fc, downlink=downlink, offboard=self.offboard,
-                      spaciousness_m=self.spaciousness_m, frames_sent=frames, modem=self.modem)
+                      spaciousness_m=self.spaciousness_m, frames_sent=frames, modem=self.modem,
+                      fc_said=self.fc_said)
         )  # fmt: skip
         for item in out.publish:
             # Everything the core publishes must survive the codec: a status it cannot encode is a crash.
@@ -488,6 +490,21 @@ def test_a_status_carries_the_modems_reading_while_it_is_fresh() -> None:
     rig.run(2.0)
     assert rig.statuses(rig.run(0.2))[-1].rsrp_dbm == -85.5
     assert rig.statuses(rig.run(1.0))[-1].rsrp_dbm is None
+
+
+def test_a_status_carries_what_the_flight_controller_said_while_it_is_recent() -> None:
+    rig = Rig.make()
+    assert {(s.fc_text, s.fc_severity) for s in rig.statuses(rig.run(0.5))} == {("", None)}
+    rig.fc_said = FcSaid("Preflight Fail: Accel uncalibrated", 2, rig.now)
+    said = rig.statuses(rig.run(0.5))
+    assert said
+    assert {(s.fc_text, s.fc_severity) for s in said} == {("Preflight Fail: Accel uncalibrated", 2)}
+    rig.fc_said = None  # it said nothing since: the words ride along for FC_SAID_FRESH_S, then go
+    rig.run(FC_SAID_FRESH_S - 1.0)
+    assert rig.statuses(rig.run(0.2))[-1].fc_text == "Preflight Fail: Accel uncalibrated"
+    assert (rig.statuses(rig.run(1.0))[-1].fc_text, rig.statuses()[-1].fc_severity) == ("", None)
+    rig.fc_said = FcSaid("Takeoff detected", 6, rig.now)  # newer words replace them
+    assert rig.statuses(rig.run(0.5))[-1].fc_text == "Takeoff detected"
 
 
 def test_a_radio_aware_supervisor_hears_the_modems_sinr_while_it_is_fresh() -> None:

@@ -59,6 +59,12 @@ def test_px4_flies_dynamic_qos_in_offboard_throughout_on_the_priority_flow_under
     assert modes[modes.index("OFFBOARD") + 1] == "AUTO_LAND", modes  # and its landing at the end
     assert px4["offboard_whole_flight"], px4["modes"]
     assert px4["failsafes"] == []
+    # whatever PX4 said reached the summary through the drone's status, each in PX4's own sentence (its
+    # event catalogue); a clean flight may have none: PX4 speaks up on trouble (tests/test_fc_said.py)
+    said = result["fc_said"]
+    assert all(s["text"] and 0 <= s["severity"] <= 7 for s in said), said
+    assert not any(s["text"].startswith("PX4 event 0x") for s in said), said
+    print(f"PX4 said: {[(s['t_s'], s['text']) for s in said]}")
     assert not result["fallback_entered"]
     switch_s = result["first_qos_switch_after_bg_s"]
     assert switch_s is not None, result["transitions"]

@@ -64,6 +64,8 @@ _STATUS_FIELDS = {
     "setpoint_gap_ms": "number",
     "fallbacks": "integer",
     "watchdog": "boolean",
+    "fc_text": "string",
+    "fc_severity": "integer",
 }
 
 

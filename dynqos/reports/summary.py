@@ -154,6 +154,7 @@ def summarise(
         ),
         **_fallbacks(statuses, t0),
         "radio": radio_figures(statuses, t0),
+        "fc_said": fc_said(statuses, t0),
         "setpoint_gap_max_ms": max(gaps) if gaps else None,
         "states_recorded": len(rec.states),
         "faults": [
@@ -209,6 +210,21 @@ def radio_figures(statuses: list[SupervisorStatus], t0_ns: int) -> dict[str, Any
         "rsrp_min_dbm": min(rsrp, default=None),
         "fallback_s": controls.get(ControlSource.FALLBACK.value, 0.0),
     }
+
+
+FC_SAID_KEPT = 20
+
+
+def fc_said(statuses: list[SupervisorStatus], t0_ns: int) -> list[dict[str, Any]]:
+    """What the flight controller said (PX4's STATUSTEXTs and events, as the drone's status carried
+    them): each text once, when it first came (s from the flight's start; negative: before take-off)
+    and its MAV_SEVERITY, the first FC_SAID_KEPT."""
+    said: dict[str, dict[str, Any]] = {}
+    for s in statuses:
+        if s.fc_text and s.fc_text not in said and len(said) < FC_SAID_KEPT:
+            t_s = round((s.stamp_ns - t0_ns) / 1e9, 2)
+            said[s.fc_text] = {"t_s": t_s, "severity": s.fc_severity, "text": s.fc_text}
+    return list(said.values())
 
 
 def memory_figures(samples: list[tuple[float, int, int]]) -> dict[str, float | None]:

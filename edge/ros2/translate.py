@@ -92,6 +92,7 @@ class Translator:
             "camera_latency_ms": _ms(status.camera_latency_ms),
             "qos_grant": status.qos_grant.value,
             "depth_lost": str(status.depth_lost).lower(),
+            "fc_said": status.fc_text,  # the flight controller's last words, while recent ("" none)
         }
         message = f"{state} on the {status.flow.value} flow, {status.control_source.value} flies"
         payload = codec.diagnostics(now, f"dynqos/{uav}/supervisor", uav, level, message, values)
