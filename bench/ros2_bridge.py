@@ -213,7 +213,9 @@ def _loop_phase(procs: Processes, index: int, mode: str) -> Iterator[None]:
             procs.stop(f"states-{index}")
 
 
-def control_loop(zcfg: ZenohConfig, procs: Processes, round_trips: int) -> dict[str, Any]:
+def control_loop(
+    zcfg: ZenohConfig, procs: Processes, round_trips: int, rounds: int = ROUNDS
+) -> dict[str, Any]:
     procs.start("mpc", ["edge", "mpc"])
     procs.start(
         "loop-echo",
@@ -222,8 +224,8 @@ def control_loop(zcfg: ZenohConfig, procs: Processes, round_trips: int) -> dict[
     )
     samples: dict[str, list[float]] = {mode: [] for mode in LOOP_MODES}
     phase_p50: dict[str, list[float]] = {mode: [] for mode in LOOP_MODES}
-    per_phase = max(BLOCK, round_trips // ROUNDS)
-    order = [LOOP_MODES[(i + r) % len(LOOP_MODES)] for r in range(ROUNDS) for i in range(len(LOOP_MODES))]
+    per_phase = max(BLOCK, round_trips // rounds)
+    order = [LOOP_MODES[(i + r) % len(LOOP_MODES)] for r in range(rounds) for i in range(len(LOOP_MODES))]
     bus = open_bus(zcfg, Role.DRONE)
     try:
         loop = Loop(bus)
@@ -252,11 +254,11 @@ def control_loop(zcfg: ZenohConfig, procs: Processes, round_trips: int) -> dict[
     }
 
 
-def run(round_trips: int, seconds: float) -> dict[str, Any]:
+def run(round_trips: int, seconds: float, rounds: int = ROUNDS) -> dict[str, Any]:
     with router_rig() as (zcfg, procs):
         latency = pose_latency(zcfg, procs, round_trips)
         cpu = cpu_per_drone(zcfg, procs, seconds)
-        loop = control_loop(zcfg, procs, round_trips)
+        loop = control_loop(zcfg, procs, round_trips, rounds)
     return {
         "benchmark": "ros2_bridge",
         **provenance(),
@@ -320,13 +322,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = bench_parser(__doc__)
     parser.add_argument("--round-trips", type=int, default=1000, help="per path (default 1000)")
     parser.add_argument("--seconds", type=float, default=5.0, help="measured per fleet size (default 5)")
-    parser.add_argument("--quick", action="store_true", help="smoke mode: 200 round trips, 0.5 s per size")
+    parser.add_argument(
+        "--quick", action="store_true", help="smoke mode: 200 round trips in 2 rounds, 0.5 s per size"
+    )
     args = parser.parse_args(argv)
     if args.round_trips < 2 * BLOCK:
         parser.error(f"--round-trips must be at least {2 * BLOCK}")
     if not 0.2 <= args.seconds <= 600:
         parser.error("--seconds must be in 0.2..600")
-    result = run(200, 0.5) if args.quick else run(args.round_trips, args.seconds)
+    # each phase starts its own bridge (or subscriber): the smoke's 2 rounds start half as many
+    result = run(200, 0.5, 2) if args.quick else run(args.round_trips, args.seconds)
     return emit(result, markdown(result), args.out, verdict(result))
 
 
