@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import socket
 import threading
 import time
 from dataclasses import replace
@@ -136,12 +135,9 @@ def run_fleet(
 def _configs(scenario: Scenario, folder: Path) -> tuple[Config, dict[str, Config], list[int] | None]:
     """The fleet's shared config and each drone's, on free ports; the PX4 instances that fly them (None:
     dynqos's vehicles); a planned mission's plan written into the run folder."""
-    shared, drones = fleet_configs(
-        scenario,
-        zenoh=ZenohConfig(**flow_ports()),
-        fc_base=free_udp_block(len(scenario.drones)),
-        gcs_port=free_port(socket.SOCK_DGRAM),
-    )
+    n = len(scenario.drones)
+    udp = free_udp_block(n + 1)  # each drone's offboard port, then the ground station's
+    shared, drones = fleet_configs(scenario, zenoh=ZenohConfig(**flow_ports()), fc_base=udp, gcs_port=udp + n)
     shared, drones, px4 = with_px4_fleet(scenario, shared, drones)
     if shared.fleet_plan.tasks:  # the fleet's plan: for these drones, into the run folder
         fleet_plan = replace(shared.fleet_plan, drones=tuple(drones), plan_file=str(folder / "plan.json"))

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import random
 import selectors
 import shutil
 import signal
@@ -66,12 +67,40 @@ def cpu_s(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def free_udp_block(count: int) -> int:
-    """The first of `count` consecutive free UDP ports on 127.0.0.1 (a fleet's offboard ports)."""
-    for _ in range(50):
-        base = free_port(socket.SOCK_DGRAM)
-        if base + count > 65536:
-            continue
+EPHEMERAL_PORTS_FILE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+EPHEMERAL_FALLBACK = (32768, 60999)  # Linux's default, where the file cannot be read
+LOWEST_UDP_PORT = 10000  # below this: the well-known and registered services' ports
+
+
+def ephemeral_ports(path: Path = EPHEMERAL_PORTS_FILE) -> tuple[int, int]:
+    """The kernel's range for a socket bound to port 0 (ip_local_port_range), inclusive."""
+    try:
+        low, high = (int(part) for part in path.read_text().split())
+    except (OSError, ValueError):
+        return EPHEMERAL_FALLBACK
+    return low, high
+
+
+def free_udp_block(
+    count: int, *, ephemeral: tuple[int, int] | None = None, rng: random.Random | None = None
+) -> int:
+    """The first of `count` consecutive free UDP ports on 127.0.0.1 (the drones' offboard ports, then
+    the ground station's), outside the kernel's ephemeral range. A port drawn from that range is free
+    only until someone binds port 0: a fleet's vehicle binds its own end so, before the daemon it talks
+    to has bound the port chosen for it, and once got that very port, then talked to itself and its
+    drone never flew (CI, 2026-11-27: 'ignored': 469 at the vehicle, no heartbeat at the daemon). Where
+    the range leaves no room (it covers 10000..65535), any free block, as before."""
+    low, high = ephemeral or ephemeral_ports()
+    spans = [(a, b) for a, b in ((LOWEST_UDP_PORT, low - count), (high + 1, 65536 - count)) if a <= b]
+    rng = rng or random.Random()
+    for _ in range(200):
+        if spans:
+            start, end = rng.choice(spans)
+            base = rng.randint(start, end)
+        else:
+            base = free_port(socket.SOCK_DGRAM)
+            if base + count > 65536:
+                continue
         socks: list[socket.socket] = []
         try:
             for port in range(base, base + count):

@@ -11,7 +11,6 @@ stop every process (also on Ctrl-C or when any of them dies, naming it); write t
 from __future__ import annotations
 
 import logging
-import socket
 import threading
 from pathlib import Path
 from typing import Any
@@ -28,7 +27,7 @@ from dynqos.experiment.flight import (
     start_replicas,
     wait_for_offload,
 )
-from dynqos.experiment.processes import Processes, flow_ports, free_port
+from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, with_cell, write_config
 from dynqos.experiment.vehicles import (
@@ -63,12 +62,8 @@ def run_scenario(
     folder = folder or out / scenario.run_id
     logs = folder / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    config = scenario_config(
-        scenario,
-        zenoh=ZenohConfig(**flow_ports()),
-        fc_port=free_port(socket.SOCK_DGRAM),
-        gcs_port=free_port(socket.SOCK_DGRAM),
-    )
+    udp = free_udp_block(2)  # the vehicle's offboard port, then the ground station's
+    config = scenario_config(scenario, zenoh=ZenohConfig(**flow_ports()), fc_port=udp, gcs_port=udp + 1)
     instances = px4_instances(scenario)
     px4 = instances[0] if instances else None
     if px4 is not None:
