@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from dynqos.common.clock import to_ns
+
 
 @dataclass(frozen=True, slots=True)
 class FcState:
@@ -33,7 +35,7 @@ class FcSaid:
 
     def fresh(self, now_ns: int) -> bool:
         """Recent enough to ride in the drone's status (FC_SAID_FRESH_S after it came)."""
-        return now_ns - self.stamp_ns <= FC_SAID_FRESH_S * 1_000_000_000
+        return now_ns - self.stamp_ns <= to_ns(FC_SAID_FRESH_S)
 
 
 @dataclass(frozen=True, slots=True)

@@ -7,7 +7,7 @@ never do. Backends ([qos] backend, docs/qos.md):
 
 - `links`: the network maps the priority port to a dedicated QoS flow by static policy; switching links
   is all there is to do, so priority is AVAILABLE as soon as it is wanted.
-- `camara`: one CAMARA Quality-on-Demand session per drone (edge/operator/client.py), created, followed,
+- `camara`: one CAMARA Quality-on-Demand session per drone (edge/operator/qod.py), created, followed,
   extended and deleted by the rules in edge/qos/grants.py.
 
 With `[qos] policy = "arbiter"` (camara only) a drone gets a session only while the arbiter

@@ -13,6 +13,7 @@ import logging
 from dynqos.common import keys
 from dynqos.common.bus import Bus, Token
 from dynqos.common.clock import NS_PER_S, Clock, to_ns
+from dynqos.common.lifecycle import waker
 from dynqos.edge.presence import Presence, Watch
 from dynqos.edge.qos.leadership import Leadership
 
@@ -29,7 +30,6 @@ class AgentPeers:
         self.leadership = leadership
         self.changed = asyncio.Event()  # set (on the loop) when changes wait in the presence
         self._refusal_logged = False
-        self._loop = loop
         self._active_token: Token | None = None
         # names are the Leadership's to validate and cap (its `refused`)
         self.presence = Presence(
@@ -40,18 +40,13 @@ class AgentPeers:
                 Watch("active", keys.qos_actives(group), keys.replica_of_token),
             ],
             pending_limit=MAX_PENDING_CHANGES,
-            wake=self._wake,
+            wake=waker(loop, self.changed.set),  # zenoh's thread: changes wait; the loop applies them
         )
         self._member_token = bus.declare_token(keys.replica_token("qos", group, leadership.me))
 
     def query(self) -> None:
         """The live set as the router knows it now (blocking: run it off the loop)."""
         self.presence.query(QUERY_TIMEOUT_S)
-
-    def _wake(self) -> None:
-        """zenoh's thread: changes wait; the loop applies them."""
-        with contextlib.suppress(RuntimeError):  # the loop has closed: the agent is stopping
-            self._loop.call_soon_threadsafe(self.changed.set)
 
     @property
     def refused(self) -> int:
