@@ -74,7 +74,7 @@ class Publisher(Protocol):
 
     def put(self, message: Message) -> None: ...
 
-    def put_bytes(self, data: bytes) -> None: ...
+    def put_bytes(self, data: bytes, attachment: bytes | None = None) -> None: ...
 
     def close(self) -> None: ...
 
@@ -122,6 +122,20 @@ class Bus(Protocol):
     def alive_tokens(self, key_expr: str, timeout_s: float) -> list[str]: ...
 
     def close(self) -> None: ...
+
+
+class RawBus(Bus, Protocol):
+    """A Bus that also carries another system's payloads as they are: the ROS 2 bridge's rmw_zenoh
+    samples, which are CDR with an attachment, not dynqos messages."""
+
+    @property
+    def zid(self) -> str:
+        """The session's zenoh id (what rmw_zenoh names a node's session by)."""
+        ...
+
+    def raw_subscribe(self, key_expr: str, on_payload: Callable[[str, bytes], None]) -> None:
+        """`on_payload(key, payload)` on zenoh's thread for every sample; it must not block."""
+        ...
 
 
 def delivery(
@@ -180,7 +194,7 @@ class MemoryPublisher:
     def put(self, message: Message) -> None:
         self.put_bytes(encode(message))
 
-    def put_bytes(self, data: bytes) -> None:
+    def put_bytes(self, data: bytes, attachment: bytes | None = None) -> None:
         self._bus.deliver(self.key, data)
         self.sent += 1
         self.sent_bytes += len(data)
@@ -252,6 +266,14 @@ class MemoryBus:
     def unsubscribe(self, key_expr: str, stats: SubscriptionStats) -> None:
         with self._lock:
             self._subscribers = [s for s in self._subscribers if s[2] != (key_expr, id(stats))]
+
+    zid = "0123456789abcdef0123456789abcdef"  # a session id, for what names itself by one (rmw_zenoh)
+
+    def raw_subscribe(self, key_expr: str, on_payload: Callable[[str, bytes], None]) -> None:
+        with self._lock:
+            self._subscribers.append(
+                (key_matcher(key_expr), lambda key, data, _ns: on_payload(key, data), (key_expr, 0))
+            )
 
     def declare_token(self, key: str) -> MemoryToken:
         self._token_changed(key, alive=True)

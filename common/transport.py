@@ -253,8 +253,8 @@ class ZenohPublisher:
     def put(self, message: Message) -> None:
         self.put_bytes(encode(message))
 
-    def put_bytes(self, data: bytes) -> None:
-        self._inner.put(data)
+    def put_bytes(self, data: bytes, attachment: bytes | None = None) -> None:
+        self._inner.put(data, attachment=attachment)
         self.sent += 1
         self.sent_bytes += len(data)
 
@@ -376,6 +376,20 @@ class ZenohBus:
         """The tokens present now, as the router knows them (a liveliness query; ends when it answers)."""
         replies = self._session.liveliness().get(key_expr, timeout=timeout_s)
         return [str(reply.ok.key_expr) for reply in replies if reply.ok is not None]
+
+    @property
+    def zid(self) -> str:
+        return str(self._session.info.zid())
+
+    def raw_subscribe(self, key_expr: str, on_payload: Callable[[str, bytes], None]) -> None:
+        """`on_payload(key, payload)` for every sample on `key_expr`, undecoded (the ROS 2 bridge's)."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            on_payload(str(sample.key_expr), sample.payload.to_bytes())
+
+        subscriber = self._session.declare_subscriber(key_expr, on_sample)
+        with self._lock:
+            self._subscribers.append(subscriber)
 
     def links(self) -> list[LinkInfo]:
         return [LinkInfo(link.src, link.dst, link.priorities) for link in self._session.info.links()]

@@ -38,7 +38,7 @@ def mpc(service: MpcService, m: ProcessMetrics) -> None:
         yield counter("dynqos_mpc_stale_states", "States skipped for a newer one", c.stale)
         yield counter("dynqos_mpc_solve_failures", "Solves that failed (no command sent)", c.solve_failures)
         yield counter(
-            "dynqos_mpc_queue_drops", "Messages dropped by the full input queue", service.queue.dropped
+            "dynqos_mpc_queue_drops", "Messages dropped by the full input queue", service.inbox.dropped
         )
         yield from bus_families(service.bus)
 

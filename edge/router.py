@@ -2,31 +2,34 @@
 
 The default flow's port (7447) and the priority flow's port (7448) are two listeners of one router;
 `transport/unicast/max_links` is raised so a drone's two priority-range links can both open.
+
+It is the one edge process outside edge/runtime.py: it is zenoh's router itself, not a client of it,
+and has no core (nothing arrives for it to handle); its health line is its links.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import threading
 from pathlib import Path
 
 from dynqos.common.config import Config
-from dynqos.common.lifecycle import ready_line, serving_metrics
+from dynqos.common.lifecycle import ready_line, serving_metrics, stop_on_signals
 from dynqos.common.metrics import gauge
 from dynqos.common.transport import Role, close_session, open_session, router_endpoints
-from dynqos.edge.service import Service
+from dynqos.edge.health import Health
 
 log = logging.getLogger(__name__)
 
 
 def run(config: Config, *, health_file: Path | None = None) -> int:
     """Serve until SIGTERM: its metrics, its health file, one ready line, the session closed after."""
-    service = Service("router", 5.0)
-    service.health_file = health_file
-    service.install_signal_handlers()
+    stop = threading.Event()
+    stop_on_signals("router", stop.set)
     with serving_metrics("router", config) as metrics:
         session = open_session(config.zenoh, Role.ROUTER)
-        service.beat = metrics.health.beat
+        health = Health("router", 5.0, file=health_file, beat=metrics.health.beat)
         metrics.add(
             lambda: [
                 gauge("dynqos_router_links", "Transport links open to the router", len(session.info.links()))
@@ -34,11 +37,11 @@ def run(config: Config, *, health_file: Path | None = None) -> int:
         )
         try:
             log.info("router: listening on %s", ", ".join(router_endpoints(config.zenoh)))
-            service.write_health("ready")
+            health.write("ready")
             ready_line("router")
-            while not service.stop.is_set():
-                service.maybe_health(lambda: f"links={len(session.info.links())}")
-                service.stop.wait(0.5)
+            while not stop.is_set():
+                health.maybe(lambda: f"links={len(session.info.links())}")
+                stop.wait(0.5)
         finally:
             closed = close_session(session, "router")
             log.info("router: stopped")

@@ -22,11 +22,13 @@ from dynqos.common.modes import ControlSource, Flow
 from dynqos.common.queues import BoundedQueue
 from dynqos.edge.mpc.service import MpcService
 from dynqos.edge.planner.missions import Mission
+from dynqos.edge.runtime import Ports
 from dynqos.onboard.core import SETPOINT_PERIOD_NS, OnboardCore
 from dynqos.onboard.fc import AccelSetpoint, FcState
 from dynqos.onboard.tick import TickInput
 from dynqos.sim.vehicle.model import STEP_NS, VehicleModel
 from dynqos.sim.vehicle.px4 import MAIN_OFFBOARD, Setpoint
+from tests.edge_cores import turn
 
 UAV = "uav1"
 REFERENCE_NS = 100_000_000
@@ -74,7 +76,7 @@ def fly_circle(
     one_way_ns = round(rtt_ms * 1e6 / 2)  # the drone's traffic crosses the network; the planner's does not
     bus = MemoryBus(clock, delays=[("dynqos/*/up/**", one_way_ns), ("dynqos/*/down/**", one_way_ns)])
     bus.declare_token(keys.drone_presence(UAV))  # as the drone's daemon does
-    service = MpcService(config, bus, clock)
+    service = MpcService(config, Ports(bus, clock))
     core = OnboardCore(config, start_ns=clock.now_ns())
     downlink: BoundedQueue[Received] = BoundedQueue(256)
     bus.subscribe(keys.downlink(UAV, Downlink.COMMAND), downlink, expect=(Command,))
@@ -100,7 +102,7 @@ def fly_circle(
                 Reference(uav=UAV, seq=ref_seq, stamp_ns=now, dt_s=0.05, pos_m=pos, vel_mps=vel, yaw_rad=yaw)
             )
         bus.pump()
-        service.process(timeout_s=0)
+        turn(service, now)
         if (now - t0) % SETPOINT_PERIOD_NS == 0:
             s = model.state
             w, x, y, z = (float(q) for q in s.quat)

@@ -18,25 +18,28 @@ from dynqos.edge import feeds
 from dynqos.edge.mpc.service import MpcService
 from dynqos.edge.planner.service import PlannerService
 from dynqos.edge.replicas import ranked
+from dynqos.edge.runtime import Ports
+from tests.edge_cores import take, turn
 
 DRONES = [f"uav{i}" for i in range(12)]
 Service = MpcService | PlannerService
 
 
 def _mpc(name: str, bus: MemoryBus, clock: FakeClock) -> Service:
-    return MpcService(load_config(None, [f'mpc.replica_id="{name}"']), bus, clock)
+    return MpcService(load_config(None, [f'mpc.replica_id="{name}"']), Ports(bus, clock))
 
 
 def _planner(name: str, bus: MemoryBus, clock: FakeClock) -> Service:
-    return PlannerService(load_config(None, [f'planner.replica_id="{name}"']), bus, clock)
+    return PlannerService(load_config(None, [f'planner.replica_id="{name}"']), Ports(bus, clock))
 
 
 def _settle(services: list[Service]) -> None:
     for service in services:
         if isinstance(service, MpcService):
-            service.process(0.0)
-        else:
-            service.discover()
+            turn(service, service.clock.now_ns())
+        else:  # its tick publishes at publish_hz; what it follows is decided here
+            take(service, service.clock.now_ns())
+            service.discover(service.clock.now_ns())
 
 
 def _state(uav: str, seq: int, clock: FakeClock) -> State:
@@ -108,14 +111,16 @@ def test_a_drone_that_never_announces_itself_is_not_served() -> None:
     bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME).put(
         _state("uav1", 1, clock)
     )
-    assert mpc.process(0.0) == 0
+    turn(mpc, clock.now_ns())
     assert mpc.counters.states == 0
+    assert mpc.counters.commands == 0
     bus.declare_token(keys.drone_presence("uav1"))
-    mpc.process(0.0)  # follows it from now on
+    turn(mpc, clock.now_ns())  # follows it from now on
     bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME).put(
         _state("uav1", 2, clock)
     )
-    assert mpc.process(0.0) == 1
+    turn(mpc, clock.now_ns())
+    assert mpc.counters.commands == 1
 
 
 def test_bad_and_flooding_presence_tokens_are_refused_and_counted(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -127,7 +132,7 @@ def test_bad_and_flooding_presence_tokens_are_refused_and_counted(monkeypatch: p
     bus.declare_token(f"dynqos/{'x' * 33}/alive")  # too long for a drone id
     for i in range(30):
         bus.declare_token(keys.drone_presence(f"d{i}"))
-    mpc.process(0.0)
+    turn(mpc, clock.now_ns())
     assert len(mpc.feeds.subscribed) == 20
     assert "edge" not in mpc.feeds.subscribed
     assert mpc.feeds.refused == 2 + 10

@@ -35,6 +35,8 @@ from dynqos.edge.operator.client import OperatorClient
 from dynqos.edge.planner.fleet_plan import Leg, Plan
 from dynqos.edge.planner.fleet_schedule import missions_of
 from dynqos.edge.planner.fleet_service import FleetPlannerService
+from dynqos.edge.runtime import Ports
+from tests.edge_cores import take
 from tests.test_qod_api import DEVICE, emulated_operator, run
 
 TASKS = (
@@ -91,17 +93,19 @@ def test_a_route_needs_two_points_and_an_inspection_one() -> None:
 def test_the_blind_plan_is_sent_leg_by_leg_when_due_from_where_each_drone_is() -> None:
     clock = FakeClock(5_000_000_000)
     bus = MemoryBus(clock)
-    service = FleetPlannerService(Config(fleet_plan=fleet(mode="blind", drones=("uav1", "uav2"))), bus, clock)
+    service = FleetPlannerService(
+        Config(fleet_plan=fleet(mode="blind", drones=("uav1", "uav2"))), Ports(bus, clock)
+    )
     heard = {uav: BoundedQueue[Received](64) for uav in ("uav1", "uav2")}
     for uav, queue in heard.items():
         bus.subscribe(keys.downlink(uav, Downlink.MISSION), queue, expect=(MissionRequest,))
     up = {u: bus.publisher(keys.uplink(u, Flow.DEFAULT, Stream.STATE), Priority.REAL_TIME) for u in heard}
     up["uav1"].put(state("uav1", (3.0, 1.0, -1.5)))
     up["uav2"].put(state("uav2", (-3.0, -1.0, -1.5), mode="takeoff"))  # not offloading yet: not counted
-    service.hear()
+    take(service, clock.now_ns())
     assert not service.everyone_heard()
     up["uav2"].put(state("uav2", (-3.0, -1.0, -1.5)))
-    service.hear()
+    take(service, clock.now_ns())
     assert service.everyone_heard()
 
     async def blind() -> None:
@@ -153,7 +157,7 @@ def _planned(radio: RadioConfig | None) -> tuple[FleetPlannerService, list[objec
                 fleet_plan=fleet(precision=10),
                 qos=replace(Config().qos, camara=op.camara(devices={"uav1": DeviceConfig(**DEVICE)})),
             )
-            service = FleetPlannerService(config, MemoryBus(FakeClock(time.monotonic_ns())))
+            service = FleetPlannerService(config, Ports(MemoryBus(FakeClock(time.monotonic_ns()))))
             service.positions = {"uav1": (-5.0, -5.0, -1.5)}
             async with OperatorClient(
                 config.qos.camara

@@ -20,6 +20,7 @@ has at hand. Each rule is checked to fail on a graph with one forbidden import p
 from __future__ import annotations
 
 import ast
+import importlib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -355,13 +356,49 @@ def event_loops_started(source: str) -> int:
     )
 
 
-def test_no_edge_service_starts_a_second_event_loop() -> None:
-    """One event loop per edge process, for its life: a second `asyncio.run` would open a second operator
-    client session and hand state between them (the fleet planner did, twice)."""
+def test_only_the_edge_runtime_starts_an_event_loop() -> None:
+    """One event loop per edge process, the runtime's (edge/runtime.py): a service that started its own
+    would open a second operator client session and hand state between loops (the fleet planner did)."""
     started = {
         str(path.relative_to(ROOT)): n
         for path in (ROOT / "edge").rglob("*.py")
         if (n := event_loops_started(path.read_text(encoding="utf-8")))
     }
-    assert all(n == 1 for n in started.values()), started
+    assert started == {"edge/runtime.py": 1}
     assert event_loops_started("import asyncio\nasyncio.run(a())\nasyncio.run(b())\n") == 2
+
+
+# The edge's own zenoh router is zenoh's router itself, not a service on a session: it has no core.
+ZENOH_SESSIONS = ("dynqos.edge.runtime", "dynqos.edge.router")
+
+
+def zenoh_reached(graph: Graph, external: Graph) -> set[str]:
+    """The edge modules that import zenoh or open a session (common/transport.py) themselves."""
+    return {
+        m
+        for m in graph
+        if _in(m, "dynqos.edge")
+        and m not in ZENOH_SESSIONS
+        and ("zenoh" in external[m] or "dynqos.common.transport" in graph[m])
+    }
+
+
+def test_edge_services_reach_zenoh_only_through_the_runtime() -> None:
+    """Each service gets its bus from the runtime, which opens the session; none imports zenoh or the
+    transport. Each service in `dynqos edge` is a core the runtime drives."""
+    graph, external = graphs()
+    assert zenoh_reached(graph, external) == set()
+    assert zenoh_reached({"dynqos.edge.x": {"dynqos.common.transport"}}, {"dynqos.edge.x": set()}) == {
+        "dynqos.edge.x"
+    }
+    assert zenoh_reached({"dynqos.edge.y": set()}, {"dynqos.edge.y": {"zenoh"}}) == {"dynqos.edge.y"}
+    from dynqos.cli.edge_cmd import SERVICES
+    from dynqos.edge.runtime import EdgeCore
+
+    for name, (module_name, _help) in SERVICES.items():
+        if module_name in ZENOH_SESSIONS:
+            continue
+        module = importlib.import_module(module_name)
+        cores = [c for c in vars(module).values() if isinstance(c, type) and issubclass(c, EdgeCore)]
+        assert any(c.__module__ == module_name for c in cores), f"{name}: no EdgeCore in {module_name}"
+        assert "dynqos.edge.runtime" in graph[module_name], f"{name} does not run on the runtime"

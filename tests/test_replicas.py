@@ -20,7 +20,9 @@ from dynqos.common.reference import ReferenceTrack
 from dynqos.edge.mpc.service import MpcService
 from dynqos.edge.planner.service import PlannerService
 from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Role, ranked
+from dynqos.edge.runtime import Ports
 from dynqos.onboard.commands import CommandTracker
+from tests.edge_cores import take, turn
 
 MS = 1_000_000
 LEASE = 50 * MS
@@ -189,7 +191,7 @@ def test_a_drone_known_only_from_commands_is_not_taken_until_its_state_arrives()
 
 
 def _mpc(name: str, bus: MemoryBus, clock: FakeClock) -> MpcService:
-    return MpcService(load_config(None, [f'mpc.replica_id="{name}"']), bus, clock)
+    return MpcService(load_config(None, [f'mpc.replica_id="{name}"']), Ports(bus, clock))
 
 
 def _state(seq: int, clock: FakeClock, term: int, holder: str) -> State:
@@ -214,10 +216,10 @@ def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goe
         nonlocal followed
         drone.put(_state(seq, clock, *followed))
         for service in services:
-            service.process(0.0)
+            turn(service, clock.now_ns())
         got = [i.message for i in commands.drain() if isinstance(i.message, Command)]
         for service in services:  # each sees the commands sent in this round (the other's too)
-            service.process(0.0)
+            turn(service, clock.now_ns())
         if got:
             followed = (got[-1].term, got[-1].replica)
         clock.advance_s(0.05)
@@ -236,7 +238,7 @@ def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goe
     assert {(c.replica, c.term) for c in after} == {(survivor.replica, first[-1].term + 1)}
     for i in range(300):  # a flood of replica tokens: the live set stops growing, each is counted
         bus.declare_token(keys.replica_token("mpc", "all", f"x{i}"))
-    survivor.process(0.0)
+    turn(survivor, clock.now_ns())
     assert len(survivor.assignment.members) == 256
     assert survivor.assignment.counters.members_refused == 300 - 255
 
@@ -265,7 +267,9 @@ def test_a_standby_planner_continues_the_mission_where_the_one_it_replaces_left_
     clock = FakeClock(1_000_000_000)
     bus = MemoryBus(clock)
     bus.declare_token(keys.drone_presence("uav1"))
-    planners = [PlannerService(load_config(None, [f'planner.replica_id="{n}"']), bus, clock) for n in "pq"]
+    planners = [
+        PlannerService(load_config(None, [f'planner.replica_id="{n}"']), Ports(bus, clock)) for n in "pq"
+    ]
     refs: BoundedQueue[Received] = BoundedQueue(1000)
     bus.subscribe(keys.downlink("uav1", Downlink.REFERENCE), refs, expect=(Reference,))
     drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
@@ -274,7 +278,8 @@ def test_a_standby_planner_continues_the_mission_where_the_one_it_replaces_left_
         for k in range(round(seconds / 0.05)):
             drone.put(_state(k + 1, clock, 0, ""))
             for planner in live:
-                planner.discover()
+                take(planner, clock.now_ns())
+                planner.discover(clock.now_ns())
                 if k % 2 == 0:
                     planner.publish()
             clock.advance_s(0.05)
@@ -293,7 +298,9 @@ def test_a_standby_planner_continues_the_mission_where_the_one_it_replaces_left_
 
     # The first one restarts (same id, a new process): it learns the holder from its references before
     # it takes the drone back (it ranks first), and goes on from the same mission time.
-    restarted = PlannerService(load_config(None, [f'planner.replica_id="{first.replica}"']), bus, clock)
+    restarted = PlannerService(
+        load_config(None, [f'planner.replica_id="{first.replica}"']), Ports(bus, clock)
+    )
     back = run(1.0, [second, restarted])
     assert back[-1].replica == first.replica
     assert back[-1].term > after[-1].term

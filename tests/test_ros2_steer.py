@@ -23,6 +23,8 @@ from dynqos.common.transport import Priority, Received
 from dynqos.edge.planner.service import PlannerService
 from dynqos.edge.ros2 import codec, wire
 from dynqos.edge.ros2.steer import KINDS, Refusal, Steering
+from dynqos.edge.runtime import Ports
+from tests.edge_cores import take
 
 ARENA = ((-10.0, -10.0, -8.0), (10.0, 10.0, -0.3))
 HERE = (1.0, 2.0, -1.5)  # the drone, NED
@@ -112,9 +114,9 @@ def test_the_planner_flies_a_mission_from_now_once_per_seq_and_refuses_one_outsi
         "planner.arena_min_m=[-10, -10, -8]",
         "planner.arena_max_m=[10, 10, -0.3]",
     ]
-    planner = PlannerService(load_config(None, settings), bus, clock)
+    planner = PlannerService(load_config(None, settings), Ports(bus, clock))
     bus.declare_token(keys.drone_presence("uav1"))
-    planner.discover()  # it follows uav1 from here
+    planner.discover(clock.now_ns())  # it follows uav1 from here
     refs: BoundedQueue[Received] = BoundedQueue(100)
     bus.subscribe(keys.downlink("uav1", Downlink.REFERENCE), refs)
     state = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
@@ -123,7 +125,8 @@ def test_the_planner_flies_a_mission_from_now_once_per_seq_and_refuses_one_outsi
     def tick(seconds: float) -> Reference:
         clock.advance_s(seconds)
         bus.pump()
-        planner.discover()
+        take(planner, clock.now_ns())
+        planner.discover(clock.now_ns())
         planner.publish()
         bus.pump()
         last = refs.drain()[-1].message

@@ -160,7 +160,7 @@ def run_bench(args: argparse.Namespace, config: Config) -> int:
 
 
 def check_health(args: argparse.Namespace, config: Config) -> int:
-    from dynqos.edge.service import check_health
+    from dynqos.edge.health import check_health
 
     if not 0 < args.max_age <= 3600:
         raise DynqosError(f"--max-age must be in (0, 3600] s, got {args.max_age}")

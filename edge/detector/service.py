@@ -2,7 +2,8 @@
 
 The ack goes out before any processing (for a paced image, once its last part is in), so the drone
 measures the network, not the detector. Frames the detector cannot keep up with are dropped, the
-newest kept (one slot per drone and kind). Zenoh callbacks only queue; one thread acks, one detects.
+newest kept (one slot per drone and kind). Zenoh callbacks only queue into the runtime's inbox
+(edge/runtime.py); the core acks on the runtime's loop, and one thread of its own detects.
 
 Several detectors share the drones by drone (best effort, no standby): each holds a liveliness token,
 and a drone's frames are acked and searched by the first-ranked live detector only (edge/membership.py,
@@ -20,33 +21,34 @@ from pathlib import Path
 from prometheus_client import Histogram
 
 from dynqos.common import keys
-from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.bus import Priority, Publisher, Received
 from dynqos.common.config import Config
 from dynqos.common.errors import DecodeError
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import CameraAck, CameraFrame, Detections
-from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Bus, Priority, Publisher, Received
 from dynqos.edge import metrics
 from dynqos.edge.detector.assembler import FrameAssembler
 from dynqos.edge.detector.circles import decode_depth, decode_rgb, find_circles, locate
 from dynqos.edge.membership import LiveSet, default_replica_id
-from dynqos.edge.service import Service, serve
+from dynqos.edge.runtime import EdgeCore, Ports, Runtime, serve
 
 log = logging.getLogger(__name__)
 
 
-class DetectorService:
-    def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
+class DetectorService(EdgeCore):
+    name = "detector"
+
+    def __init__(self, config: Config, ports: Ports) -> None:
+        bus = ports.bus
         self.cfg = config.detector
         self.bus = bus
-        self.clock = clock or MonotonicClock()
-        self.acks: BoundedQueue[Received] = BoundedQueue(4096)
+        self.clock = ports.clock
+        self.inbox = ports.inbox
         self.rgb_stats = bus.subscribe(
-            keys.uplink_all_drones(Stream.CAMERA_RGB), self.acks, expect=(CameraFrame,)
+            keys.uplink_all_drones(Stream.CAMERA_RGB), self.inbox, expect=(CameraFrame,)
         )
         self.depth_stats = bus.subscribe(
-            keys.uplink_all_drones(Stream.CAMERA_DEPTH), self.acks, expect=(CameraFrame,)
+            keys.uplink_all_drones(Stream.CAMERA_DEPTH), self.inbox, expect=(CameraFrame,)
         )
         self.replicas = LiveSet("detector", self.cfg.replica_id or default_replica_id(), bus)
         self.assembler = FrameAssembler()
@@ -64,7 +66,7 @@ class DetectorService:
             "others": 0,  # parts of frames of drones another detector serves
         }
         self.detect_ms: list[float] = []
-        self.service = Service("detector", self.cfg.health_interval_s)
+        self.health_interval_s = self.cfg.health_interval_s
         self.detect_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
 
     def _publisher(self, table: dict[str, Publisher], uav: str, kind: Downlink, prio: Priority) -> Publisher:
@@ -75,14 +77,10 @@ class DetectorService:
             )
         return pub
 
-    def ack_pending(self, timeout_s: float = 0.1) -> int:
+    def handle(self, events: list[Received], now_ns: int) -> None:
         """Ack every frame that has arrived; hand the newest of each drone and kind to the detector."""
-        first = self.acks.get(timeout_s)
         self.replicas.apply()  # a detector that came or went since: who serves whom now
-        if first is None:
-            return 0
-        done = 0
-        for item in [first, *self.acks.drain()]:
+        for item in events:
             part = item.message
             if not isinstance(part, CameraFrame):
                 continue
@@ -105,13 +103,15 @@ class DetectorService:
             )
             self._publisher(self._ack_pubs, frame.uav, Downlink.CAMERA_ACK, Priority.REAL_TIME).put(ack)
             self.counters["acks"] += 1
-            done += 1
             with self._latest_lock:
                 if (frame.uav, frame.kind) in self._latest and frame.kind == "rgb":
                     self.counters["dropped"] += 1
                 self._latest[(frame.uav, frame.kind)] = item
                 self._latest_lock.notify()
-        return done
+
+    def tick(self, now_ns: int) -> float:
+        self.replicas.apply()
+        return 0.1
 
     def detect_next(self, timeout_s: float = 0.1) -> bool:
         with self._latest_lock:
@@ -161,19 +161,11 @@ class DetectorService:
         replicas = f"replica={self.replicas.me} replicas={len(self.replicas.members)}"
         return f"{counts} {parts} rejected={rejected} detect_ms_p50={ms[len(ms) // 2]:.1f} {replicas}"
 
-    def run(self) -> None:
-        worker = threading.Thread(target=self._detect_loop, name="detector", daemon=True)
-        worker.start()
-        while not self.service.stop.is_set():
-            self.ack_pending(0.1)
-            self.service.maybe_health(self.health)
-        worker.join(timeout=5)
-        self.replicas.close()
-        log.info("detector: stopped; %s", self.health())
+    async def start(self, runtime: Runtime) -> None:
+        runtime.thread(self.detect_next, "detect")
 
-    def _detect_loop(self) -> None:
-        while not self.service.stop.is_set():
-            self.detect_next(0.1)
+    async def finish(self) -> None:
+        self.replicas.close()
 
 
 def run(config: Config, *, health_file: Path | None = None) -> int:

@@ -1,8 +1,9 @@
 """`dynqos edge mpc`: one process, one controller per drone, found by the drones' presence tokens.
 
-Zenoh callbacks only decode and queue; one worker thread drains the queue, keeps the newest state
-per drone, solves and publishes the Command (REAL_TIME, express). A failed solve sends nothing and
-is counted; the drone's watchdog takes over. Idle drones are dropped after `idle_timeout_s`.
+Zenoh callbacks only decode and queue into the runtime's inbox (edge/runtime.py); the core keeps the
+newest state per drone, solves and publishes the Command (REAL_TIME, express) on the runtime's loop.
+A failed solve sends nothing and is counted; the drone's watchdog takes over. Idle drones are
+dropped after `idle_timeout_s`.
 
 Any number of processes may run side by side: each declares a liveliness token, and edge/replicas.py
 decides from the live set which one flies each drone (the others stand by for it, watching the
@@ -21,19 +22,17 @@ import numpy as np
 from prometheus_client import Histogram
 
 from dynqos.common import keys
-from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.bus import Priority, Publisher, Received
 from dynqos.common.config import Config
 from dynqos.common.keys import Downlink
 from dynqos.common.messages import Command, Reference, State
-from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Bus, Priority, Publisher, Received
 from dynqos.edge import feeds, metrics
 from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
 from dynqos.edge.mpc.controller import DroneController
 from dynqos.edge.mpc.problem import SolveError
 from dynqos.edge.replicas import Assignment, Role
-from dynqos.edge.service import Service, serve
+from dynqos.edge.runtime import EdgeCore, Ports, serve
 
 log = logging.getLogger(__name__)
 
@@ -57,14 +56,17 @@ def shard_of(uav: str, shard_count: int) -> int:
     return zlib.crc32(uav.encode()) % shard_count
 
 
-class MpcService:
-    def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
+class MpcService(EdgeCore):
+    name = "mpc"
+
+    def __init__(self, config: Config, ports: Ports) -> None:
+        bus = ports.bus
         self.config = config
         self.bus = bus
-        self.clock = clock or MonotonicClock()
+        self.clock = ports.clock
         self.controllers: dict[str, DroneController] = {}
         self.publishers: dict[str, Publisher] = {}
-        self.queue: BoundedQueue[Received] = BoundedQueue(4096)
+        self.inbox = ports.inbox
         self.counters = MpcCounters()
         cfg = config.mpc
         self.replica = cfg.replica_id or default_replica_id()
@@ -81,10 +83,11 @@ class MpcService:
         self.membership = Membership("mpc", group, self.assignment, bus)
         # each drone's state, its references, and the other replicas' commands to it (a standby's view)
         self.feeds = DroneFeeds(
-            "mpc", bus, self.queue, [feeds.states(), feeds.references(), feeds.commands()]
+            "mpc", bus, self.inbox, [feeds.states(), feeds.references(), feeds.commands()]
         )
         self.feeds.reconcile(self._wanted, assignment_changed=True)
-        self.service = Service("mpc", config.mpc.health_interval_s)
+        self.health_interval_s = cfg.health_interval_s
+        self._fresh: set[str] = set()  # drones with a new state to answer at the next tick
         self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
 
     def _mine(self, uav: str) -> bool:
@@ -105,38 +108,38 @@ class MpcService:
             log.info("mpc: new drone %s (%d served)", uav, len(self.controllers))
         return ctrl
 
-    def process(self, timeout_s: float = 0.1) -> int:
-        """Handle what has arrived; returns how many commands were sent."""
+    def handle(self, events: list[Received], now_ns: int) -> None:
+        """States, references and the other replicas' commands, oldest first."""
         self.membership.apply()
-        if self.newest:  # standing by: wake often enough to see a holder's lease run out in time
-            timeout_s = min(timeout_s, self.config.mpc.takeover_after_s / 4)
-        first = self.queue.get(timeout_s)
-        fresh: set[str] = set()  # drones with a new state to answer
-        for item in [] if first is None else [first, *self.queue.drain()]:
+        for item in events:
             message = item.message
             if isinstance(message, Reference):
                 self._on_reference(message, item.arrival_ns)
             elif isinstance(message, Command):
                 self._on_command(message, item.arrival_ns)
             elif isinstance(message, State):
-                self._on_state(item, message, fresh)
-        now = self.clock.now_ns()
-        scan = now >= self._next_scan_ns or self.membership.changed
+                self._on_state(item, message, self._fresh)
+
+    def tick(self, now_ns: int) -> float:
+        """Answer the fresh states; take over the drones whose holder went silent; drop idle drones."""
+        self.membership.apply()
+        fresh, self._fresh = self._fresh, set()
+        scan = now_ns >= self._next_scan_ns or self.membership.changed
         if scan:  # every drone's seat and age: not on every state (a fleet's states come one by one)
-            self._next_scan_ns = now + self._scan_period_ns
-            for change in self.assignment.tick(now):
+            self._next_scan_ns = now_ns + self._scan_period_ns
+            for change in self.assignment.tick(now_ns):
                 self.membership.log_change(change)
                 fresh.add(change.uav)  # a takeover answers the newest state at once
-        sent = 0
         for uav in fresh & self.newest.keys():
             if self.assignment.role(uav) is Role.SERVE:
-                sent += self._answer(uav, self.newest[uav])
+                self._answer(uav, self.newest[uav])
             else:
                 self._controller(uav)  # a standby keeps a warm controller, fed by the holder's commands
         if scan:
             self._drop_idle()
         self.feeds.reconcile(self._wanted, assignment_changed=self.membership.take_changed())
-        return sent
+        # standing by: often enough to see a holder's lease run out in time
+        return min(0.1, self.config.mpc.takeover_after_s / 4) if self.newest else 0.1
 
     def _on_reference(self, message: Reference, arrival_ns: int) -> None:
         if self._mine(message.uav) and self.assignment.mine(message.uav):
@@ -238,15 +241,9 @@ class MpcService:
             f"drones={len(self.controllers)} followed={len(self.feeds.subscribed)} "
             f"states={c.states} not_mine={c.not_mine} commands={c.commands} stale={c.stale} "
             f"rejected={rejected} solve_failures={c.solve_failures} "
-            f"references={c.references} queue_drops={self.queue.dropped} "
+            f"references={c.references} queue_drops={self.inbox.dropped} "
             f"solve_ms_p50={np.percentile(solve, 50):.3f} solve_ms_p99={np.percentile(solve, 99):.3f}"
         )
-
-    def run(self) -> None:
-        while not self.service.stop.is_set():
-            self.process(0.1)
-            self.service.maybe_health(self.health)
-        log.info("mpc: stopped; %s", self.health())
 
 
 def run(config: Config, *, health_file: Path | None = None) -> int:

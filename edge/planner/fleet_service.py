@@ -22,14 +22,12 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common import keys
-from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.bus import Priority, Publisher, Received
 from dynqos.common.config import Config
 from dynqos.common.errors import DynqosError
 from dynqos.common.geo import Geo
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import MissionRequest, State
-from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Bus, Priority, Publisher, Received
 from dynqos.edge import metrics
 from dynqos.edge.operator.booking import BookingApi, circle
 from dynqos.edge.operator.client import OperatorClient, OperatorError
@@ -44,23 +42,30 @@ from dynqos.edge.planner.fleet_schedule import (
     tasks_of,
 )
 from dynqos.edge.resend import LatestMissions
-from dynqos.edge.service import Service, serve
+from dynqos.edge.runtime import EdgeCore, Ports, Runtime, serve
 
 log = logging.getLogger(__name__)
 
 DONE_AFTER_S = 1.0  # past the plan's last leg, the mission is over and its bookings are released
 
 
-class FleetPlannerService:
-    def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
+class FleetPlannerService(EdgeCore):
+    """Its phases: waiting (for every drone), planning (the operator's prediction and bookings, the one
+    task of its own, `_mission`), flying (each leg sent when due, at `tick`), done or stopped."""
+
+    name = "fleet-planner"
+
+    def __init__(self, config: Config, ports: Ports) -> None:
+        bus = ports.bus
         self.config = config
         self.cfg = config.fleet_plan
         self.bus = bus
-        self.clock = clock or MonotonicClock()
-        self.service = Service("fleet-planner", self.cfg.health_interval_s)
+        self.clock = ports.clock
+        self.health_interval_s = self.cfg.health_interval_s
         self.geo = Geo(self.cfg.origin_lat_deg, self.cfg.origin_lon_deg)
-        self.queue: BoundedQueue[Received] = BoundedQueue(256)
-        bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,))
+        self.inbox = ports.inbox
+        bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.inbox, expect=(State,))
+        self.wait_until_ns = self.clock.now_ns() + round(self.cfg.wait_s * 1e9)
         self.publishers: dict[str, Publisher] = {
             uav: bus.publisher(keys.downlink(uav, Downlink.MISSION), Priority.INTERACTIVE_HIGH)
             for uav in self.cfg.drones
@@ -80,12 +85,14 @@ class FleetPlannerService:
         self._due: list[TimedMission] = []  # the missions not sent yet, in time order
         self._latest = LatestMissions(0)  # each drone's leg being flown, sent again for late replicas
         self._seq = time.time_ns() // 1_000_000  # newer than any earlier life's (planner.service's rule)
+        self.heard = asyncio.Event()  # every drone heard: planning may start
+        self.over = asyncio.Event()  # the mission is over: its bookings may go
 
     # ---- phases ----------------------------------------------------------------------------------------
 
-    def hear(self) -> None:
+    def handle(self, events: list[Received], now_ns: int) -> None:
         """Where each drone of the fleet is, from its newest state in offboard mode."""
-        for item in self.queue.drain():
+        for item in events:
             message = item.message
             if isinstance(message, State) and message.uav in self.publishers and message.mode == "offboard":
                 self.positions[message.uav] = message.pos_m
@@ -93,21 +100,28 @@ class FleetPlannerService:
     def everyone_heard(self) -> bool:
         return self.positions.keys() >= self.publishers.keys()
 
-    def wait_for_drones(self) -> None:
-        """Until every drone has sent a state in offboard mode; DynqosError naming the silent ones."""
-        deadline = self.clock.now_ns() + round(self.cfg.wait_s * 1e9)
-        while not self.service.stop.is_set():
-            self.hear()
+    def tick(self, now_ns: int) -> float:
+        """Waiting: every drone heard, or DynqosError naming the silent ones past `wait_s`. Flying: the
+        legs due."""
+        if self.phase == "waiting":
             if self.everyone_heard():
-                return
-            if self.clock.now_ns() > deadline:
+                self.heard.set()
+            elif now_ns > self.wait_until_ns:
                 missing = sorted(self.publishers.keys() - self.positions.keys())
                 raise DynqosError(
                     f"fleet planner: never heard {', '.join(missing)} in offboard mode "
                     f"within {self.cfg.wait_s:g} s ([fleet_plan] wait_s)"
                 )
-            self.service.maybe_health(self.health)
-            self.service.stop.wait(0.1)  # the states' pace, not synchronisation
+            return 0.1
+        if self.phase != "flying":
+            return 0.5
+        if not self.send_due(now_ns):
+            self.phase = "done"
+            self.over.set()
+            log.info("fleet planner: mission done; %s", self.health())
+            return 0.5
+        ahead = self._due[0].at_s - (now_ns - self.start_ns) / 1e9 if self._due else 0.1
+        return min(0.1, max(0.005, ahead))
 
     async def plan_and_book(self, booking: BookingApi) -> None:
         """The plan (from the prediction unless blind or it failed), then its bookings, over the planner's
@@ -230,16 +244,6 @@ class FleetPlannerService:
         self._latest.resend_due(now_ns)
         return t_s < self.plan.mission_s + DONE_AFTER_S
 
-    def fly(self) -> None:
-        """Send each mission when it is due until the mission is over (or the service stops)."""
-        self.phase = "flying"
-        self.write_plan()
-        while not self.service.stop.is_set() and self.send_due(self.clock.now_ns()):
-            self.service.maybe_health(self.health)
-            ahead = self._due[0].at_s - (self.clock.now_ns() - self.start_ns) / 1e9 if self._due else 0.1
-            self.service.stop.wait(min(0.1, max(0.005, ahead)))  # the schedule's pace, not synchronisation
-        self.phase = "stopped" if self.service.stop.is_set() else "done"
-
     async def release(self, booking: BookingApi) -> None:
         """Delete every booking `booking` made that has not ended."""
         if not booking.made:
@@ -293,24 +297,26 @@ class FleetPlannerService:
             f"booked={booked} released={len(self.released)}"
         )
 
-    def run(self) -> None:
-        asyncio.run(self._run())
-        log.info("fleet planner: mission %s; %s", self.phase, self.health())
-        self.service.stop.wait()  # stays up (healthy) until stopped, as every edge service
+    async def start(self, runtime: Runtime) -> None:
+        runtime.task(self._mission(runtime))
 
-    async def _run(self) -> None:
-        """One event loop and one operator client for the planner's life: the prediction, the bookings and
-        their release; waiting for the drones and flying the schedule block, so they run in a thread."""
+    async def _mission(self, runtime: Runtime) -> None:
+        """One operator client for the planner's life: the prediction, the bookings, their release once
+        the mission is over or the service stops (it stays up, healthy, until stopped)."""
         async with OperatorClient(self.config.qos.camara) as operator:
             booking = BookingApi(operator)
             try:
-                await asyncio.to_thread(self.wait_for_drones)
-                if self.service.stop.is_set():
+                if not await runtime.until(self.heard):
                     return
                 self.phase = "planning"
                 await self.plan_and_book(booking)
-                await asyncio.to_thread(self.fly)
+                self.phase = "flying"
+                self.write_plan()
+                runtime.wake()
+                await runtime.until(self.over)
             finally:
+                if self.phase != "done":
+                    self.phase = "stopped"
                 await self.release(booking)
                 self.write_plan()
 

@@ -16,18 +16,16 @@ import time
 from pathlib import Path
 
 from dynqos.common import keys
-from dynqos.common.clock import Clock, MonotonicClock
+from dynqos.common.bus import Priority, Publisher, Received
 from dynqos.common.config import Config, DroneMissionConfig, PlannerConfig
 from dynqos.common.keys import Downlink
 from dynqos.common.messages import MissionRequest, Reference, State
-from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Bus, Priority, Publisher, Received
 from dynqos.edge import feeds, metrics
 from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
 from dynqos.edge.planner.missions import Mission, load_waypoints, outside_arena
 from dynqos.edge.replicas import Assignment, Role
-from dynqos.edge.service import Service, serve
+from dynqos.edge.runtime import EdgeCore, Ports, serve
 
 log = logging.getLogger(__name__)
 
@@ -50,9 +48,13 @@ def mission_from_config(cfg: PlannerConfig, uav: str | None = None) -> Mission:
     )
 
 
-class PlannerService:
-    def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
-        self._init_mission(config, bus, clock)
+class PlannerService(EdgeCore):
+    name = "planner"
+
+    def __init__(self, config: Config, ports: Ports) -> None:
+        bus = ports.bus
+        self._init_mission(config, ports)
+        self.inbox = ports.inbox
         cfg = self.cfg
         self.assignment = Assignment(
             cfg.replica_id or default_replica_id(),
@@ -65,19 +67,18 @@ class PlannerService:
         self.state_seq: dict[str, int] = {}  # the newest state seen per drone
         # the other replicas' references too: whom they publish for, and their mission time
         self.feeds = DroneFeeds(
-            "planner", bus, self.queue, [feeds.states(), feeds.references(remote_only=True), feeds.missions()]
+            "planner", bus, self.inbox, [feeds.states(), feeds.references(remote_only=True), feeds.missions()]
         )
         self.feeds.reconcile(self.assignment.mine, assignment_changed=True)
 
-    def _init_mission(self, config: Config, bus: Bus, clock: Clock | None) -> None:
+    def _init_mission(self, config: Config, ports: Ports) -> None:
         self.config = config
         self.cfg = config.planner
         self.mission = mission_from_config(self.cfg)  # every drone's but those [planner.drones] names
         self.missions = {uav: mission_from_config(self.cfg, uav) for uav in self.cfg.drones}
-        self.bus = bus
-        self.clock = clock or MonotonicClock()
+        self.bus = ports.bus
+        self.clock = ports.clock
         self.dt_s = config.control.t_mpc_s
-        self.queue: BoundedQueue[Received] = BoundedQueue(1024)
         self.started_ns: dict[str, int] = {}
         self.publishers: dict[str, Publisher] = {}
         # From the wall clock in ms, not 0: a restarted planner (the same replica, the same term) is
@@ -87,12 +88,14 @@ class PlannerService:
         self.mission_seq: dict[str, int] = {}  # the newest MissionRequest seen per drone, flown or refused
         self.missions_flown = 0
         self.missions_refused = 0
-        self.service = Service("planner", self.cfg.health_interval_s)
+        self.health_interval_s = self.cfg.health_interval_s
+        self.period_ns = round(1e9 / self.cfg.publish_hz)
+        self._next_publish_ns = 0
 
-    def discover(self) -> None:
-        """New drones, other replicas' references (their mission time), and who publishes for whom."""
+    def handle(self, events: list[Received], now_ns: int) -> None:
+        """New drones, other replicas' references (their mission time), missions from outside."""
         self.membership.apply()
-        for item in self.queue.drain():
+        for item in events:
             message = item.message
             if isinstance(message, State):
                 self._on_state(message, item.arrival_ns)
@@ -108,7 +111,20 @@ class PlannerService:
                     self.started_ns[message.uav] = item.arrival_ns - round(message.mission_t_s * 1e9)
             elif isinstance(message, MissionRequest):
                 self._on_mission(message, item.arrival_ns)
-        for change in self.assignment.tick(self.clock.now_ns()):
+
+    def tick(self, now_ns: int) -> float:
+        """At `publish_hz`: who publishes for whom, then each served drone's references."""
+        if now_ns < self._next_publish_ns:
+            return (self._next_publish_ns - now_ns) / 1e9
+        self._next_publish_ns = now_ns + self.period_ns
+        self.discover(now_ns)
+        self.publish()
+        return self.period_ns / 1e9
+
+    def discover(self, now_ns: int) -> None:
+        """Replicas that came or went, takeovers due, and the drones to follow for it."""
+        self.membership.apply()
+        for change in self.assignment.tick(now_ns):
             self.membership.log_change(change)
         self.feeds.reconcile(self.assignment.mine, assignment_changed=self.membership.take_changed())
 
@@ -198,15 +214,6 @@ class PlannerService:
             f"followed={len(self.feeds.subscribed)} rejected={self.feeds.rejected()} "
             f"missions={self.missions_flown} refused={self.missions_refused}"
         )
-
-    def run(self) -> None:
-        period = 1.0 / self.cfg.publish_hz
-        while not self.service.stop.is_set():
-            self.discover()
-            self.publish()
-            self.service.maybe_health(self.health)
-            self.service.stop.wait(period)  # the publishing rate, not synchronisation
-        log.info("planner: stopped; %s", self.health())
 
 
 def run(config: Config, *, health_file: Path | None = None) -> int:

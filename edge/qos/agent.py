@@ -30,20 +30,14 @@ import functools
 import logging
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
-
-from aiohttp import web
 
 from dynqos.common import keys
-from dynqos.common.bus import Bus, Priority, Received
-from dynqos.common.clock import NS_PER_S, Clock, MonotonicClock, to_ns
+from dynqos.common.bus import Priority, Received
+from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.config import CamaraConfig, Config
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.lifecycle import ready_line, serving_metrics, stop_loop_on_signals, waker
 from dynqos.common.messages import QosDecision, QosGrant, QosRequest
 from dynqos.common.modes import Grant
-from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Role, open_bus
 from dynqos.edge import metrics as edge_metrics
 from dynqos.edge.membership import default_replica_id
 from dynqos.edge.operator.client import OperatorClient
@@ -55,7 +49,7 @@ from dynqos.edge.qos.peers import AgentPeers
 from dynqos.edge.qos.profile_watch import ProfileWatch
 from dynqos.edge.qos.record import DroneRecord
 from dynqos.edge.qos.sink import SinkGuard, serve_sink
-from dynqos.edge.service import Service
+from dynqos.edge.runtime import EdgeCore, Ports, Runtime, serve
 
 log = logging.getLogger(__name__)
 
@@ -66,16 +60,19 @@ FORGET_AFTER = 10  # a silent drone with no session is forgotten after this many
 READY = "qos agent %s: backend %s, policy %s, priority port %d, %s, ready (%d agent(s) live)"
 
 
-class QosAgent:
-    def __init__(self, config: Config, bus: Bus, clock: Clock | None = None) -> None:
+class QosAgent(EdgeCore):
+    name = "qos"
+
+    def __init__(self, config: Config, ports: Ports) -> None:
+        bus = ports.bus
         self.config = config
         self.qos = config.qos
         self.camara = config.qos.camara
         self.bus = bus
-        self.clock = clock or MonotonicClock()
-        self.service = Service("qos", config.qos.health_interval_s)
-        self.requests: BoundedQueue[Received] = BoundedQueue(1024)
-        self.stats = bus.subscribe(keys.uplink_all_drones(Stream.QOS), self.requests, expect=(QosRequest,))
+        self.clock = ports.clock
+        self.health_interval_s = config.qos.health_interval_s
+        self.inbox = ports.inbox
+        self.stats = bus.subscribe(keys.uplink_all_drones(Stream.QOS), self.inbox, expect=(QosRequest,))
         self.drones: dict[str, DroneRecord] = {}  # everything kept of a drone, forgotten in one step
         self.client: OperatorClient | None = None
         self.calls: OperatorCalls | None = None  # with backend "camara", once the client is open
@@ -83,7 +80,9 @@ class QosAgent:
         self.sink_guard = SinkGuard()  # what the operator's notifications must carry
         self.port = config.zenoh.priority_port
         self.server = self.camara.application_server or config.zenoh.edge_host
-        self.stopping = asyncio.Event()
+        self.stopping = asyncio.Event()  # the runtime's, from `start`
+        self._stack = contextlib.AsyncExitStack()  # what `start` opened, closed by `finish`
+        self._lead_task: asyncio.Task[None] | None = None
         self.seq = 0
         self.arbiter = Arbiter(config.qos.arbiter) if config.qos.policy == "arbiter" else None
         self.decisions = {action: 0 for action in Action}
@@ -97,66 +96,57 @@ class QosAgent:
         self.settled = asyncio.Event()  # its first role is decided (it says it is ready only then)
         preflight(config)
 
-    # ---- the process --------------------------------------------------------------------------------------
+    # ---- the process (edge/runtime.py drives it) -------------------------------------------------------
 
-    def run(self, ready: Any = None) -> None:
-        asyncio.run(self.main(ready))
-
-    async def main(self, ready: Any = None) -> None:
+    async def start(self, runtime: Runtime) -> None:
+        """Open the operator client (and its profile watch and sink), find the other agents, and return
+        once this agent's first role is decided: the runtime says ready then."""
+        self.stopping = runtime.stopping
         loop = asyncio.get_running_loop()
-        stop_loop_on_signals("qos agent", loop, self.stopping.set)
-        sink: web.AppRunner | None = None
-        async with contextlib.AsyncExitStack() as stack:
-            if self.qos.backend == "camara":
-                self.client = await stack.enter_async_context(OperatorClient(self.camara))
-                if self.camara.check_profile:
-                    self.profile = ProfileWatch(self.client, self.camara)
-                    self._use(await self.profile.start())
-                    self.profile.listeners.append(self._profile_changed)
-                    stack.push_async_callback(_cancel, loop.create_task(self.profile.watch()))
-                self.calls = OperatorCalls(
-                    self.client,
-                    self.camara,
-                    self.port,
-                    self.server,
-                    self.clock,
-                    self.sink_guard,
-                    self.profile,
+        stack = self._stack
+        if self.qos.backend == "camara":
+            self.client = await stack.enter_async_context(OperatorClient(self.camara))
+            if self.camara.check_profile:
+                self.profile = ProfileWatch(self.client, self.camara)
+                self._use(await self.profile.start())
+                self.profile.listeners.append(self._profile_changed)
+                stack.push_async_callback(_cancel, loop.create_task(self.profile.watch()))
+            self.calls = OperatorCalls(
+                self.client, self.camara, self.port, self.server, self.clock, self.sink_guard, self.profile
+            )
+            if self.camara.sink_listen:
+                sink = await serve_sink(
+                    self.camara.sink, self.camara.sink_listen, self._notified, self.sink_guard
                 )
-                if self.camara.sink_listen:
-                    sink = await serve_sink(
-                        self.camara.sink, self.camara.sink_listen, self._notified, self.sink_guard
-                    )
-            self.requests.wake = waker(loop, self._take_requests)
-            self._take_requests()  # what came before the loop could be woken
-            self.peers = AgentPeers(self.bus, "all", self.leadership, loop)
-            stack.callback(self.peers.close)
-            await loop.run_in_executor(None, self.peers.query)
-            lead = loop.create_task(self._lead())
-            settled = loop.create_task(self.settled.wait())
-            await asyncio.wait({lead, settled}, return_when=asyncio.FIRST_COMPLETED)
-            if lead.done():  # it failed before the first role was decided: say why
-                settled.cancel()
-                lead.result()
-            if self.arbiter is not None:
-                stack.push_async_callback(
-                    _cancel, asyncio.get_running_loop().create_task(self._arbitrate_loop())
-                )
-            lead_, q = self.leadership, self.qos
-            log.info(READY, lead_.me, q.backend, q.policy, self.port, lead_.role.value, len(lead_.members))
-            if ready is not None:
-                ready()
-            self.service.write_health("ready")
-            while not self.stopping.is_set():
-                with contextlib.suppress(TimeoutError, asyncio.TimeoutError):
-                    await asyncio.wait_for(self.stopping.wait(), self.qos.health_interval_s)
-                self.service.maybe_health(self.health)
-            self.requests.wake = None
-            await _cancel(lead)  # no takeover while stopping
-            await self._shut_down()
-            if sink is not None:
-                await sink.cleanup()
-        log.info("qos agent: stopped; %s", self.health())
+                stack.push_async_callback(sink.cleanup)
+        self.peers = AgentPeers(self.bus, "all", self.leadership, loop)
+        stack.callback(self.peers.close)
+        await loop.run_in_executor(None, self.peers.query)
+        self._lead_task = lead = loop.create_task(self._lead())
+        settled = loop.create_task(self.settled.wait())
+        await asyncio.wait({lead, settled}, return_when=asyncio.FIRST_COMPLETED)
+        if lead.done():  # it failed before the first role was decided: say why
+            settled.cancel()
+            lead.result()
+        if self.arbiter is not None:
+            stack.push_async_callback(_cancel, loop.create_task(self._arbitrate_loop()))
+        lead_, q = self.leadership, self.qos
+        log.info(READY, lead_.me, q.backend, q.policy, self.port, lead_.role.value, len(lead_.members))
+
+    async def finish(self) -> None:
+        """No takeover while stopping; the sessions handed over or deleted; everything opened closed."""
+        if self._lead_task is not None:
+            await _cancel(self._lead_task)
+        await self._shut_down()
+        await self._stack.aclose()
+
+    def handle(self, events: list[Received], now_ns: int) -> None:
+        """The drones' requests (zenoh's threads put them into the runtime's inbox)."""
+        for item in events:
+            self._on_request(item)
+
+    def tick(self, now_ns: int) -> float:
+        return self.qos.health_interval_s  # its timers are its tasks': the drones', the leader's
 
     def _use(self, camara: CamaraConfig) -> None:
         """The operator settings fitted to its profile, for the calls and each drone's grant rules."""
@@ -173,12 +163,6 @@ class QosAgent:
             record.grant.retime(self.camara)
             record.grant.profile_withdrawn(self.profile.withdrawn)
             record.wake.set()
-
-    def _take_requests(self) -> None:
-        """zenoh delivers on its own threads into the bounded queue, whose put into an empty queue wakes
-        the loop (`wake`): every request waiting is handled here, on the loop."""
-        for item in self.requests.drain():
-            self._on_request(item)
 
     def _on_request(self, item: Received) -> None:
         message = item.message
@@ -484,13 +468,7 @@ async def _cancel(task: asyncio.Task[None]) -> None:
 
 def run(config: Config, *, health_file: Path | None = None) -> int:
     """`dynqos edge qos` until SIGTERM: the operator settings are checked before any network is opened;
-    its metrics served, its zenoh session open as an edge client, one ready line once it serves."""
+    a hung agent's tokens go after `session_lease_s`, so that a standby takes over."""
     preflight(config)
-    lease_s = config.qos.session_lease_s  # a hung agent's tokens go after it: a standby takes over
-    with serving_metrics("qos", config) as metrics, open_bus(config.zenoh, Role.EDGE, lease_s=lease_s) as bus:
-        agent = QosAgent(config, bus)
-        agent.service.health_file = health_file
-        agent.service.beat = metrics.health.beat
-        edge_metrics.qos(agent, metrics)
-        agent.run(ready=lambda: ready_line("qos"))
-    return 0
+    lease_s = config.qos.session_lease_s
+    return serve("qos", config, QosAgent, edge_metrics.qos, health_file=health_file, lease_s=lease_s)

@@ -22,11 +22,10 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import zenoh
+from typing import Any, cast
 
 from dynqos.common import keys
+from dynqos.common.bus import Priority, Publisher, RawBus, Received, Token
 from dynqos.common.config import Config
 from dynqos.common.errors import KeyExprError
 from dynqos.common.floods import worth_logging
@@ -40,17 +39,17 @@ from dynqos.common.messages import (
     SupervisorStatus,
 )
 from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Priority, Received, ZenohBus
 from dynqos.edge.resend import LatestMissions
 from dynqos.edge.ros2 import codec, wire
 from dynqos.edge.ros2.steer import KINDS, STEER_QOS, Refusal, Steering, Vec
 from dynqos.edge.ros2.translate import STATUS_QOS, Translator
 from dynqos.edge.ros2.wire import Entity, Node, Qos
-from dynqos.edge.service import Service, serve
+from dynqos.edge.runtime import EdgeCore, Ports, serve
 
 log = logging.getLogger(__name__)
 
 NODE_NAME = "dynqos_edge"
+INBOX_SIZE = 16384  # a publish period's arrivals: 100 drones' states, statuses, 1 KB camera parts, 0.1 s
 
 
 @dataclass
@@ -59,67 +58,65 @@ class Topic:
 
     name: str
     ros_type: str
-    publisher: Any  # zenoh.Publisher
-    token: Any  # zenoh.LivelinessToken
+    publisher: Publisher
+    token: Token
     gid: bytes
     sequence: int = 0
 
     def publish(self, payload: bytes) -> None:
         self.sequence += 1
         attachment = wire.Attachment(self.sequence, time.time_ns(), self.gid).encode()
-        self.publisher.put(payload, attachment=attachment)
+        self.publisher.put_bytes(payload, attachment)
 
     def close(self) -> None:
-        self.publisher.undeclare()
-        self.token.undeclare()
+        self.publisher.close()
+        self.token.close()
 
 
-class Ros2Face:
-    def __init__(self, config: Config, bus: ZenohBus) -> None:
+class Ros2Face(EdgeCore):
+    name = "ros2"
+
+    def __init__(self, config: Config, ports: Ports) -> None:
         self.cfg = config.ros2
-        self.session: zenoh.Session = bus.session
-        # a publish period's arrivals: 100 drones' states, statuses and 1 KB camera parts for 0.1 s
-        self.queue: BoundedQueue[Received] = BoundedQueue(16384)
+        self.bus = bus = cast(RawBus, ports.bus)  # zenoh's (`serve` opens it) or a MemoryBus
+        self.inbox = ports.inbox
+        # the arrivals are taken in batches at each publish period (none: as they come)
+        self.batch_s = self.cfg.publish_period_s
         self.stats = [
-            bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.queue, expect=(State,)),
-            bus.subscribe(keys.uplink_all_drones(Stream.STATUS), self.queue, expect=(SupervisorStatus,)),
-            bus.subscribe(keys.uplink_all_drones(Stream.CAMERA_RGB), self.queue, expect=(CameraFrame,)),
-            bus.subscribe(keys.downlink_all_drones(Downlink.DETECTIONS), self.queue, expect=(Detections,)),
-            bus.subscribe(keys.downlink_all_drones(Downlink.QOS_GRANT), self.queue, expect=(QosGrant,)),
-            bus.subscribe(keys.downlink_all_drones(Downlink.QOS_DECISION), self.queue, expect=(QosDecision,)),
+            bus.subscribe(keys.uplink_all_drones(Stream.STATE), self.inbox, expect=(State,)),
+            bus.subscribe(keys.uplink_all_drones(Stream.STATUS), self.inbox, expect=(SupervisorStatus,)),
+            bus.subscribe(keys.uplink_all_drones(Stream.CAMERA_RGB), self.inbox, expect=(CameraFrame,)),
+            bus.subscribe(keys.downlink_all_drones(Downlink.DETECTIONS), self.inbox, expect=(Detections,)),
+            bus.subscribe(keys.downlink_all_drones(Downlink.QOS_GRANT), self.inbox, expect=(QosGrant,)),
+            bus.subscribe(keys.downlink_all_drones(Downlink.QOS_DECISION), self.inbox, expect=(QosDecision,)),
         ]
         self.translator = Translator(self.cfg.prefix, self.cfg.frame_id)
-        zid = str(self.session.info.zid())
-        self.node = Node(self.cfg.domain_id, zid, 0, f"/{self.cfg.prefix}", NODE_NAME)
-        self.node_token = self.session.liveliness().declare_token(self.node.token())
+        self.node = Node(self.cfg.domain_id, bus.zid, 0, f"/{self.cfg.prefix}", NODE_NAME)
+        self.node_token = bus.declare_token(self.node.token())
         self.topics: dict[str, Topic] = {}
         self.entities = 0
         self.published = 0
-        self.next_tick = time.monotonic()  # the next publish_period_s tick
-        self.service = Service("ros2", self.cfg.health_interval_s)
+        self.health_interval_s = self.cfg.health_interval_s
         self._init_steering(config, bus)
 
-    def _init_steering(self, config: Config, bus: ZenohBus) -> None:
+    def _init_steering(self, config: Config, bus: RawBus) -> None:
         planner = config.planner
-        self.bus = bus
         self.steering = Steering(self.cfg.frame_id, planner.arena_min_m, planner.arena_max_m)
         self.positions: dict[str, Vec] = {}  # each drone's last position: where a mission starts
-        self.steered: dict[str, list[Any]] = {}  # each drone's subscriber tokens
+        self.steered: dict[str, list[Token]] = {}  # each drone's subscriber tokens
         self.steer_queue: BoundedQueue[tuple[str, bytes]] = BoundedQueue(64)
         self.missions = LatestMissions(time.monotonic_ns())  # the last sent per drone, re-sent each second
         self.mission_seq = time.time_ns() // 1_000_000  # newer than a restarted bridge's last
         self.missions_sent = 0
         self.missions_refused = 0
         self._topic_root = f"{self.cfg.domain_id}/{self.cfg.prefix}/"
-        self.steer_subscribers = [
-            self.session.declare_subscriber(
+        for kind, ros_type in KINDS.items():
+            bus.raw_subscribe(
                 wire.topic_key(
                     self.cfg.domain_id, f"/{self.cfg.prefix}/*/{kind}", ros_type, codec.type_hash(ros_type)
                 ),
-                lambda sample: self.steer_queue.put((str(sample.key_expr), sample.payload.to_bytes())),
+                lambda key, payload: self.steer_queue.put((key, payload)),
             )
-            for kind, ros_type in KINDS.items()
-        ]
 
     def _entity(self) -> int:
         self.entities += 1
@@ -132,18 +129,18 @@ class Ros2Face:
             return found
         type_hash = codec.type_hash(ros_type)
         token_key = self.node.endpoint_token(self._entity(), Entity.PUBLISHER, name, ros_type, type_hash, qos)
-        publisher = self.session.declare_publisher(
+        publisher = self.bus.publisher(
             wire.topic_key(self.cfg.domain_id, name, ros_type, type_hash),
-            priority=zenoh.Priority.DATA_LOW,
-            congestion_control=zenoh.CongestionControl.DROP,
+            Priority.DATA_LOW,
+            drop_when_congested=True,
         )
-        token = self.session.liveliness().declare_token(token_key)
+        token = self.bus.declare_token(token_key)
         topic = Topic(name, ros_type, publisher, token, wire.gid(token_key))
         self.topics[name] = topic
         log.info("ros2: publishing %s (%s)", name, ros_type)
         return topic
 
-    def handle(self, item: Received) -> None:
+    def translate(self, item: Received) -> None:
         uav = keys.parse(item.key).uav
         if isinstance(item.message, State):
             self.positions[uav] = item.message.pos_m
@@ -156,7 +153,7 @@ class Ros2Face:
     def _listen_for_steering(self, uav: str) -> None:
         """Subscriber tokens for the drone's mission and goal: ROS 2 sees who listens there."""
         self.steered[uav] = [
-            self.session.liveliness().declare_token(
+            self.bus.declare_token(
                 self.node.endpoint_token(
                     self._entity(),
                     Entity.SUBSCRIPTION,
@@ -225,35 +222,24 @@ class Ros2Face:
             f"missions={self.missions_sent} refused={self.missions_refused}"
         )
 
-    def arrived(self) -> list[Received]:
-        """What arrived since the last call: at the next tick of publish_period_s (a pacing on this
-        service's clock, not tied to any arrival), or the next message as it comes (0)."""
-        period = self.cfg.publish_period_s
-        if not period:
-            item = self.queue.get(timeout_s=0.1)
-            return [] if item is None else [item]
-        now = time.monotonic()
-        self.next_tick = max(self.next_tick + period, now)
-        self.service.stop.wait(self.next_tick - now)
-        return self.queue.drain()
+    def handle(self, events: list[Received], now_ns: int) -> None:
+        """What arrived in the last publish period (or each message as it comes), to ROS 2."""
+        for item in events:
+            self.translate(item)
 
-    def run(self) -> None:
-        try:
-            while not self.service.stop.is_set():
-                for item in self.arrived():
-                    self.handle(item)
-                for key, payload in self.steer_queue.drain():
-                    self.steer(key, payload)
-                self.missions.resend_due(time.monotonic_ns())
-                self.service.maybe_health(self.health)
-        finally:
-            for subscriber in self.steer_subscribers:
-                subscriber.undeclare()  # type: ignore[no-untyped-call]
-            for topic in self.topics.values():
-                topic.close()
-            for token in (t for tokens in self.steered.values() for t in tokens):
-                token.undeclare()
-            self.node_token.undeclare()  # type: ignore[no-untyped-call]
+    def tick(self, now_ns: int) -> float:
+        """Missions and goals from ROS 2 since the last tick; the missions re-sent once a second."""
+        for key, payload in self.steer_queue.drain():
+            self.steer(key, payload)
+        self.missions.resend_due(time.monotonic_ns())
+        return self.batch_s or 0.1
+
+    async def finish(self) -> None:
+        for topic in self.topics.values():
+            topic.close()
+        for token in (t for tokens in self.steered.values() for t in tokens):
+            token.close()
+        self.node_token.close()
 
 
 def _register(worker: Any, metrics: Any) -> None:
@@ -261,7 +247,4 @@ def _register(worker: Any, metrics: Any) -> None:
 
 
 def run(config: Config, *, health_file: Path | None = None) -> int:
-    def make(cfg: Config, bus: Any) -> Ros2Face:
-        return Ros2Face(cfg, bus)
-
-    return serve("ros2", config, make, _register, health_file=health_file)
+    return serve("ros2", config, Ros2Face, _register, health_file=health_file, inbox_size=INBOX_SIZE)
