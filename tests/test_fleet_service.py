@@ -25,7 +25,7 @@ from dynqos.common.config import (
     PredictionConfig,
     RadioConfig,
 )
-from dynqos.common.errors import ConfigError
+from dynqos.common.errors import ConfigError, DynqosError
 from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import MissionRequest, State
 from dynqos.common.queues import BoundedQueue
@@ -36,7 +36,7 @@ from dynqos.edge.planner.fleet_plan import Leg, Plan
 from dynqos.edge.planner.fleet_schedule import missions_of
 from dynqos.edge.planner.fleet_service import FleetPlannerService
 from dynqos.edge.runtime import Ports
-from tests.edge_cores import take
+from tests.edge_cores import take, turn
 from tests.test_qod_api import DEVICE, emulated_operator, run
 
 TASKS = (
@@ -207,3 +207,43 @@ def test_without_a_prediction_the_blind_plan_is_flown_and_says_why() -> None:
     assert service.plan.assigned() == {"a": "uav1", "b": "uav1"}
     assert service.booked == []
     assert left == 0
+
+
+def test_its_ticks_wait_for_every_drone_then_name_the_silent_ones_and_end_the_mission_when_flown() -> None:
+    """The phases as the runtime drives them: waiting until every drone is heard (past wait_s, an error
+    naming the silent ones), then, once planned, flying until the last leg is past (`over` set)."""
+    clock = FakeClock(5_000_000_000)
+    bus = MemoryBus(clock)
+    config = Config(fleet_plan=fleet(mode="blind", drones=("uav1", "uav2"), wait_s=10.0))
+    silent = FleetPlannerService(config, Ports(bus, clock))
+    up = bus.publisher(keys.uplink("uav1", Flow.DEFAULT, Stream.STATE), Priority.REAL_TIME)
+    up.put(state("uav1", (3.0, 1.0, -1.5)))
+    turn(silent, clock.now_ns())
+    assert not silent.heard.is_set()
+    clock.advance_s(10.5)
+    with pytest.raises(DynqosError, match="never heard uav2 in offboard mode within 10 s"):
+        turn(silent, clock.now_ns())
+
+    service = FleetPlannerService(config, Ports(bus, clock))
+    for uav in ("uav1", "uav2"):
+        bus.publisher(keys.uplink(uav, Flow.DEFAULT, Stream.STATE), Priority.REAL_TIME).put(
+            state(uav, (3.0, 1.0, -1.5))
+        )
+    turn(service, clock.now_ns())
+    assert service.heard.is_set()
+
+    async def planned() -> None:
+        async with OperatorClient(config.qos.camara) as operator:
+            await service.plan_and_book(BookingApi(operator))
+
+    asyncio.run(planned())
+    service.phase = "flying"  # as its mission task sets it once planned
+    assert service.plan is not None
+    clock.advance_s(1.0)
+    assert turn(service, clock.now_ns()) <= 0.1
+    assert service.sent == 2
+    assert not service.over.is_set()
+    clock.advance_s(service.plan.mission_s + 1.0)
+    turn(service, clock.now_ns())
+    assert service.phase == "done"
+    assert service.over.is_set()
