@@ -9,12 +9,12 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from dynqos.common.clock import FakeClock
 from dynqos.common.errors import MessageError
-from dynqos.common.messages import FC_TEXT_MAX, SupervisorStatus, decode, encode
-from dynqos.common.modes import ControlSource, Flow, SupervisorState
+from dynqos.common.messages import FC_TEXT_MAX, decode, encode
 from dynqos.onboard.fc import FcSaid
 from dynqos.onboard.fclink import FcLink
 from dynqos.reports.summary import FC_SAID_KEPT, fc_said
 from tests.conftest import free_tcp_port
+from tests.statuses import status_saying as _status
 
 
 def test_a_statustext_becomes_what_the_fc_said_with_its_severity_and_arrival() -> None:
@@ -32,35 +32,6 @@ def test_a_statustext_becomes_what_the_fc_said_with_its_severity_and_arrival() -
         assert link.texts == ["Preflight Fail: GPS", "Takeoff detected"]
     finally:
         link.close()
-
-
-def _status(stamp_ns: int, text: str, severity: int | None) -> SupervisorStatus:
-    q1 = SupervisorState.Q1
-    return SupervisorStatus(
-        uav="uav1",
-        seq=1,
-        stamp_ns=stamp_ns,
-        state=q1,
-        flow=Flow.DEFAULT,
-        camera_rate_factor=1.0,
-        control_source=ControlSource.EDGE,
-        camera_flow=Flow.DEFAULT,
-        latency="LL",
-        risk="LR",
-        watchdog=False,
-        t_cam_ms=None,
-        t_cc_ms=None,
-        spaciousness_m=None,
-        p_cam=0.0,
-        p_cc=0.0,
-        p_lat=0.0,
-        p_cs=0.0,
-        prev_state=q1,
-        cause="",
-        changed_ns=0,
-        fc_text=text,
-        fc_severity=severity,
-    )
 
 
 def test_the_summary_lists_each_text_once_from_when_it_first_came() -> None:

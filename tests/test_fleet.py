@@ -29,6 +29,7 @@ from dynqos.experiment.scenario import (
 from dynqos.reports.fleet import _queue_delays, summarise_fleet
 from tests.flights import fly_for_behaviour, not_ours
 from tests.procs import DYNQOS
+from tests.statuses import status_saying
 
 DRONE_KEYS = {
     "uav_offered_mbps",
@@ -291,8 +292,15 @@ def test_a_drone_never_heard_in_the_flight_fails_the_fleets_check() -> None:
         return Recording(states=[(10.0, state)])
 
     all_heard = {d.id: heard(d.id) for d in scenario.drones}
+    said = status_saying(3, "Failsafe enabled: no offboard", 4, uav="uav2")
+    all_heard["uav2"] = replace(all_heard["uav2"], status=[said])
     summary = summarise_fleet(scenario, Recording(), all_heard, [], {}, ok=True, failure="")
     assert summary["checks"]["every_drone_heard"] is True
+    # what each drone's flight controller said, in its own entry
+    assert summary["drones"]["uav2"]["fc_said"] == [
+        {"t_s": 0.0, "severity": 4, "text": "Failsafe enabled: no offboard"}
+    ]
+    assert summary["drones"]["uav1"]["fc_said"] == []
     one_silent = all_heard | {"uav1": Recording()}
     summary = summarise_fleet(scenario, Recording(), one_silent, [], {}, ok=True, failure="")
     assert summary["checks"]["every_drone_heard"] is False

@@ -38,6 +38,7 @@ DRONE_FIELDS = (
     "states_recorded",
     "faults",
     "radio",
+    "fc_said",
 )
 PRIORITY_STATES = sorted(s.value for s in SUPERVISOR_PRIORITY_STATES)  # q2, q3, q5, q6
 RATE_ADAPTATION_STATES = sorted(s.value for s in SUPERVISOR_RATE_ADAPTATION_STATES)  # q4, q5, q6
