@@ -5,6 +5,7 @@ from ../shared/camara; without them (or without schemathesis) this skips and say
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from typing import Any
 
@@ -75,3 +76,27 @@ def test_generated_requests_find_no_server_error_and_no_answer_outside_the_docum
 
         one()
     assert calls >= len(operations) * 5
+
+
+def test_a_method_a_resource_does_not_take_is_405_with_the_methods_it_takes(cell: int) -> None:
+    """RFC 9110: a 405 names the allowed methods in `Allow` (schemathesis's undeclared-method check
+    asks for it), in CAMARA's error shape for the APIs, and for the cell's own controls too."""
+    import urllib.error
+    import urllib.request
+
+    def answer(method: str, path: str) -> tuple[int, str, dict[str, Any]]:
+        request = urllib.request.Request(f"http://127.0.0.1:{cell}{path}", method=method, data=b"{}",
+                                         headers={"Content-Type": "application/json"})  # fmt: skip
+        try:
+            with urllib.request.urlopen(request, timeout=10) as response:
+                return response.status, response.headers.get("Allow", ""), json.loads(response.read())
+        except urllib.error.HTTPError as exc:
+            return exc.code, exc.headers.get("Allow", ""), json.loads(exc.read())
+
+    status, allow, body = answer("PUT", "/quality-on-demand/v1/sessions")
+    assert (status, allow, body["code"]) == (405, "POST", "METHOD_NOT_ALLOWED")
+    status, allow, body = answer("PATCH", "/quality-on-demand/v1/sessions/abc")
+    assert status == 405
+    assert set(allow.split(",")) == {"GET", "HEAD", "DELETE"}
+    status, allow, _ = answer("DELETE", "/counters")
+    assert (status, set(allow.split(","))) == (405, {"GET", "HEAD"})

@@ -220,13 +220,16 @@ class ControlApi:
             return _json(reply.answer)
         except web.HTTPException as exc:
             if request.path.startswith(CAMARA_PREFIXES):
-                return _json(
-                    error(exc.status, "NOT_FOUND" if exc.status == 404 else "INVALID_ARGUMENT", exc.reason)
+                code = {404: "NOT_FOUND", 405: "METHOD_NOT_ALLOWED"}.get(exc.status, "INVALID_ARGUMENT")
+                answer = _json(error(exc.status, code, exc.reason))
+            else:
+                answer = web.json_response(
+                    {"error": f"no {request.method} {request.path}; use GET /counters or POST /events"},
+                    status=exc.status,
                 )
-            return web.json_response(
-                {"error": f"no {request.method} {request.path}; use GET /counters or POST /events"},
-                status=exc.status,
-            )
+            if "Allow" in exc.headers:  # a 405 says which methods the resource takes (RFC 9110, 15.5.6)
+                answer.headers["Allow"] = exc.headers["Allow"]
+            return answer
 
     def _authorise(self, request: web.Request) -> None:
         if not self.emulator.cell.qod_auth:
