@@ -20,6 +20,7 @@ import asyncio
 import contextlib
 import contextvars
 import email.utils
+import json
 import logging
 import random
 import time
@@ -129,11 +130,15 @@ class OperatorClient:
         expect: tuple[int, ...],
         root: str = "",
         timeout_s: float | None = None,
+        content_type: str = "application/json",
     ) -> Any:
         """A call to one of the operator's APIs (under `root`; the QoD API's root when empty), with this
         client's token, correlator, retries and time-out (`timeout_s` in its place for this call): the
-        answer's JSON, or an OperatorError."""
-        return await self._call(method, path, body, expect=expect, root=root, timeout_s=timeout_s)
+        answer's JSON, or an OperatorError. `content_type`: the body's (a merge patch's is
+        application/merge-patch+json, RFC 7396)."""
+        return await self._call(
+            method, path, body, expect=expect, root=root, timeout_s=timeout_s, content_type=content_type
+        )
 
     # ---- one call: token, timeout, retries --------------------------------------------------------------
 
@@ -146,6 +151,7 @@ class OperatorClient:
         expect: tuple[int, ...],
         root: str = "",
         timeout_s: float | None = None,
+        content_type: str = "application/json",
     ) -> Any:
         limit_s = self.cfg.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + limit_s
@@ -155,7 +161,8 @@ class OperatorClient:
         while True:
             self.calls += 1
             url = (root or self.root) + path
-            status, answer, retry_after = await self._once(method, url, body, deadline, limit_s, correlator)
+            sent = (body, content_type)
+            status, answer, retry_after = await self._once(method, url, sent, deadline, limit_s, correlator)
             if status in expect:
                 return answer
             # the token endpoint refused the credential: asking it again now would be refused too
@@ -179,18 +186,23 @@ class OperatorClient:
         self,
         method: str,
         url: str,
-        body: dict[str, Any] | None,
+        sent: tuple[dict[str, Any] | None, str],
         deadline: float,
         limit_s: float,
         correlator: str,
     ) -> tuple[int, Any, float | None]:
-        """One attempt before the call's `deadline` (monotonic); `limit_s`, its time-out, for the message."""
+        """One attempt before the call's `deadline` (monotonic); `limit_s`, its time-out, for the message;
+        `sent`, the body and its content type."""
+        body, content_type = sent
         assert self.http is not None, "use `async with OperatorClient(...)`"
         timed_out = {"code": "TIMEOUT", "message": f"no answer within {limit_s:g} s"}
         left = deadline - time.monotonic()
         if left <= 0:
             return 0, timed_out, None
         headers = {**self.fixed_headers, "Accept": "application/json", "x-correlator": correlator}
+        data = None if body is None else json.dumps(body).encode()
+        if data is not None:
+            headers["Content-Type"] = content_type
         try:
             token = await asyncio.wait_for(self._bearer(), left)
             if token:
@@ -198,7 +210,7 @@ class OperatorClient:
             async with self.http.request(
                 method,
                 url,
-                json=body,
+                data=data,
                 headers=headers,
                 timeout=aiohttp.ClientTimeout(total=max(0.01, deadline - time.monotonic())),
             ) as response:
