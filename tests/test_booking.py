@@ -18,6 +18,7 @@ from dynqos.edge.operator.booking import BookingApi, BookingInfo, booking_root, 
 from dynqos.edge.operator.client import OperatorClient, OperatorError
 from dynqos.sim.network.booking import KEEP_UNAVAILABLE_S, Bookings
 from dynqos.sim.network.operator import Operator
+from dynqos.sim.network.operator_apis import OperatorApis
 from tests.test_qod_api import DEVICE, SECRET, emulated_operator, run
 
 GEO = Geo(PredictionConfig().origin_lat_deg, PredictionConfig().origin_lon_deg)
@@ -38,7 +39,6 @@ def bookings(where: tuple[float, float] | None = None, max_concurrent: int = -1)
                         {"uav1": "127.0.0.1", "uav2": "127.0.0.1"}, time.monotonic, clock)  # fmt: skip
     books = Bookings(operator, clock, GEO, lambda uav: where, lambda x, y: abs(x) < 20 and abs(y) < 20,
                      max_concurrent)  # fmt: skip
-    operator.bookings = books
     return books, clock
 
 
@@ -52,25 +52,26 @@ def body(start: float, duration: int = 30, device: dict[str, Any] = DEVICE, **ch
 
 def test_a_booking_is_scheduled_then_available_in_its_area_then_expires() -> None:
     books, clock = bookings(where=(1.0, 1.0))
+    operator = OperatorApis(books.operator, books)  # a QoD session or a booking grants, as the cell asks
     answer, _ = books.create(body(T0 + 10))
     assert answer.status == 201
     info = BookingInfo.parse(answer.body)
     assert info.status == "SCHEDULED"
-    assert not books.operator.granted("uav1", 7448)
+    assert not operator.granted("uav1", 7448)
     clock.now = T0 + 11
-    books.operator.advance()
+    operator.advance()
     assert books.get(info.booking_id).body["status"] == "AVAILABLE"
-    assert books.operator.granted("uav1", 7448)
-    assert not books.operator.granted("uav1", 7447)  # another flow: not booked
-    assert not books.operator.granted("uav2", 7448)
+    assert operator.granted("uav1", 7448)
+    assert not operator.granted("uav1", 7447)  # another flow: not booked
+    assert not operator.granted("uav2", 7448)
     books.where = lambda uav: (9.0, 0.0)  # out of the 5 m circle: no priority there
-    assert not books.operator.granted("uav1", 7448)
+    assert not operator.granted("uav1", 7448)
     clock.now = T0 + 41
-    books.operator.advance()
+    operator.advance()
     ended = books.get(info.booking_id).body
     assert (ended["status"], ended["statusInfo"]) == ("UNAVAILABLE", "DURATION_EXPIRED")
     clock.now = T0 + 41 + KEEP_UNAVAILABLE_S
-    books.operator.advance()
+    operator.advance()
     assert books.get(info.booking_id).status == 404  # forgotten, as the API allows
 
 

@@ -22,7 +22,8 @@ from dynqos.common.config import BearerConfig, CellConfig, CellEventConfig
 from dynqos.common.errors import ConfigError
 from dynqos.sim.network.bearer import Bearer, Connection, DroneSide, EdgeSide, socket_buffer_bytes
 from dynqos.sim.network.cell_core import CellCore, describe
-from dynqos.sim.network.operator import Notification, Operator
+from dynqos.sim.network.operator import Notification
+from dynqos.sim.network.operator_apis import OperatorApis
 from dynqos.sim.network.radio_feed import RadioFeed
 from dynqos.sim.network.traces import Trace, TraceError
 
@@ -36,20 +37,36 @@ _now_ns = time.monotonic_ns
 
 class CellEmulator:
     def __init__(
-        self, cell: CellConfig, bearers: tuple[BearerConfig, ...], out_dir: Path | None = None
+        self,
+        cell: CellConfig,
+        bearers: tuple[BearerConfig, ...],
+        out_dir: Path | None = None,
+        *,
+        operator: OperatorApis | None = None,
+        notify: Callable[[list[Notification]], None] = lambda notes: None,
+        radio: RadioFeed | None = None,
+        start_ns: int | None = None,
+        beat: Callable[[str], None] | None = None,
     ) -> None:
+        """`operator`: the QoD API's sessions and bookings ([cell] qod = true): while it is there, a
+        drone's bearer has its priority weight only while a session or booking grants it; `notify` posts
+        what it tells clients; `radio`: each drone's rate from its position ([cell.radio]);
+        `start_ns`: the timeline's zero (now by default); `beat`: /healthz's record, once per record."""
         self.cell = cell
         self.scale = cell.scale
         self.socket_buffer = socket_buffer_bytes(cell.scale)
         self.loop = asyncio.get_running_loop()
-        self.start_ns = _now_ns()
+        self.start_ns = _now_ns() if start_ns is None else start_ns
         self.core = CellCore(
             cell,
             {b.name: b.weight for b in bearers},
             self.start_ns,
             ue_bearers=frozenset(b.name for b in bearers if b.ue),
         )
-        self.core.qod = False  # until an operator is attached (`operator`)
+        self.core.qod = operator is not None
+        self.operator = operator
+        self.notify = notify
+        self.radio = radio
         self.bearers = [Bearer(self.core, self.loop, self.open_upstream, b, cell) for b in bearers]
         self.background = self.core.background
         self.tti_ns = self.core.tti_ns
@@ -57,12 +74,9 @@ class CellEmulator:
         self._tick_handle: asyncio.TimerHandle | None = None
         self._next_tick_ns = self.start_ns
         self.stopped = asyncio.Event()
-        self._operator: Operator | None = None
-        self.notify: Callable[[list[Notification]], None] = lambda notes: None
         self.ticks = 0
         self.late_ticks = 0
-        self.radio: RadioFeed | None = None  # [cell.radio]: each drone's rate from its position
-        self.beat: Callable[[str], None] | None = None  # /healthz (common/metrics.py), once per record
+        self.beat = beat
         self._csv_file: TextIO | None = None
         self._csv: Any = None
         self.last_interval: dict[str, dict[str, float]] = {}
@@ -87,17 +101,6 @@ class CellEmulator:
             )
 
     # ---- set-up ------------------------------------------------------------------------------------
-
-    @property
-    def operator(self) -> Operator | None:
-        """The QoD API's sessions ([cell] qod = true): while one is attached, a drone's bearer has its
-        priority weight only while a session grants it."""
-        return self._operator
-
-    @operator.setter
-    def operator(self, operator: Operator | None) -> None:
-        self._operator = operator
-        self.core.qod = operator is not None
 
     def _set_trace(self, path: str, mean_mbps: float, key: str) -> None:
         trace = None

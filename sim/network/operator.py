@@ -16,7 +16,7 @@ import ipaddress
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from dynqos.common.camara import EVENT_TYPE, ports_named, rfc3339
 from dynqos.common.config import CellConfig, CellEventConfig
@@ -28,9 +28,6 @@ from dynqos.sim.network.operator_schema import (
     RETRIEVE_SESSIONS_STRICT,
     problem,
 )
-
-if TYPE_CHECKING:
-    from dynqos.sim.network.booking import Bookings
 
 ENDED_KEPT_S = (
     360.0  # an ended session not deleted is dropped this long after it ended (the spec's "at earliest")
@@ -174,7 +171,6 @@ class Operator:
     offered: list[str] = field(default_factory=list)
     inactive: set[str] = field(default_factory=set)
     caps: dict[str, int] = field(default_factory=dict)
-    bookings: Bookings | None = None  # the QoS Booking API's, once the service attaches it
 
     def __post_init__(self) -> None:
         self.offered = list(dict.fromkeys((*self.cell.qod_profiles, *self.cell.qod_inactive_profiles)))
@@ -335,10 +331,8 @@ class Operator:
     # ---- the network --------------------------------------------------------------------------------------
 
     def advance(self) -> list[Notification]:
-        """Settle REQUESTED sessions, expire the ones past their duration, start and end bookings; called
-        every few TTIs."""
-        notes = self._expire_and_settle(self.monotonic())
-        return notes + (self.bookings.advance() if self.bookings is not None else [])
+        """Settle REQUESTED sessions and expire the ones past their duration; called every few TTIs."""
+        return self._expire_and_settle(self.monotonic())
 
     def end_sessions(self, uav: str = "") -> list[Notification]:
         """The network ends the AVAILABLE sessions of `uav` (or of every drone): NETWORK_TERMINATED."""
@@ -351,11 +345,11 @@ class Operator:
         return notes
 
     def granted(self, uav: str, port: int) -> bool:
-        """A QoD session, or a booking (sim/network/booking.py), gives this flow of the drone priority."""
+        """A QoD session gives this flow of the drone priority (a booking may too: operator_apis.py)."""
         return any(
             s.uav == uav and s.status == "AVAILABLE" and (not s.ports() or port in s.ports())
             for s in self.sessions.values()
-        ) or (self.bookings is not None and self.bookings.granted(uav, port))
+        )
 
     def open_sessions(self) -> list[dict[str, Any]]:
         """Sessions not deleted (an ended one still holds resources until deleted)."""

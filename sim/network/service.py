@@ -24,7 +24,9 @@ from dynqos.common.metrics import ProcessMetrics, counter, gauge
 from dynqos.sim.network.booking import Bookings
 from dynqos.sim.network.cell import CellEmulator
 from dynqos.sim.network.control_api import ControlApi, Tap
+from dynqos.sim.network.notify import Notifier
 from dynqos.sim.network.operator import Operator
+from dynqos.sim.network.operator_apis import OperatorApis
 from dynqos.sim.network.prediction import Predictor
 from dynqos.sim.network.radio import RadioMap
 from dynqos.sim.network.radio_feed import RadioFeed
@@ -91,34 +93,30 @@ async def run_cell(
     `qod_client`: the (client id, secret) its token endpoint accepts ([cell] qod_auth = true), and
     `qod_client_key` the client's public key for private_key_jwt assertions; `tap`
     sees every control-API exchange (method, path, request JSON, status, response JSON)."""
-    emulator = CellEmulator(cell, bearers, out_dir)
+    if cell.qod and cell.control_port < 0:
+        raise ConfigError("cell.control_port", "the QoD API ([cell] qod = true) needs a control port, 0: any")
+    emulator, notifier = _build(cell, bearers, out_dir, qod_devices or {}, metrics)
+    radio, operator = emulator.radio, emulator.operator
     await emulator.start()
-    radio = await _start_radio(cell, bearers, emulator, out_dir)
     if metrics is not None:
-        emulator.beat = metrics.health.beat
         metrics.add(lambda: cell_families(emulator))
     control: ControlApi | None = None
     control_port = None
-    if cell.qod:
-        if cell.control_port < 0:
-            raise ConfigError(
-                "cell.control_port", "the QoD API ([cell] qod = true) needs a control port (0: any)"
-            )
-        servers = {b.ue: b.target_host_port[0] for b in bearers if b.ue}
-        emulator.operator = Operator(cell, dict(qod_devices or {}), servers, time.monotonic, time.time)
-        emulator.operator.bookings = _bookings(cell, emulator.operator, radio)
     try:
+        await notifier.start()
+        if radio is not None:
+            await _start_radio(radio, emulator, out_dir)
         if cell.control_port >= 0:
             control = ControlApi(
                 emulator,
-                emulator.operator,
+                operator,
+                notifier,
                 *qod_client,
                 client_key=qod_client_key,
                 api_headers=qod_api_headers,
                 tap=tap,
             )
             control_port = await _listen(control, cell.control_port)
-            emulator.notify = control.send
         stop_loop_on_signals("cell", emulator.loop, emulator.stopped.set)
         info = {
             "ready": True,
@@ -144,10 +142,37 @@ async def run_cell(
         counters = _final_counters(emulator, out_dir)
         if control is not None:
             await control.stop()
+        await notifier.stop()
         if radio is not None:
             radio.close()
         await emulator.stop()
     return counters
+
+
+def _build(
+    cell: CellConfig,
+    bearers: tuple[BearerConfig, ...],
+    out_dir: Path | None,
+    devices: dict[str, dict[str, Any]],
+    metrics: ProcessMetrics | None,
+) -> tuple[CellEmulator, Notifier]:
+    """The cell and its parts, built in the order each needs the other: the radio (from the timeline's
+    zero), the operator (its bookings read the radio), the notifier, then the cell around them."""
+    start_ns, start_unix = time.monotonic_ns(), time.time()
+    radio = _radio(cell, bearers, start_unix)
+    operator = _operator(cell, bearers, devices, radio) if cell.qod else None
+    notifier = Notifier()
+    emulator = CellEmulator(
+        cell,
+        bearers,
+        out_dir,
+        operator=operator,
+        notify=notifier.send,
+        radio=radio,
+        start_ns=start_ns,
+        beat=metrics.health.beat if metrics is not None else None,
+    )
+    return emulator, notifier
 
 
 async def _listen(control: ControlApi, port: int) -> int:
@@ -158,6 +183,18 @@ async def _listen(control: ControlApi, port: int) -> int:
         raise ConfigError(
             "cell.control_port", f"cannot listen on 127.0.0.1:{port} ({exc.strerror})"
         ) from None
+
+
+def _operator(
+    cell: CellConfig,
+    bearers: tuple[BearerConfig, ...],
+    devices: dict[str, dict[str, Any]],
+    radio: RadioFeed | None,
+) -> OperatorApis:
+    """The emulated operator ([cell] qod = true): its QoD sessions and its bookings."""
+    servers = {b.ue: b.target_host_port[0] for b in bearers if b.ue}
+    qod = Operator(cell, dict(devices), servers, time.monotonic, time.time)
+    return OperatorApis(qod, _bookings(cell, qod, radio))
 
 
 def _bookings(cell: CellConfig, operator: Operator, radio: RadioFeed | None) -> Bookings:
@@ -175,10 +212,9 @@ def _bookings(cell: CellConfig, operator: Operator, radio: RadioFeed | None) -> 
     return Bookings(operator, time.time, geo, where, covered, cell.booking_max_concurrent)
 
 
-async def _start_radio(
-    cell: CellConfig, bearers: tuple[BearerConfig, ...], emulator: CellEmulator, out_dir: Path | None
-) -> RadioFeed | None:
-    """With [cell.radio] enabled, each drone's rate follows the radio at its position (docs/radio.md)."""
+def _radio(cell: CellConfig, bearers: tuple[BearerConfig, ...], start_unix: float) -> RadioFeed | None:
+    """With [cell.radio] enabled, each drone's rate follows the radio at its position (docs/radio.md);
+    `start_unix`: the wall time of the timeline's zero, where the operator's predictions start."""
     config = cell.radio
     if not config.enabled:
         return None
@@ -187,10 +223,13 @@ async def _start_radio(
     except ConfigError as exc:
         raise ConfigError("cell.radio.world_file", str(exc)) from None
     radio_map = RadioMap(config, world)
-    started_unix = time.time() - (time.monotonic_ns() - emulator.start_ns) / 1e9  # the timeline's zero
-    predictor = Predictor(radio_map, cell, world.arena.size_m[:2], start_unix=started_unix)
-    feed = RadioFeed(config, radio_map, bearers, time.monotonic_ns, predictor)
-    emulator.radio = feed
+    predictor = Predictor(radio_map, cell, world.arena.size_m[:2], start_unix=start_unix)
+    return RadioFeed(config, radio_map, bearers, time.monotonic_ns, predictor)
+
+
+async def _start_radio(feed: RadioFeed, emulator: CellEmulator, out_dir: Path | None) -> None:
+    """The vehicles' positions heard, each drone's radio fed into the cell."""
+    config = emulator.cell.radio
     try:
         await feed.start(emulator.core, out_dir)
     except OSError as exc:
@@ -204,7 +243,6 @@ async def _start_radio(
         len(config.holes),
         feed.port,
     )
-    return feed
 
 
 def _final_counters(emulator: CellEmulator, out_dir: Path | None) -> dict[str, Any]:
