@@ -23,6 +23,7 @@ from dynqos.experiment.processes import Processes
 from dynqos.experiment.runner import run_scenario
 from dynqos.experiment.scenario import Scenario, builtin_scenario
 from tests.flights import fly_for_behaviour, starved
+from tests.statuses import status
 
 T_WD_MS = 150.0
 TICK_MS = 20.0
@@ -35,13 +36,14 @@ def _status(
     changed_ns: int = 0,
     age_ms: float | None = None,
 ) -> SupervisorStatus:
-    return SupervisorStatus(
-        uav="uav1", seq=1, stamp_ns=stamp_ns, state="q1", flow="default", camera_flow="default",
-        camera_rate_factor=1.0, control_source=source, latency="LL", risk="LR", watchdog=False, t_cam_ms=None,
-        t_cc_ms=None, spaciousness_m=None, p_cam=0.0, p_cc=0.0, p_lat=0.0, p_cs=0.0, prev_state="q1",
-        cause="", changed_ns=0, setpoint_gap_ms=gap_ms, control_changed_ns=changed_ns, command_age_ms=age_ms,
+    return status(
+        stamp_ns=stamp_ns,
+        control_source=source,
+        setpoint_gap_ms=gap_ms,
+        control_changed_ns=changed_ns,
+        command_age_ms=age_ms,
         fallbacks=int(source != "edge"),
-    )  # fmt: skip
+    )
 
 
 def test_faults_are_validated() -> None:

@@ -14,6 +14,7 @@ from dynqos.common import keys
 from dynqos.common import messages as m
 from dynqos.common.errors import DecodeError, MessageError
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
+from tests.statuses import status
 
 uav_ids = st.from_regex(keys.UAV_ID_PATTERN, fullmatch=True)
 u63 = st.integers(0, 2**63 - 1)
@@ -412,12 +413,7 @@ def test_construction_validates_and_normalises() -> None:
 
 
 def _status() -> m.SupervisorStatus:
-    return m.SupervisorStatus(
-        uav="u", seq=0, stamp_ns=0, state="q1", flow="default", camera_flow="default", camera_rate_factor=1.0,
-        control_source="edge", latency="LL", risk="LR", watchdog=False, t_cam_ms=None, t_cc_ms=None,
-        spaciousness_m=None, p_cam=0.0, p_cc=0.0, p_lat=0.0, p_cs=0.0, prev_state="q1", cause="",
-        changed_ns=0,
-    )  # fmt: skip
+    return status(uav="u", seq=0)
 
 
 def test_every_control_source_travels_and_unknown_ones_are_rejected() -> None:

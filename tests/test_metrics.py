@@ -30,6 +30,7 @@ from dynqos.onboard.commands import CommandCounters
 from dynqos.onboard.metrics import DroneMetrics
 from tests.conftest import free_tcp_port
 from tests.procs import DYNQOS
+from tests.statuses import status
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -52,14 +53,7 @@ def _value(samples: Samples, name: str, **labels: str) -> float:
 def _status(
     state: str, *, prev: str = "q1", cause: str = "", changed_ns: int = 0, **extra: Any
 ) -> SupervisorStatus:
-    fields: dict[str, Any] = {
-        "uav": "uav1", "seq": 1, "stamp_ns": 0, "state": state, "flow": "default", "camera_flow": "default",
-        "camera_rate_factor": 1.0, "control_source": "edge", "latency": "LL", "risk": "LR", "watchdog": False,
-        "t_cam_ms": None, "t_cc_ms": None, "spaciousness_m": None, "p_cam": 0.0, "p_cc": 0.0, "p_lat": 0.25,
-        "p_cs": 0.0, "prev_state": prev, "cause": cause, "changed_ns": changed_ns,
-    }  # fmt: skip
-    fields.update(extra)
-    return SupervisorStatus(**fields)
+    return status(state=state, p_lat=0.25, prev_state=prev, cause=cause, changed_ns=changed_ns, **extra)
 
 
 def test_the_health_beat_is_fresh_then_stale_on_its_clock() -> None:

@@ -14,6 +14,7 @@ from dynqos.common.messages import State, SupervisorStatus
 from dynqos.experiment.recording import Recording
 from dynqos.reports.aggregate import aggregate
 from dynqos.reports.mission import fallback_s, mission_comparison, mission_figures
+from tests.statuses import status as quiet
 
 S = 1_000_000_000
 START = 100 * S  # the plan's start, on the recorder's clock
@@ -23,12 +24,12 @@ WATCHDOG = S // 10
 def status(
     t_s: float, source: str = "edge", changed_s: float = 0.0, flow: str = "default"
 ) -> SupervisorStatus:
-    return SupervisorStatus(
-        uav="uav1", seq=1, stamp_ns=START + round(t_s * S), state="q1", flow=flow, camera_flow="default",
-        camera_rate_factor=1.0, control_source=source, latency="LL", risk="LR", watchdog=False,
-        t_cam_ms=None, t_cc_ms=None, spaciousness_m=None, p_cam=0.0, p_cc=0.0, p_lat=0.0, p_cs=0.0,
-        prev_state="q1", cause="", changed_ns=0, control_changed_ns=START + round(changed_s * S),
-    )  # fmt: skip
+    return quiet(
+        stamp_ns=START + round(t_s * S),
+        flow=flow,
+        control_source=source,
+        control_changed_ns=START + round(changed_s * S),
+    )
 
 
 def states(*seconds: float) -> list[tuple[float, State]]:

@@ -25,6 +25,7 @@ from dynqos.common.messages import State, SupervisorStatus, decode, encode
 from dynqos.common.transport import Role, open_session
 from tests.conftest import flow_ports, free_tcp_port
 from tests.procs import DynqosProcess
+from tests.statuses import status
 from tests.test_onboard_loop import loop_config
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(240)]
@@ -209,12 +210,7 @@ def _sentinel_state() -> State:
 
 
 def _sentinel_status() -> SupervisorStatus:
-    return SupervisorStatus(
-        uav="uav9", seq=1, stamp_ns=1, state="q1", flow="default", camera_flow="default",
-        camera_rate_factor=1.0, control_source="edge", latency="LL", risk="LR", watchdog=False,
-        t_cam_ms=None, t_cc_ms=None, spaciousness_m=None, p_cam=0.0, p_cc=0.0, p_lat=0.0, p_cs=0.0,
-        prev_state="q1", cause="", changed_ns=0,
-    )  # fmt: skip
+    return status(uav="uav9", stamp_ns=1)
 
 
 def _check_the_recording(path: Path, counted: dict[str, int], status_seqs: set[int]) -> None:

@@ -20,6 +20,7 @@ from dynqos.common.messages import (
 )
 from dynqos.observers.telemetry import JSON_SCHEMAS, Telemetry, frames, json_schema_for, world_scene
 from dynqos.sim.vehicle.world import default_world
+from tests.statuses import status
 
 pb = pytest.importorskip("google.protobuf")
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
@@ -46,12 +47,20 @@ def _state(z: float = -1.5) -> State:
 
 
 def _status(state: str, risk: str = "MR", cause: str = "") -> SupervisorStatus:
-    return SupervisorStatus(
-        uav="uav1", seq=1, stamp_ns=7, state=state, flow="priority" if state != "q1" else "default",
-        camera_flow="default", camera_rate_factor=1.0, control_source="edge", latency="HL", risk=risk,
-        watchdog=False, t_cam_ms=None, t_cc_ms=None, spaciousness_m=3.2, p_cam=0.1, p_cc=0.2, p_lat=0.6,
-        p_cs=0.0, prev_state="q1", cause=cause, changed_ns=1, rtt_ms=21.5,
-    )  # fmt: skip
+    return status(
+        stamp_ns=7,
+        state=state,
+        flow="priority" if state != "q1" else "default",
+        latency="HL",
+        risk=risk,
+        spaciousness_m=3.2,
+        p_cam=0.1,
+        p_cc=0.2,
+        p_lat=0.6,
+        cause=cause,
+        changed_ns=1,
+        rtt_ms=21.5,
+    )
 
 
 def test_a_state_is_a_pose_in_the_ned_frame_stamped_on_the_common_time_base() -> None:
