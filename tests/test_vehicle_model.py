@@ -62,15 +62,19 @@ def test_a_1_m_position_step_settles_with_at_most_20_percent_overshoot() -> None
     states = fly(model, Setpoint(pos_m=(1.0, 0.0, -2.0), yaw_rad=0.0), 8.0)
     xs = [s.pos_m[0] for s in states]
     assert max(xs) <= 1.2
-    assert abs(xs[-1] - 1.0) < 0.02
+    assert abs(xs[-1] - 1.0) < 0.05  # PX4 itself ended 0.02-0.04 m off (docs/simulator.md)
     assert all(abs(s.pos_m[2] + 2.0) < 0.1 for s in states)
 
 
 def test_velocity_setpoints_are_tracked() -> None:
     model = airborne(2.0)
     offboard(model, Setpoint(vel_mps=(0.0, 0.0, 0.0), yaw_rad=0.0))
-    states = fly(model, Setpoint(vel_mps=(1.0, -0.5, 0.0), yaw_rad=0.0), 5.0)
-    assert states[-1].vel_mps == pytest.approx([1.0, -0.5, 0.0], abs=0.05)
+    states = fly(model, Setpoint(vel_mps=(1.0, -0.5, 0.0), yaw_rad=0.0), 8.0)
+    # PX4's cascade against SIH's drag: P takes it to 80% within a second, then the integral closes
+    # the rest slowly, as it does in PX4 (no drag feedforward there either).
+    assert states[49].vel_mps[0] > 0.6
+    assert states[-1].vel_mps == pytest.approx([1.0, -0.5, 0.0], abs=0.12)
+    assert abs(states[-1].vel_mps[0] - 1.0) < abs(states[199].vel_mps[0] - 1.0)
 
 
 def test_acceleration_setpoints_are_tracked() -> None:
@@ -78,8 +82,9 @@ def test_acceleration_setpoints_are_tracked() -> None:
     offboard(model, Setpoint(accel_mps2=(0.0, 0.0, 0.0), yaw_rad=0.0))
     v0 = model.state.vel_mps.copy()
     states = fly(model, Setpoint(accel_mps2=(1.0, 0.0, 0.0), yaw_rad=0.0), 1.0)
-    # Linear drag (0.25 /s) is the only other force: v(t) = a/d (1 - exp(-d t)) from rest.
-    expected = 1.0 / 0.25 * (1 - math.exp(-0.25 * 1.0))
+    # Linear drag (SIH's 1 /s) is the only other force: v(t) = a/d (1 - exp(-d t)) from rest.
+    drag = model.params.drag_per_s[0]
+    expected = 1.0 / drag * (1 - math.exp(-drag * 1.0))
     assert states[-1].vel_mps[0] - v0[0] == pytest.approx(expected, rel=0.1)
     assert abs(states[-1].pos_m[2] + 2.0) < 0.15
 

@@ -100,7 +100,7 @@ class MpcConfig:
     a_max_mps2: Annotated[
         tuple[float, float, float], In(0, 100, "each must be in (0, 100]", lo_open=True, each=True)
     ] = (6.0, 6.0, 4.0)
-    drag_per_s: Annotated[float, In(0, 10, "must be in 0..10 per second")] = 0.25
+    drag_per_s: Annotated[float, In(0, 10, "must be in 0..10 per second")] = 1.0
     eps: Annotated[float, In(1e-8, 1e-1, "must be in 1e-8..1e-1")] = 1e-4
     max_iter: Annotated[int, In(10, 100_000, "must be in 10..100000")] = 4000
     compensate_delay: bool = True

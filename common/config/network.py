@@ -326,6 +326,9 @@ class VehicleSimConfig:
     gust_std_mps: Annotated[float, In(0, 10, "must be in 0..10 m/s")] = 0.0
     gust_tau_s: Annotated[float, In(0.05, 600, "must be in 0.05..600 s")] = 2.0  # the gusts' correlation time
     seed: int = 0
+    # What it reports wanders from where it is, as PX4's estimator does in SIH (docs/simulator.md).
+    position_noise_m: Annotated[float, In(0, 1, "must be in 0..1 m")] = 0.03  # per horizontal axis, std
+    position_noise_tau_s: Annotated[float, In(0.05, 600, "must be in 0.05..600 s")] = 1.0
     takeoff_alt_m: Annotated[float, In(0.5, 100, "must be in 0.5..100 m")] = 2.5
     offboard_loss_s: Annotated[float, In(0.1, 60, "must be in 0.1..60 s (COM_OF_LOSS_T)")] = 1.0
     lockstep: bool = False  # advance 20 ms per answer from the offboard peer instead of real time

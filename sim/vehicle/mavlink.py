@@ -214,7 +214,7 @@ class MavlinkVehicle:
             p, q, r = (float(v) for v in s.rates_rps)
             self._send(self.mav.attitude_quaternion_encode(t, w, x, y, z, p, q, r))
         if due(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
-            pos, vel = (float(v) for v in s.pos_m), (float(v) for v in s.vel_mps)
+            pos, vel = (float(v) for v in self.model.reported_position()), (float(v) for v in s.vel_mps)
             self._send(self.mav.local_position_ned_encode(t, *pos, *vel))
 
     def _set_interval(self, message_id: float, interval_us: float) -> Result:

@@ -251,8 +251,11 @@ class FlightController:
         g = self.gains
         vel_sp = np.clip(vel_sp, -np.array(g.vel_max_mps), np.array(g.vel_max_mps))
         error = vel_sp - state.vel_mps
-        self._vel_integral = np.clip(self._vel_integral + error * dt_s, -2.0, 2.0)
-        accel: Vec = np.array(g.vel_p) * error + np.array(g.vel_i) * self._vel_integral
+        # The integral is an acceleration, at most 1 g as PX4 limits its own: against SIH's drag it
+        # carries the whole push that holds 1 m/s (1 m/s^2).
+        vel_i = np.array(g.vel_i)
+        self._vel_integral = np.clip(self._vel_integral + vel_i * error * dt_s, -GRAVITY, GRAVITY)
+        accel: Vec = np.array(g.vel_p) * error + self._vel_integral
         return accel
 
     def _hold_accel(self, state: QuadState) -> tuple[Vec, float]:
