@@ -89,6 +89,12 @@ __all__ = [
 ]
 
 
+# State.mode: flown offboard, the drone follows the edge (or its own fallback); standing by, it is on
+# the ground or taking off, with nothing to follow yet.
+OFFBOARD = "offboard"
+STANDING_BY = "standby"
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class State(Message):
     """The drone's state from its flight controller, in local NED."""

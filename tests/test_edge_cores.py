@@ -1,6 +1,6 @@
 """The edge services' cores driven as the runtime drives them (tests/edge_cores.py), on a MemoryBus and
-a fake clock: the detector, the ROS 2 bridge and the QoS agent (the MPC, the planners: test_replicas,
-test_feeds, test_fleet_service, test_ros2_steer)."""
+a fake clock: the detector, the ROS 2 bridge, the QoS agent and the planner's mission clock (the MPC,
+the planners' replicas: test_replicas, test_feeds, test_fleet_service, test_ros2_steer)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,18 @@ from dynqos.common.bus import MemoryBus, Priority, Received
 from dynqos.common.clock import FakeClock
 from dynqos.common.config import load_config
 from dynqos.common.keys import Downlink, Flow, Stream
-from dynqos.common.messages import CameraAck, CameraFrame, Detections, MissionRequest, QosRequest, State
+from dynqos.common.messages import (
+    CameraAck,
+    CameraFrame,
+    Detections,
+    MissionRequest,
+    QosRequest,
+    Reference,
+    State,
+)
 from dynqos.common.queues import BoundedQueue
 from dynqos.edge.detector.service import DetectorService
+from dynqos.edge.planner.service import PlannerService
 from dynqos.edge.qos.agent import QosAgent
 from dynqos.edge.ros2 import codec, wire
 from dynqos.edge.ros2.service import Ros2Face
@@ -108,3 +117,30 @@ def test_the_qos_agent_keeps_each_drones_wish_from_its_requests() -> None:
     turn(agent, clock.now_ns())
     assert not grant.wanted
     assert agent.drones["uav1"].need.risk == "LR"
+
+
+def test_the_planners_mission_starts_when_the_drone_can_follow_it_not_while_it_takes_off() -> None:
+    """PX4 takes 10 s to take off where our vehicle takes 3: a mission clock started at the drone's first
+    state had run on by then, and the drone flew straight across its circle to catch up."""
+    clock = FakeClock(1_000_000_000)
+    bus = MemoryBus(clock)
+    planner = PlannerService(load_config(None, ['planner.mission="circle"']), Ports(bus, clock))
+    bus.declare_token(keys.drone_presence("uav1"))
+    refs = _listen(bus, keys.downlink("uav1", Downlink.REFERENCE))
+    drone = bus.publisher(keys.uplink("uav1", Flow.DEFAULT, Stream.STATE), Priority.REAL_TIME)
+
+    def fly(seconds: float, mode: str) -> list[Reference]:
+        for k in range(round(seconds / 0.1)):
+            drone.put(State(uav="uav1", seq=k, stamp_ns=clock.now_ns(), pos_m=(0.0, 0.0, -1.0),
+                            vel_mps=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0), mode=mode))  # fmt: skip
+            bus.pump()
+            turn(planner, clock.now_ns())
+            bus.pump()
+            clock.advance_s(0.1)
+        return [i.message for i in refs.drain() if isinstance(i.message, Reference)]
+
+    assert fly(10.0, "standby") == []  # on the ground and climbing: nothing to follow yet
+    flown = fly(2.0, "offboard")
+    assert flown, "no reference once the drone flies offboard"
+    assert flown[0].mission_t_s < 0.15  # the mission begins here, not 10 s along
+    assert flown[-1].mission_t_s > 1.5

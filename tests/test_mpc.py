@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from dynqos.common.config import ControlConfig, MpcConfig
-from dynqos.common.messages import Reference, State
+from dynqos.common.messages import OFFBOARD, STANDING_BY, Reference, State
 from dynqos.common.modes import ControlSource
 from dynqos.common.reference import ReferenceTrack
 from dynqos.edge.mpc.controller import DroneController
@@ -132,6 +133,22 @@ def test_stale_states_are_ignored_and_no_reference_holds_position() -> None:
     plan = ctrl.step(state(6, pos=(0.0, 2.0, -1.5)), 0)
     assert plan is not None
     assert plan.accel_mps2[0][0] > 0.5  # pulled back towards x = 1 m
+
+
+def test_with_no_reference_the_hold_follows_a_climbing_drone_and_stays_where_it_went_offboard() -> (
+    None
+):
+    ctrl = DroneController("uav1")
+    for seq, down in enumerate((0.0, -0.5, -1.0, -1.5), start=1):  # standing, then climbing
+        plan = ctrl.step(replace(state(seq, pos=(1.0, 2.0, down)), mode=STANDING_BY), 0)
+        assert plan is not None
+        assert np.allclose(plan.accel_mps2[0], 0.0, atol=1e-3)  # never pulled back to the ground
+    plan = ctrl.step(replace(state(5, pos=(0.0, 2.0, -1.5)), mode=OFFBOARD), 0)
+    assert plan is not None
+    assert plan.accel_mps2[0][0] > 0.5  # offboard: held where the climb ended, 1 m ahead
+    plan = ctrl.step(replace(state(6, pos=(0.0, 2.0, -1.5)), mode=STANDING_BY), 0)
+    assert plan is not None
+    assert np.allclose(plan.accel_mps2[0], 0.0, atol=1e-3)  # landed and standing by: follows again
 
 
 def test_commands_carry_committed_inputs_for_the_rtt() -> None:

@@ -20,7 +20,7 @@ from dynqos.common import keys
 from dynqos.common.clock import millis
 from dynqos.common.errors import DynqosError
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import Reference, State, SupervisorStatus
+from dynqos.common.messages import OFFBOARD, Reference, State, SupervisorStatus
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Received
 from dynqos.experiment.faults import FaultInjector, FaultWindow
@@ -140,7 +140,7 @@ def wait_for_offload(
     deadline = time.monotonic() + OFFLOAD_TIMEOUT_S
     while time.monotonic() < deadline and not stop.is_set():
         item = states.get(0.5)
-        if item is not None and isinstance(item.message, State) and item.message.mode == "offboard":
+        if item is not None and isinstance(item.message, State) and item.message.mode == OFFBOARD:
             return item.message.stamp_ns
     raise DynqosError(f"{name}: the drone never started offloading: {procs.tail(name)}")
 

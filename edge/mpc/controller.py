@@ -19,7 +19,7 @@ from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.config import ControlConfig, MpcConfig
 from dynqos.common.geometry import yaw_of
 from dynqos.common.message_base import MAX_HORIZON
-from dynqos.common.messages import State
+from dynqos.common.messages import STANDING_BY, State
 from dynqos.common.reference import ReferenceTrack
 from dynqos.edge.mpc.problem import Array, MpcProblem
 
@@ -99,7 +99,9 @@ class DroneController:
         ref_start_ns = arrival_ns - rtt_ns // 2 + to_ns(committed * dt)
         window = self.reference.window(ref_start_ns, n + 1, dt)
         if window is None:
-            if self.hold is None:
+            # No reference: hold where the last one ended, or where the drone first flew offboard (the
+            # planner starts its mission there; standing and climbing, the hold follows the drone).
+            if self.hold is None or state.mode == STANDING_BY:
                 self.hold = x0[:3].copy()
                 self.hold_yaw = yaw_of(state.quat)
             reference = np.tile(np.concatenate([self.hold, np.zeros(3)]), (n + 1, 1))

@@ -27,7 +27,7 @@ from dynqos.common.config import Config
 from dynqos.common.errors import DynqosError
 from dynqos.common.geo import Geo
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import MissionRequest, State
+from dynqos.common.messages import OFFBOARD, MissionRequest, State
 from dynqos.edge import metrics
 from dynqos.edge.operator.booking import BookingApi, circle
 from dynqos.edge.operator.client import OperatorClient, OperatorError
@@ -94,7 +94,7 @@ class FleetPlannerService(EdgeCore):
         """Where each drone of the fleet is, from its newest state in offboard mode."""
         for item in events:
             message = item.message
-            if isinstance(message, State) and message.uav in self.publishers and message.mode == "offboard":
+            if isinstance(message, State) and message.uav in self.publishers and message.mode == OFFBOARD:
                 self.positions[message.uav] = message.pos_m
 
     def everyone_heard(self) -> bool:

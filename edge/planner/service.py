@@ -1,7 +1,9 @@
 """`dynqos edge planner`: every drone that announces itself and publishes its state gets the mission.
 
-Each drone's mission clock starts when the planner first hears from it; References covering the MPC
-horizon (and some margin) are published at `publish_hz` on `dynqos/<uav>/ref`.
+Each drone's mission clock starts when the drone can follow it: at its first state flown offboard
+(`State.mode`), not while it stands or takes off, which takes PX4 about 10 s and our vehicle 3, so a
+mission is at its start on either. References covering the MPC horizon (and some margin) are published
+at `publish_hz` on `dynqos/<uav>/ref`.
 
 Several planners may run, as replicas (edge/replicas.py, docs/reliability.md): one publishes each
 drone's references, the other stands by for it, follows its mission time from the references it
@@ -19,7 +21,7 @@ from dynqos.common import keys
 from dynqos.common.bus import Priority, Publisher, Received
 from dynqos.common.config import Config, DroneMissionConfig, PlannerConfig
 from dynqos.common.keys import Downlink
-from dynqos.common.messages import MissionRequest, Reference, State
+from dynqos.common.messages import STANDING_BY, MissionRequest, Reference, State
 from dynqos.edge import feeds, metrics
 from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
@@ -134,7 +136,7 @@ class PlannerService(EdgeCore):
             return
         self.state_seq[uav] = message.seq
         self.membership.log_change(self.assignment.on_state(uav, message.seq, 0, "", arrival_ns))
-        if uav not in self.started_ns:
+        if uav not in self.started_ns and message.mode != STANDING_BY:
             self.started_ns[uav] = arrival_ns
             self.publishers[uav] = self.bus.publisher(
                 keys.downlink(uav, Downlink.REFERENCE), Priority.INTERACTIVE_HIGH
@@ -145,7 +147,8 @@ class PlannerService(EdgeCore):
     def _on_mission(self, request: MissionRequest, arrival_ns: int) -> None:
         """A mission from outside (the ROS 2 bridge), flown from now unless a waypoint is outside the
         arena; each seq once (the bridge re-sends it every second, for replicas that start later: one
-        that first hears it then flies it from its first waypoint, where the drone was when asked)."""
+        that first hears it then flies it from its first waypoint, where the drone was when asked).
+        A drone that cannot follow yet starts it when it can, as any mission."""
         uav = request.uav
         if request.seq <= self.mission_seq.get(uav, -1):
             return
