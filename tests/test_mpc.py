@@ -135,9 +135,7 @@ def test_stale_states_are_ignored_and_no_reference_holds_position() -> None:
     assert plan.accel_mps2[0][0] > 0.5  # pulled back towards x = 1 m
 
 
-def test_with_no_reference_the_hold_follows_a_climbing_drone_and_stays_where_it_went_offboard() -> (
-    None
-):
+def test_with_no_reference_the_hold_follows_a_climbing_drone_and_stays_where_it_went_offboard() -> None:
     ctrl = DroneController("uav1")
     for seq, down in enumerate((0.0, -0.5, -1.0, -1.5), start=1):  # standing, then climbing
         plan = ctrl.step(replace(state(seq, pos=(1.0, 2.0, down)), mode=STANDING_BY), 0)
