@@ -71,3 +71,17 @@ def _answer_type(status: int) -> str:
 def _why(error: Exception) -> str:
     causes = [str(c) for c in getattr(error, "schema_errors", ())] or [str(error.__cause__ or "")]
     return f"{type(error).__name__}: {error} {'; '.join(causes)}"[:600]
+
+
+def notification_problems(body: Any) -> list[str]:
+    """What the document's UserPlaneNotificationData says is wrong with a notification ([] when it fits):
+    the callback's body, checked as its schema (openapi-core checks no callbacks)."""
+    from openapi_core.validation.schemas import oas30_write_schema_validators_factory as validators
+
+    spec = _api().spec
+    schema = spec / "components" / "schemas" / "UserPlaneNotificationData"
+    try:
+        validators.create(spec, schema).validate(body)
+    except Exception as error:  # openapi-core's InvalidSchemaValue, with each reason
+        return [_why(error)]
+    return []

@@ -25,6 +25,8 @@ class Reply(Exception):
 
 def answer(answer: Answer) -> web.Response:
     headers = {} if answer.retry_after_s is None else {"Retry-After": str(answer.retry_after_s)}
+    if answer.location:
+        headers["Location"] = answer.location
     if answer.body is None:
         return web.Response(status=answer.status, headers=headers)
     return web.json_response(answer.body, status=answer.status, headers=headers)

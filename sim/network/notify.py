@@ -1,5 +1,6 @@
 """The emulated operator's notifications, posted to each client's sink in the background: CloudEvents
-over HTTP (CAMARA's), bounded (a flood of them waits for no one), each counted as delivered or failed.
+over HTTP (CAMARA's) or the NEF's JSON, bounded (a flood of them waits for no one), each counted as
+delivered or failed.
 The cell (a session the network ended) and the control API (a session created or deleted) both send."""
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ class Notifier:
 
     async def _post(self, note: Notification) -> None:
         assert self.http is not None, "start() first"
-        headers = {"Content-Type": "application/cloudevents+json"}
+        headers = {"Content-Type": note.content_type}
         credential = note.credential or {}
         if credential.get("credentialType") == "ACCESSTOKEN" and credential.get("accessToken"):
             headers["Authorization"] = f"Bearer {credential['accessToken']}"

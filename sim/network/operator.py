@@ -60,6 +60,7 @@ class Answer:
     status: int
     body: Any = None
     retry_after_s: int | None = None  # a Retry-After header (429)
+    location: str = ""  # a Location header (a created resource's URI)
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,6 +68,7 @@ class Notification:
     sink: str
     credential: dict[str, Any] | None
     event: dict[str, Any]
+    content_type: str = "application/cloudevents+json"  # CAMARA's; the NEF's are plain JSON
 
 
 @dataclass
