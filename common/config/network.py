@@ -239,6 +239,7 @@ class CellConfig:
     # while a CAMARA Quality-on-Demand session grants it (the control port serves the QoD API); false is a
     # network with a static policy for the priority port (the `links` backend's assumption).
     qod: bool = False
+    nef: bool = False  # serve the 3GPP NEF's AsSessionWithQoS too (with qod: sim/network/nef.py)
     qod_max_sessions: Annotated[
         int, In(-1, math.inf, "must be -1 (no limit) or >= 0")
     ] = -1  # sessions AVAILABLE at once (-1: no limit; 0: the operator grants none)

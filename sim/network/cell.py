@@ -186,7 +186,7 @@ class CellEmulator:
         for event in self.core.due(now):
             self.apply(event)
         if self.operator is not None and self.ticks % QOD_CHECK_TICKS == 0:
-            self.notify(self.operator.advance())
+            self.notify(self.operator.advance(self.delays_of))
             self.refresh_grants()
         grants = self.core.step(now, {bearer.name: bearer.demand_bits() for bearer in self.bearers})
         for bearer in self.bearers:
@@ -201,6 +201,15 @@ class CellEmulator:
                 self._next_record_ns = now + round(self.cell.record_interval_s * 1e9)
         if not self.stopped.is_set():
             self._schedule_tick()
+
+    def delays_of(self, uav: str) -> tuple[int, int, int]:
+        """The drone's packet delays now (ms): uplink (its priority bearer's queue and the uplink delay
+        line), downlink and round trip, what a 5G core's QoS monitoring would measure on the flow."""
+        now = _now_ns()
+        queued = max((b.queue_delay_ms(now) for b in self.bearers if b.ue == uav and b.granted), default=0.0)
+        up = round(self.cell.base_delay_up_ms + queued)
+        down = round(self.cell.base_delay_down_ms)
+        return up, down, up + down
 
     def refresh_grants(self) -> None:
         if self.operator is None:

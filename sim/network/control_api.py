@@ -7,6 +7,7 @@ emulator's own routes, and in front of them the emulated operator's APIs, one mo
     /quality-on-demand/v1/..., /qos-profiles/v1/...      QoD and QoS Profiles (api_qod.py)
     /qos-booking/v0.1/...                   QoS Booking (api_booking.py)
     /predictive-connectivity-data/v0.1/...  Predictive Connectivity Data (api_connectivity.py)
+    /3gpp-as-session-with-qos/v1/...        the 5G core's NEF, when [cell] nef = true (api_nef.py)
     POST /oauth2/token, DELETE /oauth2/tokens  tokens, when [cell] qod_auth = true (oauth.py)
 
 Served on 127.0.0.1 only. Every CAMARA call is authorised and its x-correlator checked and echoed
@@ -25,8 +26,11 @@ from dynqos.common.config import CellConfig, CellEventConfig, build
 from dynqos.common.errors import ConfigError
 from dynqos.sim.network.api_booking import BOOKING_PREFIX, BookingRoutes
 from dynqos.sim.network.api_connectivity import CONNECTIVITY_PREFIX, ConnectivityRoutes
+from dynqos.sim.network.api_nef import NefRoutes
 from dynqos.sim.network.api_qod import PROFILES_PREFIX, QOD_PREFIX, QodRoutes
 from dynqos.sim.network.control_http import MAX_BODY_BYTES, Handler, Reply, answer, body, loads
+from dynqos.sim.network.nef import API as NEF_API
+from dynqos.sim.network.nef import problem
 from dynqos.sim.network.notify import Notifier
 from dynqos.sim.network.oauth import TokenEndpoint
 from dynqos.sim.network.operator import Notification, error
@@ -97,6 +101,8 @@ class ControlApi:
             routes += QodRoutes(operator.qod, operator.advance, self._changed).routes()
             if operator.bookings is not None:
                 routes += BookingRoutes(operator.bookings, self._changed).routes()
+            if operator.nef is not None:
+                routes += NefRoutes(operator.nef, self._changed).routes()
         self.connectivity = ConnectivityRoutes(emulator.radio.predictor) if emulator.radio else None
         if self.connectivity is not None:
             routes += self.connectivity.routes()
@@ -110,6 +116,8 @@ class ControlApi:
         site = web.TCPSite(self.runner, "127.0.0.1", port)
         await site.start()
         self.port = int(self.runner.addresses[0][1])  # the port bound (the configured one may be 0)
+        if self.operator is not None and self.operator.nef is not None:
+            self.operator.nef.root = f"http://127.0.0.1:{self.port}"  # its subscriptions' `self` links
         if self.connectivity is not None:
             self.connectivity.start()
         return self.port
@@ -166,7 +174,9 @@ class ControlApi:
         except Reply as reply:
             return answer(reply.answer)
         except web.HTTPException as exc:
-            if request.path.startswith(CAMARA_PREFIXES):
+            if request.path.startswith(NEF_API):
+                response = answer(problem(exc.status, exc.reason.upper().replace(" ", "_"), exc.reason))
+            elif request.path.startswith(CAMARA_PREFIXES):
                 code = {404: "NOT_FOUND", 405: "METHOD_NOT_ALLOWED"}.get(exc.status, "INVALID_ARGUMENT")
                 response = answer(error(exc.status, code, exc.reason))
             else:
@@ -199,6 +209,8 @@ class ControlApi:
                 "tokens_refused": self.auth.tokens_refused,
                 "sessions": self.operator.open_sessions(),
             }
+            if self.operator.nef is not None:
+                counters["nef"] = vars(self.operator.nef.counters)
         return web.json_response(counters)
 
     async def radio(self, request: web.Request) -> web.Response:

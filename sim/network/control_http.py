@@ -29,7 +29,9 @@ def answer(answer: Answer) -> web.Response:
         headers["Location"] = answer.location
     if answer.body is None:
         return web.Response(status=answer.status, headers=headers)
-    return web.json_response(answer.body, status=answer.status, headers=headers)
+    return web.json_response(
+        answer.body, status=answer.status, headers=headers, content_type=answer.content_type
+    )
 
 
 async def body(request: web.Request) -> Any:

@@ -34,7 +34,8 @@ Delays = Callable[[str], tuple[int, int, int]]  # a drone's uplink, downlink and
 
 def problem(status: int, cause: str, detail: str) -> Answer:
     """A ProblemDetails (TS 29.122 clause 5.2.1.2.12)."""
-    return Answer(status, {"status": status, "cause": cause, "detail": detail, "title": cause})
+    body = {"status": status, "cause": cause, "detail": detail, "title": cause}
+    return Answer(status, body, content_type="application/problem+json")
 
 
 @dataclass(frozen=True, slots=True)

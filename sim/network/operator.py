@@ -61,6 +61,7 @@ class Answer:
     body: Any = None
     retry_after_s: int | None = None  # a Retry-After header (429)
     location: str = ""  # a Location header (a created resource's URI)
+    content_type: str = "application/json"  # a NEF's error is application/problem+json
 
 
 @dataclass(frozen=True, slots=True)

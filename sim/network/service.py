@@ -24,6 +24,7 @@ from dynqos.common.metrics import ProcessMetrics, counter, gauge
 from dynqos.sim.network.booking import Bookings
 from dynqos.sim.network.cell import CellEmulator
 from dynqos.sim.network.control_api import ControlApi, Tap
+from dynqos.sim.network.nef import Nef
 from dynqos.sim.network.notify import Notifier
 from dynqos.sim.network.operator import Operator
 from dynqos.sim.network.operator_apis import OperatorApis
@@ -194,7 +195,8 @@ def _operator(
     """The emulated operator ([cell] qod = true): its QoD sessions and its bookings."""
     servers = {b.ue: b.target_host_port[0] for b in bearers if b.ue}
     qod = Operator(cell, dict(devices), servers, time.monotonic, time.time)
-    return OperatorApis(qod, _bookings(cell, qod, radio))
+    nef = Nef(cell, dict(devices), servers, time.monotonic)  # its root: where the control API listens
+    return OperatorApis(qod, _bookings(cell, qod, radio), nef if cell.nef else None)
 
 
 def _bookings(cell: CellConfig, operator: Operator, radio: RadioFeed | None) -> Bookings:

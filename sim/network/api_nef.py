@@ -1,0 +1,69 @@
+"""The emulated NEF's AsSessionWithQoS routes (TS 29.122 V18.4.0, 3gpp-as-session-with-qos v1) over its
+subscriptions (sim/network/nef.py): each change may change the cell's grants. Errors are ProblemDetails;
+a PATCH is a JSON merge patch."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from aiohttp import web
+
+from dynqos.sim.network.control_http import MAX_BODY_BYTES, Changed, Reply, answer
+from dynqos.sim.network.nef import API, Nef, problem
+
+MERGE_PATCH = "application/merge-patch+json"
+
+
+class NefRoutes:
+    def __init__(self, nef: Nef, changed: Changed) -> None:
+        self.nef = nef
+        self.changed = changed
+
+    def routes(self) -> list[web.RouteDef]:
+        one = API + "/{scs}/subscriptions/{sid}"
+        return [
+            web.post(API + "/{scs}/subscriptions", self.create),
+            web.get(API + "/{scs}/subscriptions", self.all),
+            web.get(one, self.get),
+            web.patch(one, self.modify),
+            web.delete(one, self.delete),
+        ]
+
+    async def create(self, request: web.Request) -> web.Response:
+        result, notes = self.nef.create(request.match_info["scs"], await _body(request, "application/json"))
+        self.changed(notes)
+        return answer(result)
+
+    async def all(self, request: web.Request) -> web.Response:
+        self.changed(self.nef.advance())
+        return answer(self.nef.all(request.match_info["scs"]))
+
+    async def get(self, request: web.Request) -> web.Response:
+        self.changed(self.nef.advance())
+        return answer(self.nef.get(request.match_info["scs"], request.match_info["sid"]))
+
+    async def modify(self, request: web.Request) -> web.Response:
+        changes = await _body(request, MERGE_PATCH)
+        self.changed(self.nef.advance())
+        result = self.nef.modify(request.match_info["scs"], request.match_info["sid"], changes)
+        self.changed([])  # the flows or the reference may have changed
+        return answer(result)
+
+    async def delete(self, request: web.Request) -> web.Response:
+        result = self.nef.delete(request.match_info["scs"], request.match_info["sid"])
+        self.changed([])
+        return answer(result)
+
+
+async def _body(request: web.Request, content_type: str) -> Any:
+    """The request's JSON, of the content type the call takes; a ProblemDetails 400 or 415 otherwise."""
+    if request.content_type != content_type:
+        why = f"this call takes {content_type}, not {request.content_type or 'no body'}"
+        raise Reply(problem(415, "UNSUPPORTED_MEDIA_TYPE", why))
+    if request.content_length is not None and request.content_length > MAX_BODY_BYTES:
+        raise Reply(problem(400, "INVALID_MSG_FORMAT", f"body larger than {MAX_BODY_BYTES} bytes"))
+    try:
+        return json.loads(await request.read() or b"null")
+    except ValueError as exc:
+        raise Reply(problem(400, "INVALID_MSG_FORMAT", f"the body is not JSON ({exc})")) from None
