@@ -91,7 +91,7 @@ async def until(probe: Callable[[], Awaitable[bool]], timeout_s: float = 5.0) ->
         await asyncio.sleep(0.02)  # the polling interval of a client of this API
 
 
-def test_a_subscription_grants_the_priority_bearer_while_it_lives_and_reports_its_delays() -> None:
+def test_a_subscription_grants_the_priority_bearer_until_the_network_ends_it_and_reports_its_delays() -> None:
     zenoh = ZenohConfig()
 
     async def main() -> list[tuple[Any, ...]]:
@@ -136,8 +136,11 @@ def test_a_subscription_grants_the_priority_bearer_while_it_lives_and_reports_it
                 assert put.status == 405
                 assert "PATCH" in put.headers["Allow"]
                 assert (await put.json())["status"] == 405
+            async with http.post(f"http://127.0.0.1:{port}/events", json={"kind": "qod_end", "uav": "uav1"}):
+                pass  # the network ends it: the sink hears so and the bearer loses its weight
+            await until(lambda: _heard(heard, "SESSION_TERMINATION"))
+            assert not await granted()
             await api.delete(made.subscription_id)
-            await until(lambda: _not(granted))
             with pytest.raises(OperatorError) as gone:
                 await api.get(made.subscription_id)
             assert gone.value.status == 404
@@ -167,7 +170,3 @@ def _heard(heard: list[dict[str, Any]], event: str) -> Awaitable[bool]:
         return any(r["event"] == event for n in heard for r in n["eventReports"])
 
     return probe()
-
-
-async def _not(probe: Callable[[], Awaitable[bool]]) -> bool:
-    return not await probe()
