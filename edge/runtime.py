@@ -116,8 +116,8 @@ class Runtime:
         self._poke()
 
     def wake(self) -> None:
-        """From any thread: tick the core soon (a token changed). Before the loop runs, nothing: the
-        first tick comes at once anyway."""
+        """From any thread: tick the core soon (the fleet planner, once its plan is made). Before the
+        loop runs, nothing: the first tick comes at once anyway."""
         if self._loop is not None:
             waker(self._loop, self._poke)()
 

@@ -183,7 +183,7 @@ class MpcService(EdgeCore):
         else:
             self.counters.stale += 1
 
-    def _answer(self, uav: str, item: Received) -> int:
+    def _answer(self, uav: str, item: Received) -> None:
         ctrl = self._controller(uav)
         state = item.message
         assert isinstance(state, State)
@@ -192,10 +192,10 @@ class MpcService(EdgeCore):
         except SolveError as exc:
             self.counters.solve_failures += 1
             log.warning("mpc: %s seq %d: solve failed (%s); no command sent", uav, state.seq, exc)
-            return 0
+            return
         if plan is None:
             self.counters.stale += 1
-            return 0
+            return
         self.counters.solve_ms.append(ctrl.problem.last_solve_s * 1000)
         if self.solve_seconds is not None:
             self.solve_seconds.observe(ctrl.problem.last_solve_s)
@@ -215,7 +215,6 @@ class MpcService(EdgeCore):
         )
         self.publishers[uav].put(command)
         self.counters.commands += 1
-        return 1
 
     def _drop_idle(self) -> None:
         now = self.clock.now_ns()

@@ -158,10 +158,10 @@ class OperatorClient:
         correlator = str(uuid.uuid4())
         refreshed = False
         attempt = 0
+        sent = None if body is None else (json.dumps(body).encode(), content_type)  # once, for every try
         while True:
             self.calls += 1
             url = (root or self.root) + path
-            sent = (body, content_type)
             status, answer, retry_after = await self._once(method, url, sent, deadline, limit_s, correlator)
             if status in expect:
                 return answer
@@ -186,23 +186,22 @@ class OperatorClient:
         self,
         method: str,
         url: str,
-        sent: tuple[dict[str, Any] | None, str],
+        sent: tuple[bytes, str] | None,
         deadline: float,
         limit_s: float,
         correlator: str,
     ) -> tuple[int, Any, float | None]:
         """One attempt before the call's `deadline` (monotonic); `limit_s`, its time-out, for the message;
-        `sent`, the body and its content type."""
-        body, content_type = sent
+        `sent`, the body as sent and its content type (None: no body)."""
         assert self.http is not None, "use `async with OperatorClient(...)`"
         timed_out = {"code": "TIMEOUT", "message": f"no answer within {limit_s:g} s"}
         left = deadline - time.monotonic()
         if left <= 0:
             return 0, timed_out, None
         headers = {**self.fixed_headers, "Accept": "application/json", "x-correlator": correlator}
-        data = None if body is None else json.dumps(body).encode()
-        if data is not None:
-            headers["Content-Type"] = content_type
+        data = None
+        if sent is not None:
+            data, headers["Content-Type"] = sent
         try:
             token = await asyncio.wait_for(self._bearer(), left)
             if token:
