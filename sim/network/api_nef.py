@@ -4,12 +4,11 @@ a PATCH is a JSON merge patch."""
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
 from aiohttp import web
 
-from dynqos.sim.network.control_http import MAX_BODY_BYTES, Changed, Reply, answer
+from dynqos.sim.network.control_http import Changed, Reply, answer, body
 from dynqos.sim.network.nef import API, Nef, problem
 
 MERGE_PATCH = "application/merge-patch+json"
@@ -61,9 +60,4 @@ async def _body(request: web.Request, content_type: str) -> Any:
     if request.content_type != content_type:
         why = f"this call takes {content_type}, not {request.content_type or 'no body'}"
         raise Reply(problem(415, "UNSUPPORTED_MEDIA_TYPE", why))
-    if request.content_length is not None and request.content_length > MAX_BODY_BYTES:
-        raise Reply(problem(400, "INVALID_MSG_FORMAT", f"body larger than {MAX_BODY_BYTES} bytes"))
-    try:
-        return json.loads(await request.read() or b"null")
-    except ValueError as exc:
-        raise Reply(problem(400, "INVALID_MSG_FORMAT", f"the body is not JSON ({exc})")) from None
+    return await body(request, lambda why: problem(400, "INVALID_MSG_FORMAT", why))

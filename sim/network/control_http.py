@@ -34,14 +34,18 @@ def answer(answer: Answer) -> web.Response:
     )
 
 
-async def body(request: web.Request) -> Any:
-    """The request's JSON body; a bad one is a CAMARA 400."""
+def camara_400(why: str) -> Answer:
+    return error(400, "INVALID_ARGUMENT", why)
+
+
+async def body(request: web.Request, bad: Callable[[str], Answer] = camara_400) -> Any:
+    """The request's JSON body; a bad one is answered with `bad(why)` (a CAMARA 400 by default)."""
     if request.content_length is not None and request.content_length > MAX_BODY_BYTES:
-        raise Reply(error(400, "INVALID_ARGUMENT", f"body larger than {MAX_BODY_BYTES} bytes"))
+        raise Reply(bad(f"body larger than {MAX_BODY_BYTES} bytes"))
     try:
         return json.loads(await request.read() or b"null")
     except ValueError as exc:
-        raise Reply(error(400, "INVALID_ARGUMENT", f"the body is not JSON ({exc})")) from None
+        raise Reply(bad(f"the body is not JSON ({exc})")) from None
 
 
 def loads(data: bytes) -> Any:
