@@ -22,7 +22,8 @@ from tests.flights import fly_for_behaviour
 def test_a_coverage_hole_shows_in_the_status_and_the_drone_falls_back_and_returns(
     tmp_path: Path, qos: str
 ) -> None:
-    # 18 s: the circle crosses the hole once, about 9.5 s in, and the edge has it back some 6 s later
+    # 18 s: the circle crosses the hole half a lap after its start, about 7 s into the flight, the edge
+    # has it back some 8 s later, and a lap on it meets the hole again near the end
     scenario = replace(builtin_scenario("coverage-hole"), qos=qos, duration_s=18)
     fly_for_behaviour(lambda out: run_scenario(scenario, out, progress=False), tmp_path, _check_the_hole)
 
