@@ -30,6 +30,7 @@ class BookingRoutes:
         return answer(result)
 
     async def booking(self, request: web.Request) -> web.Response:
+        self.changed(self.books.advance())  # what it says has started holds for the cell at once
         return answer(self.books.get(request.match_info["bid"], subject(request)))
 
     async def unbook(self, request: web.Request) -> web.Response:
@@ -38,4 +39,5 @@ class BookingRoutes:
         return answer(result)
 
     async def bookings_of(self, request: web.Request) -> web.Response:
+        self.changed(self.books.advance())
         return answer(self.books.retrieve(await body(request), subject=subject(request)))

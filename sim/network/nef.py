@@ -306,7 +306,7 @@ class Nef:
     def _flows(self, uav: str, flows: list[dict[str, Any]]) -> tuple[frozenset[int], Answer | None]:
         """The edge ports the flows name; a 400 for a rule that does not parse, or whose edge end is not
         this drone's edge host."""
-        host, ports = self.servers.get(uav, ""), set()
+        host, ports = self.servers.get(uav, ""), set[int]()
         for flow in flows:
             for text in flow.get("flowDescriptions") or []:
                 try:
