@@ -23,7 +23,7 @@ def test_a_coverage_hole_shows_in_the_status_and_the_drone_falls_back_and_return
     tmp_path: Path, qos: str
 ) -> None:
     # 18 s: the circle crosses the hole half a lap after its start, about 7 s into the flight, the edge
-    # has it back some 8 s later, and a lap on it meets the hole again near the end
+    # has it back 6-8 s later, and a lap on it meets the hole again near the end
     scenario = replace(builtin_scenario("coverage-hole"), qos=qos, duration_s=18)
     fly_for_behaviour(lambda out: run_scenario(scenario, out, progress=False), tmp_path, _check_the_hole)
 
@@ -39,7 +39,9 @@ def _check_the_hole(result: dict[str, Any], _: Path) -> None:
     transitions = result["transitions"]
     into = [t for t in transitions if t["to"] == "qA" and t["cause"] == "watchdog"]
     assert into, transitions
-    assert any(t["from"] == "qA" and t["t_s"] > into[0]["t_s"] for t in transitions), transitions
+    # the edge had it back: it flew on the fallback for less than from its first fall to the end (on the
+    # priority flow the supervisor may stay in qA, on the edge's commands, while the hole's backlog drains)
+    assert radio["fallback_s"] < result["duration_s"] - into[0]["t_s"] - 0.5, (radio, transitions)
     # the fallback flew it: setpoints never paused as long as the watchdog (how steady they are is a
     # benchmark's target, bench/supervisor_reaction.py)
     assert result["setpoint_gap_max_ms"] < 150
