@@ -145,10 +145,9 @@ class Nef:
         ports, refused = self._flows(uav, body["flowInfo"])
         if refused is not None:
             return refused, []
-        if body["qosReference"] not in self.cell.qod_profiles:
-            offered = ", ".join(self.cell.qod_profiles)
-            why = f"qosReference {body['qosReference']} is not one of this core's ({offered})"
-            return self._reject(403, "QOS_REFERENCE_NOT_AUTHORIZED", why), []
+        unknown = self._unknown_reference(body)
+        if unknown is not None:
+            return unknown, []
         if len(self.subscriptions) >= MAX_SUBSCRIPTIONS:
             return self._reject(403, "MAX_SUBSCRIPTIONS_REACHED", "too many subscriptions; delete some"), []
         now = self.monotonic()
@@ -185,8 +184,9 @@ class Nef:
         ports, refused = self._flows(sub.uav, merged["flowInfo"])
         if refused is not None:
             return refused
-        if merged["qosReference"] not in self.cell.qod_profiles:
-            return self._reject(403, "QOS_REFERENCE_NOT_AUTHORIZED", f"qosReference {merged['qosReference']}")
+        not_offered = self._unknown_reference(merged)
+        if not_offered is not None:
+            return not_offered
         sub.body, sub.ports = merged, ports
         if "qosMonInfo" in changes and sub.allocated_s is not None:
             sub.next_report_s = self._first_report(sub, self.monotonic())
@@ -280,9 +280,9 @@ class Nef:
 
     def _notify(self, sub: NefSubscription, events: list[dict[str, Any]]) -> list[Notification]:
         sink = sub.body.get("notificationDestination", "")
-        if not sink or not any(e["event"] in (sub.body.get("events") or []) for e in events):
+        wanted = [e for e in events if e["event"] in (sub.body.get("events") or [])]
+        if not sink or not wanted:
             return []
-        wanted = [e for e in events if e["event"] in sub.body["events"]]
         data = {"transaction": sub.body["self"], "eventReports": wanted}
         return [Notification(sink, None, data, content_type=JSON)]
 
@@ -322,6 +322,14 @@ class Nef:
                     why = f"flow {flow_id}: no end of {text!r} is this UE's edge ({host}) with a port"
                     return frozenset(), self._reject(400, "INVALID_MSG_FORMAT", why)
         return frozenset(ports), None
+
+    def _unknown_reference(self, body: dict[str, Any]) -> Answer | None:
+        """A 403 for a qosReference this core does not offer (None when it does), on create and patch."""
+        if body["qosReference"] in self.cell.qod_profiles:
+            return None
+        offered = ", ".join(self.cell.qod_profiles)
+        why = f"qosReference {body['qosReference']} is not one of this core's ({offered})"
+        return self._reject(403, "QOS_REFERENCE_NOT_AUTHORIZED", why)
 
     def _mine(self, scs_as_id: str, sid: str) -> NefSubscription | None:
         sub = self.subscriptions.get(sid)
