@@ -11,6 +11,7 @@ loaded cell (the camera sized on views it does not fly).
 
 from __future__ import annotations
 
+import csv
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,8 @@ from tests.flights import fly_for_behaviour
 FAIR_SHARE_MBPS = CellConfig().uplink_mbps / 2  # the drone and one background user, equal weights
 DURATION_S = 18.0
 BG_START_S = 8.0
+SWITCH_BOUND_S = 1.0  # the move to the priority flow, after the load starts
+BACK_BOUND_S = 1.5  # the RTT back within 1.2x of the baseline, after that move (the queue drained)
 
 
 @pytest.fixture(scope="module")
@@ -65,18 +68,33 @@ def test_without_qos_latency_climbs_and_dynamic_qos_switches_on_it_and_holds(
     assert with_qos["qos_network"]["backend"] == backend
 
 
-def _switches_on_the_load(with_qos: dict[str, Any], _: Path) -> None:
-    """The dynamic flight moved to the priority flow for the load's latency, within a second of it, and
-    held its RTT; the network granted it by the scenario's backend."""
+def _switches_on_the_load(with_qos: dict[str, Any], out: Path) -> None:
+    """The dynamic flight moved to the priority flow for the load's latency, within a second of it; its
+    RTT came back soon after and held there; the network granted it by the scenario's backend.
+
+    "Held" is judged after the switch and the drain (at most SWITCH_BOUND_S + BACK_BOUND_S into the load):
+    the mean over the whole 10 s loaded window also weighs the second in which the load met the default
+    flow (in a flight whose baseline was 15.7 ms: 47 ms on average in that second, 113 at most; the
+    window's mean 1.27x the baseline, from 2.5 s into the load 1.08x). The bound on the time back is
+    what judges that second."""
     cause = with_qos["first_qos_switch_cause"]
     switch_s = with_qos["first_qos_switch_after_bg_s"]
-    baseline, loaded = with_qos["rtt_ms"]["baseline"], with_qos["rtt_ms"]["loaded"]
-    print(f"dynamic QoS: switch {switch_s} s ({cause}); RTT {baseline['mean']:.1f}, {loaded['mean']:.1f} ms")
+    back_s = with_qos["qos_network"]["decision_to_rtt_back_s"]
+    baseline = with_qos["rtt_ms"]["baseline"]["mean"]
+    held = _rtts_from(out / with_qos["scenario"] / "latency.csv", BG_START_S + SWITCH_BOUND_S + BACK_BOUND_S)
+    held_mean = sum(held) / len(held)
+    print(
+        f"dynamic QoS: switch {switch_s} s ({cause}), back {back_s} s later; "
+        f"RTT {baseline:.1f} ms, then held {held_mean:.1f} ms"
+    )
     assert cause is not None
     assert "HL" in cause
     assert not cause.startswith("before the load")
-    assert switch_s <= 1.0
-    assert loaded["mean"] <= 1.3 * baseline["mean"]
+    assert switch_s <= SWITCH_BOUND_S
+    assert back_s is not None
+    assert back_s <= BACK_BOUND_S
+    assert len(held) >= 100  # 7.5 s of 20 Hz states
+    assert held_mean <= 1.3 * baseline
     network = with_qos["qos_network"]
     backend = network["backend"]
     assert network["grant_at_end"] == "available"
@@ -106,3 +124,11 @@ def test_the_no_qos_failure_is_the_same_at_scale_3_and_scale_10(
     print(f"bg-noqos loaded RTT mean: {loaded_3:.1f} ms at scale 3, {loaded_10:.1f} ms at scale 10")
     assert loaded_3 >= 3 * at_3["rtt_ms"]["baseline"]["mean"]
     assert loaded_10 == pytest.approx(loaded_3, rel=0.25)
+
+
+def _rtts_from(latency_csv: Path, since_s: float) -> list[float]:
+    """The flight's round trips (latency.csv) from `since_s` into it."""
+    with latency_csv.open() as f:
+        return [
+            float(r["ms"]) for r in csv.DictReader(f) if r["kind"] == "rtt" and float(r["t_s"]) >= since_s
+        ]
