@@ -215,15 +215,15 @@ def main(argv: list[str] | None = None) -> int:
         "--pace-hz", type=float, default=100.0, help="states per second (default 100, 5x a drone's 20 Hz)"
     )
     parser.add_argument(
-        "--quick", action="store_true", help="smoke mode: 200 round trips per path, in 2 rounds rather than 4"
+        "--quick", action="store_true", help="smoke mode: 200 round trips per path, in 1 round rather than 4"
     )
     args = parser.parse_args(argv)
     if args.round_trips < 2 * BLOCK:
         parser.error(f"--round-trips must be at least {2 * BLOCK}")
     if not 1 <= args.pace_hz <= 1000:
         parser.error("--pace-hz must be in 1..1000")
-    # each phase starts its own MPC (and viewer): the smoke's 2 rounds start 10 rather than 20
-    result = run(200 if args.quick else args.round_trips, args.pace_hz, 2 if args.quick else ROUNDS)
+    # each phase starts its own MPC (and viewer): the smoke's one round starts 5 rather than 20
+    result = run(200 if args.quick else args.round_trips, args.pace_hz, 1 if args.quick else ROUNDS)
     return emit(result, markdown(result), args.out, verdict(result))
 
 

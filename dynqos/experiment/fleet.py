@@ -84,24 +84,7 @@ def run_fleet(
         write_config(shared_path, scenario, with_cell(shared, cell, sink_port=sink_port))
         for uav, config in drones.items():
             write_config(paths[uav], scenario, with_cell(config, cell))
-        start_replicas(procs, "qos", scenario.qos_agents)
-        # No MCAP recorder here: four drones already take this 2-core machine to its limit, and a fifth
-        # subscriber of every state perturbed the fleet's figures in CI (docs/observability.md).
-        _start_vehicles(procs, folder, drones, paths, px4)
-        start_replicas(procs, "planner", scenario.planner_replicas)
-        start_replicas(procs, "mpc", scenario.mpc_replicas)
-        if shared.fleet_plan.tasks:  # it waits until every drone offloads, then plans and sends the legs
-            # below the control path, as the detector: its planning is a burst of CPU, not a deadline
-            procs.start(
-                "fleet-planner",
-                ["edge", "fleet-planner"],
-                program=["nice", "-n", str(DETECTOR_NICE), procs.exe],
-            )
-        # The detector is best effort (it drops the frames it cannot keep up with): on one machine it
-        # runs below the control path, as it would on its own cores at a real edge.
-        procs.start("detector", ["edge", "detector"], program=["nice", "-n", str(DETECTOR_NICE), procs.exe])
-        if scenario.ros2_bridge:  # best effort as well
-            procs.start("ros2", ["edge", "ros2"], program=["nice", "-n", str(DETECTOR_NICE), procs.exe])
+        _start_edge(procs, scenario, shared, drones, paths, folder, px4)
         _record_fleet(
             scenario,
             shared.zenoh,
@@ -130,6 +113,38 @@ def run_fleet(
         summary["checks"]["nothing_left_booked"] = not plan["release_failed"]
     write_fleet(folder, scenario, rec, recs, decisions, summary)
     return summary
+
+
+def _start_edge(
+    procs: Processes,
+    scenario: Scenario,
+    shared: Config,
+    drones: dict[str, Config],
+    paths: dict[str, Path],
+    folder: Path,
+    px4: list[int] | None,
+) -> None:
+    """Every process but the router, the cell and the drones' daemons: the QoS agents, the vehicles, the
+    planner and MPC replicas, the fleet planner, the detector (and the ROS 2 face)."""
+    if px4:  # PX4 instances boot one at a time, as they always have
+        _start_vehicles(procs, folder, drones, paths, px4)
+    with procs.together():  # each needs only the router, the cell and the configs
+        start_replicas(procs, "qos", scenario.qos_agents)
+        # No MCAP recorder here: four drones already take this 2-core machine to its limit, and a fifth
+        # subscriber of every state perturbed the fleet's figures in CI (docs/observability.md).
+        if not px4:
+            _start_vehicles(procs, folder, drones, paths, px4)
+        start_replicas(procs, "planner", scenario.planner_replicas)
+        start_replicas(procs, "mpc", scenario.mpc_replicas)
+        nice = ["nice", "-n", str(DETECTOR_NICE), procs.exe]
+        if shared.fleet_plan.tasks:  # it waits until every drone offloads, then plans and sends the legs
+            # below the control path, as the detector: its planning is a burst of CPU, not a deadline
+            procs.start("fleet-planner", ["edge", "fleet-planner"], program=nice)
+        # The detector is best effort (it drops the frames it cannot keep up with): on one machine it
+        # runs below the control path, as it would on its own cores at a real edge.
+        procs.start("detector", ["edge", "detector"], program=nice)
+        if scenario.ros2_bridge:  # best effort as well
+            procs.start("ros2", ["edge", "ros2"], program=nice)
 
 
 def _configs(scenario: Scenario, folder: Path) -> tuple[Config, dict[str, Config], list[int] | None]:

@@ -100,14 +100,15 @@ def _start_edge_and_cell(
     cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
     sink_port = free_port() if scenario.qos_agents == 1 else 0
     write_config(config_path, scenario, with_cell(config, cell, sink_port=sink_port))
-    start_replicas(procs, "qos", scenario.qos_agents)
-    start_mcap_recorder(procs, scenario, folder)
-    start_vehicle(procs, folder, px4)
-    start_replicas(procs, "planner", scenario.planner_replicas)
-    start_replicas(procs, "mpc", scenario.mpc_replicas)
-    procs.start("detector", ["edge", "detector"])
-    if scenario.ros2_bridge:
-        procs.start("ros2", ["edge", "ros2"])
+    with procs.together():  # each needs only the router, the cell and the config
+        start_replicas(procs, "qos", scenario.qos_agents)
+        start_mcap_recorder(procs, scenario, folder)
+        start_vehicle(procs, folder, px4)
+        start_replicas(procs, "planner", scenario.planner_replicas)
+        start_replicas(procs, "mpc", scenario.mpc_replicas)
+        procs.start("detector", ["edge", "detector"])
+        if scenario.ros2_bridge:
+            procs.start("ros2", ["edge", "ros2"])
     port: int = cell["control_port"]
     return port
 
