@@ -67,7 +67,7 @@ class QosGrant(Message):
     SCHEMA: ClassVar[dict[str, f.Validator]] = {
         **COMMON,
         "grant": f.member(Grant),
-        "backend": f.choice(("links", "camara")),
+        "backend": f.choice(("links", "camara", "nef")),
         "session_id": f.text(64),
         "reason": f.text(300),
         "answers_seq": f.integer(),

@@ -43,12 +43,13 @@ def no_qos(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 @pytest.mark.slow
 @pytest.mark.integration
 @pytest.mark.timeout(420)
-@pytest.mark.parametrize("backend", ["camara", "links"])
+@pytest.mark.parametrize("backend", ["camara", "nef", "links"])
 def test_without_qos_latency_climbs_and_dynamic_qos_switches_on_it_and_holds(
     no_qos: dict[str, Any], tmp_path: Path, backend: str
 ) -> None:
-    """With either way the network gives the priority flow its weight (docs/qos.md): a QoD session the
-    QoS agent asks the emulated operator for, or a static policy for the priority port."""
+    """With each way the network gives the priority flow its weight (docs/qos.md): a QoD session the
+    QoS agent asks the emulated operator for, a subscription it asks the emulated 5G core's NEF for, or
+    a static policy for the priority port."""
     without = no_qos
     assert without["uav_offered_mbps"] > FAIR_SHARE_MBPS  # the drone asks for more than its share...
     assert without["uav_delivered_mbps"] < without["uav_offered_mbps"]  # ...and does not get it
@@ -102,8 +103,14 @@ def _switches_on_the_load(with_qos: dict[str, Any], out: Path) -> None:
     if backend == "camara":
         assert network["sessions"]["created"] >= 1
         assert network["sessions"]["open_at_end"] == 0
+    elif backend == "nef":
+        assert network["subscriptions"]["created"] >= 1
+        assert network["subscriptions"]["deleted"] == network["subscriptions"]["created"]
+        assert network["subscriptions"]["open_at_end"] == 0
+        assert "sessions" not in network  # the QoD API was not asked
     else:
         assert "sessions" not in network  # the network was never asked
+        assert "subscriptions" not in network
 
 
 @pytest.mark.slow

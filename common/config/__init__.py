@@ -2,7 +2,8 @@
 
 The sections live by concern (`network.py`: drone, zenoh, cell, vehicle, metrics; `control.py`:
 supervisor, control, MPC, planner, detector, onboard; `qos.py`: the QoS agent, its operator and its
-arbiter); `loader.py` holds the whole `Config`, the TOML loader with its overrides and the writer.
+arbiter; `nef.py`: a 5G core's NEF for the agent); `loader.py` holds the whole `Config`, the TOML
+loader with its overrides and the writer.
 Everything is imported from here: `from dynqos.common.config import Config, load_config`.
 """
 
@@ -25,6 +26,7 @@ from dynqos.common.config.loader import (
     to_dict,
     to_toml,
 )
+from dynqos.common.config.nef import NefConfig, NefUeConfig
 from dynqos.common.config.network import (
     BackgroundConfig,
     BearerConfig,
@@ -59,6 +61,8 @@ __all__ = [
     "FleetTaskConfig",
     "MetricsConfig",
     "MpcConfig",
+    "NefConfig",
+    "NefUeConfig",
     "OnboardConfig",
     "PlannerConfig",
     "PredictionConfig",

@@ -1,16 +1,16 @@
 """Config sections of the QoS agent: [qos], [qos.camara] with the drones' device identities, and
-[qos.arbiter]."""
+[qos.arbiter] ([qos.nef] is in nef.py)."""
 
 from __future__ import annotations
 
 import ipaddress
 import re
-import urllib.parse
 from dataclasses import asdict, dataclass, field
 from typing import Annotated, Any, Literal
 
 from dynqos.common.camara import AGENT_SCOPE
-from dynqos.common.config.validate import In, _check_replica_id, _host_port, _require, checked
+from dynqos.common.config.nef import NefConfig
+from dynqos.common.config.validate import In, _check_replica_id, _host_port, _loopback, _require, checked
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import UAV_ID_PATTERN
 
@@ -205,16 +205,6 @@ class CamaraConfig:
                 raise ConfigError(key, f"{address!r} is not a single IP address (no mask)") from None
 
 
-def _loopback(url: str) -> bool:
-    host = urllib.parse.urlsplit(url).hostname or ""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 @dataclass(frozen=True, slots=True, kw_only=True)
 @checked
 class ArbiterConfig:
@@ -251,7 +241,7 @@ class ArbiterConfig:
 class QosConfig:
     """[qos]: how the network is asked for the priority flow (`dynqos edge qos`, docs/qos.md)."""
 
-    backend: Literal["links", "camara"] = "links"
+    backend: Literal["links", "camara", "nef"] = "links"
     hold_down_s: Annotated[float, SECONDS_3600] = (
         5.0  # release a session only after the drone left priority this long
     )
@@ -277,6 +267,7 @@ class QosConfig:
     replica_id: str = ""
     session_lease_s: Annotated[float, In(0.5, 60, "must be in 0.5..60 s")] = 2.0
     camara: CamaraConfig = field(default_factory=CamaraConfig)
+    nef: NefConfig = field(default_factory=NefConfig)
     arbiter: ArbiterConfig = field(default_factory=ArbiterConfig)
 
     def __post_init__(self) -> None:
@@ -291,10 +282,12 @@ class QosConfig:
         _check_replica_id(self.replica_id)
         if self.backend == "camara":
             _require(bool(self.camara.api_root), "camara.api_root", 'is required with backend = "camara"')
+        if self.backend == "nef":
+            self.nef.required()
         # With links the network prioritises whoever uses the priority port: a revoked grant could not
         # be taken back, so the arbiter's budget would be a wish.
         _require(
-            self.policy != "arbiter" or self.backend == "camara",
+            self.policy != "arbiter" or self.backend in ("camara", "nef"),
             "policy",
-            'the arbiter needs backend = "camara" (a network that enforces its grants)',
+            'the arbiter needs backend = "camara" or "nef" (a network that enforces its grants)',
         )

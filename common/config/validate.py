@@ -7,7 +7,9 @@ code, before its own `__post_init__` checks what relates one key to another."""
 
 from __future__ import annotations
 
+import ipaddress
 import math
+import urllib.parse
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar, get_type_hints
@@ -87,3 +89,13 @@ def _host_port(text: str, key: str) -> tuple[str, int]:
     _require(bool(sep and host), key, f"{text!r} is not host:port")
     _require(port.isdigit() and 1 <= int(port) <= 65535, key, f"{text!r}: port must be 1..65535")
     return host.strip("[]"), int(port)
+
+
+def _loopback(url: str) -> bool:
+    host = urllib.parse.urlsplit(url).hostname or ""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

@@ -96,6 +96,13 @@ def _flight_options(sub: argparse.ArgumentParser) -> None:
         "SITL, one instance per drone (px4; needs --px4-dir or [px4] dir, docs/px4.md)",
     )
     sub.add_argument(
+        "--qos-backend",
+        choices=["links", "camara", "nef"],
+        help="how the network gives the priority flow its weight: a QoD session from the emulated "
+        "operator (camara, the scenarios' default), a subscription from its emulated 5G core's NEF "
+        "(nef, one drone), or a static policy for the priority port (links); docs/qos.md",
+    )
+    sub.add_argument(
         "--px4-dir",
         metavar="DIR",
         help="PX4's folder (bin/px4 and etc/, such as PX4's build/px4_sitl_default); default: [px4] dir, "
@@ -137,6 +144,7 @@ def run_demo(args: argparse.Namespace, config: Config) -> int:
         repeat=args.repeat,
         metrics_port=args.metrics_port,
         vehicle=vehicle,
+        qos_backend=getattr(args, "qos_backend", None),
     )
     print(f"report: {out / 'report.md'}")
     for s in result["scenarios"]:

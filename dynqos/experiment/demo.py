@@ -42,15 +42,16 @@ def run_demo(
     repeat: int = 1,
     metrics_port: int = 0,
     vehicle: dict[str, Any] | None = None,
+    qos_backend: str | None = None,
 ) -> dict[str, Any]:
     """Every scenario under every profile, each `repeat` times with seeds seed, seed + 1, ...; then
-    summary.json over all of them and report.md."""
+    summary.json over all of them and report.md. `qos_backend`: the scenarios' own when None."""
     if not 1 <= repeat <= MAX_REPEAT:
         raise ConfigError("--repeat", f"must be in 1..{MAX_REPEAT}, got {repeat}")
     chosen = scenarios if scenarios is not None else [builtin_scenario(n) for n in names]
     runs = [
         profile.apply(scenario)
-        for scenario in _overridden(chosen, duration_s, scale, seed, metrics_port, vehicle or {})
+        for scenario in _overridden(chosen, duration_s, scale, seed, metrics_port, vehicle or {}, qos_backend)
         for profile in profiles or [load_profile(DEFAULT_PROFILE)]
     ]
     try:
@@ -97,9 +98,12 @@ def _overridden(
     seed: int | None,
     metrics_port: int = 0,
     vehicle: dict[str, Any] | None = None,
+    qos_backend: str | None = None,
 ) -> list[Scenario]:
     """The scenarios with the command line's changes; `vehicle`: {"vehicle": "px4", "px4_dir": DIR}."""
     overrides: dict[str, Any] = {"metrics_port": metrics_port} if metrics_port else {}
+    if qos_backend is not None:
+        overrides["qos_backend"] = qos_backend
     vehicle = vehicle or {}
     if "vehicle" in vehicle:
         overrides["vehicle"] = vehicle["vehicle"]

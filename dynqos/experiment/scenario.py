@@ -20,6 +20,8 @@ from dynqos.common.config import (
     DeviceConfig,
     DroneConfig,
     DroneMissionConfig,
+    NefConfig,
+    NefUeConfig,
     OnboardConfig,
     PlannerConfig,
     QosConfig,
@@ -105,7 +107,8 @@ class Scenario:
     # How the network gives the priority flow its weight (docs/qos.md): camara, the emulated cell grants it
     # only while a QoD session the QoS agent asked for is AVAILABLE (the truer model of the paper's
     # network); links, by static policy for the priority port, the moment the drone uses it.
-    qos_backend: Literal["links", "camara"] = "camara"
+    # nef: the same, asked of the emulated 5G core's NEF (AsSessionWithQoS) instead of its QoD API.
+    qos_backend: Literal["links", "camara", "nef"] = "camara"
     base_delay_ms: float = 5.0  # one way: with processing and camera head-of-line ~15 ms C&C RTT, below rho2
     faults: tuple[
         Fault, ...
@@ -187,8 +190,11 @@ class Scenario:
         self._check_fleet()
 
     def _check_fleet(self) -> None:
-        if self.qos_policy == "arbiter" and self.qos_backend != "camara":
-            raise ConfigError("qos_policy", 'the arbiter needs qos_backend = "camara"')
+        if self.qos_policy == "arbiter" and self.qos_backend == "links":
+            raise ConfigError("qos_policy", 'the arbiter needs qos_backend = "camara" or "nef"')
+        if self.qos_backend == "nef" and (self.fleet or self.qos_agents != 1):
+            # each agent listens for the NEF's notifications on a port of its own: not wired here yet
+            raise ConfigError("qos_backend", '"nef" flies one drone with one QoS agent (for now)')
         ids = [d.id for d in self.drones]
         if len(set(ids)) != len(ids):
             raise ConfigError("drones", "drone ids must be unique")
@@ -329,7 +335,8 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
             priority_listen_port=0,
             seed=scenario.seed,
             priority_weight=scenario.priority_weight,
-            qod=scenario.qos_backend == "camara",
+            qod=scenario.qos_backend != "links",
+            nef=scenario.qos_backend == "nef",
             background=(BackgroundConfig(name="bg", weight=scenario.bg_weight),),
         ),
         vehicle=VehicleSimConfig(
@@ -367,6 +374,13 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
                 extend_before_s=QOD_DURATION_S / 3,
                 retry_after_denied_s=5.0,
                 devices={UAV: DeviceConfig(phoneNumber=UAV_PHONE_NUMBER)},
+            ),
+            nef=NefConfig(  # the same UE, known to the core by its GPSI
+                api_root="http://127.0.0.1:1",
+                notification_destination="http://127.0.0.1:1/nef-events",
+                sink_listen="127.0.0.1:1",
+                retry_after_denied_s=5.0,
+                ues={UAV: NefUeConfig(gpsi=f"msisdn-{UAV_PHONE_NUMBER.lstrip('+')}")},
             ),
         ),
     )
@@ -464,10 +478,12 @@ def with_cell(config: Config, cell: dict[str, Any], sink_port: int = 0) -> Confi
             )
     api_root = f"http://127.0.0.1:{cell['control_port']}/quality-on-demand/v1"
     camara = replace(config.qos.camara, api_root=api_root)
+    nef = replace(config.qos.nef, api_root=f"http://127.0.0.1:{cell['control_port']}")
     if sink_port:
         sink = f"127.0.0.1:{sink_port}"
         camara = replace(camara, sink=f"http://{sink}/qod-events", sink_listen=sink)
-    qos = replace(config.qos, camara=camara)
+        nef = replace(nef, notification_destination=f"http://{sink}/nef-events", sink_listen=sink)
+    qos = replace(config.qos, camara=camara, nef=nef)
     return replace(config, onboard=onboard, qos=qos)
 
 

@@ -174,7 +174,7 @@ def _single_section(out: Path, s: dict[str, Any], baseline: dict[str, Any] | Non
 
 def _qos_network_line(s: dict[str, Any]) -> list[str]:
     """What the network made of the drone's priority (docs/qos.md): grant and RTT after the decision,
-    and the QoD sessions the emulated operator saw."""
+    and the QoD sessions (or NEF subscriptions) the emulated operator saw."""
     q = s.get("qos_network")
     if not q or s.get("qos") == "default":
         return []
@@ -189,6 +189,13 @@ def _qos_network_line(s: dict[str, Any]) -> list[str]:
             f"; QoD sessions created {sessions['created']}, extended {sessions['extended']}, "
             f"deleted {sessions['deleted']}, refused {sessions['refused']}, "
             f"left open {sessions['open_at_end']}"
+        )
+    subs = q.get("subscriptions")
+    if subs:
+        line += (
+            f"; NEF subscriptions created {subs['created']}, deleted {subs['deleted']}, "
+            f"refused {subs['refused']}, ended by the network {subs['terminated']}, "
+            f"left open {subs['open_at_end']}"
         )
     return [line]
 

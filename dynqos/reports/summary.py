@@ -286,7 +286,11 @@ def _qos_network(
         out["decision_to_rtt_back_s"] = _rtt_back_after(rtts, decided, baseline)
     out["grant_at_end"] = statuses[-1].qos_grant.value if statuses else None
     out["agent_heard"] = any(s.qos_agent for s in statuses)
-    if qod is not None:
+    if qod is not None and scenario.qos_backend == "nef":  # the NEF's subscriptions
+        nef = qod.get("nef") or {}
+        keys = ("created", "modified", "deleted", "refused", "terminated", "expired")
+        out["subscriptions"] = {k: nef.get(k, 0) for k in keys} | {"open_at_end": nef.get("open", 0)}
+    elif qod is not None:
         out["sessions"] = {
             k: qod.get(k, 0) for k in ("created", "extended", "deleted", "refused", "expired", "conflicts")
         }

@@ -303,9 +303,11 @@ def beside(cfg: CamaraConfig, explicit: str, api: str) -> str:
 
 
 def _error(status: int, answer: Any, correlator: str, retry_after: float | None) -> OperatorError:
+    """CAMARA's ErrorInfo (`code`, `message`) or 3GPP's ProblemDetails (`cause`, `detail`)."""
     code, message = "", "no error body"
     if isinstance(answer, dict):
-        code, message = str(answer.get("code", "")), str(answer.get("message", ""))[:300]
+        code = str(answer.get("code", "") or answer.get("cause", ""))
+        message = str(answer.get("message", "") or answer.get("detail", ""))[:300]
     return OperatorError(status, code, message, correlator=correlator, retry_after_s=retry_after)
 
 

@@ -215,7 +215,10 @@ class NefApi:
 
 
 def _address(host: str) -> str:
-    """An IP address as an IPFilterRule writes it; ValueError for a name (a rule takes no host names)."""
+    """An IP address as an IPFilterRule writes it, or its keyword `assigned` (RFC 6733: the address the
+    network gave the UE, for a UE known by GPSI); ValueError for a name (a rule takes no host names)."""
+    if host == "assigned":
+        return host
     try:
         return str(ipaddress.ip_address(host))
     except ValueError:

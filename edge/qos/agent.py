@@ -9,6 +9,8 @@ never do. Backends ([qos] backend, docs/qos.md):
   is all there is to do, so priority is AVAILABLE as soon as it is wanted.
 - `camara`: one CAMARA Quality-on-Demand session per drone (edge/operator/qod.py), created, followed,
   extended and deleted by the rules in edge/qos/grants.py.
+- `nef`: one AsSessionWithQoS subscription per drone at a 5G core's NEF (edge/operator/nef.py), by the
+  same rules as they map onto it (edge/qos/nef_calls.py); its state comes with the NEF's notifications.
 
 With `[qos] policy = "arbiter"` (camara only) a drone gets a session only while the arbiter
 (edge/qos/arbiter.py) admits it; every decision is logged, counted and published on
@@ -41,10 +43,13 @@ from dynqos.common.modes import Grant
 from dynqos.edge import metrics as edge_metrics
 from dynqos.edge.membership import default_replica_id
 from dynqos.edge.operator.client import OperatorClient
+from dynqos.edge.operator.nef import Report
 from dynqos.edge.qos.arbiter import Action, Arbiter, Decision, Need
 from dynqos.edge.qos.calls import OperatorCalls, preflight
 from dynqos.edge.qos.grants import DroneGrant
 from dynqos.edge.qos.leadership import AgentRole, Leadership
+from dynqos.edge.qos.nef_calls import NefCalls, client_settings
+from dynqos.edge.qos.nef_sink import NefSinkGuard, serve_nef_sink
 from dynqos.edge.qos.peers import AgentPeers
 from dynqos.edge.qos.profile_watch import ProfileWatch
 from dynqos.edge.qos.record import DroneRecord
@@ -75,9 +80,10 @@ class QosAgent(EdgeCore):
         self.stats = bus.subscribe(keys.uplink_all_drones(Stream.QOS), self.inbox, expect=(QosRequest,))
         self.drones: dict[str, DroneRecord] = {}  # everything kept of a drone, forgotten in one step
         self.client: OperatorClient | None = None
-        self.calls: OperatorCalls | None = None  # with backend "camara", once the client is open
+        self.calls: OperatorCalls | NefCalls | None = None  # with backend "camara" or "nef", once open
         self.profile: ProfileWatch | None = None  # the operator's profile as last read (check_profile)
         self.sink_guard = SinkGuard()  # what the operator's notifications must carry
+        self.nef_guard = NefSinkGuard()  # ...and the NEF's, with backend "nef"
         self.port = config.zenoh.priority_port
         self.server = self.camara.application_server or config.zenoh.edge_host
         self.stopping = asyncio.Event()  # the runtime's, from `start`
@@ -119,6 +125,14 @@ class QosAgent(EdgeCore):
                     self.camara.sink, self.camara.sink_listen, self._notified, self.sink_guard
                 )
                 stack.push_async_callback(sink.cleanup)
+        if self.qos.backend == "nef":
+            nef = self.qos.nef
+            self.client = await stack.enter_async_context(OperatorClient(client_settings(nef)))
+            self.calls = NefCalls(self.client, nef, self.port, self.server, self.clock, self.nef_guard)
+            sink = await serve_nef_sink(
+                nef.notification_destination, nef.sink_listen, self._nef_notified, self.nef_guard
+            )
+            stack.push_async_callback(sink.cleanup)
         self.peers = AgentPeers(self.bus, "all", self.leadership, loop)
         stack.callback(self.peers.close)
         await loop.run_in_executor(None, self.peers.query)
@@ -152,7 +166,7 @@ class QosAgent(EdgeCore):
         """The operator settings fitted to its profile, for the calls and each drone's grant rules."""
         self.camara = camara
         self.qos = replace(self.qos, camara=camara)
-        if self.calls is not None:
+        if isinstance(self.calls, OperatorCalls):
             self.calls.camara = camara
 
     def _profile_changed(self) -> None:
@@ -271,7 +285,7 @@ class QosAgent(EdgeCore):
             op = grant.next_op(now)
             if op is not None:
                 try:
-                    assert self.calls is not None  # an op is due only with backend "camara"
+                    assert self.calls is not None  # an op is due only with a backend that asks
                     await self.calls.do(op, grant)
                 except Exception as exc:  # one drone's surprise must not end its task
                     log.exception("qos agent: %s: %s failed unexpectedly", uav, op.value)
@@ -362,7 +376,7 @@ class QosAgent(EdgeCore):
             for uav, record in self.drones.items():
                 record.grant.handed_over()
                 if uav in found:
-                    record.grant.observed(self.calls.session(found[uav]), now)
+                    record.grant.observed(found[uav], now)
         self.serving = True
         loop = asyncio.get_running_loop()
         for record in self.drones.values():
@@ -402,7 +416,8 @@ class QosAgent(EdgeCore):
             record.wake.set()
         tasks = [r.task for r in self.drones.values() if r.task is not None]
         if tasks:
-            _, late = await asyncio.wait(tasks, timeout=self.camara.timeout_s + 1)
+            timeout_s = self.qos.nef.timeout_s if self.qos.backend == "nef" else self.camara.timeout_s
+            _, late = await asyncio.wait(tasks, timeout=timeout_s + 1)
             for task in late:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
@@ -426,6 +441,12 @@ class QosAgent(EdgeCore):
                 record.grant.read_now()
                 record.wake.set()
 
+    def _nef_notified(self, events: list[Report]) -> None:
+        """The NEF's news at its sink: the drones whose subscriptions it names act on it at once."""
+        if isinstance(self.calls, NefCalls):
+            for grant in self.calls.notified(events, (r.grant for r in self.drones.values())):
+                self.drones[grant.uav].wake.set()
+
     @property
     def errors(self) -> int:
         return self.calls.errors if self.calls is not None else 0
@@ -447,7 +468,10 @@ class QosAgent(EdgeCore):
                 f"revocations={d[Action.REVOKE]} releases={d[Action.RELEASE]}"
             )
         sink = ""
-        if self.camara.sink_listen:
+        if self.qos.backend == "nef":
+            c = self.nef_guard.counters
+            sink = f" notifications={c['taken']} refused={c['unauthenticated'] + c['malformed']}"
+        elif self.camara.sink_listen:
             c = self.sink_guard.counters
             sink = (
                 f" notifications={c['taken']} refused={c['unauthenticated'] + c['malformed']} "

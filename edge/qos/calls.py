@@ -249,19 +249,19 @@ class OperatorCalls:
 
     # ---- start and stop -------------------------------------------------------------------------------
 
-    async def adopt(self, heard: set[str], whose: str = "left by an earlier agent") -> dict[str, SessionInfo]:
+    async def adopt(self, heard: set[str], whose: str = "left by an earlier agent") -> dict[str, Session]:
         """The sessions for our priority port the operator holds, per configured device: a drone in
         `heard` keeps its live one (returned, to be followed as if this agent had made it: an agent that
         takes over creates no duplicate); every other one is deleted (an ended one, a second one, or a
         drone nobody hears: left by a crashed agent)."""
-        adopted: dict[str, SessionInfo] = {}
+        adopted: dict[str, Session] = {}
         for uav, device in self.camara.devices.items():
             try:
                 with self.as_drone(uav):
                     found = await self.ours(device.as_api())
                 for info in found:
                     if uav in heard and uav not in adopted and info.qos_status != "UNAVAILABLE":
-                        adopted[uav] = info
+                        adopted[uav] = self.session(info)
                         log.info(
                             "qos agent: %s session %s adopted (%s)", uav, info.session_id, info.qos_status
                         )
@@ -293,24 +293,33 @@ class OperatorCalls:
 
 
 def preflight(config: Config) -> None:
-    """What the operator settings need, checked before any network is opened: an IP address for the
-    application server (the network identifies the flow by address; a 1.2.0 address list is checked
+    """What the operator (or NEF) settings need, checked before any network is opened: an IP address for
+    the application server (the network identifies the flow by address; a 1.2.0 address list is checked
     with the config) and credential files that load (each error names its key)."""
     camara = config.qos.camara
+    if config.qos.backend == "nef":
+        nef = config.qos.nef
+        _server_address(camara.application_server or config.zenoh.edge_host, "qos.camara.application_server")
+        tls_context(nef.ca_file, nef.tls_cert_file, nef.tls_key_file)
+        if nef.token_url:
+            read_secret(nef.client_secret_file)
+        return
     if config.qos.backend != "camara":
         return
-    server = camara.application_server or config.zenoh.edge_host
-    try:
-        if not camara.application_server_addresses:
-            ipaddress.ip_network(server, strict=False)
-    except ValueError:
-        raise ConfigError(
-            "qos.camara.application_server",
-            f"{server!r} is not an IP address: the network identifies the flow by address",
-        ) from None
+    if not camara.application_server_addresses:
+        _server_address(camara.application_server or config.zenoh.edge_host, "qos.camara.application_server")
     read_headers(camara.headers_file)
     tls_context(camara.ca_file, camara.tls_cert_file, camara.tls_key_file)
     if camara.token_url:
         read_secret(camara.client_secret_file)
         if camara.client_key_file:
             load_private_key(camara.client_key_file)
+
+
+def _server_address(server: str, key: str) -> None:
+    try:
+        ipaddress.ip_network(server, strict=False)
+    except ValueError:
+        raise ConfigError(
+            key, f"{server!r} is not an IP address: the network identifies the flow by address"
+        ) from None

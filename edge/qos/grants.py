@@ -25,6 +25,9 @@ back; `grant` is what the drone is told. Rules a user relies on live here, each 
 - an operator's Retry-After is honoured up to `RETRY_AFTER_CEILING_NS`;
 - a drone the arbiter does not admit (policy "arbiter", edge/qos/arbiter.py) is told UNAVAILABLE with the
   arbiter's reason, and a session it holds is deleted at once: a revocation frees the budget now.
+
+With backend "nef" the session is a NEF subscription (edge/qos/nef_calls.py maps its events onto these
+statuses): it has no end to extend, so EXTEND and RENEW never come due, and a read only finds it gone.
 """
 
 from __future__ import annotations
@@ -114,15 +117,21 @@ class DroneGrant:
 
     def __init__(self, uav: str, config: QosConfig, now_ns: int) -> None:
         self.uav = uav
-        self.camara = config.backend == "camara"
+        self.asks = config.backend != "links"  # the network is asked (links: its static policy holds)
         self._timeout_ns = to_ns(config.drone_timeout_s)
         self._hold_down_ns = to_ns(config.hold_down_s)
-        self._poll_ns = to_ns(config.camara.poll_interval_s)
-        self._watch_ns = max(self._poll_ns, NS_PER_S)
+        if config.backend == "nef":  # a read says only that the subscription is there: its news is notified
+            self._poll_ns = self._watch_ns = to_ns(config.nef.read_interval_s)
+        else:
+            self._poll_ns = to_ns(config.camara.poll_interval_s)
+            self._watch_ns = max(self._poll_ns, NS_PER_S)
         self._extend_ns = to_ns(config.camara.extend_before_s)
         self._renew_ns = to_ns(config.camara.renew_before_s)
         self.capped = ""  # the session whose end an extend could not move: replaced, not extended
-        self._retry_ns = to_ns(config.camara.retry_after_denied_s)
+        retry_s = (
+            config.nef.retry_after_denied_s if config.backend == "nef" else config.camara.retry_after_denied_s
+        )
+        self._retry_ns = to_ns(retry_s)
         self.wanted = False
         self.heard_ns = now_ns
         self.request_seq = 0
@@ -200,7 +209,7 @@ class DroneGrant:
     def next_op(self, now_ns: int) -> Op | None:
         """The call due now (`OPS`); None: none."""
         wants = self._track(now_ns) and self.admitted
-        if not self.camara:
+        if not self.asks:
             return None
         state = self.state
         for states, need, op in OPS:
@@ -252,7 +261,7 @@ class DroneGrant:
     def grant(self, now_ns: int) -> Grant:
         if not self.admitted:
             return Grant.UNAVAILABLE if self.wants(now_ns) or self.session is not None else Grant.NONE
-        if not self.camara:
+        if not self.asks:
             return Grant.AVAILABLE if self.wants(now_ns) else Grant.NONE
         s = self.session
         if s is not None and s.status is QodStatus.AVAILABLE:

@@ -15,7 +15,7 @@ import hmac
 import json
 import logging
 import secrets
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Any
@@ -99,11 +99,20 @@ async def serve_sink(
             notified(session_id)
         return web.Response(status=status)
 
+    runner = await serve_posts(path, listen, receive)
+    log.info("qos agent: notifications on %s (%s)", listen, path)
+    return runner
+
+
+async def serve_posts(
+    path: str, listen: str, receive: Callable[[web.Request], Awaitable[web.StreamResponse]]
+) -> web.AppRunner:
+    """POSTs to `path` (an aiohttp route, `{name}` segments allowed) served on `listen` (host:port) by
+    `receive`, bodies up to MAX_BODY, until the runner is cleaned up."""
     app = web.Application(client_max_size=MAX_BODY)
     app.router.add_post(path, receive)
     runner = web.AppRunner(app, access_log=None, handle_signals=False)
     await runner.setup()
     host, _, port = listen.rpartition(":")
     await web.TCPSite(runner, host.strip("[]"), int(port)).start()
-    log.info("qos agent: notifications on %s (%s)", listen, path)
     return runner

@@ -28,7 +28,15 @@ MAX_SUBSCRIPTIONS = 10_000  # every SCS/AS together: a client that never deletes
 JSON = "application/json"
 IDENTITIES = ("ueIpv4Addr", "ueIpv6Addr", "gpsi")
 # what a patch may change (AsSessionWithQoSSubscriptionPatch, the fields dynqos's emulation acts on)
-PATCHABLE = {"flowInfo", "qosReference", "altQoSReferences", "qosDuration", "qosMonInfo", "events"}
+PATCHABLE = {
+    "flowInfo",
+    "qosReference",
+    "altQoSReferences",
+    "qosDuration",
+    "qosMonInfo",
+    "events",
+    "notificationDestination",  # a new active agent's sink
+}
 Delays = Callable[[str], tuple[int, int, int]]  # a drone's uplink, downlink and round-trip delay now (ms)
 
 

@@ -251,6 +251,9 @@ def _final_counters(emulator: CellEmulator, out_dir: Path | None) -> dict[str, A
     counters = emulator.counters()
     if emulator.operator is not None:
         counters["qod"] = {**vars(emulator.operator.counters), "sessions": emulator.operator.open_sessions()}
+        nef = emulator.operator.nef
+        if nef is not None:  # its subscriptions, counted apart from the QoD sessions
+            counters["qod"]["nef"] = {**vars(nef.counters), "open": len(nef.subscriptions)}
         if out_dir is not None:  # what the operator was left with, once every client has stopped
             (out_dir / "qod.json").write_text(json.dumps(counters["qod"], indent=1) + "\n")
     return counters
