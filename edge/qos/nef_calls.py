@@ -80,8 +80,7 @@ class NefCalls:
                 assert grant.session is not None
                 await self.api.delete(grant.session.session_id)
                 log.info("qos agent: %s subscription %s deleted", grant.uav, grant.session.session_id)
-                self._created_ns.pop(grant.session.session_id, None)
-                grant.deleted(self.clock.now_ns())
+                self._gone(grant)
             else:  # a read: still there (EXTEND and RENEW are never due: a subscription has no end to move)
                 assert grant.session is not None
                 await self.api.get(grant.session.session_id)
@@ -124,7 +123,7 @@ class NefCalls:
             log.error("qos agent: %s: the NEF refused our settings: %s", grant.uav, why)
             grant.refused_settings(why[:300])
         elif exc.status == 404:
-            grant.deleted(now)  # not there any more (ended and removed, or deleted elsewhere)
+            self._gone(grant)  # not there any more (ended and removed, or deleted elsewhere)
         else:
             self._once(grant.uav, exc.status, exc.code, reason)
             grant.failed(op, reason, now, retry_after_ns)
@@ -145,7 +144,7 @@ class NefCalls:
             if event.event not in EVENT_STATUS:
                 continue
             status, info = self._status(event)
-            if grant is None or grant.session is None:
+            if grant is None:
                 self._keep_early(event.subscription_id, status, info)
                 continue
             log.info("qos agent: %s subscription %s: %s", grant.uav, event.subscription_id, event.event)
@@ -215,6 +214,12 @@ class NefCalls:
         except OperatorError as exc:
             if exc.status != 404:
                 log.error("qos agent: could not delete %s's subscription %s: %s", grant.uav, sid, exc)
+        self._gone(grant)
+
+    def _gone(self, grant: DroneGrant) -> None:
+        """The drone's subscription is no more: forget when it was made, and tell its grant rules."""
+        if grant.session is not None:
+            self._created_ns.pop(grant.session.session_id, None)
         grant.deleted(self.clock.now_ns())
 
     def _uav_of(self, sub: Subscription) -> str | None:
