@@ -209,3 +209,42 @@ def test_its_answers_are_what_the_document_describes() -> None:
     ]
     assert found == []
     assert nef_spec.notification_problems(notes[0].event) == []
+
+
+def test_a_put_replaces_the_subscription_but_not_its_ue_and_checks_it_as_a_creation() -> None:
+    core, clock = nef()
+    created, _ = core.create("edge-a", request())
+    sid = created.body["self"].rsplit("/", 1)[-1]
+    clock.now += 1
+    core.advance(measured)
+    new = request(qosReference="QOS_L")
+    del new["qosMonInfo"]
+    replaced = core.replace("edge-a", sid, new | {"self": "http://elsewhere/x"})
+    assert replaced.status == 200
+    assert replaced.body["self"] == created.body["self"]  # the NEF's, whatever was sent
+    assert replaced.body["qosReference"] == "QOS_L"
+    assert "qosMonInfo" not in core.get("edge-a", sid).body  # replaced, not merged
+    assert core.granted("uav1", PORT)
+    assert core.replace("edge-a", sid, request(ueIpv4Addr="10.45.0.99")).status == 400  # another UE
+    assert core.replace("edge-a", sid, request(qosReference="")).status == 400
+    assert core.replace("edge-a", sid, request(qosReference="QOS_X")).status == 403
+    assert core.replace("edge-b", sid, request()).status == 404
+    assert core.get("edge-a", sid).body["qosReference"] == "QOS_L"  # the refusals changed nothing
+
+
+def test_a_read_of_all_names_ues_by_address_and_refuses_a_query_the_document_forbids() -> None:
+    core, _ = nef()
+    created, _ = core.create("edge-a", request())
+
+    def read(ip_addrs: str | None = None, macs: list[str] | None = None) -> tuple[int, Any]:
+        answer = core.all("edge-a", ip_addrs, macs)
+        return answer.status, answer.body
+
+    assert read(f'[{{"ipv4Addr": "{UE}"}}]') == (200, [created.body])
+    assert read('[{"ipv4Addr": "10.45.0.8"}]') == (200, [])
+    assert read('[{"ipv6Prefix": "2001:db8::/64"}]') == (200, [])
+    assert read(macs=["aa-bb-cc-dd-ee-ff"]) == (200, [])
+    for bad_ip in ("[]", "{", '[{"ipv4Addr": "1.2.3"}]', f'[{{"ipv4Addr": "{UE}", "ipv6Addr": "::1"}}]'):
+        assert read(bad_ip)[0] == 400, bad_ip
+    assert read(macs=["aa:bb:cc:dd:ee:ff"])[0] == 400
+    assert read()[1] == [created.body]

@@ -81,6 +81,9 @@ def test_the_emulated_operator_lists_its_profiles_with_their_status_and_duration
     assert op.profile("QOS_X").status == 404
     assert op.profiles({"colour": "red"}).status == 400
     assert op.profiles({"device": {"phoneNumber": "+46799999999"}}).status == 404
+    # what the document's QosProfileDeviceRequest forbids is a 400, not a lookup (a list here was a 500)
+    for bad in ({"device": [None]}, {"device": None}, {"status": "GONE"}, {"name": "x"}):
+        assert op.profiles(bad).status == 400, bad
 
 
 def test_an_inactive_profile_starts_no_session() -> None:

@@ -24,6 +24,7 @@ from urllib.parse import urlsplit
 from aiohttp import web
 
 from dynqos.common.camara import EVENT_TYPE
+from dynqos.common.http_log import quiet_malformed_requests
 
 log = logging.getLogger(__name__)
 
@@ -109,6 +110,7 @@ async def serve_posts(
 ) -> web.AppRunner:
     """POSTs to `path` (an aiohttp route, `{name}` segments allowed) served on `listen` (host:port) by
     `receive`, bodies up to MAX_BODY, until the runner is cleaned up."""
+    quiet_malformed_requests()
     app = web.Application(client_max_size=MAX_BODY)
     app.router.add_post(path, receive)
     runner = web.AppRunner(app, access_log=None, handle_signals=False)

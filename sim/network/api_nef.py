@@ -25,6 +25,7 @@ class NefRoutes:
             web.post(API + "/{scs}/subscriptions", self.create),
             web.get(API + "/{scs}/subscriptions", self.all),
             web.get(one, self.get),
+            web.put(one, self.replace),
             web.patch(one, self.modify),
             web.delete(one, self.delete),
         ]
@@ -36,11 +37,20 @@ class NefRoutes:
 
     async def all(self, request: web.Request) -> web.Response:
         self.changed(self.nef.advance())
-        return answer(self.nef.all(request.match_info["scs"]))
+        query = request.query
+        mac_addrs = query.getall("mac-addrs", [])
+        return answer(self.nef.all(request.match_info["scs"], query.get("ip-addrs"), mac_addrs))
 
     async def get(self, request: web.Request) -> web.Response:
         self.changed(self.nef.advance())
         return answer(self.nef.get(request.match_info["scs"], request.match_info["sid"]))
+
+    async def replace(self, request: web.Request) -> web.Response:
+        sent = await _body(request, "application/json")
+        self.changed(self.nef.advance())
+        result = self.nef.replace(request.match_info["scs"], request.match_info["sid"], sent)
+        self.changed([])  # the flows or the reference may have changed
+        return answer(result)
 
     async def modify(self, request: web.Request) -> web.Response:
         changes = await _body(request, MERGE_PATCH)

@@ -24,6 +24,7 @@ from aiohttp import web
 
 from dynqos.common.config import CellConfig, CellEventConfig, build
 from dynqos.common.errors import ConfigError
+from dynqos.common.http_log import quiet_malformed_requests
 from dynqos.sim.network.api_booking import BOOKING_PREFIX, BookingRoutes
 from dynqos.sim.network.api_connectivity import CONNECTIVITY_PREFIX, ConnectivityRoutes
 from dynqos.sim.network.api_nef import NefRoutes
@@ -38,6 +39,7 @@ from dynqos.sim.network.operator_apis import OperatorApis
 from dynqos.sim.network.radio_feed import RadioFeed
 
 log = logging.getLogger(__name__)
+REQUEST_LINE = 65_536  # bytes of a request line or header field the control API reads
 
 CAMARA_PREFIXES = (QOD_PREFIX, PROFILES_PREFIX, CONNECTIVITY_PREFIX, BOOKING_PREFIX)
 CORRELATOR = re.compile(r"[a-zA-Z0-9\-_:;./<>{}]{0,256}")  # XCorrelator in both APIs' documents
@@ -111,7 +113,16 @@ class ControlApi:
         self.port = 0
 
     async def start(self, port: int) -> int:
-        self.runner = web.AppRunner(self.app, access_log=None, handle_signals=False)
+        quiet_malformed_requests()
+        # A query naming many UEs (ip-addrs, mac-addrs) is longer than aiohttp's 8190-byte request line:
+        # read up to 64 KiB so the API answers it (in its own error shape) rather than the HTTP parser.
+        self.runner = web.AppRunner(
+            self.app,
+            access_log=None,
+            handle_signals=False,
+            max_line_size=REQUEST_LINE,
+            max_field_size=REQUEST_LINE,
+        )
         await self.runner.setup()
         site = web.TCPSite(self.runner, "127.0.0.1", port)
         await site.start()

@@ -15,6 +15,8 @@ asked for, the flow's measured delays every `repPeriod` seconds (QOS_MONITORING)
 from __future__ import annotations
 
 import ipaddress
+import json
+import re
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -27,6 +29,22 @@ API = "/3gpp-as-session-with-qos/v1"
 MAX_SUBSCRIPTIONS = 10_000  # every SCS/AS together: a client that never deletes cannot grow this
 JSON = "application/json"
 IDENTITIES = ("ueIpv4Addr", "ueIpv6Addr", "gpsi")
+# TS 29.571's patterns for MacAddr48 and for the three forms of an IpAddr (a read's query names UEs so)
+MAC48 = re.compile(r"[0-9a-fA-F]{2}(-[0-9a-fA-F]{2}){5}")
+_V6 = (
+    r"((:|(0?|([1-9a-f][0-9a-f]{0,3}))):)((0?|([1-9a-f][0-9a-f]{0,3})):){0,6}(:|(0?|([1-9a-f][0-9a-f]{0,3})))"
+)
+_V6_SHAPE = r"((([^:]+:){7}([^:]+))|((([^:]+:)*[^:]+)?::(([^:]+:)*[^:]+)?))"
+_PREFIX = r"(\/(([0-9])|([0-9]{2})|(1[0-1][0-9])|(12[0-8])))"
+IP_ADDR = {
+    "ipv4Addr": [
+        re.compile(
+            r"(([0-9]|[1-9][0-9]|1[0-9][0-9]|2[0-4][0-9]|25[0-5])\.){3}([0-9]|[1-9][0-9]|1[0-9][0-9]|2[0-4][0-9]|25[0-5])"
+        )
+    ],
+    "ipv6Addr": [re.compile(_V6), re.compile(_V6_SHAPE)],
+    "ipv6Prefix": [re.compile(_V6 + _PREFIX), re.compile(_V6_SHAPE + r"(\/.+)")],
+}
 # what a patch may change (AsSessionWithQoSSubscriptionPatch, the fields dynqos's emulation acts on)
 PATCHABLE = {
     "flowInfo",
@@ -172,8 +190,42 @@ class Nef:
         sub = self._mine(scs_as_id, sid)
         return Answer(200, sub.body) if sub is not None else self._missing(sid)
 
-    def all(self, scs_as_id: str) -> Answer:
-        return Answer(200, [s.body for s in self.subscriptions.values() if s.scs_as_id == scs_as_id])
+    def all(self, scs_as_id: str, ip_addrs: str | None = None, mac_addrs: list[str] | None = None) -> Answer:
+        """Every subscription of the SCS/AS, or those of the UEs named by the query (`ip-addrs`: a JSON
+        array of IpAddr; `mac-addrs`: MacAddr48s); a 400 for a query the document does not allow."""
+        names, bad = _ue_filter(ip_addrs, mac_addrs)
+        if bad:
+            return self._reject(400, "INVALID_QUERY_PARAM", bad)
+        mine = [s.body for s in self.subscriptions.values() if s.scs_as_id == scs_as_id]
+        if names is not None:
+            mine = [b for b in mine if names(b)]
+        return Answer(200, mine)
+
+    def replace(self, scs_as_id: str, sid: str, body: Any) -> Answer:
+        """PUT: the whole subscription anew (its UE stays; `self` is the NEF's), checked as a creation."""
+        sub = self._mine(scs_as_id, sid)
+        if sub is None:
+            return self._missing(sid)
+        if isinstance(body, dict):
+            body = {k: v for k, v in body.items() if k != "self"}
+        bad = _check(body, creating=True)
+        if bad:
+            return self._reject(400, "INVALID_MSG_FORMAT", bad)
+        if self._uav_of(body) != sub.uav:
+            return self._reject(
+                400, "INVALID_MSG_FORMAT", "a subscription's UE cannot change; create another"
+            )
+        ports, refused = self._flows(sub.uav, body["flowInfo"])
+        if refused is not None:
+            return refused
+        not_offered = self._unknown_reference(body)
+        if not_offered is not None:
+            return not_offered
+        sub.body, sub.ports = body | {"self": sub.body["self"]}, ports
+        if sub.allocated_s is not None and sub.status == "ALLOCATED":
+            sub.next_report_s = self._first_report(sub, self.monotonic())
+        self.counters.modified += 1
+        return Answer(200, sub.body)
 
     def modify(self, scs_as_id: str, sid: str, changes: Any) -> Answer:
         """A merge patch (RFC 7396) of what PATCHABLE names; a null removes an optional field."""
@@ -354,6 +406,60 @@ class Nef:
 def _period(body: dict[str, Any]) -> float:
     period = (body.get("qosMonInfo") or {}).get("repPeriod")
     return float(period) if isinstance(period, int) and period > 0 else 1.0
+
+
+UeFilter = Callable[[dict[str, Any]], bool]
+
+
+def _ip_addr(item: Any) -> ipaddress.IPv4Network | ipaddress.IPv6Network | None:
+    """An IpAddr (TS 29.571: one of ipv4Addr, ipv6Addr, ipv6Prefix, each by its pattern) as a network."""
+    if not isinstance(item, dict):
+        return None
+    named = [(k, item[k]) for k in IP_ADDR if k in item]
+    if len(named) != 1 or not isinstance(named[0][1], str):
+        return None
+    key, text = named[0]
+    if not all(pattern.fullmatch(text) for pattern in IP_ADDR[key]):
+        return None
+    try:
+        return ipaddress.ip_network(text, strict=False)
+    except ValueError:
+        return None
+
+
+def _ue_filter(ip_addrs: str | None, mac_addrs: list[str] | None) -> tuple[UeFilter | None, str]:
+    """Whether a subscription names one of the UEs a read asks for (None: every UE), or what is wrong
+    with the query. An IpAddr is an ipv4Addr, an ipv6Addr or an ipv6Prefix (TS 29.571)."""
+    if ip_addrs is None and not mac_addrs:
+        return None, ""
+    networks: list[ipaddress.IPv4Network | ipaddress.IPv6Network] = []
+    if ip_addrs is not None:
+        try:
+            listed = json.loads(ip_addrs)
+        except ValueError:
+            return None, "ip-addrs: a JSON array of IpAddr"
+        if not isinstance(listed, list) or not listed:
+            return None, "ip-addrs: a JSON array of at least one IpAddr"
+        for item in listed:
+            network = _ip_addr(item)
+            if network is None:
+                why = "exactly one of ipv4Addr, ipv6Addr, ipv6Prefix, as TS 29.571 writes it"
+                return None, f"ip-addrs: {item!r} is not an IpAddr ({why})"
+            networks.append(network)
+    macs: set[str] = set()
+    for mac in mac_addrs or []:
+        if not MAC48.fullmatch(mac):
+            return None, f"mac-addrs: {mac!r} is not a MacAddr48 (aa-bb-cc-dd-ee-ff)"
+        macs.add(mac.lower())
+
+    def names(body: dict[str, Any]) -> bool:
+        if str(body.get("macAddr", "")).lower() in macs:
+            return True
+        return any(
+            _names(str(n), str(body.get(k, ""))) for n in networks for k in ("ueIpv4Addr", "ueIpv6Addr")
+        )
+
+    return names, ""
 
 
 def _check(body: Any, *, creating: bool) -> str:

@@ -25,6 +25,7 @@ from dynqos.sim.network.operator_schema import (
     CREATE_SESSION_STRICT,
     CREATE_SESSION_STRICT_1_2,
     EXTEND_SESSION_STRICT,
+    RETRIEVE_PROFILES_STRICT,
     RETRIEVE_SESSIONS_STRICT,
     problem,
 )
@@ -278,9 +279,9 @@ class Operator:
         """retrieve-qos-profiles: every profile offered, filtered by `name` and `status` when given."""
         if not isinstance(body, dict):
             return self._reject(400, "INVALID_ARGUMENT", "the body must be a QosProfileDeviceRequest object")
-        unknown = set(body) - {"device", "name", "status"}
-        if unknown:
-            return self._reject(400, "INVALID_ARGUMENT", f"unknown fields: {', '.join(sorted(unknown))}")
+        bad = problem(RETRIEVE_PROFILES_STRICT, body)  # unknown fields, a device that is no Device
+        if bad:
+            return self._reject(400, "INVALID_ARGUMENT", bad)
         if "device" in body and _only_nai(body["device"]):
             return self._reject(422, "UNSUPPORTED_IDENTIFIER", UNSUPPORTED_NAI)
         if "device" in body and self._uav_of(body["device"]) is None:

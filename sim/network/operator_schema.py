@@ -142,6 +142,15 @@ EXTEND_SESSION: dict[str, Any] = {
 }
 RETRIEVE_SESSIONS: dict[str, Any] = {"type": "object", "properties": {"device": DEVICE}}
 RETRIEVE_SESSIONS_OUTPUT: dict[str, Any] = {"type": "array", "items": SESSION_INFO}
+# qos-profiles v1.1.0's QosProfileDeviceRequest (retrieve-qos-profiles)
+RETRIEVE_PROFILES: dict[str, Any] = {
+    "type": "object",
+    "properties": {
+        "device": DEVICE,
+        "name": {"type": "string", "minLength": 3, "maxLength": 256, "pattern": "^[a-zA-Z0-9_.-]+$"},
+        "status": {"enum": ["ACTIVE", "INACTIVE", "DEPRECATED"]},
+    },
+}
 ERROR_INFO: dict[str, Any] = {
     "type": "object",
     "required": ["status", "code", "message"],
@@ -192,6 +201,7 @@ CREATE_SESSION_STRICT_1_2: dict[str, Any] = {
 }
 EXTEND_SESSION_STRICT: dict[str, Any] = _closed(EXTEND_SESSION, ())
 RETRIEVE_SESSIONS_STRICT: dict[str, Any] = _closed(RETRIEVE_SESSIONS, ())
+RETRIEVE_PROFILES_STRICT: dict[str, Any] = _closed(RETRIEVE_PROFILES, ())
 
 
 def problem(schema: dict[str, Any], value: Any) -> str | None:
