@@ -13,6 +13,7 @@ declared on, so a receiver subscribes to both flows with one wildcard:
     dynqos/<uav>/up/<flow>/qos            drone -> QoS agent: priority wanted or not (QosRequest)
     dynqos/<uav>/down/qos                 QoS agent -> drone: the network's grant (QosGrant)
     dynqos/<uav>/down/qos/decision        QoS agent's arbiter -> drone and tools (QosDecision)
+    dynqos/<uav>/down/qos/monitoring      QoS agent -> drone: the core's delay reports (QosMonitoring)
     dynqos/<uav>/clock                    drone -> router -> drone: the preflight's clock probes
     dynqos/<uav>/alive                    liveliness token of a drone, held while its session lives
     dynqos/edge/replicas/<service>/<group>/<id>
@@ -63,6 +64,7 @@ class Downlink(str, enum.Enum):
     REFERENCE = "ref"
     QOS_GRANT = "down/qos"
     QOS_DECISION = "down/qos/decision"
+    QOS_MONITORING = "down/qos/monitoring"
     MISSION = "mission"  # edge to edge, as REFERENCE: the ROS 2 bridge to the planner replicas
 
 

@@ -48,7 +48,7 @@ from dynqos.common.message_base import (
     Message,
 )
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
-from dynqos.common.qos_messages import QosDecision, QosGrant, QosRequest
+from dynqos.common.qos_messages import QosDecision, QosGrant, QosMonitoring, QosRequest
 
 # The one place every message is imported from: the base's limits and the QoS agent's messages too.
 __all__ = [
@@ -78,6 +78,7 @@ __all__ = [
     "MissionRequest",
     "QosDecision",
     "QosGrant",
+    "QosMonitoring",
     "QosRequest",
     "Reference",
     "State",
@@ -407,6 +408,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         MissionRequest,
         QosGrant,
         QosDecision,
+        QosMonitoring,
     )
 }
 

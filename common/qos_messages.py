@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from dynqos.common import fields as f
-from dynqos.common.message_base import COMMON, RISK_LEVELS, Message
+from dynqos.common.message_base import COMMON, LATENCY_MS, RISK_LEVELS, Message
 from dynqos.common.modes import Grant
 
 
@@ -78,3 +78,28 @@ class QosGrant(Message):
     session_id: str = ""  # the QoD session ("" with the links backend or when there is none)
     reason: str = ""  # why the grant is what it is (the API's code and message on a refusal)
     answers_seq: int = 0  # the newest QosRequest seq the agent had when it sent this
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class QosMonitoring(Message):
+    """The QoS agent to the drone: the 5G core's own measurement of the priority flow's packet delays
+    (a NEF QOS_MONITORING report, TS 23.501 clause 5.33.3), forwarded as it arrives (docs/qos.md). Each
+    delay is the largest the report gives, in ms; None where the report has none."""
+
+    TYPE: ClassVar[str] = "QosMonitoring"
+    SCHEMA: ClassVar[dict[str, f.Validator]] = {
+        **COMMON,
+        "stamp_ns": f.integer(),
+        "subscription_id": f.text(64),
+        "uplink_ms": f.optional(LATENCY_MS),
+        "downlink_ms": f.optional(LATENCY_MS),
+        "round_trip_ms": f.optional(LATENCY_MS),
+        "period_s": f.integer(1, 3600),
+    }
+
+    stamp_ns: int  # the agent's clock when the report arrived
+    subscription_id: str
+    uplink_ms: float | None = None
+    downlink_ms: float | None = None
+    round_trip_ms: float | None = None
+    period_s: int = 1  # the reporting period asked for: a report older than two is stale

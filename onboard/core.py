@@ -37,6 +37,7 @@ from dynqos.common.messages import (
     Command,
     Detections,
     QosGrant,
+    QosMonitoring,
     QosRequest,
     Reference,
     State,
@@ -47,28 +48,15 @@ from dynqos.common.reference import ReferenceTrack
 from dynqos.onboard.commands import CommandTracker
 from dynqos.onboard.fc import AccelSetpoint, FcSaid, FcState, PositionSetpoint, Setpoint
 from dynqos.onboard.modem import ModemReading
-from dynqos.onboard.monitors import CameraLatencyMonitor, LatencySamples
+from dynqos.onboard.monitors import CameraLatencyMonitor, LatencySamples, NetworkDelays
 from dynqos.onboard.pid import CascadedPid
 from dynqos.onboard.supervisor import Decision, Inputs, Supervisor
 from dynqos.onboard.supervisor_status import decision_fields
-from dynqos.onboard.tick import LogEvent, Outgoing, TickInput, TickOutput
+from dynqos.onboard.tick import Counters, LogEvent, Outgoing, TickInput, TickOutput
 
 # The setpoint period at [control] setpoint_hz's default; the daemon ticks at `setpoint_period_ns(config)`.
 SETPOINT_PERIOD_NS = NS_PER_S // 50
 STALE_STATE_NS = 500_000_000  # no position from the FC for this long: it is lost, stop using its state
-
-
-@dataclass
-class Counters:
-    states: int = 0
-    setpoints: int = 0
-    fallback_ticks: int = 0
-    edge_ticks: int = 0
-    frames: int = 0
-    camera_bytes: int = 0  # encoded image bytes handed to the bus (headers not counted)
-    uplink_bytes: int = 0  # every encoded message on the uplink (camera, state, status, QoS request)
-    switches_to_fallback: int = 0
-    detections: int = 0
 
 
 @dataclass
@@ -94,6 +82,7 @@ class OnboardCore:
             self.uav, to_ns(config.supervisor.watchdog_s), config.supervisor.window[1]
         )
         self.camera_monitor = CameraLatencyMonitor()
+        self.network = NetworkDelays()  # the 5G core's own delay reports, when the agent forwards them
         self.supervisor = Supervisor(config.supervisor, start_ns=start_ns)
         self.pid = CascadedPid()
         self.reference = ReferenceTrack()
@@ -186,12 +175,20 @@ class OnboardCore:
                 self.counters.detections += 1
             elif isinstance(message, Reference):
                 self.reference.update(message, item.arrival_ns)
-            elif isinstance(message, QosGrant) and message.uav == self.uav:
-                if message.grant is not self.grant:
-                    why = f" ({message.reason})" if message.reason else ""
-                    level = logging.WARNING if message.grant is Grant.UNAVAILABLE else logging.INFO
-                    self._log(level, f"qos: the network's grant is {message.grant.value}{why}")
-                self.grant, self._grant_heard_ns = message.grant, item.arrival_ns
+            elif isinstance(message, QosGrant | QosMonitoring) and message.uav == self.uav:
+                self._take_qos(message, item.arrival_ns)
+
+    def _take_qos(self, message: QosGrant | QosMonitoring, arrival_ns: int) -> None:
+        if isinstance(message, QosMonitoring):
+            if not self.network.reports:
+                self._log(logging.INFO, f"qos: the core's delay reports arrive, every {message.period_s} s")
+            self.network.offer(message, arrival_ns)
+            return
+        if message.grant is not self.grant:
+            why = f" ({message.reason})" if message.reason else ""
+            level = logging.WARNING if message.grant is Grant.UNAVAILABLE else logging.INFO
+            self._log(level, f"qos: the network's grant is {message.grant.value}{why}")
+        self.grant, self._grant_heard_ns = message.grant, arrival_ns
 
     def agent_heard(self, now: int) -> bool:
         """A QoS agent answered within [qos] agent_timeout_s (else: links only, nobody asks the network)."""
@@ -288,6 +285,7 @@ class OnboardCore:
             watchdog_expired=watchdog,
             priority_denied=bool(self._requested) and self.reported_grant(now) is Grant.UNAVAILABLE,
             sinr_db=modem.sinr_db if (modem := self._fresh_modem(now)) else None,
+            network_rtt_ms=self.network.round_trip_ms(now),
         )
         self._space = None
         # on the ground: observed, not judged (see _engage)

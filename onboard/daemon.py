@@ -22,7 +22,15 @@ from dynqos.common.config import Config
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.lifecycle import ready_line, serving_metrics, stop_on_signals
-from dynqos.common.messages import CameraAck, Command, Detections, QosGrant, Reference, SupervisorStatus
+from dynqos.common.messages import (
+    CameraAck,
+    Command,
+    Detections,
+    QosGrant,
+    QosMonitoring,
+    Reference,
+    SupervisorStatus,
+)
 from dynqos.common.metrics import ProcessMetrics
 from dynqos.common.modes import Flow
 from dynqos.common.queues import BoundedQueue
@@ -124,6 +132,7 @@ class OnboardDaemon:
             (Downlink.CAMERA_ACK, self.camera_replies, CameraAck),
             (Downlink.DETECTIONS, self.camera_replies, Detections),
             (Downlink.QOS_GRANT, self.grants, QosGrant),
+            (Downlink.QOS_MONITORING, self.grants, QosMonitoring),  # the core's delay reports, if asked
         ]
         if cfg.fallback == "continue":  # the onboard planner continues the mission from the last reference
             routes.append((Downlink.REFERENCE, self.references, Reference))

@@ -7,7 +7,7 @@ from collections import OrderedDict, deque
 from collections.abc import Iterable
 
 from dynqos.common.message_base import LATENCY_LIMIT_MS, MAX_STATUS_SAMPLES
-from dynqos.common.messages import CameraAck
+from dynqos.common.messages import CameraAck, QosMonitoring
 
 
 class CameraLatencyMonitor:
@@ -65,3 +65,21 @@ class LatencySamples:
         self._cams.clear()
         self._rtts.clear()
         return out
+
+
+class NetworkDelays:
+    """The 5G core's latest report of the priority flow's round-trip delay (QosMonitoring, forwarded by
+    the QoS agent), fresh for two of its reporting periods after it arrived on the drone's clock."""
+
+    def __init__(self) -> None:
+        self.reports = 0
+        self._round_trip_ms: float | None = None
+        self._fresh_until_ns = 0
+
+    def offer(self, report: QosMonitoring, arrival_ns: int) -> None:
+        self.reports += 1
+        self._round_trip_ms = report.round_trip_ms
+        self._fresh_until_ns = arrival_ns + 2 * report.period_s * 1_000_000_000
+
+    def round_trip_ms(self, now_ns: int) -> float | None:
+        return self._round_trip_ms if now_ns <= self._fresh_until_ns else None

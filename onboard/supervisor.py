@@ -97,6 +97,8 @@ class Inputs:
     # flow HL is then the paper's "priority applied but the delay still rises" at once.
     priority_denied: bool = False
     sinr_db: float | None = None  # the modem's SINR, fresh (None: no modem or no reading)
+    # the 5G core's own measurement of the priority flow's round trip (NEF QoS monitoring), fresh
+    network_rtt_ms: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -259,6 +261,9 @@ class Supervisor:
         if cfg.radio_aware and inputs.sinr_db is not None and math.isfinite(inputs.sinr_db):
             p_radio = 1.0 - sigmoid(inputs.sinr_db, cfg.radio_mu, cfg.radio_sinr_db)  # the link is fading
             p_lat = p_radio if p_lat is None else max(p_lat, p_radio)
+        if cfg.network_aware and inputs.network_rtt_ms is not None and math.isfinite(inputs.network_rtt_ms):
+            p_net = sigmoid(inputs.network_rtt_ms, cfg.mu[1], cfg.rho[1])  # read as a C&C RTT (eq. 1)
+            p_lat = p_net if p_lat is None else max(p_lat, p_net)
         latency = Latency.NA if p_lat is None else (Latency.HL if p_lat > cfg.th_lat else Latency.LL)
 
         s_k = self._risk.value

@@ -14,6 +14,21 @@ from dynqos.onboard.fc import FcSaid, FcState, Setpoint
 from dynqos.onboard.modem import ModemReading
 
 
+@dataclass
+class Counters:
+    """What the onboard core has counted since it started."""
+
+    states: int = 0
+    setpoints: int = 0
+    fallback_ticks: int = 0
+    edge_ticks: int = 0
+    frames: int = 0
+    camera_bytes: int = 0  # encoded image bytes handed to the bus (headers not counted)
+    uplink_bytes: int = 0  # every encoded message on the uplink (camera, state, status, QoS request)
+    switches_to_fallback: int = 0
+    detections: int = 0
+
+
 @dataclass(frozen=True, slots=True)
 class FrameSent:
     """One image (both its parts if paced) handed to the bus by the camera pipeline."""

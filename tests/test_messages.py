@@ -169,10 +169,21 @@ qos_grants = st.builds(
     uav=uav_ids,
     seq=u63,
     grant=st.sampled_from(Grant),
-    backend=st.sampled_from(["links", "camara"]),
+    backend=st.sampled_from(["links", "camara", "nef"]),
     session_id=st.text(max_size=64),
     reason=st.text(max_size=300),
     answers_seq=u63,
+)
+qos_monitorings = st.builds(
+    m.QosMonitoring,
+    uav=uav_ids,
+    seq=u63,
+    stamp_ns=u63,
+    subscription_id=st.text(max_size=64),
+    uplink_ms=st.none() | reals(0, 1e6),
+    downlink_ms=st.none() | reals(0, 1e6),
+    round_trip_ms=st.none() | reals(0, 1e6),
+    period_s=st.integers(1, 3600),
 )
 mission_requests = st.builds(
     m.MissionRequest,
@@ -195,6 +206,7 @@ any_message = st.one_of(
     qos_grants,
     mission_requests,
     qos_decisions,
+    qos_monitorings,
 )
 
 
@@ -275,6 +287,7 @@ def test_wrong_typed_fields_give_decode_error_naming_the_field(
             m.QosRequest: qos_requests,
             m.QosGrant: qos_grants,
             m.QosDecision: qos_decisions,
+            m.QosMonitoring: qos_monitorings,
             m.MissionRequest: mission_requests,
         }[cls]
     )

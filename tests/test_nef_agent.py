@@ -5,6 +5,7 @@ NEF's notifications onto the drone's grant, in-process with the time passed in."
 
 from __future__ import annotations
 
+import itertools
 import json
 import signal
 import time
@@ -16,10 +17,15 @@ from typing import Any
 
 import pytest
 
+from dynqos.common import keys
+from dynqos.common.bus import Received
 from dynqos.common.clock import FakeClock
-from dynqos.common.config import CamaraConfig, QosConfig, ZenohConfig
+from dynqos.common.config import CamaraConfig, CellConfig, QosConfig, ZenohConfig
 from dynqos.common.config.nef import NefConfig, NefUeConfig
+from dynqos.common.keys import Downlink
+from dynqos.common.messages import QosMonitoring
 from dynqos.common.modes import Grant
+from dynqos.common.queues import BoundedQueue
 from dynqos.edge.operator.client import OperatorClient
 from dynqos.edge.operator.nef import API, Report
 from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
@@ -198,6 +204,37 @@ def test_nef_a_standby_adopts_the_subscription_of_an_agent_that_died_and_hears_i
     rig.event(kind="qod_end", uav=UAV)  # its notifications now reach the standby's sink
     told = drone.until(True, Grant.UNAVAILABLE)
     assert "SESSION_TERMINATION" in told.reason
+
+
+@pytest.mark.parametrize("rig", [("qos_monitoring = true\nmonitoring_period_s = 1\n",)], indirect=True)
+def test_nef_the_cores_delay_reports_reach_the_drone_at_the_period_asked_for(
+    rig: NefRig, drone: Drone
+) -> None:
+    reports: BoundedQueue[Received] = BoundedQueue(100)
+    drone.bus.subscribe(keys.downlink(UAV, Downlink.QOS_MONITORING), reports, expect=(QosMonitoring,))
+    granted = drone.until(True, Grant.AVAILABLE)
+    (sub,) = rig.subscriptions()
+    assert sub["qosMonInfo"]["repPeriod"] == 1
+    heard: list[Received] = []
+    deadline = time.monotonic() + 4.5
+    while time.monotonic() < deadline:
+        drone.ask(True)  # as the drone keeps asking in flight
+        item = reports.get(0.2)
+        heard += [item] if item is not None else []
+    assert 3 <= len(heard) <= 6, [r.arrival_ns for r in heard]
+    gaps_s = [(b.arrival_ns - a.arrival_ns) / 1e9 for a, b in itertools.pairwise(heard)]
+    assert all(0.6 <= gap <= 1.5 for gap in gaps_s), gaps_s  # one a period, as asked
+    for item in heard:
+        message = item.message
+        assert isinstance(message, QosMonitoring)
+        assert (message.uav, message.subscription_id, message.period_s) == (UAV, granted.session_id, 1)
+        assert message.round_trip_ms is not None
+        assert message.round_trip_ms >= 2 * CellConfig().base_delay_up_ms  # the cell's delays, both ways
+    assert rig.nef()["reports"] >= len(heard)
+    drone.until(False, Grant.NONE, also=lambda: rig.subscriptions() == [])
+    while reports.get(1.5) is not None:  # one may have been on its way
+        pass
+    assert reports.get(1.5) is None  # no subscription, no report
 
 
 @pytest.mark.parametrize(

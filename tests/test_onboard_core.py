@@ -16,6 +16,7 @@ from dynqos.common.messages import (
     CameraAck,
     Command,
     QosGrant,
+    QosMonitoring,
     QosRequest,
     Reference,
     State,
@@ -520,3 +521,32 @@ def test_a_radio_aware_supervisor_hears_the_modems_sinr_while_it_is_fresh() -> N
     rig.modem = None
     rig.run(3.5)  # the reading is stale: only the samples speak again
     assert rig.statuses(rig.run(0.5))[-1].latency == "LL"
+
+
+def test_the_cores_delay_reports_reach_the_supervisor_while_fresh_and_only_the_drones_own() -> None:
+    """A QosMonitoring forwarded by the agent ([supervisor] network_aware): its round trip is an input
+    for two of its reporting periods after it arrived; another drone's report is not."""
+    cfg = config("dynamic")
+    aware = replace(cfg, supervisor=replace(cfg.supervisor, network_aware=True))
+    rig = Rig(OnboardCore(aware, start_ns=1_000 * MS), spaciousness_m=4.0)
+    rig.run_until(ControlSource.EDGE, 4.0)
+    rig.run(3.0)
+
+    def report(uav: str, seq: int) -> Received:
+        message = QosMonitoring(
+            uav=uav, seq=seq, stamp_ns=0, subscription_id="s1", round_trip_ms=90.0, period_s=1
+        )
+        return Received("qos", message, rig.now)
+
+    rig.extra.append(report("uav2", 1))
+    rig.run(1.0)
+    assert rig.core.network.reports == 0
+    assert rig.core.decision is not None
+    assert rig.core.decision.state is SupervisorState.Q1  # its own RTT is low: nothing to act on
+    rig.extra.append(report("uav1", 2))
+    rig.run(0.5)
+    assert rig.core.network.reports == 1
+    assert rig.core.decision.state is SupervisorState.Q3  # the report alone reads HL (MR: priority)
+    assert rig.core.network.round_trip_ms(rig.now) == 90.0
+    rig.run(1.6)  # two periods after it arrived, no newer one: stale
+    assert rig.core.network.round_trip_ms(rig.now) is None

@@ -151,6 +151,26 @@ def test_a_fading_link_raises_latency_before_any_sample_only_when_radio_aware() 
     assert flight.run_until(Q4, 1.0, lambda _t: replace(fading, sinr_db=-5.0)) < 0.5
 
 
+def test_the_cores_delay_report_raises_latency_only_when_network_aware() -> None:
+    """The 5G core's QoS monitoring (docs/supervisor.md): off by default; on, a fresh round trip read as
+    a C&C RTT is evidence of HL at once, and a low one never lowers what the samples say."""
+    reported = Inputs(cc_rtts_ms=[20.0], camera_latencies_ms=[40.0], spaciousness_m=4.0, network_rtt_ms=90.0)
+    assert Supervisor(CONFIG).step(reported, 0).signals.latency is Latency.LL  # ignored by default
+    aware = replace(CONFIG, network_aware=True)
+    signals = Supervisor(aware).step(reported, 0).signals
+    assert signals.latency is Latency.HL
+    assert signals.p_lat == pytest.approx(sigmoid(90.0, aware.mu[1], aware.rho[1]))
+    assert Supervisor(aware).step(Inputs(network_rtt_ms=90.0), 0).signals.latency is Latency.HL  # alone
+    assert Supervisor(aware).step(replace(reported, network_rtt_ms=10.0), 0).signals.latency is Latency.LL
+    loaded = Inputs(cc_rtts_ms=[90.0], camera_latencies_ms=[160.0], network_rtt_ms=10.0)
+    assert Supervisor(aware).step(loaded, 0).signals.latency is Latency.HL  # a low report hides no queue
+    assert Supervisor(aware).step(replace(reported, network_rtt_ms=math.inf), 0).signals.latency is Latency.LL
+    # In a flight: an MR drone moves to the priority flow (q3) on the report alone, its own RTT still low.
+    flight = Flight(aware)
+    flight.run(2.0, link(20.0, 40.0, space_m=4.0))
+    assert flight.run_until(Q3, 1.0, lambda _t: reported) < 0.5
+
+
 def test_unanswered_requests_raise_latency_when_acks_stop() -> None:
     flight = Flight()
     flight.run(2.0, UNLOADED)

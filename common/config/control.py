@@ -56,6 +56,9 @@ class SupervisorConfig:
     radio_aware: bool = False
     radio_sinr_db: Annotated[float, In(-23, 40, "must be in -23..40 dB")] = 6.0
     radio_mu: Annotated[float, In(0.01, 100, "must be in 0.01..100 per dB")] = 1.0
+    # The 5G core's QoS monitoring reports (the priority flow's round trip, [qos.nef] qos_monitoring) as
+    # evidence beside the windows: off by default; on, P_lat = max(P_lat, P(report; mu2, rho2)).
+    network_aware: bool = False
 
     def __post_init__(self) -> None:
         _require(all(m > 0 for m in self.mu), "mu", "slopes must be > 0")

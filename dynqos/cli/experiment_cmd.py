@@ -113,8 +113,8 @@ def _flight_options(sub: argparse.ArgumentParser) -> None:
         action="append",
         metavar="NAME",
         help="dynqos (the default), paper (the paper's supervisor on a cell with its 27.3 ms RTT), "
-        "no-rate-adaptation, radio-aware, or a profile file (dynqos/profiles/*.toml shows the format); "
-        "repeatable: "
+        "no-rate-adaptation, radio-aware, network-aware (with --qos-backend nef), or a profile file "
+        "(dynqos/profiles/*.toml shows the format); repeatable: "
         "each scenario flies under each profile, side by side in report.md",
     )
 

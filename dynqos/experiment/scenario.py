@@ -381,6 +381,8 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
                 sink_listen="127.0.0.1:1",
                 retry_after_denied_s=5.0,
                 ues={UAV: NefUeConfig(gpsi=f"msisdn-{UAV_PHONE_NUMBER.lstrip('+')}")},
+                # the core's delay reports, every second, for a supervisor that reads them
+                qos_monitoring=scenario.supervisor.network_aware,
             ),
         ),
     )

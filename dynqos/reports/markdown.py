@@ -197,6 +197,7 @@ def _qos_network_line(s: dict[str, Any]) -> list[str]:
             f"refused {subs['refused']}, ended by the network {subs['terminated']}, "
             f"left open {subs['open_at_end']}"
         )
+        line += f", QoS monitoring reports {subs['reports']}" if subs.get("reports") else ""
     return [line]
 
 

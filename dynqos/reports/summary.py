@@ -288,7 +288,7 @@ def _qos_network(
     out["agent_heard"] = any(s.qos_agent for s in statuses)
     if qod is not None and scenario.qos_backend == "nef":  # the NEF's subscriptions
         nef = qod.get("nef") or {}
-        keys = ("created", "modified", "deleted", "refused", "terminated", "expired")
+        keys = ("created", "modified", "deleted", "refused", "terminated", "expired", "reports")
         out["subscriptions"] = {k: nef.get(k, 0) for k in keys} | {"open_at_end": nef.get("open", 0)}
     elif qod is not None:
         out["sessions"] = {

@@ -48,6 +48,7 @@ from dynqos.edge.qos.arbiter import Action, Arbiter, Decision, Need
 from dynqos.edge.qos.calls import OperatorCalls, preflight
 from dynqos.edge.qos.grants import DroneGrant
 from dynqos.edge.qos.leadership import AgentRole, Leadership
+from dynqos.edge.qos.monitoring import MonitoringForward
 from dynqos.edge.qos.nef_calls import NefCalls, client_settings
 from dynqos.edge.qos.nef_sink import NefSinkGuard, serve_nef_sink
 from dynqos.edge.qos.peers import AgentPeers
@@ -128,7 +129,10 @@ class QosAgent(EdgeCore):
         if self.qos.backend == "nef":
             nef = self.qos.nef
             self.client = await stack.enter_async_context(OperatorClient(client_settings(nef)))
-            self.calls = NefCalls(self.client, nef, self.port, self.server, self.clock, self.nef_guard)
+            forward = MonitoringForward(self.bus, self.clock, nef.monitoring_period_s)
+            self.calls = NefCalls(
+                self.client, nef, self.port, self.server, self.clock, self.nef_guard, forward
+            )
             sink = await serve_nef_sink(
                 nef.notification_destination, nef.sink_listen, self._nef_notified, self.nef_guard
             )
@@ -467,16 +471,12 @@ class QosAgent(EdgeCore):
                 f" holders={len(self.arbiter.holders)} grants={d[Action.GRANT]} denials={d[Action.DENY]} "
                 f"revocations={d[Action.REVOKE]} releases={d[Action.RELEASE]}"
             )
-        sink = ""
-        if self.qos.backend == "nef":
-            c = self.nef_guard.counters
+        sink, nef = "", self.qos.backend == "nef"
+        if nef or self.camara.sink_listen:
+            c = self.nef_guard.counters if nef else self.sink_guard.counters
             sink = f" notifications={c['taken']} refused={c['unauthenticated'] + c['malformed']}"
-        elif self.camara.sink_listen:
-            c = self.sink_guard.counters
-            sink = (
-                f" notifications={c['taken']} refused={c['unauthenticated'] + c['malformed']} "
-                f"replayed={c['replayed']}"
-            )
+            sink += f" monitoring_reports={self.calls.reports}" if isinstance(self.calls, NefCalls) else ""
+            sink += "" if nef else f" replayed={c['replayed']}"
         return (
             f"drones={len(self.drones)} sessions={sessions} errors={self.errors} "
             f"leftovers_cleaned={self.cleaned}{calls}{arbiter}{sink} rejected={self.stats.rejected}{role} "

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import collections
 import logging
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 from dynqos.common.clock import NS_PER_S, Clock
 from dynqos.common.config import CamaraConfig
@@ -52,9 +52,11 @@ class NefCalls:
         server: str,
         clock: Clock,
         guard: NefSinkGuard,
+        forward: Callable[[str, Report], None] | None = None,
     ) -> None:
         """`port`: the zenoh priority port the flows name; `server`: the edge address the network sees;
-        `guard`: the sink whose secret URL each subscription gives the NEF."""
+        `guard`: the sink whose secret URL each subscription gives the NEF; `forward`: where each QoS
+        monitoring report goes, with the drone whose flow it measures (edge/qos/monitoring.py)."""
         self.api = NefApi(operator, nef.api_root, nef.scs_as_id)
         self.nef = nef
         self.port = port
@@ -65,6 +67,8 @@ class NefCalls:
         self.cleaned = 0
         self.unknown = 0  # notifications of subscriptions no drone holds
         self.monitoring: dict[str, Report] = {}  # drone id -> its flow's last QoS monitoring report
+        self.forward = forward
+        self.reports = 0  # QoS monitoring reports of the drones' flows, each forwarded to its drone
         self._created_ns: dict[str, int] = {}
         self._early: collections.OrderedDict[str, tuple[QodStatus, str]] = collections.OrderedDict()
         self._logged: set[tuple[str, int, str]] = set()
@@ -140,6 +144,9 @@ class NefCalls:
             if event.event == "QOS_MONITORING":
                 if grant is not None:
                     self.monitoring[grant.uav] = event
+                    self.reports += 1
+                    if self.forward is not None:
+                        self.forward(grant.uav, event)
                 continue
             if event.event not in EVENT_STATUS:
                 continue
