@@ -101,7 +101,11 @@ EDGE_ROLES: dict[str, EdgeRole] = {
     ),
     "qos": EdgeRole(
         reads=(uplink_all_drones(Stream.QOS),),
-        writes=(downlink_all_drones(Downlink.QOS_GRANT), downlink_all_drones(Downlink.QOS_DECISION)),
+        writes=(
+            downlink_all_drones(Downlink.QOS_GRANT),
+            downlink_all_drones(Downlink.QOS_DECISION),
+            downlink_all_drones(Downlink.QOS_MONITORING),  # the core's delay reports (NEF backend)
+        ),
         tokens=(any_replica_of("qos"),),  # one agent active, the others standing by (edge/qos/leadership.py)
     ),
 }

@@ -5,6 +5,7 @@ NEF's notifications onto the drone's grant, in-process with the time passed in."
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import json
 import signal
@@ -26,8 +27,8 @@ from dynqos.common.keys import Downlink
 from dynqos.common.messages import QosMonitoring
 from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
-from dynqos.edge.operator.client import OperatorClient
-from dynqos.edge.operator.nef import API, Report
+from dynqos.edge.operator.client import OperatorClient, OperatorError
+from dynqos.edge.operator.nef import API, FlowRule, Report, Subscription
 from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
 from dynqos.edge.qos.nef_calls import NefCalls
 from dynqos.edge.qos.nef_sink import NefSinkGuard
@@ -44,16 +45,18 @@ UE = "10.45.0.7"
 class NefRig:
     """The router, the cell with its NEF, and the agent (backend nef); each stopped by its pid after."""
 
-    def __init__(self, tmp_path: Path, nef: str = "", ue: str = UE) -> None:
+    def __init__(
+        self, tmp_path: Path, nef: str = "", ue: str = UE, cell: str = "", tail: str = "", cell_port: int = 0
+    ) -> None:
         self.zenoh = ZenohConfig(**flow_ports())
-        self.cell_port = free_tcp_port()
+        self.cell_port = cell_port or free_tcp_port()
         self.sink_port = free_tcp_port()
         self.config = tmp_path / "qos.toml"
         z = self.zenoh
         self.config.write_text(
             f"[zenoh]\ndefault_port = {z.default_port}\npriority_port = {z.priority_port}\n"
             f"[cell]\nqod = true\nnef = true\ncontrol_port = {self.cell_port}\ndefault_listen_port = 0\n"
-            "priority_listen_port = 0\nqod_setup_s = 0.1\n"
+            f"priority_listen_port = 0\nqod_setup_s = 0.1\n{cell}"
             '[qos]\nbackend = "nef"\nhold_down_s = 0.5\ngrant_interval_s = 0.2\nagent_timeout_s = 1.0\n'
             "drone_timeout_s = 2.0\nrequest_interval_s = 0.2\nhealth_interval_s = 1.0\n"
             f'[qos.nef]\napi_root = "http://127.0.0.1:{self.cell_port}"\n'
@@ -63,7 +66,7 @@ class NefRig:
             f'[qos.nef.ues]\n{UAV} = {{ ipv4 = "{ue}" }}\n'
             # the core's own UE records (the emulated cell reads the drones' devices from here)
             f"[qos.camara.devices.{UAV}]\n"
-            f'ipv4Address = {{ publicAddress = "203.0.113.7", privateAddress = "{UE}" }}\n'
+            f'ipv4Address = {{ publicAddress = "203.0.113.7", privateAddress = "{UE}" }}\n{tail}'
         )
         self.procs: dict[str, DynqosProcess] = {}
         self.procs["router"] = DynqosProcess(["edge", "router"], self.config)
@@ -261,6 +264,42 @@ def test_nef_settings_the_nef_refuses_are_one_error_line_and_no_retry_storm(
     assert setting in refused[0]
 
 
+def test_nef_credentials_the_token_endpoint_refuses_are_one_error_line_and_no_retry_storm(
+    tmp_path: Path,
+) -> None:
+    """[qos.nef] token_url with a secret the authorisation server does not know (the emulated cell's
+    token endpoint, which knows another): the drone is told why, the agent says so once and asks again
+    only when restarted."""
+    (tmp_path / "secret").write_text("s3cret\n")
+    (tmp_path / "guess").write_text("guessed\n")
+    token = f'client_id = "dynqos-edge"\nclient_secret_file = "{tmp_path / "guess"}"\n'
+    registered = f'[qos.camara]\nclient_id = "dynqos-edge"\nclient_secret_file = "{tmp_path / "secret"}"\n'
+    port = free_tcp_port()
+    nef = f'token_url = "http://127.0.0.1:{port}/oauth2/token"\n{token}'
+    rig = NefRig(tmp_path, nef, cell="qod_auth = true\n", tail=registered, cell_port=port)
+    try:
+        drone = Drone(rig.zenoh)
+        try:
+            told = drone.until(True, Grant.UNAVAILABLE)
+            assert "client_id" in told.reason
+            started = time.monotonic()
+            while time.monotonic() - started < 3.0:  # the drone keeps asking, as it does in flight
+                drone.until(True, Grant.UNAVAILABLE)
+        finally:
+            drone.close()
+        counters = rig._get("/counters")
+        # asked twice: the read for subscriptions to adopt at start, and the one create; the back-off
+        # alone would have asked ~5 times more
+        assert counters["qod"]["tokens_refused"] == 2
+        assert counters["nef"]["created"] == 0
+    finally:
+        log = rig.close()
+    refused = [line for line in log.splitlines() if "refused our settings" in line]
+    assert len(refused) == 1
+    assert "client_id" in refused[0]
+    assert "Traceback" not in log
+
+
 # ---- the rules, in-process --------------------------------------------------------------------------
 
 
@@ -323,3 +362,34 @@ def test_nef_a_subscription_that_ran_its_duration_is_asked_for_again_at_once() -
     assert grant.next_op(clock.now_ns()) is Op.DELETE
     grant.deleted(clock.now_ns())
     assert grant.next_op(clock.now_ns()) is Op.CREATE  # no back-off
+
+
+def test_nef_a_core_without_patch_has_an_adopted_subscription_deleted_not_left_behind() -> None:
+    """A NEF that serves no PATCH (405) cannot point a dead agent's subscription at the new agent's sink:
+    the new agent deletes it, and the drone, holding nothing, asks anew. Another error leaves it alone."""
+    calls, _ = _calls(FakeClock())
+    rules = FlowRule(UE, "127.0.0.1", 7447).descriptions()
+    flows = [{"flowId": 1, "flowDescriptions": list(rules)}]
+    body = {"self": "http://nef/x/subscriptions/s1", "ueIpv4Addr": UE, "qosReference": "QOS_E",
+            "notificationDestination": "http://old", "flowInfo": flows}  # fmt: skip
+    deleted: list[str] = []
+
+    class NoPatch:
+        status = 405
+
+        async def all(self) -> list[Subscription]:
+            return [Subscription.parse(body)]
+
+        async def modify(self, sid: str, changes: dict[str, Any]) -> Subscription:
+            raise OperatorError(self.status, "METHOD_NOT_ALLOWED", "no PATCH here")
+
+        async def delete(self, sid: str) -> None:
+            deleted.append(sid)
+
+    api = NoPatch()
+    calls.api = api  # type: ignore[assignment]
+    assert asyncio.run(calls.adopt({UAV})) == {}
+    assert deleted == ["s1"]
+    api.status = 503  # the NEF's trouble, not a missing method: neither adopted nor deleted
+    assert asyncio.run(calls.adopt({UAV})) == {}
+    assert deleted == ["s1"]

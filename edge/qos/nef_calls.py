@@ -195,8 +195,7 @@ class NefCalls:
             if uav is None:
                 continue  # not ours: another application's, or another priority port's
             try:
-                if uav in heard and uav not in adopted:
-                    await self.api.modify(sub.subscription_id, {"notificationDestination": self.destination})
+                if uav in heard and uav not in adopted and await self._redirect(sub.subscription_id):
                     adopted[uav] = Session(sub.subscription_id, QodStatus.AVAILABLE)
                     log.info("qos agent: %s subscription %s adopted", uav, sub.subscription_id)
                     continue
@@ -206,6 +205,20 @@ class NefCalls:
             except OperatorError as exc:
                 log.warning("qos agent: cannot adopt or delete %s's subscription (%s)", uav, exc)
         return adopted
+
+    async def _redirect(self, subscription_id: str) -> bool:
+        """Point the subscription's notifications at our sink; False where the NEF has no PATCH (405 or
+        501): then it is deleted instead and the drone asks anew, rather than left with the dead agent."""
+        try:
+            await self.api.modify(subscription_id, {"notificationDestination": self.destination})
+        except OperatorError as exc:
+            if exc.status not in (405, 501):
+                raise
+            log.warning(
+                "qos agent: the NEF cannot modify a subscription (%s): deleting it instead", exc.status
+            )
+            return False
+        return True
 
     async def clean_leftovers(self, whose: str = "left by an earlier agent") -> None:
         """Every subscription for our priority flow of a configured UE, deleted."""
