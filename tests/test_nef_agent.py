@@ -241,23 +241,25 @@ def test_nef_the_cores_delay_reports_reach_the_drone_at_the_period_asked_for(
 
 
 @pytest.mark.parametrize(
-    ("rig", "setting"),
+    ("rig", "setting", "refusals"),
     [
-        (('qos_reference = "QOS_NOT_OFFERED"\n',), "qos_reference"),
-        (("", "10.45.0.99"), "ues"),
+        (('qos_reference = "QOS_NOT_OFFERED"\n',), "qos_reference", 1),
+        (("", "10.45.0.99"), "ues", 1),
+        # the NEF serves another SCS/AS: the read at start is refused too (one warning), then the create
+        (('scs_as_id = "nobody"\n', UE, 'nef_scs_as_ids = ["dynqos"]\n'), "scs_as_id", 2),
     ],
     indirect=["rig"],
-    ids=["unknown-reference", "unknown-ue"],
+    ids=["unknown-reference", "unknown-ue", "unknown-scs-as"],
 )
 def test_nef_settings_the_nef_refuses_are_one_error_line_and_no_retry_storm(
-    rig: NefRig, drone: Drone, setting: str
+    rig: NefRig, drone: Drone, setting: str, refusals: int
 ) -> None:
     told = drone.until(True, Grant.UNAVAILABLE)
     assert setting in told.reason
     started = time.monotonic()
     while time.monotonic() - started < 3.0:  # the drone keeps asking, as it does in flight
         drone.until(True, Grant.UNAVAILABLE)
-    assert rig.nef()["rejected"] == 1  # the back-off alone (0.5 s) would have asked ~5 times
+    assert rig.nef()["rejected"] == refusals  # the back-off alone (0.5 s) would have asked ~5 times
     assert rig.nef()["created"] == 0
     refused = [line for line in rig.close().splitlines() if "refused our settings" in line]
     assert len(refused) == 1

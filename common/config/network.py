@@ -240,6 +240,7 @@ class CellConfig:
     # network with a static policy for the priority port (the `links` backend's assumption).
     qod: bool = False
     nef: bool = False  # serve the 3GPP NEF's AsSessionWithQoS too (with qod: sim/network/nef.py)
+    nef_scs_as_ids: tuple[str, ...] = ()  # the SCS/AS ids the NEF serves (empty: any); others get a 403
     qod_max_sessions: Annotated[
         int, In(-1, math.inf, "must be -1 (no limit) or >= 0")
     ] = -1  # sessions AVAILABLE at once (-1: no limit; 0: the operator grants none)

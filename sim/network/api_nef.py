@@ -30,22 +30,34 @@ class NefRoutes:
             web.delete(one, self.delete),
         ]
 
+    def _known(self, request: web.Request) -> None:
+        """A 403 for an SCS/AS this NEF does not serve ([cell] nef_scs_as_ids; empty: any)."""
+        known = self.nef.cell.nef_scs_as_ids
+        if known and request.match_info["scs"] not in known:
+            self.nef.counters.rejected += 1
+            why = f"SCS/AS {request.match_info['scs'][:64]!r} is not one this NEF serves"
+            raise Reply(problem(403, "SCS_AS_NOT_AUTHORIZED", why))
+
     async def create(self, request: web.Request) -> web.Response:
+        self._known(request)
         result, notes = self.nef.create(request.match_info["scs"], await _body(request, "application/json"))
         self.changed(notes)
         return answer(result)
 
     async def all(self, request: web.Request) -> web.Response:
+        self._known(request)
         self.changed(self.nef.advance())
         query = request.query
         mac_addrs = query.getall("mac-addrs", [])
         return answer(self.nef.all(request.match_info["scs"], query.get("ip-addrs"), mac_addrs))
 
     async def get(self, request: web.Request) -> web.Response:
+        self._known(request)
         self.changed(self.nef.advance())
         return answer(self.nef.get(request.match_info["scs"], request.match_info["sid"]))
 
     async def replace(self, request: web.Request) -> web.Response:
+        self._known(request)
         sent = await _body(request, "application/json")
         self.changed(self.nef.advance())
         result = self.nef.replace(request.match_info["scs"], request.match_info["sid"], sent)
@@ -53,6 +65,7 @@ class NefRoutes:
         return answer(result)
 
     async def modify(self, request: web.Request) -> web.Response:
+        self._known(request)
         changes = await _body(request, MERGE_PATCH)
         self.changed(self.nef.advance())
         result = self.nef.modify(request.match_info["scs"], request.match_info["sid"], changes)
@@ -60,6 +73,7 @@ class NefRoutes:
         return answer(result)
 
     async def delete(self, request: web.Request) -> web.Response:
+        self._known(request)
         result = self.nef.delete(request.match_info["scs"], request.match_info["sid"])
         self.changed([])
         return answer(result)
