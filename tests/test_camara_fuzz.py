@@ -25,7 +25,7 @@ from tests.procs import DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 
-EXAMPLES = 10  # per operation and phase, at most: a bounded run (13 operations in the three documents)
+EXAMPLES = 6  # per operation and phase, at most: a bounded run (13 operations in the three documents)
 DOCUMENTS = {
     "quality-on-demand.yaml": (camara_spec.CAMARA, "/quality-on-demand/v1"),
     "qos-profiles.yaml": (camara_spec.CAMARA, "/qos-profiles/v1"),
@@ -56,14 +56,15 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[int, Dynqos
 
 # The coverage phase (every boundary value and undeclared method of every operation, ~8000 requests for
 # the NEF's document, ~30 s on 2 cores) runs in the slow pass; the default suite runs the other two.
-PHASES = [
-    pytest.param("examples,fuzzing", id="fuzzing"),
-    pytest.param("coverage", id="coverage", marks=pytest.mark.slow),
+# The CAMARA documents' coverage phases found nothing once the Allow headers were mended (~8 s more);
+# they run by hand (docs/qos.md), the NEF's in every CI.
+RUNS = [
+    *(pytest.param(document, "examples,fuzzing", id=f"{document}-fuzzing") for document in sorted(DOCUMENTS)),
+    pytest.param(nef_spec.DOCUMENT, "coverage", id=f"{nef_spec.DOCUMENT}-coverage", marks=pytest.mark.slow),
 ]
 
 
-@pytest.mark.parametrize("phases", PHASES)
-@pytest.mark.parametrize("document", sorted(DOCUMENTS))
+@pytest.mark.parametrize(("document", "phases"), RUNS)
 def test_generated_requests_find_no_server_error_and_no_answer_outside_the_document(
     cell: tuple[int, DynqosProcess], document: str, phases: str, tmp_path: Path
 ) -> None:
@@ -87,7 +88,7 @@ def test_generated_requests_find_no_server_error_and_no_answer_outside_the_docum
     passed = [line for line in out.splitlines() if " generated, " in line]
     assert passed, out[-3000:]
     assert "passed" in passed[-1], out[-3000:]
-    assert int(passed[-1].split()[0]) >= 20, passed[-1]  # the run did test the API
+    assert int(passed[-1].split()[0]) >= 10, passed[-1]  # the run did test the API
 
 
 def test_a_method_a_resource_does_not_take_is_405_with_the_methods_it_takes(

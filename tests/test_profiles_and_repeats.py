@@ -74,7 +74,8 @@ def test_the_default_profile_changes_nothing() -> None:
 
 
 def test_bad_profiles_are_named_errors(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match=r"unknown profile 'nope'.*dynqos, no-rate-adaptation, paper"):
+    known = r"dynqos, network-aware, no-rate-adaptation, paper"
+    with pytest.raises(ConfigError, match=rf"unknown profile 'nope'.*{known}"):
         load_profile("nope")
     bad = tmp_path / "bad.toml"
     bad.write_text('[profile]\nname = "bad"\n[supervisor]\nfast = 1\n')
