@@ -168,12 +168,9 @@ class Nef:
         uav = self._uav_of(body)
         if uav is None:
             return self._reject(404, "UE_NOT_FOUND", "no UE of this core has that identity"), []
-        ports, refused = self._flows(uav, body["flowInfo"])
+        ports, refused = self._admissible(uav, body)
         if refused is not None:
             return refused, []
-        unknown = self._unknown_reference(body)
-        if unknown is not None:
-            return unknown, []
         if len(self.subscriptions) >= MAX_SUBSCRIPTIONS:
             return self._reject(403, "MAX_SUBSCRIPTIONS_REACHED", "too many subscriptions; delete some"), []
         now = self.monotonic()
@@ -215,12 +212,9 @@ class Nef:
             return self._reject(
                 400, "INVALID_MSG_FORMAT", "a subscription's UE cannot change; create another"
             )
-        ports, refused = self._flows(sub.uav, body["flowInfo"])
+        ports, refused = self._admissible(sub.uav, body)
         if refused is not None:
             return refused
-        not_offered = self._unknown_reference(body)
-        if not_offered is not None:
-            return not_offered
         sub.body, sub.ports = body | {"self": sub.body["self"]}, ports
         if sub.allocated_s is not None and sub.status == "ALLOCATED":
             sub.next_report_s = self._first_report(sub, self.monotonic())
@@ -241,12 +235,9 @@ class Nef:
         bad = _check(merged, creating=False)
         if bad:
             return self._reject(400, "INVALID_MSG_FORMAT", bad)
-        ports, refused = self._flows(sub.uav, merged["flowInfo"])
+        ports, refused = self._admissible(sub.uav, merged)
         if refused is not None:
             return refused
-        not_offered = self._unknown_reference(merged)
-        if not_offered is not None:
-            return not_offered
         sub.body, sub.ports = merged, ports
         if "qosMonInfo" in changes and sub.allocated_s is not None:
             sub.next_report_s = self._first_report(sub, self.monotonic())
@@ -382,6 +373,12 @@ class Nef:
                     why = f"flow {flow_id}: no end of {text!r} is this UE's edge ({host}) with a port"
                     return frozenset(), self._reject(400, "INVALID_MSG_FORMAT", why)
         return frozenset(ports), None
+
+    def _admissible(self, uav: str, body: dict[str, Any]) -> tuple[frozenset[int], Answer | None]:
+        """What create, replace and modify check alike: the edge ports the flows name and a QoS reference
+        this core offers; the refusal of the first that fails."""
+        ports, refused = self._flows(uav, body["flowInfo"])
+        return ports, refused if refused is not None else self._unknown_reference(body)
 
     def _unknown_reference(self, body: dict[str, Any]) -> Answer | None:
         """A 403 for a qosReference this core does not offer (None when it does), on create and patch."""
