@@ -108,9 +108,14 @@ def test_supervisor_reaction_runs_the_scenario(smoke: tuple[dict[str, Any], str]
     (run,) = reaction["runs"]
     assert run["ok"]
     assert run["baseline_rtt_mean_ms"] > 0
-    assert run["switch_s"] is not None  # the background load made it switch...
-    assert "HL" in run["switch_cause"]  # ...for its latency, not for risk before the load
-    assert not run["switch_cause"].startswith("before the load")
+    assert run["switch_s"] is not None  # the drone moved to the priority flow...
+    assert "HL" in run["switch_cause"]  # ...for its latency, not for risk
+    # Its move is the load's when it came after it (test_central_contrast flies that, again if the
+    # machine stalled the drone's round trips before the load). One before the load (CI, a busy host:
+    # "before the load: MR and HL") is no reaction time, and the benchmark does not count it as one.
+    counted = not run["switch_cause"].startswith("before the load")
+    assert reaction["switched_runs"] == int(counted)
+    assert (reaction["switch_s"] is not None) == counted
     assert run["setpoint_gap_max_ms"] >= 19  # measured: at least one 20 ms tick between two setpoints
     assert reaction["setpoint_gap_max_ms"] == run["setpoint_gap_max_ms"]
 

@@ -20,8 +20,8 @@ import pytest
 
 from dynqos.common.config import CellConfig
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import builtin_scenario
-from tests.flights import fly_for_behaviour
+from dynqos.experiment.scenario import Scenario, builtin_scenario
+from tests.flights import fly_for_behaviour, not_ours
 
 FAIR_SHARE_MBPS = CellConfig().uplink_mbps / 2  # the drone and one background user, equal weights
 DURATION_S = 18.0
@@ -30,14 +30,37 @@ SWITCH_BOUND_S = 1.0  # the move to the priority flow, after the load starts
 BACK_BOUND_S = 1.5  # the RTT back within 1.2x of the baseline, after that move (the queue drained)
 
 
+def _steady_before_the_load(summary: dict[str, Any]) -> bool:
+    """Before the load the cell is idle, so nothing but the machine can slow the drone there: its camera
+    kept 90% of its rate, and (dynamic QoS) it did not leave the default flow for latency. CI on a busy
+    2-core host saw both break for minutes (12.5 of 15 frames/s; "before the load: MR and HL", a round
+    trip of 16 ms here past rho2's 27 ms there) while the same commit's flights held them locally."""
+    fps = summary["camera_fps"]
+    moved = str(summary.get("first_qos_switch_cause") or "").startswith("before the load")
+    return fps["baseline"] >= 0.9 * fps["configured"] and not moved
+
+
+def _disturbed(summary: dict[str, Any]) -> bool:
+    return not_ours(summary) or not _steady_before_the_load(summary)
+
+
+def _fly_no_qos(scenario: Scenario, tmp_path: Path) -> dict[str, Any]:
+    """bg-noqos flown (again once, if its machine did not keep the camera's rate; tests/flights.py)."""
+
+    def check(result: dict[str, Any], _: Path) -> None:
+        assert result["ok"], result["failure"]
+        assert _steady_before_the_load(result), result["camera_fps"]  # the machine kept the rate up
+
+    return fly_for_behaviour(
+        lambda out: run_scenario(scenario, out, progress=False), tmp_path, check, _disturbed
+    )
+
+
 @pytest.fixture(scope="module")
 def no_qos(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """bg-noqos at the default scale, flown once for both tests below."""
     scenario = replace(builtin_scenario("bg-noqos"), duration_s=DURATION_S, bg_start_s=BG_START_S)
-    result = run_scenario(scenario, tmp_path_factory.mktemp("noqos"), progress=False)
-    assert result["ok"], result["failure"]
-    assert result["camera_fps"]["baseline"] >= 0.9 * scenario.camera_fps  # the machine kept the rate up
-    return result
+    return _fly_no_qos(scenario, tmp_path_factory.mktemp("noqos"))
 
 
 @pytest.mark.slow
@@ -64,7 +87,7 @@ def test_without_qos_latency_climbs_and_dynamic_qos_switches_on_it_and_holds(
     noqos = builtin_scenario("bg-noqos")
     assert (dynamic.mission, dynamic.bg_mbps) == (noqos.mission, noqos.bg_mbps)  # only the QoS differs
     with_qos = fly_for_behaviour(
-        lambda out: run_scenario(dynamic, out, progress=False), tmp_path, _switches_on_the_load
+        lambda out: run_scenario(dynamic, out, progress=False), tmp_path, _switches_on_the_load, _disturbed
     )
     assert with_qos["qos_network"]["backend"] == backend
 
@@ -124,9 +147,7 @@ def test_the_no_qos_failure_is_the_same_at_scale_3_and_scale_10(
     It fails if a buffer stops scaling (unscaled socket buffers put 0.45 s more into the scale-10 queue)
     or the camera stops offering its rate at one of them."""
     scenario = replace(builtin_scenario("bg-noqos"), duration_s=DURATION_S, bg_start_s=BG_START_S, scale=3.0)
-    at_3 = run_scenario(scenario, tmp_path, progress=False)
-    assert at_3["ok"], at_3["failure"]
-    assert at_3["camera_fps"]["baseline"] >= 0.9 * scenario.camera_fps
+    at_3 = _fly_no_qos(scenario, tmp_path)
     loaded_3, loaded_10 = at_3["rtt_ms"]["loaded"]["mean"], no_qos["rtt_ms"]["loaded"]["mean"]
     print(f"bg-noqos loaded RTT mean: {loaded_3:.1f} ms at scale 3, {loaded_10:.1f} ms at scale 10")
     assert loaded_3 >= 3 * at_3["rtt_ms"]["baseline"]["mean"]
