@@ -214,12 +214,18 @@ class CameraAck(Message):
         "kind": f.choice(CAMERA_KINDS),
         "stamp_ns": f.integer(),
         "edge_hold_ns": f.integer(),
+        "arrival_ns": f.integer(),
+        "part_arrivals_us": f.sequence(f.integer(), 0, MAX_FRAME_PARTS),
     }
 
     frame_seq: int
     kind: str
     stamp_ns: int
     edge_hold_ns: int
+    # When the image's first part arrived (the edge's clock; 0: not said), and each part's arrival that
+    # many microseconds after it: the camera's delay-based rate controller reads them (docs/camera.md)
+    arrival_ns: int = 0
+    part_arrivals_us: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

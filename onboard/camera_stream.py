@@ -17,10 +17,11 @@ from dynqos.common.bus import Publisher
 from dynqos.common.camera import CameraSource, Pose, RawFrame
 from dynqos.common.clock import Clock
 from dynqos.common.config import OnboardConfig
-from dynqos.common.messages import CameraFrame
+from dynqos.common.messages import CameraAck, CameraFrame
 from dynqos.common.modes import Flow
 from dynqos.common.queues import BoundedQueue
 from dynqos.onboard.camera import RateController, encode_depth, encode_rgb
+from dynqos.onboard.camera_rate import DelayRateControl, PartSent
 from dynqos.onboard.fc import FcState
 from dynqos.onboard.pacing import FRAME_HEADER_BYTES, Pacer, split
 from dynqos.onboard.risk import Spaciousness
@@ -82,6 +83,17 @@ class CameraStream:
         self.rate = RateController(config.camera_fps)
         self.pacer = Pacer(config.camera_pace_mbps * 1e6) if config.camera_pace_mbps > 0 else None
         self.sent: BoundedQueue[FrameSent] = BoundedQueue(1024)
+        # camera_rate_control = "delay": the edge's acks, handed over by the control loop
+        self.feedback = (
+            DelayRateControl(
+                config.camera_fps,
+                floor=config.camera_rate_floor,
+                feedback_timeout_s=config.camera_feedback_timeout_s,
+            )
+            if config.camera_rate_control == "delay" and config.camera_fps > 0
+            else None
+        )
+        self.acks: BoundedQueue[CameraAck] = BoundedQueue(256)
         self.spaciousness: BoundedQueue[float] = BoundedQueue(8)
         self._risk: Spaciousness | None = None
         self._thread: threading.Thread | None = None
@@ -99,7 +111,7 @@ class CameraStream:
         seq = 0
         while not self.stop.is_set():
             now = self.clock.now_ns()
-            self.rate.factor = self.control.rate_factor
+            self.rate.factor = self._rate_factor(now)
             if not self.rate.due(now):
                 self.stop.wait(min(0.1, max(0.001, self.rate.wait_s(now))))  # the camera's frame rate
                 continue
@@ -110,6 +122,14 @@ class CameraStream:
                 continue
             seq += 1
             self._send_frame(raw, seq)
+
+    def _rate_factor(self, now_ns: int) -> float:
+        """The supervisor's rate factor, or under it what the uplink carries (`feedback`)."""
+        if self.feedback is None:
+            return self.control.rate_factor
+        for ack in self.acks.drain():
+            self.feedback.acked(ack.frame_seq, ack.kind, ack.arrival_ns, ack.part_arrivals_us, now_ns)
+        return self.feedback.factor(self.control.rate_factor, now_ns)
 
     def _grab(self, pose: Pose | None) -> RawFrame | None:
         """The source's next frame; a source that fails (a device unplugged) gives none this time, and
@@ -151,6 +171,7 @@ class CameraStream:
         h, w = raw.rgb.shape[:2]
         self.sent.put(FrameSent(seq, kind, stamp, len(data)))  # before the first part: an ack may follow
         parts = [data] if self.pacer is None else split(data, self.config.camera_part_bytes)
+        handed: list[PartSent] = []
         for index, part in enumerate(parts):
             if self.pacer is not None:
                 wait_ns = self.pacer.reserve(len(part) + FRAME_HEADER_BYTES, self.clock.now_ns())
@@ -169,4 +190,7 @@ class CameraStream:
                 part=index,
                 parts=len(parts),
             )
+            handed.append(PartSent(self.clock.now_ns(), len(part) + FRAME_HEADER_BYTES))
             pub.put(frame)
+        if self.feedback is not None:
+            self.feedback.sent(seq, kind, handed)

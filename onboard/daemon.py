@@ -36,6 +36,7 @@ from dynqos.common.modes import Flow
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Role, default_flow_endpoint, open_bus, priority_flow_endpoint
 from dynqos.onboard.camera import DeviceCamera, FilesCamera
+from dynqos.onboard.camera_rate import new_estimator
 from dynqos.onboard.camera_stream import CameraStream, FlowPublishers
 from dynqos.onboard.core import OnboardCore, hold_at, setpoint_period_ns
 from dynqos.onboard.fc import AccelSetpoint, FcState
@@ -76,6 +77,8 @@ class OnboardDaemon:
     ) -> None:
         """`camera`: the source `[onboard] camera = "sim"` needs (sim/vehicle/camera.py), handed in by the
         starter; the drone's own sources (`files`, `device`) are built here from the config."""
+        if config.onboard.camera_rate_control == "delay":
+            new_estimator()  # without the camera-rate extra: one error line, before any network
         self.config = config
         self.sim_camera = camera
         self.cfg = config.onboard
@@ -224,6 +227,10 @@ class OnboardDaemon:
             + self.grants.drain()
         )
         frames = self.camera.sent.drain() if self.camera else []  # after the downlink: see camera_stream
+        if self.camera is not None and self.camera.feedback is not None:
+            for received in downlink:  # the camera's rate controller reads the edge's arrival reports
+                if isinstance(received.message, CameraAck):
+                    self.camera.acks.put(received.message)
         space = self.camera.spaciousness.drain() if self.camera else []
         out = self.core.tick(
             TickInput(
@@ -329,6 +336,14 @@ class OnboardDaemon:
         fields["fc_setpoints"] = self.link.setpoints_sent if self.link else 0
         if (modem := self.core.modem) is not None:  # the last reading, also when no status gets out
             fields["rsrp_dbm"], fields["sinr_db"] = modem.rsrp_dbm, modem.sinr_db
+        if self.camera is not None and (feedback := self.camera.feedback) is not None:
+            target = feedback.target_bps
+            fields["camera_target_mbps"] = "-" if target is None else f"{target / 1e6:.2f}"
+            fields["camera_rate"] = f"{self.camera.rate.factor:.2f}"
+            fields["camera_acks_read"], fields["camera_acks_refused"] = (
+                feedback.counts.read,
+                feedback.counts.refused,
+            )
         if self.link is not None and self.link.signing_on:
             counts = self.link.signing_counts()
             fields["fc_signed_ok"], fields["fc_refused"] = counts["signed_ok"], counts["refused"]

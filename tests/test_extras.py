@@ -104,6 +104,8 @@ def _config(path: Path, extra: str = "") -> Path:
 def test_the_onboard_extra_runs_the_drone_without_matplotlib_scipy_or_osqp(
     wheel: Path, tmp_path: Path
 ) -> None:
+    """`dynqos[onboard]` runs the daemon; `dynqos[onboard,camera-rate]` also its camera rate controller
+    (docs/camera.md), which the drone's install alone refuses in one line."""
     bin_dir = _venv_with(wheel, "onboard", tmp_path)
     python = bin_dir / "python"
     assert _absent(python, ("matplotlib", "scipy", "osqp", "aiohttp", "jsonschema")) == "[]"
@@ -128,7 +130,25 @@ def test_the_onboard_extra_runs_the_drone_without_matplotlib_scipy_or_osqp(
             with _started([["onboard"]], config, bin_dir) as ports:
                 line = _healthy_line(ports["onboard"], time.monotonic() + HEALTH_WAIT_S)
                 assert "onboard" in line, line
+                assert "camera_rate=" not in line  # no rate controller unless asked for
             assert _healthy_line(edge_ports["edge router"], time.monotonic() + HEALTH_WAIT_S)
+            # The camera's delay-based rate controller needs the camera-rate extra: one line without it...
+            delay = ["--set", "onboard.camera_rate_control=delay"]
+            refused = _run(dynqos, "onboard", *delay, "--config", config, timeout=60)
+            assert refused.returncode == 2, refused.stderr
+            assert refused.stderr.count("\n") == 1, refused.stderr
+            assert 'pip install "dynqos[camera-rate]"' in refused.stderr
+            # ...and with it added to the drone's install, the daemon runs it.
+            added = _run(
+                bin_dir / "python", "-m", "pip", "install", "-q", "--disable-pip-version-check",
+                f"{wheel}[onboard,camera-rate]",
+            )  # fmt: skip
+            assert added.returncode == 0, added.stderr[-3000:]
+            assert _absent(python, ("matplotlib", "scipy", "osqp")) == "[]"
+            with _started([["onboard", *delay]], config, bin_dir) as ports:
+                line = _healthy_line(ports[" ".join(["onboard", *delay])], time.monotonic() + HEALTH_WAIT_S)
+                assert "camera_rate=" in line, line
+                assert "camera_acks_refused=0" in line, line
         finally:
             vehicle.stop()
 

@@ -35,9 +35,11 @@ def _check_the_hole(result: dict[str, Any], _: Path) -> None:
     # The hole, as the modem reports it: 40 dB below the open sky's ~15.5 dB at its centre. A status sent
     # inside the hole is lost with everything else the drone sends there, so the deepest reading that
     # arrives was taken on the hole's edge, where the loss ramps: -17.0 and -19.7 dB in one CI run at
-    # a74fe3f, -20 or lower before. Still 25 dB or more below the open sky.
+    # a74fe3f, -20 or lower before. Still 25 dB or more below the open sky. RSRP falls with the SINR
+    # (the interference is the same): about -78 dBm in the open, -109.2 at a SINR of -15.7 (a run at
+    # a606372 that failed the -110 bound this one had then).
     assert radio["sinr_min_db"] <= -15, radio
-    assert radio["rsrp_min_dbm"] < -110, radio
+    assert radio["rsrp_min_dbm"] <= -105, radio
     assert result["fallbacks"]["in_flight"] >= 1, result["fallbacks"]
     assert 0 < radio["fallback_s"] < 12, radio
     transitions = result["transitions"]

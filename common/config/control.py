@@ -281,6 +281,12 @@ class OnboardConfig:
     camera_part_bytes: Annotated[int, In(512, 1 << 20, "must be in 512..1048576")] = (
         4096  # the size of one paced part
     )
+    # The camera's frame rate from the edge's arrival reports (docs/camera.md): "delay" runs WebRTC's
+    # delay-based estimator (aiortc's port) under the supervisor's rate factor, down to camera_rate_floor;
+    # without a report for camera_feedback_timeout_s the rate halves, each timeout, to that floor
+    camera_rate_control: Literal["none", "delay"] = "none"
+    camera_rate_floor: Annotated[float, In(0.01, 1.0, "must be in 0.01..1")] = 0.25
+    camera_feedback_timeout_s: Annotated[float, In(0.1, 60, "must be in 0.1..60 s")] = 1.0
     files_dir: str = ""
     realsense_file: str = ""  # camera = "realsense": a recording to play back; "" = the first live device
     files_intrinsics: tuple[float, float, float, float] = (518.0, 519.0, 325.5, 253.5)

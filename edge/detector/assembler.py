@@ -4,6 +4,9 @@ Parts of one image arrive in order over one flow, but a part can be lost (the ca
 under congestion) and a drone can switch flows between images. So an image in progress is given up
 when a newer image of the same drone and kind completes, and the whole table is bounded in images
 and bytes: a sender cannot make the detector hold more than `max_bytes`, whatever it sends.
+
+`add_timed` also says when each part of a completed image arrived: the drone's camera rate controller
+reads the one-way delay's growth from those times (onboard/camera_rate.py).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ Key = tuple[str, str, int]  # uav, kind, frame seq
 class _Partial:
     first: CameraFrame
     payloads: dict[int, bytes] = field(default_factory=dict)
+    arrivals_ns: dict[int, int] = field(default_factory=dict)
     nbytes: int = 0
 
 
@@ -41,8 +45,14 @@ class FrameAssembler:
 
     def add(self, frame: CameraFrame) -> CameraFrame | None:
         """The whole image once `frame` completes it, else None."""
+        done = self.add_timed(frame, 0)
+        return None if done is None else done[0]
+
+    def add_timed(self, frame: CameraFrame, arrival_ns: int) -> tuple[CameraFrame, tuple[int, ...]] | None:
+        """The whole image once `frame` (arrived at `arrival_ns`) completes it, with when each of its
+        parts arrived, in part order; else None."""
         if frame.parts == 1:
-            return frame
+            return frame, (arrival_ns,)
         key = (frame.uav, frame.kind, frame.seq)
         partial = self._partials.get(key)
         if partial is None:
@@ -52,13 +62,15 @@ class FrameAssembler:
             return None
         if frame.part not in partial.payloads:
             partial.payloads[frame.part] = frame.payload
+            partial.arrivals_ns[frame.part] = arrival_ns
             partial.nbytes += len(frame.payload)
             self._bytes += len(frame.payload)
         if len(partial.payloads) == frame.parts:
             self._drop(key)
             self._give_up_older(frame)
             payload = b"".join(partial.payloads[i] for i in range(frame.parts))
-            return replace(partial.first, payload=payload, part=0, parts=1)
+            arrivals = tuple(partial.arrivals_ns[i] for i in range(frame.parts))
+            return replace(partial.first, payload=payload, part=0, parts=1), arrivals
         while len(self._partials) > self.max_frames or self._bytes > self.max_bytes:
             self._drop(next(iter(self._partials)))
             self.incomplete += 1

@@ -87,9 +87,10 @@ class DetectorService(EdgeCore):
             if not self.replicas.serves(part.uav):
                 self.counters["others"] += 1
                 continue
-            frame = self.assembler.add(part)  # a paced image is acked once its last part is in
-            if frame is None:
+            done = self.assembler.add_timed(part, item.arrival_ns)  # acked once its last part is in
+            if done is None:
                 continue
+            frame, arrivals = done
             if frame is not part:
                 item = replace(item, message=frame)
             self.counters["frames"] += 1
@@ -100,6 +101,8 @@ class DetectorService(EdgeCore):
                 kind=frame.kind,
                 stamp_ns=frame.stamp_ns,
                 edge_hold_ns=max(0, self.clock.now_ns() - item.arrival_ns),
+                arrival_ns=arrivals[0],
+                part_arrivals_us=tuple(max(0, t - arrivals[0]) // 1000 for t in arrivals),
             )
             self._publisher(self._ack_pubs, frame.uav, Downlink.CAMERA_ACK, Priority.REAL_TIME).put(ack)
             self.counters["acks"] += 1
