@@ -58,11 +58,6 @@ class FeedbackCounts:
 
 
 @dataclass(slots=True)
-class _Image:
-    parts: tuple[PartSent, ...]
-
-
-@dataclass(slots=True)
 class DelayRateControl:
     """Turns the edge's arrival reports into the camera's rate factor (module docstring)."""
 
@@ -72,7 +67,7 @@ class DelayRateControl:
     memory: int = 128  # images remembered for their acks
     counts: FeedbackCounts = field(default_factory=FeedbackCounts)
     target_bps: float | None = None  # None: no estimate yet (the camera keeps the supervisor's rate)
-    _images: OrderedDict[tuple[int, str], _Image] = field(default_factory=OrderedDict)
+    _images: OrderedDict[tuple[int, str], tuple[PartSent, ...]] = field(default_factory=OrderedDict)
     _frame_bits: dict[int, float] = field(default_factory=dict)
     _bits_per_frame: float | None = None
     _estimator: Any = None
@@ -89,7 +84,7 @@ class DelayRateControl:
 
     def sent(self, seq: int, kind: str, parts: Sequence[PartSent]) -> None:
         """The camera handed image `seq` (`kind`) to the link in `parts`."""
-        self._images[(seq, kind)] = _Image(tuple(parts))
+        self._images[(seq, kind)] = tuple(parts)
         while len(self._images) > self.memory:
             self._images.popitem(last=False)
         bits = self._frame_bits.get(seq, 0.0) + 8.0 * sum(p.nbytes for p in parts)
@@ -112,19 +107,19 @@ class DelayRateControl:
         if image is None or not _consistent(image, arrival_ns, part_arrivals_us):
             self.counts.refused += 1
             return False
-        if self._last_sent_ns is not None and image.parts[0].sent_ns <= self._last_sent_ns:
+        if self._last_sent_ns is not None and image[0].sent_ns <= self._last_sent_ns:
             self.counts.stale += 1
             return False
         del self._images[(seq, kind)]
-        if self._clock_changed(image.parts[0].sent_ns, arrival_ns):
+        if self._clock_changed(image[0].sent_ns, arrival_ns):
             self._estimator = new_estimator()
             self.counts.restarts += 1
-        for part, offset_us in zip(image.parts, part_arrivals_us, strict=True):
+        for part, offset_us in zip(image, part_arrivals_us, strict=True):
             arrived_ns = arrival_ns + offset_us * 1000
             answer = self._estimator.add(arrived_ns // NS_PER_MS, abs_send_time(part.sent_ns), part.nbytes, 0)
             if answer is not None:
                 self.target_bps = float(answer[0])
-        self._last_sent_ns = image.parts[-1].sent_ns
+        self._last_sent_ns = image[-1].sent_ns
         self._last_arrival_ns = arrival_ns + part_arrivals_us[-1] * 1000
         self._feedback_ns = now_ns
         self.counts.read += 1
@@ -163,9 +158,9 @@ class DelayRateControl:
             self.target_bps = max(least, start / 2)
 
 
-def _consistent(image: _Image, arrival_ns: int, part_arrivals_us: Sequence[int]) -> bool:
+def _consistent(image: tuple[PartSent, ...], arrival_ns: int, part_arrivals_us: Sequence[int]) -> bool:
     """The ack describes this image: one arrival per part, the first at its base, none going back."""
-    if len(part_arrivals_us) != len(image.parts) or arrival_ns <= 0 or part_arrivals_us[0] != 0:
+    if len(part_arrivals_us) != len(image) or arrival_ns <= 0 or part_arrivals_us[0] != 0:
         return False
     return all(b >= a for a, b in itertools.pairwise(part_arrivals_us))
 
@@ -177,7 +172,7 @@ def abs_send_time(sent_ns: int) -> int:
 
 def new_estimator() -> Any:
     """aiortc's port of WebRTC's receive-side delay-based estimator, or a ConfigError that says how to
-    install it (`[camera] rate_control = "delay"` needs it; the default, "none", does not)."""
+    install it (`[onboard] camera_rate_control = "delay"` needs it; the default, "none", does not)."""
     try:
         from aiortc.rate import RemoteBitrateEstimator
     except ImportError as exc:
