@@ -103,6 +103,13 @@ def _flight_options(sub: argparse.ArgumentParser) -> None:
         "(nef, one drone), or a static policy for the priority port (links); docs/qos.md",
     )
     sub.add_argument(
+        "--trace",
+        metavar="FILE",
+        help="the cell's uplink capacity replays this Mahimahi trace (one packet opportunity a line), "
+        "rescaled to the scenario's [cell] trace_mean_mbps; the trace-none, trace-paper and trace-delay "
+        "scenarios need one (docs/camera.md)",
+    )
+    sub.add_argument(
         "--px4-dir",
         metavar="DIR",
         help="PX4's folder (bin/px4 and etc/, such as PX4's build/px4_sitl_default); default: [px4] dir, "
@@ -145,6 +152,7 @@ def run_demo(args: argparse.Namespace, config: Config) -> int:
         metrics_port=args.metrics_port,
         vehicle=vehicle,
         qos_backend=getattr(args, "qos_backend", None),
+        trace=_trace(args.trace),
     )
     print(f"report: {out / 'report.md'}")
     for s in result["scenarios"]:
@@ -160,6 +168,19 @@ def _vehicle(args: argparse.Namespace, config: Config) -> dict[str, Any]:
     from dynqos.sim.vehicle.px4_sitl import px4_folder
 
     return {"vehicle": "px4", "px4_dir": str(px4_folder(px4_dir))}
+
+
+def _trace(path: str | None) -> str | None:
+    """--trace's file as an absolute path, read now: a trace that cannot fly is an error before any run."""
+    if path is None:
+        return None
+    from dynqos.sim.network.traces import Trace, TraceError
+
+    try:
+        Trace.load(path)
+    except TraceError as exc:
+        raise DynqosError(f"--trace: {exc}") from None
+    return str(Path(path).resolve())
 
 
 def floats(text: str, option: str) -> tuple[float, ...]:

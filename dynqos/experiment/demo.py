@@ -43,12 +43,15 @@ def run_demo(
     metrics_port: int = 0,
     vehicle: dict[str, Any] | None = None,
     qos_backend: str | None = None,
+    trace: str | None = None,
 ) -> dict[str, Any]:
     """Every scenario under every profile, each `repeat` times with seeds seed, seed + 1, ...; then
-    summary.json over all of them and report.md. `qos_backend`: the scenarios' own when None."""
+    summary.json over all of them and report.md. `qos_backend`: the scenarios' own when None; `trace`:
+    a Mahimahi uplink trace every scenario's cell replays (the scenario's own, if any, when None)."""
     if not 1 <= repeat <= MAX_REPEAT:
         raise ConfigError("--repeat", f"must be in 1..{MAX_REPEAT}, got {repeat}")
     chosen = scenarios if scenarios is not None else [builtin_scenario(n) for n in names]
+    chosen = _traced(chosen, trace)
     runs = [
         profile.apply(scenario)
         for scenario in _overridden(chosen, duration_s, scale, seed, metrics_port, vehicle or {}, qos_backend)
@@ -89,6 +92,25 @@ def run_demo(
     (out / "summary.json").write_text(json.dumps(top, indent=2) + "\n")
     write_report(out, summaries)
     return top
+
+
+def _traced(chosen: list[Scenario], trace: str | None) -> list[Scenario]:
+    """The scenarios with `trace` as their cell's uplink trace; a scenario that sets a trace's mean
+    ([cell] trace_mean_mbps) flies on a trace, and without one it is an error now."""
+    result = []
+    for scenario in chosen:
+        cell = scenario.config.get("cell", {})
+        if trace is not None:
+            cell = {**cell, "trace": trace}
+            scenario = replace(scenario, config={**scenario.config, "cell": cell})
+        if cell.get("trace_mean_mbps") and not cell.get("trace"):
+            raise ConfigError(
+                "--trace",
+                f"scenario {scenario.name} replays a real uplink trace as the cell's capacity: give a "
+                "Mahimahi trace with --trace FILE (docs/camera.md)",
+            )
+        result.append(scenario)
+    return result
 
 
 def _overridden(

@@ -82,6 +82,7 @@ def repeated_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "duration_s": first.get("duration_s"),
         "scale": first.get("scale"),
         "bg_mbps": first.get("bg_mbps"),  # a setting, the same in every run
+        "uplink_trace": first.get("uplink_trace"),
         "seeds": [run.get("seed") for run in runs],
         "runs": runs,
         "aggregate": aggregate(runs),

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import itertools
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -20,43 +21,27 @@ from dynqos.reports.measures import reference_errors, rmse, stats, tracking_erro
 
 
 def _cell_rates(rec: Recording, start_ns: int, end_ns: int, scale: float) -> dict[str, float | None]:
+    """The cell's rates over [start, end] at full scale: what the drone's bearers took in, delivered and
+    dropped (a full UE buffer), the background user's, and what the uplink could carry (a trace's
+    capacity is what it carried, whoever used it)."""
     inside = [c for c in rec.cell if start_ns <= c["now_ns"] <= end_ns]
+    names = ("uav_admitted", "uav_delivered", "uav_dropped", "bg_offered", "bg_delivered", "uplink_capacity")
     if len(inside) < 2:
-        return {
-            "uav_admitted_mbps": None,
-            "uav_delivered_mbps": None,
-            "bg_offered_mbps": None,
-            "bg_delivered_mbps": None,
-        }
+        return {f"{name}_mbps": None for name in names}
     first, last = inside[0], inside[-1]
     span = (last["now_ns"] - first["now_ns"]) / 1e9
 
-    def bearer_sum(c: dict[str, Any], key: str) -> float:
-        return float(sum(b[key] for b in c["bearers"].values()))
+    def bits(c: dict[str, Any], name: str) -> float:
+        if name == "uplink_capacity":
+            return float(c.get("capacity_bits", math.nan))
+        group, key = name.split("_")
+        if group == "uav":  # a bearer's offered bytes are those its UE buffer admitted
+            key = "offered" if key == "admitted" else key
+            return float(sum(b[f"{key}_bytes"] for b in c["bearers"].values())) * 8
+        return float(sum(b[f"{key}_bits"] for b in c["background"].values()))
 
-    def bg_sum(c: dict[str, Any], key: str) -> float:
-        return float(sum(b[key] for b in c["background"].values()))
-
-    return {
-        "uav_admitted_mbps": (bearer_sum(last, "offered_bytes") - bearer_sum(first, "offered_bytes"))
-        * 8
-        / span
-        / 1e6
-        * scale,
-        "uav_delivered_mbps": (bearer_sum(last, "delivered_bytes") - bearer_sum(first, "delivered_bytes"))
-        * 8
-        / span
-        / 1e6
-        * scale,
-        "bg_offered_mbps": (bg_sum(last, "offered_bits") - bg_sum(first, "offered_bits"))
-        / span
-        / 1e6
-        * scale,
-        "bg_delivered_mbps": (bg_sum(last, "delivered_bits") - bg_sum(first, "delivered_bits"))
-        / span
-        / 1e6
-        * scale,
-    }
+    rates = {f"{n}_mbps": (bits(last, n) - bits(first, n)) / span / 1e6 * scale for n in names}
+    return {k: None if math.isnan(v) else v for k, v in rates.items()}
 
 
 def _app_offered_mbps(
@@ -126,6 +111,7 @@ def summarise(
         "rates_span": "loaded" if loaded else "whole run after settling",
         "uav_offered_mbps": _app_offered_mbps(statuses, loaded_start, end_ns, scenario.scale),
         **rates,
+        **_trace_figures(scenario, rates),
         "rtt_ms": {
             "baseline": stats(window(rtts, settle_ns, baseline_end)),
             "loaded": stats(window(rtts, bg_ns, end_ns + 1)) if loaded else None,
@@ -296,6 +282,15 @@ def _qos_network(
         }
         out["sessions"]["open_at_end"] = len(qod.get("sessions", []))
     return out
+
+
+def _trace_figures(scenario: Scenario, rates: dict[str, float | None]) -> dict[str, Any]:
+    """Which Mahimahi trace the uplink replayed (its file's name; None: a constant capacity), and the
+    share of what it could carry that reached the edge from the drone (docs/camera.md)."""
+    trace = scenario.config.get("cell", {}).get("trace", "")
+    delivered, capacity = rates["uav_delivered_mbps"], rates["uplink_capacity_mbps"]
+    share = delivered / capacity if trace and delivered is not None and capacity else None
+    return {"uplink_trace": Path(trace).name if trace else None, "uplink_share": share}
 
 
 def _rtt_back_after(rtts: list[tuple[int, float]], since_ns: int, baseline: list[float]) -> float | None:

@@ -314,6 +314,7 @@ class CellEmulator:
             "t_s": (now - self.start_ns) / 1e9,
             "scale": self.scale,
             "capacity_mbps": self.current_capacity_mbps(now),
+            "capacity_bits": self.core.capacity_bits_total,
             "ticks": self.ticks,
             "late_ticks": self.late_ticks,
             "bearers": {

@@ -60,6 +60,7 @@ class CellCore:
         }
         self.trace: Trace | None = None
         self.trace_start_ns = 0
+        self.capacity_bits_total = 0.0  # what the uplink could have carried so far (scaled bits)
         self.coverage_lost_until_ns = 0
         self.downlink_lost_until_ns = 0
         self.start_ns = start_ns
@@ -90,6 +91,7 @@ class CellCore:
         millisecond: it allocates what it must and no more."""
         elapsed_s = (now_ns - self.last_tick_ns) / NS_PER_S
         capacity = self.capacity_bits(now_ns)
+        self.capacity_bits_total += capacity
         self.last_tick_ns = now_ns
         if self._shares is None:
             self._shares = {name: self.effective_weight(name) for name in self.weights}
