@@ -69,6 +69,11 @@ HEADLINES: dict[str, Headline] = {
         "mpc_over_bare": r["mpc_over_bare"],
         "minimal_mpc_over_bare": r["minimal_mpc_over_bare"],
     },
+    "camera_rate": lambda r: {
+        "controller_mean_us": r["controller"]["mean_us"],
+        "floor_mean_us": r["floor"]["mean_us"],
+        "ratio_mean": r["ratio_mean"],
+    },
     "onboard_camera": lambda r: {"encode_publish_core_share": r["encode_publish_core_share_at_30fps"]},
     "vehicle_sim": lambda r: {
         "lockstep_speed": r["lockstep"]["sim_s_per_wall_s"],

@@ -83,6 +83,10 @@ def test_a_trace_sets_the_capacity_and_a_capacity_event_ends_it() -> None:
     c.set_trace(Trace([1, 2, 3, 4]), 0)  # four packets every 4 ms: 12 Mbit/s, halved by the scale
     granted = run(c, {"uav1-default": 1e9, "uav1-priority": 0.0}, 0, 400)
     assert granted["uav1-default"] == pytest.approx(100 * 4 * PACKET_BITS / 2, rel=0.02)
+    assert c.capacity_bits_total == pytest.approx(granted["uav1-default"])  # all of it was wanted
+    idle = c.capacity_bits_total
+    run(c, {"uav1-default": 0.0, "uav1-priority": 0.0}, 400, 400)
+    assert c.capacity_bits_total - idle == pytest.approx(idle, rel=0.02)  # counted whoever uses it
     assert c.apply(CellEventConfig(at_s=0.0, kind="trace", file="x.trace"), 0) == Effect(
         load_trace=("x.trace", 0.0)
     )  # the shell reads the file

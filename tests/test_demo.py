@@ -150,7 +150,9 @@ def test_bad_scenario_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
     assert "unknown scenario 'nope'" in unknown.stderr
 
 
-@pytest.mark.parametrize("name", ["baseline", "bg-noqos", "bg-dynqos", "bg-staticqos", "faults"])
+@pytest.mark.parametrize(
+    "name", ["baseline", "bg-noqos", "bg-dynqos", "bg-staticqos", "faults", "trace-none", "trace-delay"]
+)
 def test_a_scenarios_config_is_written_and_read_back_unchanged(tmp_path: Path, name: str) -> None:
     """What the runner writes is exactly what every process reads: qos, camera size and pace, the
     cell's scaled buffer and the bearers' ports the cell reported all survive the round trip."""
