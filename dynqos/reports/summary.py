@@ -76,8 +76,7 @@ def summarise(
     scenario: Scenario, rec: Recording, onboard_log: str, *, ok: bool, failure: str
 ) -> dict[str, Any]:
     machine = machine_figures(rec.cpu_times)
-    ok, failure = judge(ok, failure, machine)
-    t0 = rec.t0_ns
+    ok, failure, t0 = *judge(ok, failure, machine), rec.t0_ns
     end_ns = max([s.stamp_ns for _, s in rec.states], default=t0)
     settle_ns = t0 + round(scenario.settle_s * 1e9)
     bg_ns = rec.bg_on_ns
