@@ -13,12 +13,11 @@ Target: under 1% of a core at 15 frames/s (0.67 ms per frame).
 from __future__ import annotations
 
 import math
-import statistics
 import sys
 import time
 from typing import Any
 
-from dynqos.bench.report import bench_parser, emit, judged, provenance
+from dynqos.bench.report import bench_parser, emit, judged, micros, provenance
 from dynqos.onboard.camera_rate import DelayRateControl, PartSent, abs_send_time, new_estimator
 
 FPS = 15.0
@@ -78,14 +77,8 @@ def _time_floor(frames: list[list[tuple[str, list[PartSent], int, list[int]]]]) 
 
 
 def _summary(durations: list[int]) -> dict[str, float]:
-    ordered = sorted(durations)
-    mean_us = statistics.fmean(ordered) / 1e3
-    return {
-        "median_us": statistics.median(ordered) / 1e3,
-        "p99_us": ordered[min(len(ordered) - 1, int(len(ordered) * 0.99))] / 1e3,
-        "mean_us": mean_us,
-        "core_share_at_15fps": mean_us * FPS / 1e6,
-    }
+    figures = micros(durations)
+    return {**figures, "core_share_at_15fps": figures["mean_us"] * FPS / 1e6}
 
 
 def run(count: int) -> dict[str, Any]:

@@ -6,6 +6,7 @@ import argparse
 import json
 import os
 import platform
+import statistics
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,16 @@ def provenance() -> dict[str, Any]:
     return {
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}",
+    }
+
+
+def micros(durations_ns: list[int]) -> dict[str, float]:
+    """Timed durations (ns) as their median, 99th percentile and mean in microseconds."""
+    ordered = sorted(durations_ns)
+    return {
+        "median_us": statistics.median(ordered) / 1e3,
+        "p99_us": ordered[min(len(ordered) - 1, int(len(ordered) * 0.99))] / 1e3,
+        "mean_us": statistics.fmean(ordered) / 1e3,
     }
 
 

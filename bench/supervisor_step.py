@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import math
 import random
-import statistics
 import sys
 import time
 from typing import Any
 
-from dynqos.bench.report import bench_parser, emit, judged, provenance
+from dynqos.bench.report import bench_parser, emit, judged, micros, provenance
 from dynqos.common.config import SupervisorConfig
 from dynqos.onboard.supervisor import Inputs, Supervisor, sigmoid
 
@@ -69,20 +68,11 @@ def _time_floor(inputs: list[Inputs]) -> list[int]:
     return durations
 
 
-def _summary(durations: list[int]) -> dict[str, float]:
-    ordered = sorted(durations)
-    return {
-        "median_us": statistics.median(ordered) / 1e3,
-        "p99_us": ordered[min(len(ordered) - 1, int(len(ordered) * 0.99))] / 1e3,
-        "mean_us": statistics.fmean(ordered) / 1e3,
-    }
-
-
 def run(steps: int) -> dict[str, Any]:
     inputs = _inputs(steps)
     _time_steps(inputs[: min(1000, steps)])  # warm up
-    step = _summary(_time_steps(inputs))
-    floor = _summary(_time_floor(inputs))
+    step = micros(_time_steps(inputs))
+    floor = micros(_time_floor(inputs))
     return {
         "benchmark": "supervisor_step",
         **provenance(),
