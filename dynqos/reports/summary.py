@@ -6,7 +6,6 @@ from __future__ import annotations
 import csv
 import itertools
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -19,29 +18,39 @@ from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import Scenario
 from dynqos.reports.measures import reference_errors, rmse, stats, tracking_errors
 
+# the cell's running totals behind each rate: figure -> (its records' table, the total, bits per unit);
+# a bearer's offered bytes are those its UE buffer admitted
+CELL_TOTALS = {
+    "uav_admitted": ("bearers", "offered_bytes", 8),
+    "uav_delivered": ("bearers", "delivered_bytes", 8),
+    "uav_dropped": ("bearers", "dropped_bytes", 8),
+    "bg_offered": ("background", "offered_bits", 1),
+    "bg_delivered": ("background", "delivered_bits", 1),
+}
+
 
 def _cell_rates(rec: Recording, start_ns: int, end_ns: int, scale: float) -> dict[str, float | None]:
     """The cell's rates over [start, end] at full scale: what the drone's bearers took in, delivered and
     dropped (a full UE buffer), the background user's, and what the uplink could carry (a trace's
-    capacity is what it carried, whoever used it)."""
+    capacity is what it carried, whoever used it; None from a cell that does not count it)."""
     inside = [c for c in rec.cell if start_ns <= c["now_ns"] <= end_ns]
-    names = ("uav_admitted", "uav_delivered", "uav_dropped", "bg_offered", "bg_delivered", "uplink_capacity")
     if len(inside) < 2:
-        return {f"{name}_mbps": None for name in names}
+        return {f"{name}_mbps": None for name in (*CELL_TOTALS, "uplink_capacity")}
     first, last = inside[0], inside[-1]
-    span = (last["now_ns"] - first["now_ns"]) / 1e9
+    to_mbps = scale / ((last["now_ns"] - first["now_ns"]) / 1e9) / 1e6
 
-    def bits(c: dict[str, Any], name: str) -> float:
-        if name == "uplink_capacity":
-            return float(c.get("capacity_bits", math.nan))
-        group, key = name.split("_")
-        if group == "uav":  # a bearer's offered bytes are those its UE buffer admitted
-            key = "offered" if key == "admitted" else key
-            return float(sum(b[f"{key}_bytes"] for b in c["bearers"].values())) * 8
-        return float(sum(b[f"{key}_bits"] for b in c["background"].values()))
+    def bits(c: dict[str, Any], table: str, total: str, unit: int) -> float:
+        return float(sum(item[total] for item in c[table].values())) * unit
 
-    rates = {f"{n}_mbps": (bits(last, n) - bits(first, n)) / span / 1e6 * scale for n in names}
-    return {k: None if math.isnan(v) else v for k, v in rates.items()}
+    rates: dict[str, float | None] = {
+        f"{name}_mbps": (bits(last, *counter) - bits(first, *counter)) * to_mbps
+        for name, counter in CELL_TOTALS.items()
+    }
+    counted = "capacity_bits" in first and "capacity_bits" in last
+    rates["uplink_capacity_mbps"] = (
+        (last["capacity_bits"] - first["capacity_bits"]) * to_mbps if counted else None
+    )
+    return rates
 
 
 def _app_offered_mbps(
@@ -76,7 +85,8 @@ def summarise(
     scenario: Scenario, rec: Recording, onboard_log: str, *, ok: bool, failure: str
 ) -> dict[str, Any]:
     machine = machine_figures(rec.cpu_times)
-    ok, failure, t0 = *judge(ok, failure, machine), rec.t0_ns
+    ok, failure = judge(ok, failure, machine)
+    t0 = rec.t0_ns
     end_ns = max([s.stamp_ns for _, s in rec.states], default=t0)
     settle_ns = t0 + round(scenario.settle_s * 1e9)
     bg_ns = rec.bg_on_ns
@@ -90,7 +100,7 @@ def summarise(
     cams = _samples(rec.status, "camera_latency_samples_ms", "camera_latency_ms")
     errors = [(t0 + round(t * 1e9), e) for t, e in tracking_errors(rec)]
     loaded = bg_ns is not None
-    rates = _cell_rates(rec, loaded_start, end_ns + 1, scenario.scale)
+    rates = _with_trace(scenario, _cell_rates(rec, loaded_start, end_ns + 1, scenario.scale))
     statuses = sorted(rec.status, key=lambda s: s.stamp_ns)
     times = dict.fromkeys((s.value for s in SupervisorState), 0.0) | time_in_states(statuses, since_ns=t0)
     first_switch, switch_cause = _first_qos_switch(statuses, bg_ns if scenario.qos == "dynamic" else None)
@@ -110,7 +120,6 @@ def summarise(
         "rates_span": "loaded" if loaded else "whole run after settling",
         "uav_offered_mbps": _app_offered_mbps(statuses, loaded_start, end_ns, scenario.scale),
         **rates,
-        **_trace_figures(scenario, rates),
         "rtt_ms": {
             "baseline": stats(window(rtts, settle_ns, baseline_end)),
             "loaded": stats(window(rtts, bg_ns, end_ns + 1)) if loaded else None,
@@ -283,13 +292,13 @@ def _qos_network(
     return out
 
 
-def _trace_figures(scenario: Scenario, rates: dict[str, float | None]) -> dict[str, Any]:
-    """Which Mahimahi trace the uplink replayed (its file's name; None: a constant capacity), and the
-    share of what it could carry that reached the edge from the drone (docs/camera.md)."""
+def _with_trace(scenario: Scenario, rates: dict[str, float | None]) -> dict[str, Any]:
+    """The cell's rates, with which Mahimahi trace the uplink replayed (its file's name; None: a constant
+    capacity) and the share of what it could carry that reached the edge from the drone (docs/camera.md)."""
     trace = scenario.config.get("cell", {}).get("trace", "")
     delivered, capacity = rates["uav_delivered_mbps"], rates["uplink_capacity_mbps"]
     share = delivered / capacity if trace and delivered is not None and capacity else None
-    return {"uplink_trace": Path(trace).name if trace else None, "uplink_share": share}
+    return {**rates, "uplink_trace": Path(trace).name if trace else None, "uplink_share": share}
 
 
 def _rtt_back_after(rtts: list[tuple[int, float]], since_ns: int, baseline: list[float]) -> float | None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from dynqos.reports.figures import figure, lookup
+from dynqos.reports.figures import figure
 
 COLUMNS = (  # (heading, the summary's path, digits)
     ("uplink delivered (Mbit/s)", "uav_delivered_mbps", 1),
@@ -41,7 +41,7 @@ def traced_lines(summaries: list[dict[str, Any]]) -> list[str]:
 
 
 def _trace(summary: dict[str, Any]) -> str | None:
-    value = lookup(summary, "uplink_trace")
+    value = summary.get("uplink_trace")
     return value if isinstance(value, str) else None
 
 
