@@ -98,7 +98,7 @@ HEADLINES: dict[str, Headline] = {
 NAMES = tuple(HEADLINES)
 # a benchmark of an extra's role -> (the module it needs, the extra): skipped from the default set
 # without it, refused by name
-NEEDS_EXTRA = {"ros2_bridge": ("rosbags", "ros2")}
+NEEDS_EXTRA = {"ros2_bridge": ("rosbags", "ros2"), "camera_rate": ("aiortc", "camera-rate")}
 
 
 def _missing_extra(name: str) -> str | None:
