@@ -46,6 +46,7 @@ class Received:
     key: str
     message: Message
     arrival_ns: int
+    path: str = ""  # which of a drone's paths it came by (docs/multipath.md; "" = its only one)
 
 
 class SubscriptionStats:

@@ -174,3 +174,15 @@ def vector(length: int, lo: float = -math.inf, hi: float = math.inf) -> Validato
         return slow(name, value)  # type: ignore[no-any-return]
 
     return _typed(check, tuple[(_float(lo, hi),) * length])  # type: ignore[misc]
+
+
+def record(*items: Validator) -> Validator:
+    """A fixed-length list whose i-th element passes `items[i]` (a small record on the wire)."""
+
+    def check(name: str, value: Any) -> tuple[Any, ...]:
+        if not isinstance(value, (list, tuple)) or len(value) != len(items):
+            shown = len(value) if isinstance(value, (list, tuple)) else type(value).__name__
+            raise MessageError(name, f"expected a list of {len(items)} items, got {shown}")
+        return tuple(item(f"{name}[{i}]", v) for i, (item, v) in enumerate(zip(items, value, strict=True)))
+
+    return _typed(check, tuple[tuple(wire_type(item) for item in items)])  # type: ignore[misc]

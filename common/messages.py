@@ -15,6 +15,7 @@ from typing import Any, ClassVar
 import msgpack
 
 from dynqos.common import fields as f
+from dynqos.common.camera_messages import CameraAck, CameraFrame, Detections
 from dynqos.common.errors import DecodeError, MessageError
 from dynqos.common.fastdecode import FastDecoder
 from dynqos.common.message_base import (
@@ -50,7 +51,8 @@ from dynqos.common.message_base import (
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 from dynqos.common.qos_messages import QosDecision, QosGrant, QosMonitoring, QosRequest
 
-# The one place every message is imported from: the base's limits and the QoS agent's messages too.
+# The one place every message is imported from: the base's limits, the camera's and the QoS agent's
+# messages too.
 __all__ = [
     "ACCEL_LIMIT_MPS2",
     "CAMERA_ENCODINGS",
@@ -90,6 +92,8 @@ __all__ = [
 ]
 
 
+MAX_SITES = 8  # edge sites a drone may follow at once (State.controllers)
+
 # State.mode: flown offboard, the drone follows the edge (or its own fallback); standing by, it is on
 # the ground or taking off, with nothing to follow yet.
 OFFBOARD = "offboard"
@@ -111,6 +115,7 @@ class State(Message):
         "mode": f.text(32),
         "command_term": f.integer(),
         "command_replica": f.text(64),
+        "controllers": f.sequence(f.record(f.text(64), f.integer(), f.text(64)), 0, MAX_SITES),
     }
 
     stamp_ns: int
@@ -123,6 +128,9 @@ class State(Message):
     # edge's replicas agree on who flies it (edge/replicas.py).
     command_term: int = 0
     command_replica: str = ""
+    # A drone on two paths follows one controller per edge site (docs/multipath.md): (site, term,
+    # replica) for each site it has accepted a Command from; each site's replicas read their own entry.
+    controllers: tuple[tuple[str, int, str], ...] = ()
 
     def _check(self) -> None:
         norm = math.sqrt(sum(q * q for q in self.quat))
@@ -146,6 +154,7 @@ class Command(Message):
         "yaw_rad": f.sequence(ANGLE, 1, MAX_HORIZON),
         "term": f.integer(),
         "replica": f.text(64),
+        "site": f.text(64),
     }
 
     state_seq: int
@@ -158,100 +167,15 @@ class Command(Message):
     # controller that does not take part (a single MPC of an older release).
     term: int = 0
     replica: str = ""
+    # The edge site whose replicas sent it ("" = one site): terms are compared within a site only, and
+    # a drone on two paths takes the first Command for a state from whichever site (docs/multipath.md).
+    site: str = ""
 
     def _check(self) -> None:
         if len(self.yaw_rad) != len(self.accel_mps2):
             raise MessageError(
                 "yaw_rad", f"length {len(self.yaw_rad)} differs from accel_mps2 ({len(self.accel_mps2)})"
             )
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class CameraFrame(Message):
-    """One encoded image, or one part of it; depth is 16-bit with `depth_unit_m` metres per count."""
-
-    TYPE: ClassVar[str] = "CameraFrame"
-    SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **COMMON,
-        "stamp_ns": f.integer(),
-        "kind": f.choice(CAMERA_KINDS),
-        "encoding": f.choice(CAMERA_ENCODINGS),
-        "width": f.integer(1, 8192),
-        "height": f.integer(1, 8192),
-        "intrinsics": f.vector(4, 0.0, 1e6),
-        "depth_unit_m": f.real(1e-6, 1.0),
-        "payload": f.blob(MAX_PAYLOAD_BYTES),
-        "part": f.integer(0, MAX_FRAME_PARTS - 1),
-        "parts": f.integer(1, MAX_FRAME_PARTS),
-    }
-
-    stamp_ns: int
-    kind: str
-    encoding: str
-    width: int
-    height: int
-    intrinsics: tuple[float, float, float, float]
-    payload: bytes
-    depth_unit_m: float = 0.001
-    part: int = 0  # a paced frame travels in `parts` messages; the payloads in part order make the image
-    parts: int = 1
-
-    def _check(self) -> None:
-        if self.intrinsics[0] <= 0.0 or self.intrinsics[1] <= 0.0:
-            raise MessageError("intrinsics", "focal lengths fx and fy must be > 0")
-        if self.part >= self.parts:
-            raise MessageError("part", f"part {self.part} of a frame in {self.parts} parts")
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class CameraAck(Message):
-    """Sent by the detector on arrival, before any processing, so the drone measures the network."""
-
-    TYPE: ClassVar[str] = "CameraAck"
-    SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **COMMON,
-        "frame_seq": f.integer(),
-        "kind": f.choice(CAMERA_KINDS),
-        "stamp_ns": f.integer(),
-        "edge_hold_ns": f.integer(),
-        "arrival_ns": f.integer(),
-        "part_arrivals_us": f.sequence(f.integer(), 0, MAX_FRAME_PARTS),
-    }
-
-    frame_seq: int
-    kind: str
-    stamp_ns: int
-    edge_hold_ns: int
-    # When the image's first part arrived (the edge's clock; 0: not said), and each part's arrival that
-    # many microseconds after it: the camera's delay-based rate controller reads them (docs/camera.md)
-    arrival_ns: int = 0
-    part_arrivals_us: tuple[int, ...] = ()
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Detections(Message):
-    """Circles found in one RGB frame: pixel circles, and where depth allowed, 3-D centres and radii
-    in the camera frame (metres); `centers_m[i]` is None where depth had no reading."""
-
-    TYPE: ClassVar[str] = "Detections"
-    SCHEMA: ClassVar[dict[str, f.Validator]] = {
-        **COMMON,
-        "frame_seq": f.integer(),
-        "stamp_ns": f.integer(),
-        "circles_px": f.sequence(f.vector(3, -1e5, 1e5), 0, MAX_DETECTIONS),
-        "centers_m": f.sequence(
-            f.optional(f.vector(4, -POSITION_LIMIT_M, POSITION_LIMIT_M)), 0, MAX_DETECTIONS
-        ),
-    }
-
-    frame_seq: int
-    stamp_ns: int
-    circles_px: tuple[tuple[float, float, float], ...] = ()
-    centers_m: tuple[tuple[float, float, float, float] | None, ...] = ()
-
-    def _check(self) -> None:
-        if len(self.centers_m) != len(self.circles_px):
-            raise MessageError("centers_m", "must have one entry (or null) per circle in circles_px")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -358,6 +282,13 @@ class SupervisorStatus(Message):
         "sinr_db": f.optional(f.real(*SINR_RANGE_DB)),
         "fc_text": f.text(FC_TEXT_MAX),
         "fc_severity": f.optional(f.integer(0, 7)),
+        "path_rtt_samples_ms": f.sequence(
+            f.record(f.text(64), f.sequence(LATENCY_MS, 0, MAX_STATUS_SAMPLES)), 0, MAX_SITES
+        ),
+        "camera_path": f.text(64),
+        "duplicates": f.integer(),
+        "site": f.text(64),
+        "site_wins": f.sequence(f.record(f.text(64), f.integer()), 0, MAX_SITES),
     }
 
     stamp_ns: int
@@ -398,6 +329,15 @@ class SupervisorStatus(Message):
     # MAV_SEVERITY (0 emergency .. 7 debug): "" and None when it said nothing lately
     fc_text: str = ""
     fc_severity: int | None = None
+    # A drone on two paths (docs/multipath.md): each path's command RTTs since the last status (the
+    # first answer and the duplicates it heard), the camera's path, the duplicate Commands dropped
+    # since the daemon started, the site whose Command flies the drone now, and how many Commands each
+    # site won (applied) since the daemon started. Empty with one path.
+    path_rtt_samples_ms: tuple[tuple[str, tuple[float, ...]], ...] = ()
+    camera_path: str = ""
+    duplicates: int = 0
+    site: str = ""
+    site_wins: tuple[tuple[str, int], ...] = ()
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

@@ -47,6 +47,22 @@ class FlowPublishers:
         self.priority.close()
 
 
+class PathPublishers:
+    """A stream's publishers on each of the drone's paths; `path` (set by the control loop, read by the
+    camera's thread: a plain value) picks the path the camera rides (docs/multipath.md)."""
+
+    def __init__(self, by_path: dict[str, FlowPublishers]) -> None:
+        self.by_path = by_path
+        self.path = next(iter(by_path))
+
+    def pick(self, flow: Flow) -> Publisher:
+        return self.by_path.get(self.path, next(iter(self.by_path.values()))).pick(flow)
+
+    def close(self) -> None:
+        for publishers in self.by_path.values():
+            publishers.close()
+
+
 @dataclass
 class CameraControl:
     """What the control loop tells the camera: written by one thread, read by the other (plain values)."""
@@ -65,8 +81,8 @@ class CameraStream:
         uav: str,
         config: OnboardConfig,
         camera: CameraSource,
-        rgb: FlowPublishers,
-        depth: FlowPublishers,
+        rgb: FlowPublishers | PathPublishers,
+        depth: FlowPublishers | PathPublishers,
         *,
         pose: PoseSource,
         clock: Clock,

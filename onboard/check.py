@@ -120,29 +120,34 @@ def check_camera(config: Config, measure_s: float) -> Item:
 
 
 def check_router(config: Config) -> list[Item]:
-    """A session opened as this drone to each flow's endpoint (its certificate where TLS is on), and the
-    clock offset to the router of the default flow."""
-    from dynqos.onboard.daemon import flow_endpoints
+    """A session opened as this drone to each flow's endpoint of each path (its certificate where TLS is
+    on), and the clock offset to the router of the first path's default flow."""
+    from dynqos.onboard.links import path_endpoints
 
     items = []
     clock = Item("clock offset to edge", False, "no router reached on the default flow to ask")
-    for name, endpoint in zip(
-        ("router, default flow", "router, priority flow"), flow_endpoints(config), strict=True
-    ):
-        try:
-            bus = open_bus(config.zenoh, Role.DRONE, connect=[endpoint])
-        except DynqosError as exc:
-            why = str(exc).rsplit("): ", 1)[-1]
-            if why.startswith("Unable to connect"):
-                why = "nothing accepts a connection there"
-            items.append(Item(name, False, f"{endpoint.split('?')[0]}: {why[:120]}"))
-            continue
-        try:
-            if not items:  # the default flow's router
-                clock = check_clock(config, bus, endpoint)
-        finally:
-            bus.close()
-        items.append(Item(name, True, f"{endpoint.split('?')[0]} reached as {config.drone.id}"))
+    asked = False
+    for path, endpoints in path_endpoints(config).items():
+        router = f"router {path}" if path else "router"
+        for name, endpoint in zip(
+            (f"{router}, default flow", f"{router}, priority flow"), endpoints, strict=True
+        ):
+            try:
+                bus = open_bus(config.zenoh, Role.DRONE, connect=[endpoint])
+            except DynqosError as exc:
+                why = str(exc).rsplit("): ", 1)[-1]
+                if why.startswith("Unable to connect"):
+                    why = "nothing accepts a connection there"
+                items.append(Item(name, False, f"{endpoint.split('?')[0]}: {why[:120]}"))
+                asked = True
+                continue
+            try:
+                if not asked:  # the first path's default flow
+                    clock = check_clock(config, bus, endpoint)
+            finally:
+                bus.close()
+            asked = True
+            items.append(Item(name, True, f"{endpoint.split('?')[0]} reached as {config.drone.id}"))
     return [*items, clock]
 
 

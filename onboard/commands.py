@@ -10,10 +10,18 @@ Fencing: a command whose term is below the highest term accepted so far comes fr
 been replaced (a hung or partitioned MPC that came back) and is refused; an equal term from another
 replica than the one that holds it is refused too, so two replicas never fly the drone at once
 (edge/replicas.py). The term and replica followed go back to the edge in every State.
+
+Two paths (docs/multipath.md): each edge site's replicas fence within their site (`Command.site`), and
+both sites answer every state. The first Command to arrive for a state is taken, whichever site or path
+it came by; any later one for a state already answered is a duplicate: dropped and counted, never
+applied twice. When the winner's site changes, the step between the two sites' setpoints for that
+moment is measured (`steps`), beside the step between two Commands of one site.
 """
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass, field
 
 from dynqos.common.messages import Command
@@ -29,11 +37,47 @@ class CommandCounters:
     expired: int = 0
     unknown_state: int = 0
     fenced: int = 0  # from a replica with an older term, or a second replica claiming the same term
-    controller_changes: int = 0
+    controller_changes: int = 0  # within a site: another replica (or term) took over
+    duplicates: int = 0  # for a state already answered (the other path's or the other site's copy)
+    site_changes: int = 0  # the winning Command came from another site than the one before
 
     @property
     def rejected(self) -> int:
         return self.wrong_drone + self.stale + self.future + self.expired + self.unknown_state + self.fenced
+
+
+@dataclass
+class SetpointSteps:
+    """How far the acceleration setpoint jumps when a new Command takes over (m/s^2, the norm of the
+    difference at the moment it arrives): from the same site, and when the winning site changes."""
+
+    same_site_max: float = 0.0
+    same_site_sum: float = 0.0
+    same_site_count: int = 0
+    site_change_max: float = 0.0
+    site_change_sum: float = 0.0
+    site_change_count: int = 0
+
+    @property
+    def site_change_mean(self) -> float:
+        return self.site_change_sum / self.site_change_count if self.site_change_count else 0.0
+
+    @property
+    def same_site_mean(self) -> float:
+        return self.same_site_sum / self.same_site_count if self.same_site_count else 0.0
+
+    def add(self, step: float, site_changed: bool) -> None:
+        if site_changed:
+            self.site_change_max = max(self.site_change_max, step)
+            self.site_change_sum += step
+            self.site_change_count += 1
+        else:
+            self.same_site_max = max(self.same_site_max, step)
+            self.same_site_sum += step
+            self.same_site_count += 1
+
+
+ANSWERED_MEMORY = 256  # states whose answer is remembered, to know a duplicate from a lost answer
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,11 +99,23 @@ class CommandTracker:
     longest_gap_ns: int = 0  # between two accepted commands
     term: int = 0  # the controller followed: the highest term accepted, and the replica holding it
     replica: str = ""
+    site: str = ""  # the site of the last accepted Command
+    steps: SetpointSteps = field(default_factory=SetpointSteps)
+    steps_from_seq: int = (
+        0  # steps between Commands for states from this one on (the flight's, not the climb's)
+    )
 
     def __post_init__(self) -> None:
         self.rtts = SlidingWindow(self.rtt_window)
         self._new_rtts: list[float] = []
         self._sent: dict[int, int] = {}  # state seq -> stamp, for states still awaiting an answer
+        self._answered: deque[int] = deque(maxlen=ANSWERED_MEMORY)  # accepted state seqs, oldest first
+        self.sites: dict[str, tuple[int, str]] = {}  # site -> (term, replica) followed there
+        self.wins: dict[str, int] = {}  # site -> Commands accepted from it
+
+    def controllers(self) -> tuple[tuple[str, int, str], ...]:
+        """(site, term, replica) per named site followed, for State.controllers (none with one site)."""
+        return tuple((site, term, replica) for site, (term, replica) in sorted(self.sites.items()) if site)
 
     def state_sent(self, seq: int, stamp_ns: int) -> None:
         self._sent[seq] = stamp_ns
@@ -78,10 +134,14 @@ class CommandTracker:
         if command.uav != self.uav:
             c.wrong_drone += 1
             return False
-        if command.term < self.term or (
-            command.term == self.term and self.active is not None and command.replica != self.replica
+        held = self.sites.get(command.site)
+        if held is not None and (
+            command.term < held[0] or (command.term == held[0] and command.replica != held[1])
         ):
             c.fenced += 1
+            return False
+        if command.state_seq in self._answered:
+            c.duplicates += 1
             return False
         if self.active is not None and command.state_seq <= self.active.state_seq:
             c.stale += 1
@@ -104,16 +164,31 @@ class CommandTracker:
             self.last_rtt_ms = rtt_ms
         for seq in [s for s in self._sent if s <= command.state_seq]:
             del self._sent[seq]
-        if (command.term, command.replica) != (self.term, self.replica):
-            if self.active is not None:
-                c.controller_changes += 1
-            self.term, self.replica = command.term, command.replica
+        if held is not None and held != (command.term, command.replica):
+            c.controller_changes += 1
+        self.sites[command.site] = (command.term, command.replica)
+        self.term, self.replica = command.term, command.replica
         if self.last_valid_ns is not None:
             self.longest_gap_ns = max(self.longest_gap_ns, arrival_ns - self.last_valid_ns)
+        self._measure_step(command, arrival_ns)
+        self._answered.append(command.state_seq)
+        self.site = command.site
+        self.wins[command.site] = self.wins.get(command.site, 0) + 1
         self.active = command
         self.last_valid_ns = arrival_ns
         c.accepted += 1
         return True
+
+    def _measure_step(self, command: Command, arrival_ns: int) -> None:
+        changed = self.active is not None and command.site != self.site
+        self.counters.site_changes += changed
+        if self.active is None or self.active.state_seq < self.steps_from_seq:
+            return
+        before = self.setpoint(arrival_ns)
+        after = _setpoint_of(command, arrival_ns)
+        if before is None or after is None:
+            return  # nothing flew just before (or the new one does not cover now): no step
+        self.steps.add(math.dist(before.accel_mps2, after.accel_mps2), changed)
 
     def take_new_rtts(self) -> list[float]:
         out, self._new_rtts = self._new_rtts, []
@@ -121,13 +196,7 @@ class CommandTracker:
 
     def setpoint(self, now_ns: int) -> Setpoint | None:
         """The active command's setpoint for now, or None when its horizon has run out."""
-        command = self.active
-        if command is None or now_ns < command.state_stamp_ns:
-            return None
-        index = int((now_ns - command.state_stamp_ns) // round(command.dt_s * 1e9))
-        if index >= len(command.accel_mps2):
-            return None
-        return Setpoint(command.accel_mps2[index], command.yaw_rad[index], index)
+        return None if self.active is None else _setpoint_of(self.active, now_ns)
 
     def watchdog_expired(self, now_ns: int) -> bool:
         return (
@@ -139,3 +208,13 @@ class CommandTracker:
     def rtt_estimate_ms(self) -> float:
         mean = self.rtts.mean()
         return 0.0 if mean is None else mean
+
+
+def _setpoint_of(command: Command, now_ns: int) -> Setpoint | None:
+    """`command`'s setpoint for now, or None outside its horizon."""
+    if now_ns < command.state_stamp_ns:
+        return None
+    index = int((now_ns - command.state_stamp_ns) // round(command.dt_s * 1e9))
+    if index >= len(command.accel_mps2):
+        return None
+    return Setpoint(command.accel_mps2[index], command.yaw_rad[index], index)

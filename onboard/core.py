@@ -29,7 +29,6 @@ import numpy as np
 
 from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.config import Config
-from dynqos.common.floods import worth_logging
 from dynqos.common.geometry import yaw_of
 from dynqos.common.keys import Stream
 from dynqos.common.messages import (
@@ -45,7 +44,8 @@ from dynqos.common.messages import (
 )
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 from dynqos.common.reference import ReferenceTrack
-from dynqos.onboard.commands import CommandTracker
+from dynqos.onboard.answers import Answers
+from dynqos.onboard.commands import SetpointSteps
 from dynqos.onboard.fc import AccelSetpoint, FcSaid, FcState, PositionSetpoint, Setpoint
 from dynqos.onboard.modem import ModemReading
 from dynqos.onboard.monitors import CameraLatencyMonitor, LatencySamples, NetworkDelays
@@ -78,9 +78,11 @@ class OnboardCore:
         self.config = config
         self.uav = config.drone.id
         self.qos = config.onboard.qos
-        self.tracker = CommandTracker(
-            self.uav, to_ns(config.supervisor.watchdog_s), config.supervisor.window[1]
+        paths = tuple(p.name for p in config.onboard.paths) or ("",)
+        self.answers = Answers(
+            self.uav, to_ns(config.supervisor.watchdog_s), config.supervisor.window[1], paths, start_ns
         )
+        self.tracker = self.answers.tracker
         self.camera_monitor = CameraLatencyMonitor()
         self.network = NetworkDelays()  # the 5G core's own delay reports, when the agent forwards them
         self.supervisor = Supervisor(config.supervisor, start_ns=start_ns)
@@ -148,7 +150,9 @@ class OnboardCore:
         if self.decision is not None and (now >= self._next_status_ns or changed):
             self._next_status_ns = now + self._status_period_ns
             publish.append(Outgoing(Stream.STATUS, flow, self._status(now, flow, camera_flow, rate)))
-        return TickOutput(setpoint, tuple(publish), camera_flow, rate, tuple(self._events))
+        return TickOutput(
+            setpoint, tuple(publish), camera_flow, rate, tuple(self._events), self.answers.camera_path(now)
+        )
 
     # ---- inputs ---------------------------------------------------------------------------------------
 
@@ -168,7 +172,7 @@ class OnboardCore:
         for item in inp.downlink:
             message = item.message
             if isinstance(message, Command):
-                self._offer_command(message, item.arrival_ns)
+                self._events.extend(self.answers.offer(message, item.arrival_ns, item.path))
             elif isinstance(message, CameraAck):
                 self.camera_monitor.on_ack(message, item.arrival_ns)
             elif isinstance(message, Detections):
@@ -240,6 +244,8 @@ class OnboardCore:
         The supervisor judges the flight from here, in q1, on fresh windows: on the ground it only
         observes (`Supervisor.observe`), since nothing is flown from the edge there."""
         self.offloading = True
+        # the steps between Commands for the flight's states: not the climb's, nor the change from them
+        self.tracker.steps, self.tracker.steps_from_seq = SetpointSteps(), self._state_seq + 1
         self._hold.set(fc)
         self.pid.reset()
         self.supervisor = Supervisor(self.config.supervisor, start_ns=now)
@@ -268,6 +274,7 @@ class OnboardCore:
             mode="offboard" if self.offloading else "standby",
             command_term=self.tracker.term,
             command_replica=self.tracker.replica,
+            controllers=self.tracker.controllers(),
         )
         self.tracker.state_sent(self._state_seq, now)
         self.counters.states += 1
@@ -433,6 +440,7 @@ class OnboardCore:
             sinr_db=modem.sinr_db if modem else None,
             fc_text=said.text if said else "",
             fc_severity=said.severity if said else None,
+            **self.answers.status_fields(),
             **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),
         )
 
@@ -440,22 +448,6 @@ class OnboardCore:
         """The modem's reading while it is fresh (three of its intervals), else None."""
         m = self.modem
         return m if m is not None and now - m.stamp_ns <= self._modem_stale_ns else None
-
-    def _offer_command(self, command: Command, arrival_ns: int) -> None:
-        counters = self.tracker.counters
-        changes, fenced, last_ns = counters.controller_changes, counters.fenced, self.tracker.last_valid_ns
-        accepted = self.tracker.offer(command, arrival_ns)
-        sender = f"MPC replica {command.replica or '(unnamed)'}"
-        if accepted and counters.controller_changes > changes:
-            gap = "" if last_ns is None else f", {(arrival_ns - last_ns) / 1e6:.0f} ms after the last command"
-            self._log(logging.INFO, f"{self.uav}: controller is now {sender} (term {command.term}{gap})")
-        elif counters.fenced > fenced and worth_logging(counters.fenced):
-            followed = f"{self.tracker.replica or '(unnamed)'} term {self.tracker.term}"
-            self._log(
-                logging.WARNING,
-                f"{self.uav}: refused a command from {sender} term {command.term}: "
-                f"the drone follows {followed} ({counters.fenced} so far)",
-            )
 
     def _log(self, level: int, text: str) -> None:
         self._events.append(LogEvent(level, text))
@@ -481,6 +473,7 @@ class OnboardCore:
             **vars(self.counters),
             "max_setpoint_gap_ms": f"{self.max_setpoint_gap_ms:.1f}",
             "max_command_gap_ms": f"{self.tracker.longest_gap_ns / 1e6:.1f}",
+            **self.answers.health(),
         }
 
 

@@ -6,6 +6,10 @@ setpoint to the FC, the messages to their flow's publisher, the camera's flow an
 Every decision (commands, supervisor, edge or fallback, FC-silence hold) is the core's
 (onboard/core.py); the camera runs on its own thread (onboard/camera_stream.py). Keep it that way:
 a decision added here is one the core's tests cannot see.
+
+A drone on two paths (`[[onboard.paths]]`, docs/multipath.md) holds one session per path, all open at
+once: every State, status and QoS request goes out on each, the camera on the path the core names, and
+what each path delivers is tagged with its name before the core sees it.
 """
 
 from __future__ import annotations
@@ -13,9 +17,10 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from dataclasses import replace
 
 from dynqos.common import keys, mavsign
-from dynqos.common.bus import Bus, Priority, Received, SubscriptionStats, Token
+from dynqos.common.bus import Bus, Priority, Received
 from dynqos.common.camera import CameraSource
 from dynqos.common.clock import Clock, MonotonicClock, to_ns
 from dynqos.common.config import Config
@@ -33,14 +38,14 @@ from dynqos.common.messages import (
 )
 from dynqos.common.metrics import ProcessMetrics
 from dynqos.common.modes import Flow
-from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Role, default_flow_endpoint, open_bus, priority_flow_endpoint
+from dynqos.common.transport import Role, open_bus
 from dynqos.onboard.camera import DeviceCamera, FilesCamera
 from dynqos.onboard.camera_rate import new_estimator
-from dynqos.onboard.camera_stream import CameraStream, FlowPublishers
+from dynqos.onboard.camera_stream import CameraStream, FlowPublishers, PathPublishers
 from dynqos.onboard.core import OnboardCore, hold_at, setpoint_period_ns
 from dynqos.onboard.fc import AccelSetpoint, FcState
 from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD, PX4_SUB_LOITER, FcLink
+from dynqos.onboard.links import PathLink, path_endpoints
 from dynqos.onboard.metrics import DroneMetrics
 from dynqos.onboard.modem import modem_poller
 from dynqos.onboard.px4_events import EventCatalogue
@@ -94,14 +99,9 @@ class OnboardDaemon:
         self.metrics: DroneMetrics | None = None  # Prometheus, when on (`expose`)
         self.beat: Callable[[str], None] | None = None  # /healthz's record of the health line
         self.camera: CameraStream | None = None
-        self.publishers: dict[Stream, FlowPublishers] = {}
+        self.camera_publishers: dict[Stream, PathPublishers] = {}
+        self.paths: dict[str, PathLink] = {}  # by name, in configured order
         self.uplink = Uplink(self.stop)  # the tick's publications, put on the wire off the tick thread
-        self.commands: BoundedQueue[Received] = BoundedQueue(256)
-        self.camera_replies: BoundedQueue[Received] = BoundedQueue(512)  # acks and detections
-        self.references: BoundedQueue[Received] = BoundedQueue(16)
-        self.grants: BoundedQueue[Received] = BoundedQueue(16)  # the QoS agent's answers
-        self.downlink_stats: dict[Downlink, SubscriptionStats] = {}
-        self.presence: Token | None = None
         cfg = self.cfg
         self.modem = modem_poller(
             cfg.modem, cfg.modem_url, cfg.modem_command, cfg.modem_interval_s, self.clock.now_ns, self.stop
@@ -109,19 +109,43 @@ class OnboardDaemon:
 
     # ---- set-up ---------------------------------------------------------------------------------------
 
-    def endpoints(self) -> list[str]:
-        return flow_endpoints(self.config)
+    def endpoints(self) -> dict[str, list[str]]:
+        return path_endpoints(self.config)
 
-    def open(self, bus: Bus | None = None) -> None:
-        """Open the FC link and the bus (`bus`: one already open, e.g. an in-memory one in a test)."""
-        cfg = self.cfg
+    def open(self, bus: Bus | None = None, *, buses: dict[str, Bus] | None = None) -> None:
+        """Open the FC link and one bus per path (`bus`, `buses`: already open, e.g. in-memory ones in a
+        test: `bus` for a drone's only path, `buses` by path name)."""
         self.link = fc_link(self.config, self.clock)
         self.link.start()
-        self.bus = bus or open_bus(self.config.zenoh, Role.DRONE, connect=self.endpoints(), clock=self.clock)
+        for name, endpoints in self.endpoints().items():
+            given = (buses or {}).get(name) or (bus if len(self.endpoints()) == 1 else None)
+            path_bus = given or open_bus(self.config.zenoh, Role.DRONE, connect=endpoints, clock=self.clock)
+            self.paths[name] = self._open_path(name, path_bus)
+        self.bus = next(iter(self.paths.values())).bus  # the metrics' session
+        for stream in (Stream.CAMERA_RGB, Stream.CAMERA_DEPTH):
+            self.camera_publishers[stream] = PathPublishers(
+                {name: path.publishers[stream] for name, path in self.paths.items()}
+            )
+        source = self._camera_source()
+        if source is not None:
+            self.camera = CameraStream(
+                self.uav,
+                self.cfg,
+                source,
+                self.camera_publishers[Stream.CAMERA_RGB],
+                self.camera_publishers[Stream.CAMERA_DEPTH],
+                pose=self._fc_state,
+                clock=self.clock,
+                stop=self.stop,
+            )
+        log.info("onboard %s: flows %s", self.uav, self.endpoints())
+
+    def _open_path(self, name: str, bus: Bus) -> PathLink:
+        path = PathLink(name, bus)
         for stream, (on_default, on_priority, drop) in STREAMS.items():
-            self.publishers[stream] = FlowPublishers(
+            path.publishers[stream] = FlowPublishers(
                 *(
-                    self.bus.publisher(
+                    bus.publisher(
                         keys.uplink(self.uav, flow, stream),
                         priority,
                         drop_when_congested=drop,
@@ -130,35 +154,25 @@ class OnboardDaemon:
                     for flow, priority in ((Flow.DEFAULT, on_default), (Flow.PRIORITY, on_priority))
                 )
             )
+        inbox = path.inbox
         routes = [
-            (Downlink.COMMAND, self.commands, Command),
-            (Downlink.CAMERA_ACK, self.camera_replies, CameraAck),
-            (Downlink.DETECTIONS, self.camera_replies, Detections),
-            (Downlink.QOS_GRANT, self.grants, QosGrant),
-            (Downlink.QOS_MONITORING, self.grants, QosMonitoring),  # the core's delay reports, if asked
+            (Downlink.COMMAND, inbox.commands, Command),
+            (Downlink.CAMERA_ACK, inbox.camera_replies, CameraAck),
+            (Downlink.DETECTIONS, inbox.camera_replies, Detections),
+            (Downlink.QOS_GRANT, inbox.grants, QosGrant),
+            (Downlink.QOS_MONITORING, inbox.grants, QosMonitoring),  # the core's delay reports, if asked
         ]
-        if cfg.fallback == "continue":  # the onboard planner continues the mission from the last reference
-            routes.append((Downlink.REFERENCE, self.references, Reference))
+        if (
+            self.cfg.fallback == "continue"
+        ):  # the onboard planner continues the mission from the last reference
+            routes.append((Downlink.REFERENCE, inbox.references, Reference))
         for kind, queue, expect in routes:
-            self.downlink_stats[kind] = self.bus.subscribe(
-                keys.downlink(self.uav, kind), queue, expect=(expect,)
-            )
+            path.downlink_stats[kind] = bus.subscribe(keys.downlink(self.uav, kind), queue, expect=(expect,))
         # Announced once it listens: the MPC and planner replicas follow only drones that hold this
-        # token (edge/feeds.py); the router withdraws it when this session goes.
-        self.presence = self.bus.declare_token(keys.drone_presence(self.uav))
-        source = self._camera_source()
-        if source is not None:
-            self.camera = CameraStream(
-                self.uav,
-                cfg,
-                source,
-                self.publishers[Stream.CAMERA_RGB],
-                self.publishers[Stream.CAMERA_DEPTH],
-                pose=self._fc_state,
-                clock=self.clock,
-                stop=self.stop,
-            )
-        log.info("onboard %s: flows %s", self.uav, self.endpoints())
+        # token (edge/feeds.py); the router withdraws it when this session goes. zenoh counts a key's
+        # tokens: with two paths the drone stays present while either path holds its token.
+        path.presence = bus.declare_token(keys.drone_presence(self.uav))
+        return path
 
     def _camera_source(self) -> CameraSource | None:
         return camera_source(self.config, self.sim_camera)
@@ -220,12 +234,7 @@ class OnboardDaemon:
         link = self.link
         assert link is not None
         link.heartbeat_lost()  # logs once when the FC goes silent; setpoints keep flowing regardless
-        downlink = (
-            self.commands.drain()
-            + self.camera_replies.drain()
-            + self.references.drain()
-            + self.grants.drain()
-        )
+        downlink = self._downlink()
         frames = self.camera.sent.drain() if self.camera else []  # after the downlink: see camera_stream
         if self.camera is not None and self.camera.feedback is not None:
             for received in downlink:  # the camera's rate controller reads the edge's arrival reports
@@ -252,9 +261,12 @@ class OnboardDaemon:
         elif out.setpoint is not None:
             link.send_position(out.setpoint.pos_m, out.setpoint.yaw_rad)
         for item in out.publish:
-            self.uplink.put(item.flow, self.publishers[item.stream].pick(item.flow), item.message)
+            for path in self.paths.values():  # every path: the first to arrive is the one that counts
+                self.uplink.put(item.flow, path.publishers[item.stream].pick(item.flow), item.message)
             if self.metrics is not None and isinstance(item.message, SupervisorStatus):
                 self.metrics.observe(item.message)
+        for publishers in self.camera_publishers.values():
+            publishers.path = out.camera_path
         if self.camera is not None:
             self.camera.control.flow, self.camera.control.rate_factor = (
                 out.camera_flow,
@@ -262,10 +274,21 @@ class OnboardDaemon:
             )
         return out
 
+    def _downlink(self) -> list[Received]:
+        """What every path delivered since the last tick, by arrival, each item tagged with its path."""
+        if len(self.paths) == 1:
+            return next(iter(self.paths.values())).inbox.drain()
+        items = [replace(item, path=name) for name, path in self.paths.items() for item in path.inbox.drain()]
+        return sorted(items, key=lambda item: item.arrival_ns)
+
     def uplink_bytes(self) -> int:
         """Every byte the drone's publishers handed to zenoh so far, on both flows (the camera thread's
         counts are read without a lock: an int read is atomic, and a tick late is fine for a rate)."""
-        return sum(p.default.sent_bytes + p.priority.sent_bytes for p in self.publishers.values())
+        return sum(
+            p.default.sent_bytes + p.priority.sent_bytes
+            for path in self.paths.values()
+            for p in path.publishers.values()
+        )
 
     def run(self) -> None:
         """The control loop, until stop is set; then hold (or land) and close."""
@@ -329,9 +352,10 @@ class OnboardDaemon:
         self.beat = metrics.health.beat
 
     def health(self) -> str:
-        commands = self.downlink_stats.get(Downlink.COMMAND)
-        fields = self.core.health(bus_rejected=commands.rejected if commands else 0)
-        fields["bad_downlink"] = sum(s.rejected for s in self.downlink_stats.values())
+        stats = [s for path in self.paths.values() for s in path.downlink_stats.items()]
+        bus_rejected = sum(s.rejected for kind, s in stats if kind is Downlink.COMMAND)
+        fields = self.core.health(bus_rejected=bus_rejected)
+        fields["bad_downlink"] = sum(s.rejected for _, s in stats)
         fields["uplink_dropped"] = self.uplink.dropped
         fields["fc_setpoints"] = self.link.setpoints_sent if self.link else 0
         if (modem := self.core.modem) is not None:  # the last reading, also when no status gets out
@@ -350,8 +374,8 @@ class OnboardDaemon:
         return " ".join(f"{k}={v}" for k, v in fields.items())
 
     def close(self) -> None:
-        if self.bus is not None:
-            self.bus.close()
+        for path in self.paths.values():
+            path.bus.close()
         if self.link is not None:
             self.link.close()
 
@@ -383,22 +407,6 @@ def fc_link(config: Config, clock: Clock | None = None) -> FcLink:
         accept_unsigned=cfg.mavlink_accept_unsigned,
         events=EventCatalogue.load(cfg.px4_events) if cfg.px4_events else None,
     )
-
-
-def flow_endpoints(config: Config) -> list[str]:
-    """The router's endpoints for the default and the priority flow, as this drone dials them."""
-    z, cfg = config.zenoh, config.onboard
-    out = []
-    for override, build, port in (
-        (cfg.connect_default, default_flow_endpoint, z.default_port),
-        (cfg.connect_priority, priority_flow_endpoint, z.priority_port),
-    ):
-        if override:
-            host, _, p = override.rpartition(":")
-            out.append(build(z, host=host.strip("[]"), port=int(p)))
-        else:
-            out.append(build(z, port=port))
-    return out
 
 
 def camera_source(config: Config, sim_camera: CameraSource | None) -> CameraSource | None:

@@ -74,3 +74,4 @@ class TickOutput:
     camera_flow: Flow
     camera_rate_factor: float
     events: tuple[LogEvent, ...]
+    camera_path: str = ""  # the path the camera rides (docs/multipath.md; "" = the only one)

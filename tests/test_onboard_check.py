@@ -60,6 +60,18 @@ def test_the_preflight_passes_against_the_demo_and_names_each_missing_part(
         assert "valid depth" in items["camera"]
         assert "ms to the router's clock" in items["clock offset to edge"]
 
+        ports = dict(line.split(" = ") for line in config.read_text().splitlines() if "_port = " in line)
+        up, prio = (f'"127.0.0.1:{ports[k]}"' for k in ("default_port", "priority_port"))
+        two_paths = (  # path b dials a port nobody listens on: its line says so, path a's passes
+            f'onboard.paths=[{{name="a", connect_default={up}, connect_priority={prio}}},'
+            f'{{name="b", connect_default="127.0.0.1:{free_udp_port()}", connect_priority={prio}}}]'
+        )
+        code, items = _check(config, two_paths)
+        assert code == 1
+        assert items["router a, default flow"].startswith("PASS"), items
+        assert items["router b, default flow"].startswith("FAIL"), items
+        assert items["router b, priority flow"].startswith("PASS"), items
+
         code, items = _check(
             config, f'onboard.mavlink_signing_key="{mavsign.write_key(tmp_path / "other.key")}"'
         )

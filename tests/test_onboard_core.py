@@ -230,7 +230,7 @@ def test_forged_stale_and_foreign_commands_never_fly() -> None:
     assert rig.core.control is ControlSource.EDGE
     rig.extra.append(Received("cmd", good, rig.now))  # a replay
     rig.tick()
-    assert rig.core.tracker.counters.stale == 1
+    assert rig.core.tracker.counters.duplicates == 1  # a replay is a duplicate: dropped, never applied twice
 
 
 def _loaded_rig(qos: str, spaciousness_m: float) -> Rig:

@@ -8,7 +8,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
-from dynqos.common.config.validate import In, _check_replica_id, _host_port, _require, checked
+from dynqos.common.config.validate import In, _check_name, _check_replica_id, _host_port, _require, checked
 from dynqos.common.keys import UAV_ID_PATTERN
 
 
@@ -118,6 +118,10 @@ class MpcConfig:
     replica_id: str = ""
     takeover_after_s: float = 0.05
     holdoff_s: float = 2.0
+    # The edge site this replica belongs to ("" = one site). Replicas share drones and fence one another
+    # within their site; each site answers every drone it serves, and a drone on two paths applies the
+    # first Command for each state from whichever site (docs/multipath.md).
+    site: str = ""
     # Static sharding (older deployments): shard_index of shard_count serves the drones with
     # crc32(id) % count == index. Replicas need none of it.
     shard_index: int = 0
@@ -125,6 +129,8 @@ class MpcConfig:
 
     def __post_init__(self) -> None:
         _check_replica(self.replica_id, self.takeover_after_s, self.holdoff_s, max_takeover_s=1.0)
+        if self.site:
+            _check_name(self.site, "site")
         _require(0 <= self.shard_index < self.shard_count, "shard_index", "must be in 0..shard_count-1")
 
 
@@ -242,6 +248,24 @@ class DetectorConfig:
         _check_replica_id(self.replica_id)
 
 
+MAX_PATHS = 4  # uplinks one drone may hold at once
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+@checked
+class OnboardPathConfig:
+    """One of a drone's paths (docs/multipath.md): its own cell and operator, its own site's router."""
+
+    name: str  # names the path in logs, statuses and reports (a, b, ...)
+    connect_default: str  # host:port of this path's default flow
+    connect_priority: str  # host:port of this path's priority flow
+
+    def __post_init__(self) -> None:
+        _check_name(self.name, "name")
+        for name in ("connect_default", "connect_priority"):
+            _host_port(getattr(self, name), name)
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 @checked
 class OnboardConfig:
@@ -269,6 +293,9 @@ class OnboardConfig:
     takeoff_alt_m: Annotated[float, In(0.5, 100, "must be in 0.5..100 m")] = 1.5
     connect_default: str = ""  # host:port of the default flow ("" = zenoh edge_host:default_port)
     connect_priority: str = ""  # host:port of the priority flow ("" = zenoh edge_host:priority_port)
+    # Two paths or more (docs/multipath.md): one zenoh session each, opened at once; states and statuses
+    # go on every path, the camera on the best. Empty: one path, connect_default and connect_priority.
+    paths: tuple[OnboardPathConfig, ...] = ()
     qos: Literal["dynamic", "default", "priority"] = "dynamic"  # dynamic: the supervisor chooses
     camera: Literal["sim", "files", "device", "realsense", "none"] = "sim"
     camera_fps: Annotated[float, In(0, 120, "must be in 0..120")] = 15.0
@@ -320,6 +347,15 @@ class OnboardConfig:
         for name in ("connect_default", "connect_priority"):
             if getattr(self, name):
                 _host_port(getattr(self, name), name)
+        _require(len(self.paths) <= MAX_PATHS, "paths", f"at most {MAX_PATHS} paths")
+        _require(
+            len({p.name for p in self.paths}) == len(self.paths), "paths", "each path needs its own name"
+        )
+        _require(
+            not self.paths or not (self.connect_default or self.connect_priority),
+            "paths",
+            "give each path its endpoints, or connect_default/connect_priority for one path, not both",
+        )
         _require(
             16 <= self.camera_width <= 4096 and 16 <= self.camera_height <= 4096,
             "camera_width",

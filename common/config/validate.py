@@ -84,6 +84,11 @@ def _check_replica_id(replica_id: str) -> None:
     _require(replica_id == "" or valid_replica_id(replica_id), "replica_id", rule)
 
 
+def _check_name(name: str, key: str) -> None:
+    """An edge site's or a drone path's name: the replica id's rule (it goes into keys and logs)."""
+    _require(valid_replica_id(name), key, REPLICA_ID_RULE)
+
+
 def _host_port(text: str, key: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     _require(bool(sep and host), key, f"{text!r} is not host:port")

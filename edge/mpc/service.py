@@ -78,8 +78,10 @@ class MpcService(EdgeCore):
         # lease, and at once when the live set changed (a scan per state cost 17 us at 100 drones).
         self._scan_period_ns = round(cfg.takeover_after_s * 1e9 / SCANS_PER_LEASE)
         self._next_scan_ns = 0
-        # Replicas of one static shard (or all, unsharded) share its drones among themselves.
+        # Replicas of one static shard (or all, unsharded) share its drones among themselves; with sites,
+        # within their site only: each site answers every drone (docs/multipath.md).
         group = "all" if cfg.shard_count == 1 else f"shard-{cfg.shard_index}-of-{cfg.shard_count}"
+        group = f"site-{cfg.site}-{group}" if cfg.site else group
         self.membership = Membership("mpc", group, self.assignment, bus)
         # each drone's state, its references, and the other replicas' commands to it (a standby's view)
         self.feeds = DroneFeeds(
@@ -149,6 +151,8 @@ class MpcService(EdgeCore):
     def _on_command(self, message: Command, arrival_ns: int) -> None:
         if not self._mine(message.uav) or not self.assignment.mine(message.uav):
             return  # another shard's drone, or one we neither fly nor stand by for
+        if message.site != self.config.mpc.site:
+            return  # another site's replicas: their terms are theirs (a linked router shows us them)
         change = self.assignment.on_command(
             message.uav, message.state_seq, message.term, message.replica, arrival_ns
         )
@@ -168,11 +172,8 @@ class MpcService(EdgeCore):
             self.newest.pop(uav, None)
             return
         self.counters.states += 1
-        self.membership.log_change(
-            self.assignment.on_state(
-                uav, message.seq, message.command_term, message.command_replica, item.arrival_ns
-            )
-        )
+        term, holder = followed_at(message, self.config.mpc.site)
+        self.membership.log_change(self.assignment.on_state(uav, message.seq, term, holder, item.arrival_ns))
         previous = self.newest.get(uav)
         restarted = previous is not None and message.seq < previous.message.seq - 1000
         if previous is None or message.seq > previous.message.seq or restarted:
@@ -212,6 +213,7 @@ class MpcService(EdgeCore):
             yaw_rad=plan.yaw_rad,
             term=self.assignment.term(uav),
             replica=self.replica,
+            site=self.config.mpc.site,
         )
         self.publishers[uav].put(command)
         self.counters.commands += 1
@@ -248,3 +250,10 @@ class MpcService(EdgeCore):
 def run(config: Config, *, health_file: Path | None = None) -> int:
     """`dynqos edge mpc` until SIGTERM (edge/service.py's `serve`)."""
     return serve("mpc", config, MpcService, metrics.mpc, health_file=health_file)
+
+
+def followed_at(state: State, site: str) -> tuple[int, str]:
+    """The term and replica the drone follows at `site` ("": the one site, the State's own fields)."""
+    if not site:
+        return state.command_term, state.command_replica
+    return next(((term, replica) for s, term, replica in state.controllers if s == site), (0, ""))
