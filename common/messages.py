@@ -270,6 +270,7 @@ class SupervisorStatus(Message):
         "setpoint_gap_ms": f.optional(LATENCY_MS),
         "camera_flow": f.member(Flow),
         "fallbacks": f.integer(),
+        "fallback_s": f.real(0.0, 1e9),
         "control_changed_ns": f.integer(),
         "command_age_ms": f.optional(LATENCY_MS),
         "camera_bytes": f.integer(),
@@ -316,6 +317,9 @@ class SupervisorStatus(Message):
     rtt_samples_ms: tuple[float, ...] = ()  # every C&C RTT measured since the last status, for statistics
     camera_latency_samples_ms: tuple[float, ...] = ()  # every camera latency since the last status
     fallbacks: int = 0  # hand-overs to the fallback PID since the daemon started
+    # seconds the fallback PID flew since then, counted by the drone: right even when statuses were
+    # lost meanwhile (a site or router down), where time between statuses is not
+    fallback_s: float = 0.0
     control_changed_ns: int = 0  # when control_source last changed (onboard clock; 0: never)
     command_age_ms: float | None = None  # age of the last valid command at that change (None: none yet)
     camera_bytes: int = 0  # camera bytes handed to zenoh since the daemon started, before any drop

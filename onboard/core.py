@@ -430,6 +430,7 @@ class OnboardCore:
             rtt_samples_ms=rtts,
             camera_latency_samples_ms=cams,
             fallbacks=self.counters.switches_to_fallback,
+            fallback_s=self.counters.fallback_ticks / self.config.control.setpoint_hz,
             camera_bytes=self.counters.camera_bytes,
             uplink_bytes=self.counters.uplink_bytes,
             control_changed_ns=self.control_changed_ns,

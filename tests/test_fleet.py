@@ -15,6 +15,7 @@ import pytest
 from dynqos.common.config import ZenohConfig, load_config
 from dynqos.common.errors import ConfigError
 from dynqos.common.messages import State
+from dynqos.experiment.cells import with_cell
 from dynqos.experiment.faults import Fault
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.runner import run_scenario
@@ -23,7 +24,6 @@ from dynqos.experiment.scenario import (
     builtin_scenario,
     fleet_configs,
     load_scenario,
-    with_cell,
     write_config,
 )
 from dynqos.reports.fleet import _queue_delays, summarise_fleet

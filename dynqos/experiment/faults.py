@@ -21,7 +21,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus, Received
@@ -32,6 +32,9 @@ from dynqos.common.messages import QosGrant, Reference, State, SupervisorStatus
 from dynqos.common.modes import ControlSource
 from dynqos.common.queues import BoundedQueue
 from dynqos.experiment.processes import Processes
+
+if TYPE_CHECKING:
+    from dynqos.experiment.sites import SiteFaults
 
 log = logging.getLogger(__name__)
 SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zenoh reconnects take seconds)
@@ -52,7 +55,10 @@ FaultKind = Literal[
     "planner_replica_kill",
     "qos_agent_kill",
     "qos_agent_hang",
+    "site_kill",
+    "cell_outage",
 ]
+SITE_FAULTS = ("site_kill", "cell_outage")  # dynqos/experiment/sites.py acts on them
 FLOOD_FPS = 100.0  # several times what the detector can process
 FLOOD_MAX_FRAMES = 20_000
 
@@ -67,6 +73,7 @@ class Fault:
     offered_mbps: float = 80.0  # background: the load while it lasts
     uplink_mbps: float = 40.0  # capacity: the cell's uplink capacity while it lasts (full scale)
     file: str = ""  # trace: a Mahimahi uplink trace the capacity follows while it lasts
+    site: Literal["a", "b"] = "a"  # site_kill, cell_outage, background: the site (and its cell) it hits
 
     def __post_init__(self) -> None:
         if not 0 <= self.at_s <= 86400:
@@ -159,11 +166,13 @@ class FaultInjector:
         *,
         uplink_mbps: float = 81.3,
         watch_uav: str | None = None,
+        sites: SiteFaults | None = None,
     ) -> None:
         """`watch_uav`: the drone whose MPC replica the replica faults act on (the one flying it, from the
         drone's own State), watched from the start when a scenario has such faults."""
         self.procs = procs
         self.cell_event = cell_event  # POST /events to the cell emulator
+        self.sites = sites  # the faults that name a site (and its cell), each site's own
         self.bus = bus
         self.uplink_mbps = uplink_mbps  # the cell's configured capacity, restored when a capacity fault ends
         self.windows: list[FaultWindow] = []
@@ -264,7 +273,10 @@ class FaultInjector:
     def begin(self, fault: Fault) -> FaultWindow:
         window = FaultWindow(fault, time.time(), time.monotonic_ns())
         kind = fault.kind
-        if kind == "mpc_kill":
+        if self._at_site(fault):
+            assert self.sites is not None
+            self.sites.begin(window)
+        elif kind == "mpc_kill":
             self.procs.kill("mpc")
         elif kind == "router_kill":
             self.procs.kill("router")
@@ -288,9 +300,15 @@ class FaultInjector:
         self.windows.append(window)
         return window
 
+    def _at_site(self, fault: Fault) -> bool:
+        return self.sites is not None and (fault.kind in SITE_FAULTS or fault.site != "a")
+
     def end(self, window: FaultWindow) -> None:
         kind = window.fault.kind
-        if kind == "mpc_kill":
+        if self._at_site(window.fault):
+            assert self.sites is not None
+            self.sites.end(window)
+        elif kind == "mpc_kill":
             self.procs.restart("mpc")
         elif kind == "router_kill":
             self.procs.restart("router")

@@ -22,6 +22,7 @@ from dynqos.common.keys import Downlink
 from dynqos.common.messages import QosDecision
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Received, Role, open_bus
+from dynqos.experiment.cells import with_cell
 from dynqos.experiment.faults import FaultInjector
 from dynqos.experiment.flight import (
     QUEUE_ITEMS,
@@ -34,7 +35,7 @@ from dynqos.experiment.flight import (
 )
 from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import REPLICA_FAULTS, Scenario, fleet_configs, with_cell, write_config
+from dynqos.experiment.scenario import REPLICA_FAULTS, Scenario, fleet_configs, write_config
 from dynqos.experiment.vehicles import (
     contacts,
     px4_workdir,

@@ -125,11 +125,30 @@ class Streams:
         return streams
 
     def drain_into(self, rec: Recording) -> None:
+        """Into the recording, each message once: a recorder connected to two sites' routers hears a
+        drone on two paths twice (the first arrival is kept)."""
+        seen: set[tuple[object, ...]] = set()
         for item in self.states.drain():
-            if isinstance(item.message, State):
+            if isinstance(item.message, State) and _first(seen, ("state", item.message.seq)):
                 rec.states.append((millis(item.arrival_ns - item.message.stamp_ns), item.message))
-        rec.refs = [i.message for i in self.refs.drain() if isinstance(i.message, Reference)]
-        rec.status = [i.message for i in self.status.drain() if isinstance(i.message, SupervisorStatus)]
+        rec.refs = [
+            i.message
+            for i in self.refs.drain()
+            if isinstance(i.message, Reference)
+            and _first(seen, ("ref", i.message.replica, i.message.term, i.message.seq))
+        ]
+        rec.status = [
+            i.message
+            for i in self.status.drain()
+            if isinstance(i.message, SupervisorStatus) and _first(seen, ("status", i.message.seq))
+        ]
+
+
+def _first(seen: set[tuple[object, ...]], key: tuple[object, ...]) -> bool:
+    if key in seen:
+        return False
+    seen.add(key)
+    return True
 
 
 def wait_for_offload(

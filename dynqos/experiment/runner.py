@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from dynqos.common.config import Config, ZenohConfig
-from dynqos.common.transport import Role, open_bus
-from dynqos.experiment.faults import FaultInjector
+from dynqos.common.transport import Role, endpoints, open_bus
+from dynqos.experiment.cells import with_cell
+from dynqos.experiment.faults import SITE_FAULTS, FaultInjector
 from dynqos.experiment.flight import (
     Streams,
     fly,
@@ -29,7 +31,8 @@ from dynqos.experiment.flight import (
 )
 from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, with_cell, write_config
+from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, write_config
+from dynqos.experiment.sites import SiteFaults, site_b_folder, site_configs, start_site_b, with_two_paths
 from dynqos.experiment.vehicles import (
     contacts,
     px4_config,
@@ -40,6 +43,7 @@ from dynqos.experiment.vehicles import (
     with_px4_flight,
     world_of,
 )
+from dynqos.reports.multipath import fault_spans, path_figures
 from dynqos.reports.summary import summarise, write_scenario
 
 log = logging.getLogger(__name__)
@@ -68,20 +72,25 @@ def run_scenario(
     px4 = instances[0] if instances else None
     if px4 is not None:
         config = px4_config(config, px4)
+    config_b = None  # site B's, with two sites (docs/multipath.md)
+    if scenario.sites == 2:
+        config, config_b = site_configs(config, ZenohConfig(**flow_ports()))
     config_path = folder / "dynqos.toml"
     write_config(config_path, scenario, config)
     procs = Processes(config_path, logs, scenario.metrics_port)
     rec = Recording()
 
     def fly() -> None:
-        cell_port = _start_edge_and_cell(procs, scenario, config, config_path, folder, px4)
-        _record_flight(scenario, config, procs, cell_port, rec, stop, progress)
+        cell_ports = _start_edge_and_cell(procs, scenario, (config, config_b), config_path, folder, px4)
+        _record_flight(scenario, (config, config_b), procs, cell_ports, rec, stop, progress)
 
     ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
     onboard_log = logs / "onboard.log"
     log_text = onboard_log.read_text(errors="replace") if onboard_log.exists() else ""
     summary = summarise(scenario, rec, log_text, ok=ok, failure=failure)
     summary["vehicle"] = scenario.vehicle
+    if scenario.sites == 2 or any(f.kind in SITE_FAULTS for f in scenario.faults):
+        summary["multipath"] = path_figures(rec.status, rec.t0_ns, *fault_spans(rec.faults))
     if px4 is not None:
         with_px4_flight(summary, px4_workdir(folder, px4), scenario)
         summary["px4"]["contacts"] = contacts(world_of(config), track(rec))
@@ -90,16 +99,34 @@ def run_scenario(
 
 
 def _start_edge_and_cell(
-    procs: Processes, scenario: Scenario, config: Config, config_path: Path, folder: Path, px4: int | None
-) -> int:
-    """Everything but the drone, in dependency order; returns the cell's control port. The drone's flows
-    connect to the bearer ports the cell reports and the QoS agent to its QoD API, so the config is
+    procs: Processes,
+    scenario: Scenario,
+    configs: tuple[Config, Config | None],
+    config_path: Path,
+    folder: Path,
+    px4: int | None,
+) -> dict[str, int]:
+    """Everything but the drone, in dependency order; returns each site's cell control port. The drone's
+    flows connect to the bearer ports the cell reports and the QoS agent to its QoD API, so the config is
     written again once it is up. The agent stops before the cell (reverse order): the sessions it deletes
-    on SIGTERM are gone from the cell's final qod.json."""
+    on SIGTERM are gone from the cell's final qod.json. With two sites, site B's router, cell and
+    services start from their own config (dynqos/experiment/sites.py)."""
+    config, config_b = configs
     procs.start("router", ["edge", "router"])
     cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
     sink_port = free_port() if scenario.qos_agents == 1 else 0
-    write_config(config_path, scenario, with_cell(config, cell, sink_port=sink_port))
+    config = with_cell(config, cell, sink_port=sink_port)
+    ports = {"a": int(cell["control_port"])}
+    path_b = folder / "dynqos-b.toml"
+    if config_b is not None:
+        write_config(path_b, scenario, config_b)
+        procs.start("router-b", ["edge", "router"], config=path_b)
+        site_b_folder(folder).mkdir(exist_ok=True)
+        cell_b = procs.start("cell-b", ["sim", "cell", "--out", str(site_b_folder(folder))], config=path_b)
+        write_config(path_b, scenario, with_cell(config_b, cell_b))
+        config = with_two_paths(config, {"a": cell, "b": cell_b})
+        ports["b"] = int(cell_b["control_port"])
+    write_config(config_path, scenario, config)
     with procs.together():  # each needs only the router, the cell and the config
         start_replicas(procs, "qos", scenario.qos_agents)
         start_mcap_recorder(procs, scenario, folder)
@@ -109,21 +136,30 @@ def _start_edge_and_cell(
         procs.start("detector", ["edge", "detector"])
         if scenario.ros2_bridge:
             procs.start("ros2", ["edge", "ros2"])
-    port: int = cell["control_port"]
-    return port
+        if config_b is not None:
+            start_site_b(procs, scenario, path_b)
+    return ports
 
 
 def _record_flight(
     scenario: Scenario,
-    config: Config,
+    configs: tuple[Config, Config | None],
     procs: Processes,
-    cell_port: int,
+    cell_ports: dict[str, int],
     rec: Recording,
     stop: threading.Event,
     progress: bool,
 ) -> None:
-    bus = open_bus(config.zenoh, Role.EDGE)
+    config = configs[0]
+    # the recorder hears the drone as a ground station would: with two sites, through either router
+    # (each message then comes twice: Streams keeps one), so that it hears on when one site is killed
+    connect = [endpoints(c.zenoh, Role.EDGE)[0][0] for c in configs if c is not None]
+    bus = open_bus(config.zenoh, Role.EDGE, connect=connect)
     uplink_mbps = config.cell.uplink_mbps
+
+    def cell_event(port: int) -> Callable[[dict[str, Any]], object]:
+        return lambda event: post_json(port, "/events", event)
+
     try:
         streams = Streams.subscribe(bus)
         procs.start("onboard", ["onboard", "--takeoff"])
@@ -131,13 +167,14 @@ def _record_flight(
         replica_faults = any(f.kind in REPLICA_FAULTS for f in scenario.faults)
         injector = FaultInjector(
             procs,
-            lambda event: post_json(cell_port, "/events", event),
+            cell_event(cell_ports["a"]),
             bus,
             uplink_mbps=uplink_mbps,
             watch_uav=UAV if replica_faults else None,
+            sites=SiteFaults(procs, {site: cell_event(port) for site, port in cell_ports.items()}),
         )
         try:
-            fly(scenario, procs, cell_port, injector, rec, stop, progress)
+            fly(scenario, procs, cell_ports["a"], injector, rec, stop, progress)
         finally:
             injector.close()
             rec.faults = injector.windows

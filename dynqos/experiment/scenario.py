@@ -35,6 +35,7 @@ from dynqos.common.config import (
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import UAV_ID_PATTERN
 from dynqos.experiment.camera_sizing import camera_size_for, flight_views
+from dynqos.experiment.cells import with_radio
 from dynqos.experiment.faults import Fault
 from dynqos.sim.network.bearer import socket_buffer_bytes
 
@@ -133,6 +134,9 @@ class Scenario:
     # With more than one, no agent takes the operator's notifications (they would share one address):
     # each polls its sessions.
     qos_agents: int = 1
+    # Edge sites (docs/multipath.md): 2 starts a second cell and a second site (router linked to the
+    # first, MPC, planner, QoS agent, detector), and the drone holds a path through each cell to its site.
+    sites: int = 1
     # Any dynqos setting ([scenario.config.<section>], as a config file writes it), over what the scenario
     # derives: the fields above are the experiment's own variables (each sets several settings, is
     # scaled, or is what reports and profiles compare); everything else is a setting (docs/demo.md).
@@ -179,6 +183,7 @@ class Scenario:
             needs = REPLICA_FAULTS.get(fault.kind)
             if needs is not None and getattr(self, needs) < 2:
                 raise ConfigError(f"faults[{i}].kind", f"{fault.kind} needs {needs} >= 2 (a standby)")
+        self._check_sites()
         if self.ros2_bridge and importlib.util.find_spec("rosbags") is None:
             raise ConfigError("ros2_bridge", "needs the ros2 extra: pip install 'dynqos[ros2]'")
         if not 0.5 <= self.memory_sample_s <= 600:
@@ -188,6 +193,19 @@ class Scenario:
                 "metrics_port", "must be 0 (off) or a port in 1024..65000 (each process takes the next)"
             )
         self._check_fleet()
+
+    def _check_sites(self) -> None:
+        if self.sites not in (1, 2):
+            raise ConfigError("sites", "1, or 2 for a drone on two paths (docs/multipath.md)")
+        if self.sites == 2 and (self.fleet or self.qos_backend != "links" or self.vehicle != "sim"):
+            raise ConfigError(
+                "sites", 'two sites fly one simulated drone with qos_backend = "links" (for now)'
+            )
+        for i, fault in enumerate(self.faults):
+            if fault.site == "b" and self.sites < 2:
+                raise ConfigError(f"faults[{i}].site", "site b needs sites = 2")
+            if fault.kind in ("site_kill", "cell_outage") and self.fleet:
+                raise ConfigError(f"faults[{i}].kind", f"{fault.kind} flies one drone (for now)")
 
     def _check_fleet(self) -> None:
         if self.qos_policy == "arbiter" and self.qos_backend == "links":
@@ -446,47 +464,6 @@ def fleet_configs(
             config, onboard=replace(config.onboard, camera_width=width, camera_height=height)
         )
     return shared, drones
-
-
-def with_radio(config: Config) -> Config:
-    """With `[cell.radio] enabled` (docs/radio.md): the cell hears the vehicles' MAVLink on their
-    ground-station port and shadows the signal with the vehicles' world."""
-    radio = config.cell.radio
-    if not radio.enabled:
-        return config
-    radio = replace(
-        radio,
-        position_port=config.vehicle.gcs_remote_port,
-        world_file=radio.world_file or config.vehicle.world_file,
-    )
-    return replace(config, cell=replace(config.cell, radio=radio))
-
-
-def with_cell(config: Config, cell: dict[str, Any], sink_port: int = 0) -> Config:
-    """The config once the cell is up: the drone's flows connect to the bearers' ports it reported, and
-    the QoS agent asks its control port for QoD sessions and (`sink_port` > 0) takes the operator's
-    notifications on that port, as an agent that is told rather than only polling."""
-    bearers, uav = cell["bearers"], config.drone.id
-    onboard = config.onboard  # a fleet's edge config names no drone of its own
-    if f"{uav}-default" in bearers:
-        onboard = replace(
-            config.onboard,
-            connect_default=f"127.0.0.1:{bearers[f'{uav}-default']['port']}",
-            connect_priority=f"127.0.0.1:{bearers[f'{uav}-priority']['port']}",
-        )
-        if config.cell.radio.enabled and onboard.modem == "none":  # the drone's modem is the cell's report
-            onboard = replace(
-                onboard, modem="cell", modem_url=f"http://127.0.0.1:{cell['control_port']}/radio/{uav}"
-            )
-    api_root = f"http://127.0.0.1:{cell['control_port']}/quality-on-demand/v1"
-    camara = replace(config.qos.camara, api_root=api_root)
-    nef = replace(config.qos.nef, api_root=f"http://127.0.0.1:{cell['control_port']}")
-    if sink_port:
-        sink = f"127.0.0.1:{sink_port}"
-        camara = replace(camara, sink=f"http://{sink}/qod-events", sink_listen=sink)
-        nef = replace(nef, notification_destination=f"http://{sink}/nef-events", sink_listen=sink)
-    qos = replace(config.qos, camara=camara, nef=nef)
-    return replace(config, onboard=onboard, qos=qos)
 
 
 def write_config(path: Path, scenario: Scenario, config: Config) -> None:

@@ -16,6 +16,7 @@ from dynqos.reports.figures import figure, fmt, interval_text, lookup, mean_of
 from dynqos.reports.fleet import fleet_comparison, fleet_section
 from dynqos.reports.measures import rmse
 from dynqos.reports.mission import mission_comparison
+from dynqos.reports.multipath import multipath_lines
 from dynqos.reports.uplink import traced_lines
 
 PAPER_TABLE_II = {
@@ -85,6 +86,7 @@ def _single_scenarios(out: Path, summaries: list[dict[str, Any]], repeated: bool
     lines += [_table_row(s) for s in summaries]
     lines += _paper_profile_lines(summaries)
     lines += traced_lines(summaries)
+    lines += multipath_lines(summaries)
     if repeated:
         _spread_plot(out, summaries)
         lines += ["", "![RTT over repeated runs](spread.png)"]

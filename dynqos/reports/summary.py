@@ -180,13 +180,16 @@ def _fallbacks(statuses: list[SupervisorStatus], t0_ns: int) -> dict[str, Any]:
     """Whether the drone handed over to its fallback PID during the recorded flight. A status counts the
     hand-overs since the daemon started, take-off included; those before the flight's t=0 (a watchdog
     tick while climbing to the mission) are reported on their own, not as the flight's."""
-    before = [s.fallbacks for s in statuses if s.stamp_ns < t0_ns]
-    during = [s.fallbacks for s in statuses if s.stamp_ns >= t0_ns]
-    at_start = before[-1] if before else 0
-    in_flight = max(during) - at_start if during else 0
+    before = [s for s in statuses if s.stamp_ns < t0_ns]
+    during = [s for s in statuses if s.stamp_ns >= t0_ns]
+    at_start = before[-1].fallbacks if before else 0
+    in_flight = max(s.fallbacks for s in during) - at_start if during else 0
+    flown_s = during[-1].fallback_s - (before[-1].fallback_s if before else 0.0) if during else 0.0
     return {
         "fallback_entered": in_flight > 0,
         "fallbacks": {"before_flight": at_start, "in_flight": in_flight},
+        # as the drone counted it (statuses lost while a site was down do not hide it)
+        "fallback_flown_s": round(flown_s, 2),
     }
 
 

@@ -1,0 +1,138 @@
+"""Two edge sites and two cells on one machine, for a drone on two paths (docs/multipath.md).
+
+Site A is the run's usual processes (router, cell, QoS agent, planner, MPC, detector); site B is a
+second set under the same names with `-b` after them (router-b, cell-b, ...), started from a config of
+its own: its router on other ports and linked to site A's, its MPC replicas in site b, its own cell
+(seeded apart, with its own timeline). The drone's path a goes through cell A to router A, its path b
+through cell B to router B. The faults `site_kill` and `cell_outage` act on one site (`site`), the
+background load on one cell.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from dynqos.common.config import Config, OnboardPathConfig, ZenohConfig
+from dynqos.experiment.faults import Fault, FaultWindow
+from dynqos.experiment.processes import Processes
+from dynqos.experiment.scenario import Scenario, replica_names
+
+log = logging.getLogger(__name__)
+
+SITES = ("a", "b")
+# the processes of a site (one site's edge: what a site kill takes down at once); the cell is the
+# operator's radio, not the site's, and the recorders are the ground station's
+SITE_SERVICES = ("router", "qos", "planner", "mpc", "detector")
+
+
+def process_name(name: str, site: str) -> str:
+    """Site A's processes keep the run's usual names; site B's have `-b` after them."""
+    return name if site == "a" else f"{name}-{site}"
+
+
+def site_processes(procs: Processes, site: str) -> list[str]:
+    """The running processes of `site`'s edge, by the names they were started under."""
+    return [
+        name
+        for name in procs.procs
+        if name.split("-")[0] in SITE_SERVICES
+        and name.endswith("-b") == (site == "b")
+        and name not in procs.down
+    ]
+
+
+def start_site_b(procs: Processes, scenario: Scenario, config: Path) -> None:
+    """Site B's QoS agents, planners, MPCs and detector, as many as site A's, named (and identified as
+    replicas) with `-b` after site A's names."""
+    for service, count in (
+        ("qos", scenario.qos_agents),
+        ("planner", scenario.planner_replicas),
+        ("mpc", scenario.mpc_replicas),
+    ):
+        for name in replica_names(service, count):
+            b = process_name(name, "b")
+            procs.start(b, ["edge", service, "--set", f'{service}.replica_id="{b}"'], config=config)
+    procs.start("detector-b", ["edge", "detector"], config=config)
+
+
+def site_configs(config: Config, zenoh_b: ZenohConfig) -> tuple[Config, Config]:
+    """Site A's config (its MPC in site a) and site B's: B's router on its own ports and linked to A's,
+    its MPC in site b, its cell seeded apart from A's."""
+    a = replace(config, mpc=replace(config.mpc, site="a"))
+    z = replace(
+        zenoh_b,
+        router_links=(f"tcp/127.0.0.1:{config.zenoh.default_port}",),
+        bulk_sndbuf_bytes=config.zenoh.bulk_sndbuf_bytes,
+    )
+    b = replace(
+        config,
+        zenoh=z,
+        mpc=replace(config.mpc, site="b"),
+        cell=replace(config.cell, seed=config.cell.seed + 1),
+    )
+    return a, b
+
+
+def with_two_paths(config: Config, cells: dict[str, dict[str, Any]]) -> Config:
+    """The drone's paths once both cells are up: path a dials cell A's bearers, path b cell B's."""
+    uav = config.drone.id
+    paths = tuple(
+        OnboardPathConfig(
+            name=site,
+            connect_default=f"127.0.0.1:{cell['bearers'][f'{uav}-default']['port']}",
+            connect_priority=f"127.0.0.1:{cell['bearers'][f'{uav}-priority']['port']}",
+        )
+        for site, cell in cells.items()
+    )
+    onboard = replace(config.onboard, connect_default="", connect_priority="", paths=paths)
+    return replace(config, onboard=onboard)
+
+
+class SiteFaults:
+    """`site_kill`: SIGKILL every process of a site's edge at once (its router among them), restart
+    them after `duration_s`; `cell_outage`: the site's cell carries nothing for `duration_s` (the cell's
+    coverage_loss, connections kept); `background`: the site's cell's background user."""
+
+    def __init__(self, procs: Processes, cell_events: dict[str, Callable[[dict[str, Any]], object]]) -> None:
+        self.procs = procs
+        self.cell_events = cell_events
+        self._killed: dict[int, list[str]] = {}
+
+    def begin(self, window: FaultWindow) -> None:
+        fault = window.fault
+        if fault.kind == "site_kill":
+            names = site_processes(self.procs, fault.site)
+            for name in names:
+                self.procs.kill(name)
+            self._killed[id(window)] = names
+            window.notes.append(f"site {fault.site}: killed {', '.join(names)}")
+        elif fault.kind == "cell_outage":
+            self._cell(fault, {"kind": "coverage_loss", "duration_s": fault.duration_s})
+        elif fault.kind == "background":
+            self._cell(fault, {"kind": "background", "user": "bg", "offered_mbps": fault.offered_mbps})
+
+    def end(self, window: FaultWindow) -> None:
+        fault = window.fault
+        if fault.kind == "site_kill":
+            names = self._killed.pop(id(window), [])
+            routers = [n for n in names if n.split("-")[0] == "router"]
+            for name in routers:  # first: the services connect to it
+                self.procs.restart(name)
+            with self.procs.together():  # then the site's services at once
+                for name in names:
+                    if name not in routers:
+                        self.procs.restart(name)
+        elif fault.kind == "background":
+            self._cell(fault, {"kind": "background", "user": "bg", "offered_mbps": 0.0})
+
+    def _cell(self, fault: Fault, event: dict[str, Any]) -> None:
+        self.cell_events[fault.site](event)
+
+
+def site_b_folder(folder: Path) -> Path:
+    """Where cell B writes its records (cell.csv, qod.json): beside site A's, in their own folder."""
+    return folder / "site-b"
