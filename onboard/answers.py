@@ -16,10 +16,24 @@ from dynqos.onboard.tick import LogEvent
 
 class Answers:
     def __init__(
-        self, uav: str, watchdog_ns: int, rtt_window: int, path_names: tuple[str, ...], start_ns: int
+        self,
+        uav: str,
+        watchdog_ns: int,
+        rtt_window: int,
+        path_names: tuple[str, ...],
+        start_ns: int,
+        *,
+        site_step_max_mps2: float = 0.0,
+        setpoint_period_ns: int = 20_000_000,
     ) -> None:
         self.uav = uav
-        self.tracker = CommandTracker(uav, watchdog_ns, rtt_window)
+        self.tracker = CommandTracker(
+            uav,
+            watchdog_ns,
+            rtt_window,
+            site_step_max_mps2=site_step_max_mps2,
+            setpoint_period_ns=setpoint_period_ns,
+        )
         # one path: nothing to compare, and the wire and the status stay as they were
         self.paths = Paths(path_names, watchdog_ns, start_ns) if len(path_names) > 1 else None
 
@@ -79,6 +93,7 @@ class Answers:
             "site_changes": c.site_changes,
             "site_step_mean": f"{steps.site_change_mean:.2f}",
             "site_step_max": f"{steps.site_change_max:.2f}",
+            "site_steps_bounded": c.site_steps_bounded,
             "replan_step_mean": f"{steps.same_site_mean:.2f}",
             "replan_step_max": f"{steps.same_site_max:.2f}",
             "camera_path": self.paths.camera,

@@ -15,7 +15,9 @@ Two paths (docs/multipath.md): each edge site's replicas fence within their site
 both sites answer every state. The first Command to arrive for a state is taken, whichever site or path
 it came by; any later one for a state already answered is a duplicate: dropped and counted, never
 applied twice. When the winner's site changes, the step between the two sites' setpoints for that
-moment is measured (`steps`), beside the step between two Commands of one site.
+moment is measured (`steps`), beside the step between two Commands of one site, and bounded: the
+setpoint moves at most `site_step_max_mps2` at the change and then towards the new site's plan by that
+much per setpoint period (`SiteBlend`), so two sites that disagree never jerk the drone by more.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ class CommandCounters:
     controller_changes: int = 0  # within a site: another replica (or term) took over
     duplicates: int = 0  # for a state already answered (the other path's or the other site's copy)
     site_changes: int = 0  # the winning Command came from another site than the one before
+    site_steps_bounded: int = 0  # site changes whose step was above the bound and eased in
 
     @property
     def rejected(self) -> int:
@@ -77,6 +80,42 @@ class SetpointSteps:
             self.same_site_count += 1
 
 
+@dataclass(frozen=True, slots=True)
+class SiteBlend:
+    """What is held back of a site change's step: the applied setpoint is the new site's plus `offset`
+    at first, so it moves by at most `max_step` at the change; from one setpoint period after it the
+    offset shrinks by `max_step` per period, so the setpoint reaches the new plan in
+    ceil(|step| / max_step) periods, never moving more than `max_step` per period on its way."""
+
+    offset: tuple[float, float, float]  # m/s^2: (applied before) - (new plan) beyond the bound
+    start_ns: int  # the new Command's arrival
+    max_step: float
+    period_ns: int
+
+    @classmethod
+    def of(
+        cls, before: tuple[float, ...], after: tuple[float, ...], max_step: float, now_ns: int, period_ns: int
+    ) -> SiteBlend | None:
+        """The blend for a step from `before` to `after`, or None when the step is within the bound."""
+        step = math.dist(before, after)
+        if step <= max_step:
+            return None
+        keep = 1.0 - max_step / step
+        x, y, z = ((b - a) * keep for b, a in zip(before, after, strict=True))
+        return cls((x, y, z), now_ns, max_step, period_ns)
+
+    def offset_at(self, now_ns: int) -> tuple[float, float, float] | None:
+        """The offset still applied at `now_ns`, or None once it has faded."""
+        norm = math.hypot(*self.offset)
+        periods = max(0.0, (now_ns - self.start_ns - self.period_ns) / self.period_ns)
+        left = norm - self.max_step * periods
+        if left <= 0.0:
+            return None
+        scale = left / norm
+        x, y, z = (o * scale for o in self.offset)
+        return (x, y, z)
+
+
 ANSWERED_MEMORY = 256  # states whose answer is remembered, to know a duplicate from a lost answer
 
 
@@ -104,6 +143,9 @@ class CommandTracker:
     steps_from_seq: int = (
         0  # steps between Commands for states from this one on (the flight's, not the climb's)
     )
+    site_step_max_mps2: float = 0.0  # the bound on the step at a change of site (0: none)
+    setpoint_period_ns: int = 20_000_000  # the onboard loop's period, over which a bounded step eases in
+    blend: SiteBlend | None = None  # the part of the last site change's step still being eased in
 
     def __post_init__(self) -> None:
         self.rtts = SlidingWindow(self.rtt_window)
@@ -170,7 +212,7 @@ class CommandTracker:
         self.term, self.replica = command.term, command.replica
         if self.last_valid_ns is not None:
             self.longest_gap_ns = max(self.longest_gap_ns, arrival_ns - self.last_valid_ns)
-        self._measure_step(command, arrival_ns)
+        self._step(command, arrival_ns)
         self._answered.append(command.state_seq)
         self.site = command.site
         self.wins[command.site] = self.wins.get(command.site, 0) + 1
@@ -179,24 +221,36 @@ class CommandTracker:
         c.accepted += 1
         return True
 
-    def _measure_step(self, command: Command, arrival_ns: int) -> None:
+    def _step(self, command: Command, arrival_ns: int) -> None:
+        """Measure the step `command` makes of the setpoint flown until now and, at a change of site,
+        bound it (an offset eased out, `SiteBlend`)."""
         changed = self.active is not None and command.site != self.site
         self.counters.site_changes += changed
-        if self.active is None or self.active.state_seq < self.steps_from_seq:
-            return
-        before = self.setpoint(arrival_ns)
+        before = self.setpoint(arrival_ns)  # as flown: with what is left of an earlier blend
         after = _setpoint_of(command, arrival_ns)
         if before is None or after is None:
+            self.blend = None if changed else self.blend
             return  # nothing flew just before (or the new one does not cover now): no step
-        self.steps.add(math.dist(before.accel_mps2, after.accel_mps2), changed)
+        if changed and self.site_step_max_mps2 > 0:
+            bound, period = self.site_step_max_mps2, self.setpoint_period_ns
+            self.blend = SiteBlend.of(before.accel_mps2, after.accel_mps2, bound, arrival_ns, period)
+            self.counters.site_steps_bounded += self.blend is not None
+        if self.active is not None and self.active.state_seq >= self.steps_from_seq:
+            self.steps.add(math.dist(before.accel_mps2, after.accel_mps2), changed)
 
     def take_new_rtts(self) -> list[float]:
         out, self._new_rtts = self._new_rtts, []
         return out
 
     def setpoint(self, now_ns: int) -> Setpoint | None:
-        """The active command's setpoint for now, or None when its horizon has run out."""
-        return None if self.active is None else _setpoint_of(self.active, now_ns)
+        """The active command's setpoint for now (with what is left of a site change's blend), or None
+        when its horizon has run out."""
+        setpoint = None if self.active is None else _setpoint_of(self.active, now_ns)
+        offset = None if setpoint is None or self.blend is None else self.blend.offset_at(now_ns)
+        if setpoint is None or offset is None:
+            return setpoint
+        x, y, z = (a + o for a, o in zip(setpoint.accel_mps2, offset, strict=True))
+        return Setpoint((x, y, z), setpoint.yaw_rad, setpoint.index)
 
     def watchdog_expired(self, now_ns: int) -> bool:
         return (

@@ -80,7 +80,13 @@ class OnboardCore:
         self.qos = config.onboard.qos
         paths = tuple(p.name for p in config.onboard.paths) or ("",)
         self.answers = Answers(
-            self.uav, to_ns(config.supervisor.watchdog_s), config.supervisor.window[1], paths, start_ns
+            self.uav,
+            to_ns(config.supervisor.watchdog_s),
+            config.supervisor.window[1],
+            paths,
+            start_ns,
+            site_step_max_mps2=config.onboard.site_step_max_mps2,
+            setpoint_period_ns=round(1e9 / config.control.setpoint_hz),
         )
         self.tracker = self.answers.tracker
         self.camera_monitor = CameraLatencyMonitor()

@@ -3,6 +3,8 @@ are duplicates; fencing holds within each site; the setpoint step at a change of
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 
 from dynqos.common.messages import Command, State, decode, encode
@@ -100,3 +102,42 @@ def test_state_and_command_carry_the_sites_on_the_wire() -> None:
     assert decode(encode(state)) == state
     sent = command(1, 20 * MS, site="b")
     assert decode(encode(sent)).site == "b"
+
+
+def test_a_site_changes_step_above_the_bound_is_eased_in_one_bound_per_period() -> None:
+    tracker = CommandTracker("uav1", watchdog_ns=150 * MS, site_step_max_mps2=2.0, setpoint_period_ns=20 * MS)
+    for seq in (1, 2, 3):
+        tracker.state_sent(seq, seq * 20 * MS)
+    tracker.offer(command(1, 20 * MS, site="a", accel=0.0), 30 * MS)
+    assert tracker.offer(command(2, 40 * MS, site="b", accel=5.0), 50 * MS)  # the sites disagree by 5
+
+    def flown(at_ms: float) -> float:
+        setpoint = tracker.setpoint(round(at_ms * MS))
+        assert setpoint is not None
+        return setpoint.accel_mps2[0]
+
+    # at the change and for one period: 2 of the 5; then 2 more per period, until the new plan
+    assert [flown(t) for t in (50, 60, 70, 80, 90, 100, 200)] == pytest.approx([2, 2, 2, 3, 4, 5, 5])
+    ticks = [flown(t) for t in range(50, 200, 20)]
+    assert max(abs(b - a) for a, b in itertools.pairwise([0.0, *ticks])) <= 2.0 + 1e-9
+    assert tracker.steps.site_change_max == pytest.approx(5.0)  # the sites' disagreement, as measured
+    assert tracker.counters.site_steps_bounded == 1
+    # a site change back, while an earlier one eases in, steps from what is flown, not from the plan
+    tracker.offer(command(3, 60 * MS, site="a", accel=0.0), 75 * MS)
+    assert tracker.steps.site_change_max == pytest.approx(5.0)
+    assert flown(75) == pytest.approx(2.5 - 2.0)  # 2.5 was flown at 75 ms: it moves 2 towards 0
+    assert flown(200) == pytest.approx(0.0)
+
+
+def test_a_step_within_the_bound_or_a_replan_at_one_site_is_flown_at_once() -> None:
+    for bound, site_b in ((2.0, "b"), (0.0, "b"), (2.0, "a")):  # within; no bound; the same site
+        tracker = CommandTracker("uav1", watchdog_ns=150 * MS, site_step_max_mps2=bound)
+        tracker.state_sent(1, 20 * MS)
+        tracker.state_sent(2, 40 * MS)
+        tracker.offer(command(1, 20 * MS, site="a", accel=0.0), 30 * MS)
+        accel = 1.5 if bound and site_b == "b" else 5.0
+        tracker.offer(command(2, 40 * MS, site=site_b, accel=accel), 50 * MS)
+        setpoint = tracker.setpoint(50 * MS)
+        assert setpoint is not None
+        assert setpoint.accel_mps2[0] == pytest.approx(accel)
+        assert (tracker.blend, tracker.counters.site_steps_bounded) == (None, 0)

@@ -4,6 +4,7 @@ neither path answers within the watchdog."""
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field, replace
 
 import pytest
@@ -143,3 +144,20 @@ def test_the_camera_moves_to_a_clearly_better_path_after_its_dwell_not_for_a_sma
     assert now - moved < DWELL_NS
     assert paths.camera_path(now) == "b"
     assert paths.camera_path(moved + DWELL_NS + 1) == "a" or not paths.answering(moved + DWELL_NS + 1)
+
+
+def test_when_the_sites_disagree_the_setpoint_moves_to_the_new_site_by_the_bound_per_tick() -> None:
+    rig = TwoPaths(OnboardCore(two_paths("priority"), start_ns=1_000 * MS))
+    rig.site_accel = {"a": 0.5, "b": 6.0}  # e.g. a site that solved against another reference
+    rig.run(2.0)
+    assert rig.core.tracker.site == "a"
+    rig.site_up["a"] = False
+    outs = rig.run(1.0)
+    accels = [o.setpoint.accel_mps2[0] for o in outs if o.setpoint is not None]
+    assert accels[-1] == pytest.approx(6.0)  # site b's plan, reached
+    steps = [abs(b - a) for a, b in itertools.pairwise(accels)]
+    bound = rig.core.config.onboard.site_step_max_mps2
+    assert max(steps) <= bound + 1e-9 < 5.5  # never the whole 5.5 at once
+    # 5.5 in steps of 2 per period, from an arrival between two ticks: four ticks to the new plan
+    assert sum(step > 0.1 for step in steps) == 4
+    assert rig.core.counters.switches_to_fallback == 1  # (the start's, before any command)

@@ -296,6 +296,10 @@ class OnboardConfig:
     # Two paths or more (docs/multipath.md): one zenoh session each, opened at once; states and statuses
     # go on every path, the camera on the best. Empty: one path, connect_default and connect_priority.
     paths: tuple[OnboardPathConfig, ...] = ()
+    # When the Command applied comes from another site than the last, the acceleration setpoint moves by
+    # at most this much at once, then towards the new site's plan by this much per setpoint period
+    # (docs/multipath.md, "The setpoint step"); 0: no bound
+    site_step_max_mps2: Annotated[float, In(0, 100, "must be in 0..100 m/s^2 (0: no bound)")] = 2.0
     qos: Literal["dynamic", "default", "priority"] = "dynamic"  # dynamic: the supervisor chooses
     camera: Literal["sim", "files", "device", "realsense", "none"] = "sim"
     camera_fps: Annotated[float, In(0, 120, "must be in 0..120")] = 15.0
