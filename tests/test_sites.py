@@ -127,10 +127,14 @@ def test_the_figures_of_a_drone_on_two_paths_count_from_the_flights_start() -> N
     assert m["rtt_ms_by_path"]["a"]["n"] == 3
     assert m["rtt_ms_by_path"]["b"]["n"] == 3
     assert m["camera_path_s"] == {"a": 1.0, "b": 1.0}
-    rows = multipath_lines([{"scenario": "dual-homed", "ok": True, "multipath": m, "fallback_flown_s": 0.0}])
-    assert rows[-1].startswith("| dual-homed | 1 | 12 / ")
-    assert "| 30 / 30 / 30 | 11 / " in rows[-1]
-    assert "| 0.08 / 0.92 | 15 | 0.0 |" in rows[-1]
+    summary = {"scenario": "dual-homed", "ok": True, "multipath": m, "fallback_flown_s": 0.0}
+    summary |= {"uav_delivered_mbps": 50.2, "bg_delivered_mbps": 30.0}
+    summary["cells"] = {"b": {"uav_delivered_mbps": 0.4, "bg_delivered_mbps": None}}
+    rows = multipath_lines([summary])
+    winner = next(row for row in rows if row.startswith("| dual-homed | 1 | 12 / "))
+    assert "| 30 / 30 / 30 | 11 / " in winner
+    assert "| 0.08 / 0.92 | 15 | 0.0 |" in winner
+    assert rows[-1] == "| dual-homed | 1 | 50.2 / 30.0 | 0.4 / - |"  # each cell's uplink
     assert multipath_lines([{"scenario": "baseline", "ok": True}]) == []
 
 
@@ -179,4 +183,5 @@ def test_a_dual_homed_drone_flies_through_load_a_site_kill_and_a_cell_outage_wit
     assert gaps, onboard[-3000:]
     assert float(gaps[-1]) < 150.0, onboard[-3000:]  # never a gap between applied Commands of T_wd
     assert (out / "dh" / "site-b" / "cell.csv").is_file()  # cell B kept its own record
+    assert summary["cells"]["b"]["uav_delivered_mbps"] > 0  # its counters: States and statuses at least
     assert "## Two paths, two sites" in (out / "report.md").read_text()

@@ -14,7 +14,7 @@ from dynqos.common.errors import ConfigError
 from dynqos.experiment.demo import run_demo
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import builtin_scenario
-from dynqos.reports.summary import _cell_rates
+from dynqos.reports.summary import cell_rates
 from dynqos.reports.uplink import traced_lines
 from tests.procs import DYNQOS
 
@@ -68,12 +68,12 @@ def _cell(now_s: float, capacity_bits: float, delivered_bytes: int, dropped_byte
 def test_the_share_carried_is_what_reached_the_edge_of_what_the_trace_could_carry() -> None:
     rec = Recording()
     rec.cell = [_cell(0.0, 0.0, 0, 0), _cell(2.0, 8e6, 500_000, 25_000)]  # 4 Mbit/s; 2 of it delivered
-    rates = _cell_rates(rec, 0, round(2e9), scale=10.0)
+    rates = cell_rates(rec.cell, 0, round(2e9), scale=10.0)
     assert rates["uplink_capacity_mbps"] == pytest.approx(40.0)
     assert rates["uav_delivered_mbps"] == pytest.approx(20.0)
     assert rates["uav_dropped_mbps"] == pytest.approx(1.0)
     rec.cell = [{k: v for k, v in c.items() if k != "capacity_bits"} for c in rec.cell]  # an older cell
-    assert _cell_rates(rec, 0, round(2e9), scale=10.0)["uplink_capacity_mbps"] is None
+    assert cell_rates(rec.cell, 0, round(2e9), scale=10.0)["uplink_capacity_mbps"] is None
 
 
 def test_the_report_tables_the_traced_flights_only() -> None:

@@ -11,7 +11,7 @@ import sys
 import threading
 import time
 import urllib.request
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -172,8 +172,10 @@ def fly(
     rec: Recording,
     stop: threading.Event,
     progress: bool,
+    more_cells: Mapping[str, int] | None = None,
 ) -> None:
-    """The recorded flight: faults begin and end on time, memory and the cell's counters are sampled."""
+    """The recorded flight: faults begin and end on time, memory and the cell's counters are sampled
+    (`more_cells`: site -> the control port of that site's cell, a second cell's, sampled beside)."""
     next_poll = next_memory = next_cpu = time.monotonic()
     end = time.monotonic() + scenario.duration_s
     pending = sorted(scenario.faults, key=lambda fault: fault.at_s)
@@ -194,9 +196,10 @@ def fly(
         _record_tick(scenario, rec, procs, cell_port, elapsed, progress)
         if time.monotonic() >= next_poll:
             next_poll += CELL_POLL_S
-            counters = get_json(cell_port, "/counters")
-            counters["now_ns"] = time.monotonic_ns()
-            rec.cell.append(counters)
+            for site, port in {"": cell_port, **(more_cells or {})}.items():
+                counters = get_json(port, "/counters")
+                counters["now_ns"] = time.monotonic_ns()
+                (rec.more_cells.setdefault(site, []) if site else rec.cell).append(counters)
         stop.wait(RECORD_PERIOD_S)
     _sample_machine(rec, scenario.duration_s - (end - time.monotonic()))  # the flight's last second
 

@@ -19,6 +19,8 @@ class Recording:
     refs: list[Reference] = field(default_factory=list)
     status: list[SupervisorStatus] = field(default_factory=list)
     cell: list[dict[str, Any]] = field(default_factory=list)
+    # site -> the counters of that site's cell, for cells beyond the first (docs/multipath.md)
+    more_cells: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     bg_on_ns: int | None = None
     offload_ns: int | None = None
     faults: list[FaultWindow] = field(default_factory=list)

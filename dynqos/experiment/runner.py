@@ -174,7 +174,8 @@ def _record_flight(
             sites=SiteFaults(procs, {site: cell_event(port) for site, port in cell_ports.items()}),
         )
         try:
-            fly(scenario, procs, cell_ports["a"], injector, rec, stop, progress)
+            more_cells = {site: port for site, port in cell_ports.items() if site != "a"}
+            fly(scenario, procs, cell_ports["a"], injector, rec, stop, progress, more_cells)
         finally:
             injector.close()
             rec.faults = injector.windows

@@ -19,7 +19,7 @@ from dynqos.experiment.scenario import Scenario, run_id
 from dynqos.onboard.supervisor import PRIORITY_STATES as SUPERVISOR_PRIORITY_STATES
 from dynqos.onboard.supervisor import RATE_ADAPTATION_STATES as SUPERVISOR_RATE_ADAPTATION_STATES
 from dynqos.reports.figures import figure
-from dynqos.reports.summary import _cell_rates, summarise, write_scenario
+from dynqos.reports.summary import cell_rates, summarise, write_scenario
 
 # What each drone's entry carries of the single-drone summary.
 DRONE_FIELDS = (
@@ -116,7 +116,7 @@ def summarise_fleet(
     drones = {uav: _drone(scenario, rec, uav, recs[uav], onboard_logs.get(uav, ""), ok) for uav in recs}
     end_ns = max((s.stamp_ns for r in recs.values() for _, s in r.states), default=rec.t0_ns)
     loaded_start = rec.bg_on_ns if rec.bg_on_ns is not None else rec.t0_ns
-    cell = _cell_rates(rec, loaded_start, end_ns + 1, scenario.scale)
+    cell = cell_rates(rec.cell, loaded_start, end_ns + 1, scenario.scale)
     counts = {a: sum(d.action == a for d in decisions) for a in ("grant", "deny", "revoke", "release")}
     faults = _faults(rec, drones)
     checks = _checks(rec, drones, faults)

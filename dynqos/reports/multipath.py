@@ -136,4 +136,22 @@ def multipath_lines(summaries: list[dict[str, Any]]) -> list[str]:
             str(s["ok"]),
         ]
         lines.append("| " + " | ".join(cells) + " |")
+    return lines + _cell_lines(rows)
+
+
+def _cell_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """What each cell's uplink carried: the drone's bytes delivered (the camera rides one path, States,
+    statuses and QoS requests both) and the background user's, over the summary's `rates_span`."""
+    lines = [
+        "",
+        "Each cell's uplink, Mbit/s at full scale (the summary's `rates_span`): the drone's bytes delivered "
+        "and the background user's; cell b's are the second path's cost on the uplink.",
+        "",
+        "| scenario | runs | cell a: drone / background | cell b: drone / background |",
+        "|---|---|---|---|",
+    ]
+    for s in rows:
+        pair = " / ".join(figure(s, f"{name}_mbps", 1) for name in ("uav_delivered", "bg_delivered"))
+        other = " / ".join(figure(s, f"cells.b.{name}_mbps", 1) for name in ("uav_delivered", "bg_delivered"))
+        lines.append(f"| {s['scenario']} | {len(s.get('runs', [s]))} | {pair} | {other} |")
     return lines

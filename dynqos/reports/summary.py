@@ -29,11 +29,13 @@ CELL_TOTALS = {
 }
 
 
-def _cell_rates(rec: Recording, start_ns: int, end_ns: int, scale: float) -> dict[str, float | None]:
+def cell_rates(
+    cell: list[dict[str, Any]], start_ns: int, end_ns: int, scale: float
+) -> dict[str, float | None]:
     """The cell's rates over [start, end] at full scale: what the drone's bearers took in, delivered and
     dropped (a full UE buffer), the background user's, and what the uplink could carry (a trace's
     capacity is what it carried, whoever used it; None from a cell that does not count it)."""
-    inside = [c for c in rec.cell if start_ns <= c["now_ns"] <= end_ns]
+    inside = [c for c in cell if start_ns <= c["now_ns"] <= end_ns]
     if len(inside) < 2:
         return {f"{name}_mbps": None for name in (*CELL_TOTALS, "uplink_capacity")}
     first, last = inside[0], inside[-1]
@@ -51,6 +53,14 @@ def _cell_rates(rec: Recording, start_ns: int, end_ns: int, scale: float) -> dic
         (last["capacity_bits"] - first["capacity_bits"]) * to_mbps if counted else None
     )
     return rates
+
+
+def _more_cells(rec: Recording, start_ns: int, end_ns: int, scale: float) -> dict[str, Any]:
+    """`cells`: each further cell's rates over the same span as the first's (site -> rates; the first
+    cell's are the summary's own), with two sites (docs/multipath.md); nothing with one cell."""
+    if not rec.more_cells:
+        return {}
+    return {"cells": {site: cell_rates(c, start_ns, end_ns, scale) for site, c in rec.more_cells.items()}}
 
 
 def _app_offered_mbps(
@@ -100,7 +110,7 @@ def summarise(
     cams = _samples(rec.status, "camera_latency_samples_ms", "camera_latency_ms")
     errors = [(t0 + round(t * 1e9), e) for t, e in tracking_errors(rec)]
     loaded = bg_ns is not None
-    rates = _with_trace(scenario, _cell_rates(rec, loaded_start, end_ns + 1, scenario.scale))
+    rates = _with_trace(scenario, cell_rates(rec.cell, loaded_start, end_ns + 1, scenario.scale))
     statuses = sorted(rec.status, key=lambda s: s.stamp_ns)
     times = dict.fromkeys((s.value for s in SupervisorState), 0.0) | time_in_states(statuses, since_ns=t0)
     first_switch, switch_cause = _first_qos_switch(statuses, bg_ns if scenario.qos == "dynamic" else None)
@@ -120,6 +130,7 @@ def summarise(
         "rates_span": "loaded" if loaded else "whole run after settling",
         "uav_offered_mbps": _app_offered_mbps(statuses, loaded_start, end_ns, scenario.scale),
         **rates,
+        **_more_cells(rec, loaded_start, end_ns + 1, scenario.scale),
         "rtt_ms": {
             "baseline": stats(window(rtts, settle_ns, baseline_end)),
             "loaded": stats(window(rtts, bg_ns, end_ns + 1)) if loaded else None,
