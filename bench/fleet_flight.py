@@ -22,7 +22,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from dynqos.bench.report import emit, flight_args, judged, provenance
+from dynqos.bench.report import emit, flight_args, judged, pct, provenance
 from dynqos.bench.suite import spread
 from dynqos.experiment.runner import run_scenario
 from dynqos.experiment.scenario import builtin_scenario
@@ -84,9 +84,6 @@ def verdict(result: dict[str, Any]) -> str:
 
 
 def markdown(result: dict[str, Any]) -> str:
-    def pct(value: float | None) -> str:
-        return "-" if value is None else f"{100 * value:.1f}%"
-
     rows = [
         "| seed | busy over the flight | busiest second | s above 85% | starved | CPU s (all processes) "
         "| baseline RTT mean (ms) |",

@@ -43,6 +43,11 @@ def emit(result: dict[str, Any], table: str, out: Path | None, verdict: str) -> 
     return 0
 
 
+def pct(share: float | None) -> str:
+    """A share (0..1) as a percentage with one decimal, "-" for none."""
+    return "-" if share is None else f"{100 * share:.1f}%"
+
+
 def judged(met: bool, text: str) -> str:
     """'meets target: ...' or 'misses target: ...'."""
     return f"{'meets' if met else 'misses'} target: {text}"

@@ -88,6 +88,12 @@ HEADLINES: dict[str, Headline] = {
         "busy_share_max": r["busy_share"]["max"],
         "cpu_s_total_median": r["cpu_s_total"]["median"],
     },
+    "second_path": lambda r: {
+        "onboard_ratio": r["onboard_ratio"],
+        "edge_ratio": r["edge_ratio"],
+        "onboard_core_share_two_paths": r["modes"]["dual-homed"]["onboard_core_share"]["median"],
+        "edge_core_share_two_sites": r["modes"]["dual-homed"]["edge_core_share"]["median"],
+    },
     "ros2_bridge": lambda r: {
         "loop_change_p50": r["control_loop"]["change_p50"],
         "loop_floor_change_p50": r["control_loop"]["floor_change_p50"],

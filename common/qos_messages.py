@@ -24,6 +24,7 @@ class QosRequest(Message):
         "risk": f.choice(RISK_LEVELS),
         "latency_excess": f.real(-1.0, 1.0),
         "offered_mbps": f.real(0.0, 1e5),
+        "site": f.text(64),
     }
 
     stamp_ns: int
@@ -33,6 +34,9 @@ class QosRequest(Message):
     risk: str = "NA"
     latency_excess: float = 0.0
     offered_mbps: float = 0.0
+    # The edge site whose agent this request is for: a drone on two paths asks each site's agent (its own
+    # operator) for its own path, and both agents hear both paths' requests (docs/multipath.md); "" = any
+    site: str = ""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -71,6 +75,7 @@ class QosGrant(Message):
         "session_id": f.text(64),
         "reason": f.text(300),
         "answers_seq": f.integer(),
+        "site": f.text(64),
     }
 
     grant: Grant
@@ -78,6 +83,9 @@ class QosGrant(Message):
     session_id: str = ""  # the QoD session ("" with the links backend or when there is none)
     reason: str = ""  # why the grant is what it is (the API's code and message on a refusal)
     answers_seq: int = 0  # the newest QosRequest seq the agent had when it sent this
+    site: str = (
+        ""  # the site of the agent that says it ("" = one site), so a drone on two paths tells them apart
+    )
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

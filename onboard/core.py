@@ -47,6 +47,7 @@ from dynqos.common.reference import ReferenceTrack
 from dynqos.onboard.answers import Answers
 from dynqos.onboard.commands import SetpointSteps
 from dynqos.onboard.fc import AccelSetpoint, FcSaid, FcState, PositionSetpoint, Setpoint
+from dynqos.onboard.grants import SiteGrants
 from dynqos.onboard.modem import ModemReading
 from dynqos.onboard.monitors import CameraLatencyMonitor, LatencySamples, NetworkDelays
 from dynqos.onboard.pid import CascadedPid
@@ -117,9 +118,7 @@ class OnboardCore:
         self._last_setpoint_ns: int | None = None
         self._status_gap_ms = 0.0  # the longest setpoint gap since the last status
         self._events: list[LogEvent] = []
-        self.grant = Grant.NONE  # the QoS agent's last word on the priority flow
-        self._grant_heard_ns: int | None = None
-        self._agent_timeout_ns = to_ns(config.qos.agent_timeout_s)
+        self.grants = SiteGrants(to_ns(config.qos.agent_timeout_s))  # each site's agent's last word
         self._request_period_ns = to_ns(config.qos.request_interval_s)
         self._requested: bool | None = None  # the last want sent (None: none yet)
         self._requested_risk = ""  # the risk level that request carried
@@ -194,18 +193,15 @@ class OnboardCore:
                 self._log(logging.INFO, f"qos: the core's delay reports arrive, every {message.period_s} s")
             self.network.offer(message, arrival_ns)
             return
-        if message.grant is not self.grant:
-            why = f" ({message.reason})" if message.reason else ""
-            level = logging.WARNING if message.grant is Grant.UNAVAILABLE else logging.INFO
-            self._log(level, f"qos: the network's grant is {message.grant.value}{why}")
-        self.grant, self._grant_heard_ns = message.grant, arrival_ns
+        if (event := self.grants.take(message, arrival_ns)) is not None:
+            self._events.append(event)
 
     def agent_heard(self, now: int) -> bool:
         """A QoS agent answered within [qos] agent_timeout_s (else: links only, nobody asks the network)."""
-        return self._grant_heard_ns is not None and now - self._grant_heard_ns <= self._agent_timeout_ns
+        return self.grants.agent_heard(now)
 
     def reported_grant(self, now: int) -> Grant:
-        return self.grant if self.agent_heard(now) else Grant.NONE
+        return self.grants.reported(now)
 
     def _request(self, now: int, flow: Flow) -> Outgoing | None:
         """The QosRequest due now: on a change of want at once, else every request_interval_s."""

@@ -45,7 +45,7 @@ from dynqos.onboard.camera_stream import CameraStream, FlowPublishers, PathPubli
 from dynqos.onboard.core import OnboardCore, hold_at, setpoint_period_ns
 from dynqos.onboard.fc import AccelSetpoint, FcState
 from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD, PX4_SUB_LOITER, FcLink
-from dynqos.onboard.links import PathLink, path_endpoints
+from dynqos.onboard.links import PathLink, as_carried, path_endpoints
 from dynqos.onboard.metrics import DroneMetrics
 from dynqos.onboard.modem import modem_poller
 from dynqos.onboard.px4_events import EventCatalogue
@@ -101,6 +101,7 @@ class OnboardDaemon:
         self.camera: CameraStream | None = None
         self.camera_publishers: dict[Stream, PathPublishers] = {}
         self.paths: dict[str, PathLink] = {}  # by name, in configured order
+        self.path_sites = {p.name: p.site or p.name for p in self.cfg.paths}  # path -> its router's site
         self.uplink = Uplink(self.stop)  # the tick's publications, put on the wire off the tick thread
         cfg = self.cfg
         self.modem = modem_poller(
@@ -261,8 +262,9 @@ class OnboardDaemon:
         elif out.setpoint is not None:
             link.send_position(out.setpoint.pos_m, out.setpoint.yaw_rad)
         for item in out.publish:
-            for path in self.paths.values():  # every path: the first to arrive is the one that counts
-                self.uplink.put(item.flow, path.publishers[item.stream].pick(item.flow), item.message)
+            for name, path in self.paths.items():  # every path: the first to arrive is the one that counts
+                message = as_carried(item.message, name, self.path_sites)
+                self.uplink.put(item.flow, path.publishers[item.stream].pick(item.flow), message)
             if self.metrics is not None and isinstance(item.message, SupervisorStatus):
                 self.metrics.observe(item.message)
         for publishers in self.camera_publishers.values():

@@ -17,7 +17,7 @@ from dynqos.bench.suite import NAMES, spread
 from dynqos.common.errors import DynqosError
 from tests.procs import DYNQOS
 
-# A slow test: every benchmark flies or serves for real, about 160 s in all; CI runs it in its slow pass.
+# A slow test: every benchmark flies or serves for real, about 220 s in all; CI runs it in its slow pass.
 pytestmark = [pytest.mark.slow, pytest.mark.integration, pytest.mark.timeout(400)]
 
 
@@ -140,6 +140,25 @@ def test_the_fleet_flight_measured_the_machine_and_every_process(smoke: tuple[di
     )
     assert run["cpu_s_total"] == pytest.approx(sum(run["cpu_s"].values()), abs=0.05)
     assert fleet["busy_share"]["max"] == run["busy_share"]
+
+
+def test_the_second_path_flew_one_and_two_paths_and_measured_the_drone_the_edge_and_each_cell(
+    smoke: tuple[dict[str, Any], str],
+) -> None:
+    result = _result(smoke, "second_path")
+    one, two = result["runs"]
+    assert (one["mode"], two["mode"]) == ("single-homed", "dual-homed")
+    assert one["ok"]
+    assert two["ok"]
+    assert "router-b" not in one["cpu_s"]
+    assert {"router-b", "mpc-b", "planner-b"} <= set(two["cpu_s"])
+    assert one["onboard_core_share"] > 0
+    assert two["onboard_core_share"] > 0
+    assert two["edge_core_share"] > one["edge_core_share"]  # a second site's router and MPC at least
+    assert one["uplink_mbps"]["b"] is None
+    assert two["uplink_mbps"]["b"] > 0  # States and statuses go on path b too
+    assert two["duplicates"] > 0
+    assert result["onboard_ratio"] == pytest.approx(two["onboard_core_share"] / one["onboard_core_share"])
 
 
 def test_a_benchmark_whose_extra_is_missing_is_skipped_by_default_and_refused_by_name(

@@ -41,8 +41,8 @@ def test_what_two_sites_need_is_refused_plainly() -> None:
     single = builtin_scenario("single-homed")
     with pytest.raises(ConfigError, match="site b needs sites = 2"):
         replace(single, faults=(Fault(at_s=1, kind="cell_outage", site="b"),))
-    with pytest.raises(ConfigError, match="links"):
-        replace(builtin_scenario("dual-homed"), qos_backend="camara")
+    with pytest.raises(ConfigError, match='"links" or "camara"'):
+        replace(builtin_scenario("dual-homed"), qos_backend="nef")
     with pytest.raises(ConfigError, match="1, or 2"):
         replace(single, sites=3)
     with pytest.raises(ConfigError, match="one drone"):
@@ -55,6 +55,7 @@ def test_site_b_gets_its_own_router_linked_to_a_and_the_drone_a_path_through_eac
     )
     a, b = site_configs(config, ZenohConfig(**flow_ports()))
     assert (a.mpc.site, b.mpc.site) == ("a", "b")
+    assert (a.qos.site, b.qos.site) == ("a", "b")  # each site's agent, active in its own site
     assert b.zenoh.router_links == (f"tcp/127.0.0.1:{a.zenoh.default_port}",)
     assert b.zenoh.default_port != a.zenoh.default_port
     assert b.cell.seed != a.cell.seed  # the two cells' jitter is not one
@@ -148,7 +149,7 @@ def test_a_dual_homed_drone_flies_through_load_a_site_kill_and_a_cell_outage_wit
     10 s (restarted 3 s later), cell B out from 18 s for 3 s; real cells, routers, MPCs, planners."""
     scenario = tmp_path / "dh.toml"
     scenario.write_text(
-        '[scenario]\nname = "dh"\nqos_backend = "links"\nsites = 2\nduration_s = 24\nbg_start_s = -1\n'
+        '[scenario]\nname = "dh"\nsites = 2\nduration_s = 24\nbg_start_s = -1\n'
         + "".join(
             f'[[scenario.faults]]\nat_s = {at}\nkind = "{kind}"\nsite = "{site}"\nduration_s = {dur}\n'
             for at, kind, site, dur in ((4, "background", "a", 19), (10, "site_kill", "a", 3),
@@ -184,4 +185,9 @@ def test_a_dual_homed_drone_flies_through_load_a_site_kill_and_a_cell_outage_wit
     assert float(gaps[-1]) < 150.0, onboard[-3000:]  # never a gap between applied Commands of T_wd
     assert (out / "dh" / "site-b" / "cell.csv").is_file()  # cell B kept its own record
     assert summary["cells"]["b"]["uav_delivered_mbps"] > 0  # its counters: States and statuses at least
+    # each site's agent asked its own operator; none of their sessions is left, the killed site's neither
+    operators = summary["qos_network"]["operators"]
+    assert operators["a"]["created"] >= 1, operators  # the load on cell A: priority asked on both paths
+    assert operators["b"]["created"] >= 1, operators
+    assert (operators["a"]["open_at_end"], operators["b"]["open_at_end"]) == (0, 0), operators
     assert "## Two paths, two sites" in (out / "report.md").read_text()

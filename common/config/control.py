@@ -259,9 +259,14 @@ class OnboardPathConfig:
     name: str  # names the path in logs, statuses and reports (a, b, ...)
     connect_default: str  # host:port of this path's default flow
     connect_priority: str  # host:port of this path's priority flow
+    # the edge site whose router this path dials ("" = the site named as the path): the drone's QoS
+    # requests on this path are for that site's agent, which asks this path's operator
+    site: str = ""
 
     def __post_init__(self) -> None:
         _check_name(self.name, "name")
+        if self.site:
+            _check_name(self.site, "site")
         for name in ("connect_default", "connect_priority"):
             _host_port(getattr(self, name), name)
 

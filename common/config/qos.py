@@ -10,7 +10,15 @@ from typing import Annotated, Any, Literal
 
 from dynqos.common.camara import AGENT_SCOPE
 from dynqos.common.config.nef import NefConfig
-from dynqos.common.config.validate import In, _check_replica_id, _host_port, _loopback, _require, checked
+from dynqos.common.config.validate import (
+    In,
+    _check_name,
+    _check_replica_id,
+    _host_port,
+    _loopback,
+    _require,
+    checked,
+)
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import UAV_ID_PATTERN
 
@@ -265,6 +273,10 @@ class QosConfig:
     # announces; an agent that hangs (SIGSTOP, a frozen VM) loses its tokens to the router after it,
     # and a standby takes the sessions over (zenoh's own default is 10 s).
     replica_id: str = ""
+    # The edge site of this agent ("" = one site): agents of one site choose their active one among
+    # themselves, ask their own operator, and serve the requests a drone on two paths makes for their
+    # site (docs/multipath.md)
+    site: str = ""
     session_lease_s: Annotated[float, In(0.5, 60, "must be in 0.5..60 s")] = 2.0
     camara: CamaraConfig = field(default_factory=CamaraConfig)
     nef: NefConfig = field(default_factory=NefConfig)
@@ -280,6 +292,8 @@ class QosConfig:
             self.agent_timeout_s > self.grant_interval_s, "agent_timeout_s", "must exceed grant_interval_s"
         )
         _check_replica_id(self.replica_id)
+        if self.site:
+            _check_name(self.site, "site")
         if self.backend == "camara":
             _require(bool(self.camara.api_root), "camara.api_root", 'is required with backend = "camara"')
         if self.backend == "nef":

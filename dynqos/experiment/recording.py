@@ -28,5 +28,6 @@ class Recording:
     memory_kb: dict[str, list[tuple[float, int, int]]] = field(default_factory=dict)
     qod: dict[str, Any] | None = None  # the emulated operator's QoD counters and sessions left at the end
     cpu_s: dict[str, float] = field(default_factory=dict)  # process name -> CPU seconds, read at the end
+    cpu_s_t0: dict[str, float] = field(default_factory=dict)  # ... read when the recorded flight began
     # (t_s into the flight, all cores' CPU times) about every second: how busy the machine was
     cpu_times: list[tuple[float, CpuTimes]] = field(default_factory=list)

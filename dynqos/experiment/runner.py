@@ -32,7 +32,14 @@ from dynqos.experiment.flight import (
 from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, write_config
-from dynqos.experiment.sites import SiteFaults, site_b_folder, site_configs, start_site_b, with_two_paths
+from dynqos.experiment.sites import (
+    SiteFaults,
+    operators_qod,
+    site_b_folder,
+    site_configs,
+    start_site_b,
+    with_two_paths,
+)
 from dynqos.experiment.vehicles import (
     contacts,
     px4_config,
@@ -91,6 +98,8 @@ def run_scenario(
     summary["vehicle"] = scenario.vehicle
     if scenario.sites == 2 or any(f.kind in SITE_FAULTS for f in scenario.faults):
         summary["multipath"] = path_figures(rec.status, rec.t0_ns, *fault_spans(rec.faults))
+    if scenario.sites == 2 and scenario.qos_backend == "camara":
+        summary["qos_network"]["operators"] = operators_qod(folder)  # sessions at each site's operator
     if px4 is not None:
         with_px4_flight(summary, px4_workdir(folder, px4), scenario)
         summary["px4"]["contacts"] = contacts(world_of(config), track(rec))
@@ -164,6 +173,7 @@ def _record_flight(
         streams = Streams.subscribe(bus)
         procs.start("onboard", ["onboard", "--takeoff"])
         rec.offload_ns = rec.t0_ns = wait_for_offload(streams.states, procs, stop)
+        rec.cpu_s_t0 = procs.cpu_seconds()
         replica_faults = any(f.kind in REPLICA_FAULTS for f in scenario.faults)
         injector = FaultInjector(
             procs,

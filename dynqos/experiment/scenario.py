@@ -197,9 +197,9 @@ class Scenario:
     def _check_sites(self) -> None:
         if self.sites not in (1, 2):
             raise ConfigError("sites", "1, or 2 for a drone on two paths (docs/multipath.md)")
-        if self.sites == 2 and (self.fleet or self.qos_backend != "links" or self.vehicle != "sim"):
+        if self.sites == 2 and (self.fleet or self.qos_backend == "nef" or self.vehicle != "sim"):
             raise ConfigError(
-                "sites", 'two sites fly one simulated drone with qos_backend = "links" (for now)'
+                "sites", 'two sites fly one simulated drone with qos_backend "links" or "camara" (for now)'
             )
         for i, fault in enumerate(self.faults):
             if fault.site == "b" and self.sites < 2:

@@ -10,6 +10,7 @@ background load on one cell.
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable
 from dataclasses import replace
@@ -20,6 +21,7 @@ from dynqos.common.config import Config, OnboardPathConfig, ZenohConfig
 from dynqos.experiment.faults import Fault, FaultWindow
 from dynqos.experiment.processes import Processes
 from dynqos.experiment.scenario import Scenario, replica_names
+from dynqos.reports.summary import qod_sessions
 
 log = logging.getLogger(__name__)
 
@@ -60,9 +62,10 @@ def start_site_b(procs: Processes, scenario: Scenario, config: Path) -> None:
 
 
 def site_configs(config: Config, zenoh_b: ZenohConfig) -> tuple[Config, Config]:
-    """Site A's config (its MPC in site a) and site B's: B's router on its own ports and linked to A's,
-    its MPC in site b, its cell seeded apart from A's."""
-    a = replace(config, mpc=replace(config.mpc, site="a"))
+    """Site A's config (its MPC and QoS agent in site a) and site B's: B's router on its own ports and
+    linked to A's, its MPC and QoS agent in site b (each agent asks its own site's operator: its cell's
+    QoD API, set once the cell is up), its cell seeded apart from A's."""
+    a = replace(config, mpc=replace(config.mpc, site="a"), qos=replace(config.qos, site="a"))
     z = replace(
         zenoh_b,
         router_links=(f"tcp/127.0.0.1:{config.zenoh.default_port}",),
@@ -72,6 +75,7 @@ def site_configs(config: Config, zenoh_b: ZenohConfig) -> tuple[Config, Config]:
         config,
         zenoh=z,
         mpc=replace(config.mpc, site="b"),
+        qos=replace(config.qos, site="b"),
         cell=replace(config.cell, seed=config.cell.seed + 1),
     )
     return a, b
@@ -131,6 +135,12 @@ class SiteFaults:
 
     def _cell(self, fault: Fault, event: dict[str, Any]) -> None:
         self.cell_events[fault.site](event)
+
+
+def operators_qod(folder: Path) -> dict[str, dict[str, int]]:
+    """Each operator's QoD sessions once every process stopped (each cell's qod.json): site -> counts."""
+    files = {"a": folder / "qod.json", "b": site_b_folder(folder) / "qod.json"}
+    return {site: qod_sessions(json.loads(path.read_text())) for site, path in files.items() if path.exists()}
 
 
 def site_b_folder(folder: Path) -> Path:

@@ -55,6 +55,18 @@ def cell_rates(
     return rates
 
 
+def _flight_cpu(rec: Recording) -> dict[str, Any]:
+    """`cpu_s_flight`: each process's CPU seconds over the recorded flight alone (from offloading to the
+    end; a process restarted in it, e.g. by a site kill, from its restart), when the start was read."""
+    if not rec.cpu_s_t0:
+        return {}
+    flight = {}
+    for name, end in rec.cpu_s.items():
+        start = rec.cpu_s_t0.get(name, 0.0)
+        flight[name] = round(end - start if end >= start else end, 2)
+    return {"cpu_s_flight": flight}
+
+
 def _more_cells(rec: Recording, start_ns: int, end_ns: int, scale: float) -> dict[str, Any]:
     """`cells`: each further cell's rates over the same span as the first's (site -> rates; the first
     cell's are the summary's own), with two sites (docs/multipath.md); nothing with one cell."""
@@ -168,6 +180,7 @@ def summarise(
         ],
         "memory_mb": {name: memory_figures(samples) for name, samples in rec.memory_kb.items()},
         "cpu_s": rec.cpu_s,  # each process's CPU seconds over its whole life (start-up included)
+        **_flight_cpu(rec),
         "machine": machine,  # how busy all cores were over the recorded flight
         "ok": ok,
         "failure": failure,
@@ -299,11 +312,15 @@ def _qos_network(
         keys = ("created", "modified", "deleted", "refused", "terminated", "expired", "reports")
         out["subscriptions"] = {k: nef.get(k, 0) for k in keys} | {"open_at_end": nef.get("open", 0)}
     elif qod is not None:
-        out["sessions"] = {
-            k: qod.get(k, 0) for k in ("created", "extended", "deleted", "refused", "expired", "conflicts")
-        }
-        out["sessions"]["open_at_end"] = len(qod.get("sessions", []))
+        out["sessions"] = qod_sessions(qod)
     return out
+
+
+def qod_sessions(qod: dict[str, Any]) -> dict[str, int]:
+    """The QoD sessions an emulated operator saw (its qod.json): created, extended, deleted, refused,
+    expired, conflicts, and how many were still open when every process had stopped."""
+    keys = ("created", "extended", "deleted", "refused", "expired", "conflicts")
+    return {k: qod.get(k, 0) for k in keys} | {"open_at_end": len(qod.get("sessions", []))}
 
 
 def _with_trace(scenario: Scenario, rates: dict[str, float | None]) -> dict[str, Any]:

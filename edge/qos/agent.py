@@ -47,6 +47,7 @@ from dynqos.edge.operator.nef import Report
 from dynqos.edge.qos.arbiter import Action, Arbiter, Decision, Need
 from dynqos.edge.qos.calls import OperatorCalls, preflight
 from dynqos.edge.qos.grants import DroneGrant
+from dynqos.edge.qos.health_line import health_line
 from dynqos.edge.qos.leadership import AgentRole, Leadership
 from dynqos.edge.qos.monitoring import MonitoringForward
 from dynqos.edge.qos.nef_calls import NefCalls, client_settings
@@ -137,7 +138,8 @@ class QosAgent(EdgeCore):
                 nef.notification_destination, nef.sink_listen, self._nef_notified, self.nef_guard
             )
             stack.push_async_callback(sink.cleanup)
-        self.peers = AgentPeers(self.bus, "all", self.leadership, loop)
+        group = f"site-{self.qos.site}-all" if self.qos.site else "all"  # one active agent per site
+        self.peers = AgentPeers(self.bus, group, self.leadership, loop)
         stack.callback(self.peers.close)
         await loop.run_in_executor(None, self.peers.query)
         self._lead_task = lead = loop.create_task(self._lead())
@@ -184,8 +186,12 @@ class QosAgent(EdgeCore):
 
     def _on_request(self, item: Received) -> None:
         message = item.message
-        if not isinstance(message, QosRequest) or self.stopping.is_set():
-            return
+        if (
+            not isinstance(message, QosRequest)
+            or self.stopping.is_set()
+            or message.site not in ("", self.qos.site)
+        ):
+            return  # (another site's: a drone on two paths asks each site's agent for its own path)
         uav = message.uav
         record = self.drones.get(uav)
         if record is None:
@@ -339,6 +345,7 @@ class QosAgent(EdgeCore):
                 session_id=session_id,
                 reason=grant.why()[:300],
                 answers_seq=grant.request_seq,
+                site=self.qos.site,
             )
         )
 
@@ -460,28 +467,7 @@ class QosAgent(EdgeCore):
         return self.calls.cleaned if self.calls is not None else 0
 
     def health(self) -> str:
-        sessions = sum(r.grant.session is not None for r in self.drones.values())
-        lead = self.leadership
-        role = f" agent={lead.me} role={lead.role.value} agents={len(lead.members)}"
-        calls = f" api_calls={self.client.calls} retries={self.client.retries}" if self.client else ""
-        arbiter = ""
-        if self.arbiter is not None:
-            d = self.decisions
-            arbiter = (
-                f" holders={len(self.arbiter.holders)} grants={d[Action.GRANT]} denials={d[Action.DENY]} "
-                f"revocations={d[Action.REVOKE]} releases={d[Action.RELEASE]}"
-            )
-        sink, nef = "", self.qos.backend == "nef"
-        if nef or self.camara.sink_listen:
-            c = self.nef_guard.counters if nef else self.sink_guard.counters
-            sink = f" notifications={c['taken']} refused={c['unauthenticated'] + c['malformed']}"
-            sink += f" monitoring_reports={self.calls.reports}" if isinstance(self.calls, NefCalls) else ""
-            sink += "" if nef else f" replayed={c['replayed']}"
-        return (
-            f"drones={len(self.drones)} sessions={sessions} errors={self.errors} "
-            f"leftovers_cleaned={self.cleaned}{calls}{arbiter}{sink} rejected={self.stats.rejected}{role} "
-            f"takeovers={lead.takeovers}"
-        )
+        return health_line(self)
 
 
 async def _cancel(task: asyncio.Task[None]) -> None:
