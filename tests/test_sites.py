@@ -18,9 +18,11 @@ from dynqos.common.messages import SupervisorStatus
 from dynqos.common.modes import ControlSource, Flow, SupervisorState
 from dynqos.experiment.faults import Fault
 from dynqos.experiment.processes import Processes, flow_ports
+from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import builtin_scenario, scenario_config
 from dynqos.experiment.sites import site_configs, site_processes, with_two_paths
 from dynqos.reports.multipath import multipath_lines, path_figures
+from dynqos.reports.summary import _flight_cpu
 from tests.procs import DYNQOS
 
 MS = 1_000_000
@@ -145,15 +147,16 @@ def test_the_figures_of_a_drone_on_two_paths_count_from_the_flights_start() -> N
 def test_a_dual_homed_drone_flies_through_load_a_site_kill_and_a_cell_outage_without_its_fallback(
     tmp_path: Path,
 ) -> None:
-    """dual-homed's timeline, shortened: load on cell A from 4 s, every process of site A SIGKILLed at
-    10 s (restarted 3 s later), cell B out from 18 s for 3 s; real cells, routers, MPCs, planners."""
+    """dual-homed's timeline, shortened: load on cell A from 4 s, the link between the sites' routers cut
+    from 5 s for 3 s, every process of site A SIGKILLed at 10 s (restarted 3 s later), cell B out from
+    18 s for 3 s; real cells, routers, MPCs, planners."""
     scenario = tmp_path / "dh.toml"
     scenario.write_text(
         '[scenario]\nname = "dh"\nsites = 2\nduration_s = 24\nbg_start_s = -1\n'
         + "".join(
             f'[[scenario.faults]]\nat_s = {at}\nkind = "{kind}"\nsite = "{site}"\nduration_s = {dur}\n'
-            for at, kind, site, dur in ((4, "background", "a", 19), (10, "site_kill", "a", 3),
-                                        (18, "cell_outage", "b", 3))
+            for at, kind, site, dur in ((4, "background", "a", 19), (5, "path_partition", "a", 3),
+                                        (10, "site_kill", "a", 3), (18, "cell_outage", "b", 3))
         )
     )  # fmt: skip
     out = tmp_path / "run"
@@ -170,8 +173,12 @@ def test_a_dual_homed_drone_flies_through_load_a_site_kill_and_a_cell_outage_wit
     assert summary["ok"], summary["failure"]
     assert summary["fallbacks"]["in_flight"] == 0, onboard[-3000:]
     assert summary["fallback_flown_s"] == 0.0
-    kill, outage = (f for f in summary["faults"] if f["kind"] in ("site_kill", "cell_outage"))
+    partition, kill, outage = (
+        f for f in summary["faults"] if f["kind"] in ("path_partition", "site_kill", "cell_outage")
+    )
+    assert "the link between the sites' routers cut (1 connection(s))" in partition["notes"]
     assert "site a: killed router, qos, planner, mpc, detector" in kill["notes"]
+    assert not partition["fallback"]
     assert not kill["fallback"]
     assert not outage["fallback"]
     m = summary["multipath"]
@@ -191,3 +198,10 @@ def test_a_dual_homed_drone_flies_through_load_a_site_kill_and_a_cell_outage_wit
     assert operators["b"]["created"] >= 1, operators
     assert (operators["a"]["open_at_end"], operators["b"]["open_at_end"]) == (0, 0), operators
     assert "## Two paths, two sites" in (out / "report.md").read_text()
+
+
+def test_the_flights_cpu_leaves_the_start_out_and_counts_a_restarted_process_from_its_restart() -> None:
+    rec = Recording(cpu_s_t0={"onboard": 2.0, "router": 5.0})
+    rec.cpu_s = {"onboard": 6.5, "router": 1.5, "mpc-b": 3.0}  # the router was killed and restarted
+    assert _flight_cpu(rec) == {"cpu_s_flight": {"onboard": 4.5, "router": 1.5, "mpc-b": 3.0}}
+    assert _flight_cpu(Recording(cpu_s={"onboard": 1.0})) == {}  # the start was never read: not given

@@ -57,8 +57,9 @@ FaultKind = Literal[
     "qos_agent_hang",
     "site_kill",
     "cell_outage",
+    "path_partition",
 ]
-SITE_FAULTS = ("site_kill", "cell_outage")  # dynqos/experiment/sites.py acts on them
+SITE_FAULTS = ("site_kill", "cell_outage", "path_partition")  # dynqos/experiment/sites.py acts on them
 FLOOD_FPS = 100.0  # several times what the detector can process
 FLOOD_MAX_FRAMES = 20_000
 

@@ -29,6 +29,7 @@ from dynqos.experiment.flight import (
     start_replicas,
     wait_for_offload,
 )
+from dynqos.experiment.link_relay import LinkRelay
 from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, write_config
@@ -38,6 +39,7 @@ from dynqos.experiment.sites import (
     site_b_folder,
     site_configs,
     start_site_b,
+    through_relay,
     with_two_paths,
 )
 from dynqos.experiment.vehicles import (
@@ -82,6 +84,14 @@ def run_scenario(
     config_b = None  # site B's, with two sites (docs/multipath.md)
     if scenario.sites == 2:
         config, config_b = site_configs(config, ZenohConfig(**flow_ports()))
+    # a path_partition cuts the link between the sites' routers: it runs through a relay the runner owns
+    relay = (
+        LinkRelay(config.zenoh.default_port)
+        if any(f.kind == "path_partition" for f in scenario.faults)
+        else None
+    )
+    if relay is not None and config_b is not None:
+        config_b = through_relay(config_b, relay)
     config_path = folder / "dynqos.toml"
     write_config(config_path, scenario, config)
     procs = Processes(config_path, logs, scenario.metrics_port)
@@ -89,9 +99,13 @@ def run_scenario(
 
     def fly() -> None:
         cell_ports = _start_edge_and_cell(procs, scenario, (config, config_b), config_path, folder, px4)
-        _record_flight(scenario, (config, config_b), procs, cell_ports, rec, stop, progress)
+        _record_flight(scenario, (config, config_b), procs, cell_ports, rec, stop, progress, relay)
 
-    ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
+    try:
+        ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
+    finally:
+        if relay is not None:
+            relay.close()
     onboard_log = logs / "onboard.log"
     log_text = onboard_log.read_text(errors="replace") if onboard_log.exists() else ""
     summary = summarise(scenario, rec, log_text, ok=ok, failure=failure)
@@ -158,6 +172,7 @@ def _record_flight(
     rec: Recording,
     stop: threading.Event,
     progress: bool,
+    relay: LinkRelay | None = None,
 ) -> None:
     config = configs[0]
     # the recorder hears the drone as a ground station would: with two sites, through either router
@@ -181,7 +196,7 @@ def _record_flight(
             bus,
             uplink_mbps=uplink_mbps,
             watch_uav=UAV if replica_faults else None,
-            sites=SiteFaults(procs, {site: cell_event(port) for site, port in cell_ports.items()}),
+            sites=SiteFaults(procs, {site: cell_event(port) for site, port in cell_ports.items()}, relay),
         )
         try:
             more_cells = {site: port for site, port in cell_ports.items() if site != "a"}

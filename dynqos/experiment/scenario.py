@@ -202,8 +202,10 @@ class Scenario:
                 "sites", 'two sites fly one simulated drone with qos_backend "links" or "camara" (for now)'
             )
         for i, fault in enumerate(self.faults):
-            if fault.site == "b" and self.sites < 2:
-                raise ConfigError(f"faults[{i}].site", "site b needs sites = 2")
+            if (fault.site == "b" or fault.kind == "path_partition") and self.sites < 2:
+                raise ConfigError(
+                    f"faults[{i}].site", f"{'site b' if fault.site == 'b' else fault.kind} needs sites = 2"
+                )
             if fault.kind in ("site_kill", "cell_outage") and self.fleet:
                 raise ConfigError(f"faults[{i}].kind", f"{fault.kind} flies one drone (for now)")
 

@@ -5,7 +5,8 @@ second set under the same names with `-b` after them (router-b, cell-b, ...), st
 its own: its router on other ports and linked to site A's, its MPC replicas in site b, its own cell
 (seeded apart, with its own timeline). The drone's path a goes through cell A to router A, its path b
 through cell B to router B. The faults `site_kill` and `cell_outage` act on one site (`site`), the
-background load on one cell.
+background load on one cell, `path_partition` on the link between the sites' routers (relayed by the
+runner, dynqos/experiment/link_relay.py, when a scenario has that fault).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from typing import Any
 
 from dynqos.common.config import Config, OnboardPathConfig, ZenohConfig
 from dynqos.experiment.faults import Fault, FaultWindow
+from dynqos.experiment.link_relay import LinkRelay
 from dynqos.experiment.processes import Processes
 from dynqos.experiment.scenario import Scenario, replica_names
 from dynqos.reports.summary import qod_sessions
@@ -81,6 +83,11 @@ def site_configs(config: Config, zenoh_b: ZenohConfig) -> tuple[Config, Config]:
     return a, b
 
 
+def through_relay(config_b: Config, relay: LinkRelay) -> Config:
+    """Site B's config with its router's link to site A's through `relay` (a path_partition cuts it)."""
+    return replace(config_b, zenoh=replace(config_b.zenoh, router_links=(f"tcp/127.0.0.1:{relay.port}",)))
+
+
 def with_two_paths(config: Config, cells: dict[str, dict[str, Any]]) -> Config:
     """The drone's paths once both cells are up: path a dials cell A's bearers, path b cell B's."""
     uav = config.drone.id
@@ -99,11 +106,18 @@ def with_two_paths(config: Config, cells: dict[str, dict[str, Any]]) -> Config:
 class SiteFaults:
     """`site_kill`: SIGKILL every process of a site's edge at once (its router among them), restart
     them after `duration_s`; `cell_outage`: the site's cell carries nothing for `duration_s` (the cell's
-    coverage_loss, connections kept); `background`: the site's cell's background user."""
+    coverage_loss, connections kept); `path_partition`: the link between the sites' routers cut for
+    `duration_s` (`relay`); `background`: the site's cell's background user."""
 
-    def __init__(self, procs: Processes, cell_events: dict[str, Callable[[dict[str, Any]], object]]) -> None:
+    def __init__(
+        self,
+        procs: Processes,
+        cell_events: dict[str, Callable[[dict[str, Any]], object]],
+        relay: LinkRelay | None = None,
+    ) -> None:
         self.procs = procs
         self.cell_events = cell_events
+        self.relay = relay  # the link between the sites' routers, with a path_partition fault
         self._killed: dict[int, list[str]] = {}
 
     def begin(self, window: FaultWindow) -> None:
@@ -116,6 +130,9 @@ class SiteFaults:
             window.notes.append(f"site {fault.site}: killed {', '.join(names)}")
         elif fault.kind == "cell_outage":
             self._cell(fault, {"kind": "coverage_loss", "duration_s": fault.duration_s})
+        elif fault.kind == "path_partition" and self.relay is not None:
+            cut = self.relay.cut()
+            window.notes.append(f"the link between the sites' routers cut ({cut} connection(s))")
         elif fault.kind == "background":
             self._cell(fault, {"kind": "background", "user": "bg", "offered_mbps": fault.offered_mbps})
 
@@ -130,6 +147,8 @@ class SiteFaults:
                 for name in names:
                     if name not in routers:
                         self.procs.restart(name)
+        elif fault.kind == "path_partition" and self.relay is not None:
+            self.relay.mend()
         elif fault.kind == "background":
             self._cell(fault, {"kind": "background", "user": "bg", "offered_mbps": 0.0})
 
