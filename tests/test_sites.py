@@ -22,7 +22,7 @@ from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import builtin_scenario, scenario_config
 from dynqos.experiment.sites import site_configs, site_processes, with_two_paths
 from dynqos.reports.multipath import multipath_lines, path_figures
-from dynqos.reports.summary import _flight_cpu
+from dynqos.reports.summary import _cpu
 from tests.procs import DYNQOS
 
 MS = 1_000_000
@@ -203,5 +203,5 @@ def test_a_dual_homed_drone_flies_through_load_a_site_kill_and_a_cell_outage_wit
 def test_the_flights_cpu_leaves_the_start_out_and_counts_a_restarted_process_from_its_restart() -> None:
     rec = Recording(cpu_s_t0={"onboard": 2.0, "router": 5.0})
     rec.cpu_s = {"onboard": 6.5, "router": 1.5, "mpc-b": 3.0}  # the router was killed and restarted
-    assert _flight_cpu(rec) == {"cpu_s_flight": {"onboard": 4.5, "router": 1.5, "mpc-b": 3.0}}
-    assert _flight_cpu(Recording(cpu_s={"onboard": 1.0})) == {}  # the start was never read: not given
+    assert _cpu(rec)["cpu_s_flight"] == {"onboard": 4.5, "router": 1.5, "mpc-b": 3.0}
+    assert _cpu(Recording(cpu_s={"onboard": 1.0})) == {"cpu_s": {"onboard": 1.0}}  # the start never read

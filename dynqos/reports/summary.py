@@ -55,24 +55,27 @@ def cell_rates(
     return rates
 
 
-def _flight_cpu(rec: Recording) -> dict[str, Any]:
-    """`cpu_s_flight`: each process's CPU seconds over the recorded flight alone (from offloading to the
-    end; a process restarted in it, e.g. by a site kill, from its restart), when the start was read."""
+def _cpu(rec: Recording) -> dict[str, Any]:
+    """`cpu_s`: each process's CPU seconds over its whole life (start-up included); `cpu_s_flight`, when
+    the flight's start was read: over the recorded flight alone (from offloading to the end; a process
+    restarted in it, e.g. by a site kill, from its restart)."""
     if not rec.cpu_s_t0:
-        return {}
+        return {"cpu_s": rec.cpu_s}
     flight = {}
     for name, end in rec.cpu_s.items():
         start = rec.cpu_s_t0.get(name, 0.0)
         flight[name] = round(end - start if end >= start else end, 2)
-    return {"cpu_s_flight": flight}
+    return {"cpu_s": rec.cpu_s, "cpu_s_flight": flight}
 
 
-def _more_cells(rec: Recording, start_ns: int, end_ns: int, scale: float) -> dict[str, Any]:
-    """`cells`: each further cell's rates over the same span as the first's (site -> rates; the first
-    cell's are the summary's own), with two sites (docs/multipath.md); nothing with one cell."""
-    if not rec.more_cells:
-        return {}
-    return {"cells": {site: cell_rates(c, start_ns, end_ns, scale) for site, c in rec.more_cells.items()}}
+def _cells(scenario: Scenario, rec: Recording, start_ns: int, end_ns: int) -> dict[str, Any]:
+    """The cell's rates over [start, end] (`_with_trace`) and, with two sites, `cells`: each further
+    cell's rates over the same span (site -> rates; the first cell's are the summary's own)."""
+    rates = _with_trace(scenario, cell_rates(rec.cell, start_ns, end_ns, scenario.scale))
+    if rec.more_cells:
+        more = rec.more_cells.items()
+        rates["cells"] = {site: cell_rates(c, start_ns, end_ns, scenario.scale) for site, c in more}
+    return rates
 
 
 def _app_offered_mbps(
@@ -122,7 +125,7 @@ def summarise(
     cams = _samples(rec.status, "camera_latency_samples_ms", "camera_latency_ms")
     errors = [(t0 + round(t * 1e9), e) for t, e in tracking_errors(rec)]
     loaded = bg_ns is not None
-    rates = _with_trace(scenario, cell_rates(rec.cell, loaded_start, end_ns + 1, scenario.scale))
+    rates = _cells(scenario, rec, loaded_start, end_ns + 1)
     statuses = sorted(rec.status, key=lambda s: s.stamp_ns)
     times = dict.fromkeys((s.value for s in SupervisorState), 0.0) | time_in_states(statuses, since_ns=t0)
     first_switch, switch_cause = _first_qos_switch(statuses, bg_ns if scenario.qos == "dynamic" else None)
@@ -142,7 +145,6 @@ def summarise(
         "rates_span": "loaded" if loaded else "whole run after settling",
         "uav_offered_mbps": _app_offered_mbps(statuses, loaded_start, end_ns, scenario.scale),
         **rates,
-        **_more_cells(rec, loaded_start, end_ns + 1, scenario.scale),
         "rtt_ms": {
             "baseline": stats(window(rtts, settle_ns, baseline_end)),
             "loaded": stats(window(rtts, bg_ns, end_ns + 1)) if loaded else None,
@@ -179,8 +181,7 @@ def summarise(
             for w, nxt in itertools.zip_longest(rec.faults, rec.faults[1:])
         ],
         "memory_mb": {name: memory_figures(samples) for name, samples in rec.memory_kb.items()},
-        "cpu_s": rec.cpu_s,  # each process's CPU seconds over its whole life (start-up included)
-        **_flight_cpu(rec),
+        **_cpu(rec),
         "machine": machine,  # how busy all cores were over the recorded flight
         "ok": ok,
         "failure": failure,
