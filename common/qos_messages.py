@@ -83,9 +83,7 @@ class QosGrant(Message):
     session_id: str = ""  # the QoD session ("" with the links backend or when there is none)
     reason: str = ""  # why the grant is what it is (the API's code and message on a refusal)
     answers_seq: int = 0  # the newest QosRequest seq the agent had when it sent this
-    site: str = (
-        ""  # the site of the agent that says it ("" = one site), so a drone on two paths tells them apart
-    )
+    site: str = ""  # the site of the agent that says it ("" = one site): a drone on two paths hears two
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

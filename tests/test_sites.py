@@ -59,6 +59,8 @@ def test_site_b_gets_its_own_router_linked_to_a_and_the_drone_a_path_through_eac
     assert (a.mpc.site, b.mpc.site) == ("a", "b")
     assert (a.qos.site, b.qos.site) == ("a", "b")  # each site's agent, active in its own site
     assert b.zenoh.router_links == (f"tcp/127.0.0.1:{a.zenoh.default_port}",)
+    _, relayed = site_configs(config, ZenohConfig(**flow_ports()), link_port=4242)  # a path_partition's relay
+    assert relayed.zenoh.router_links == ("tcp/127.0.0.1:4242",)
     assert b.zenoh.default_port != a.zenoh.default_port
     assert b.cell.seed != a.cell.seed  # the two cells' jitter is not one
     cells = {

@@ -39,7 +39,6 @@ from dynqos.experiment.sites import (
     site_b_folder,
     site_configs,
     start_site_b,
-    through_relay,
     with_two_paths,
 )
 from dynqos.experiment.vehicles import (
@@ -81,17 +80,13 @@ def run_scenario(
     px4 = instances[0] if instances else None
     if px4 is not None:
         config = px4_config(config, px4)
+    # a path_partition cuts the link between the sites' routers: it runs through a relay the runner owns
+    partition = any(f.kind == "path_partition" for f in scenario.faults)
+    relay = LinkRelay(config.zenoh.default_port) if partition else None
     config_b = None  # site B's, with two sites (docs/multipath.md)
     if scenario.sites == 2:
-        config, config_b = site_configs(config, ZenohConfig(**flow_ports()))
-    # a path_partition cuts the link between the sites' routers: it runs through a relay the runner owns
-    relay = (
-        LinkRelay(config.zenoh.default_port)
-        if any(f.kind == "path_partition" for f in scenario.faults)
-        else None
-    )
-    if relay is not None and config_b is not None:
-        config_b = through_relay(config_b, relay)
+        link_port = relay.port if relay is not None else config.zenoh.default_port
+        config, config_b = site_configs(config, ZenohConfig(**flow_ports()), link_port)
     config_path = folder / "dynqos.toml"
     write_config(config_path, scenario, config)
     procs = Processes(config_path, logs, scenario.metrics_port)

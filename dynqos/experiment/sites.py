@@ -63,14 +63,15 @@ def start_site_b(procs: Processes, scenario: Scenario, config: Path) -> None:
     procs.start("detector-b", ["edge", "detector"], config=config)
 
 
-def site_configs(config: Config, zenoh_b: ZenohConfig) -> tuple[Config, Config]:
+def site_configs(config: Config, zenoh_b: ZenohConfig, link_port: int = 0) -> tuple[Config, Config]:
     """Site A's config (its MPC and QoS agent in site a) and site B's: B's router on its own ports and
-    linked to A's, its MPC and QoS agent in site b (each agent asks its own site's operator: its cell's
-    QoD API, set once the cell is up), its cell seeded apart from A's."""
+    linked to A's (at `link_port`: A's default port, or a relay to it the runner can cut), its MPC and QoS
+    agent in site b (each agent asks its own site's operator: its cell's QoD API, set once the cell is
+    up), its cell seeded apart from A's."""
     a = replace(config, mpc=replace(config.mpc, site="a"), qos=replace(config.qos, site="a"))
     z = replace(
         zenoh_b,
-        router_links=(f"tcp/127.0.0.1:{config.zenoh.default_port}",),
+        router_links=(f"tcp/127.0.0.1:{link_port or config.zenoh.default_port}",),
         bulk_sndbuf_bytes=config.zenoh.bulk_sndbuf_bytes,
     )
     b = replace(
@@ -81,11 +82,6 @@ def site_configs(config: Config, zenoh_b: ZenohConfig) -> tuple[Config, Config]:
         cell=replace(config.cell, seed=config.cell.seed + 1),
     )
     return a, b
-
-
-def through_relay(config_b: Config, relay: LinkRelay) -> Config:
-    """Site B's config with its router's link to site A's through `relay` (a path_partition cuts it)."""
-    return replace(config_b, zenoh=replace(config_b.zenoh, router_links=(f"tcp/127.0.0.1:{relay.port}",)))
 
 
 def with_two_paths(config: Config, cells: dict[str, dict[str, Any]]) -> Config:

@@ -151,7 +151,9 @@ def _cell_lines(rows: list[dict[str, Any]]) -> list[str]:
         "|---|---|---|---|",
     ]
     for s in rows:
-        pair = " / ".join(figure(s, f"{name}_mbps", 1) for name in ("uav_delivered", "bg_delivered"))
-        other = " / ".join(figure(s, f"cells.b.{name}_mbps", 1) for name in ("uav_delivered", "bg_delivered"))
-        lines.append(f"| {s['scenario']} | {len(s.get('runs', [s]))} | {pair} | {other} |")
+        cells = [  # cell a's rates are the summary's own, cell b's under cells.b
+            " / ".join(figure(s, f"{prefix}{name}_mbps", 1) for name in ("uav_delivered", "bg_delivered"))
+            for prefix in ("", "cells.b.")
+        ]
+        lines.append(f"| {s['scenario']} | {len(s.get('runs', [s]))} | {' | '.join(cells)} |")
     return lines
