@@ -116,6 +116,7 @@ class State(Message):
         "command_term": f.integer(),
         "command_replica": f.text(64),
         "controllers": f.sequence(f.record(f.text(64), f.integer(), f.text(64)), 0, MAX_SITES),
+        "path": f.text(64),
     }
 
     stamp_ns: int
@@ -131,6 +132,9 @@ class State(Message):
     # A drone on two paths follows one controller per edge site (docs/multipath.md): (site, term,
     # replica) for each site it has accepted a Command from; each site's replicas read their own entry.
     controllers: tuple[tuple[str, int, str], ...] = ()
+    # The path this copy went by ("" = the drone's only path): a site answers each copy it hears, so
+    # the drone times each path's uplink apart (docs/multipath.md).
+    path: str = ""
 
     def _check(self) -> None:
         norm = math.sqrt(sum(q * q for q in self.quat))
@@ -155,6 +159,7 @@ class Command(Message):
         "term": f.integer(),
         "replica": f.text(64),
         "site": f.text(64),
+        "state_path": f.text(64),
     }
 
     state_seq: int
@@ -170,6 +175,9 @@ class Command(Message):
     # The edge site whose replicas sent it ("" = one site): terms are compared within a site only, and
     # a drone on two paths takes the first Command for a state from whichever site (docs/multipath.md).
     site: str = ""
+    # The path of the State copy it answers (State.path): the first copy is solved, a later copy by
+    # another path gets the same Command again under its own path, so each path's uplink is timed.
+    state_path: str = ""
 
     def _check(self) -> None:
         if len(self.yaw_rad) != len(self.accel_mps2):
@@ -290,6 +298,9 @@ class SupervisorStatus(Message):
         "duplicates": f.integer(),
         "site": f.text(64),
         "site_wins": f.sequence(f.record(f.text(64), f.integer()), 0, MAX_SITES),
+        "path_states": f.sequence(
+            f.record(f.text(64), f.member(SupervisorState), f.member(Flow)), 0, MAX_SITES
+        ),
     }
 
     stamp_ns: int
@@ -334,14 +345,16 @@ class SupervisorStatus(Message):
     fc_text: str = ""
     fc_severity: int | None = None
     # A drone on two paths (docs/multipath.md): each path's command RTTs since the last status (the
-    # first answer and the duplicates it heard), the camera's path, the duplicate Commands dropped
-    # since the daemon started, the site whose Command flies the drone now, and how many Commands each
-    # site won (applied) since the daemon started. Empty with one path.
+    # first answer to each State copy it carried: its uplink), the camera's path, the duplicate
+    # Commands dropped since the daemon started, the site whose Command flies the drone now, and how
+    # many Commands each site won (applied) since the daemon started. Empty with one path.
     path_rtt_samples_ms: tuple[tuple[str, tuple[float, ...]], ...] = ()
     camera_path: str = ""
     duplicates: int = 0
     site: str = ""
     site_wins: tuple[tuple[str, int], ...] = ()
+    # each path's own PFSM: its state and the flow its traffic takes (docs/supervisor.md, "Two paths")
+    path_states: tuple[tuple[str, SupervisorState, Flow], ...] = ()
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

@@ -45,7 +45,8 @@ class Answers:
         accepted = tracker.offer(command, arrival_ns)
         if self.paths is not None and (accepted or counters.duplicates > duplicates):
             rtt_ms = (arrival_ns - command.state_stamp_ns - command.edge_hold_ns) / 1e6
-            self.paths.heard(path, rtt_ms, arrival_ns, won=accepted)
+            by = command.state_path or path  # the copy's path: its uplink is what this answer timed
+            self.paths.heard(by, rtt_ms, arrival_ns, won=accepted, state_seq=command.state_seq)
         at = f" at site {command.site}" if command.site else ""
         sender = f"MPC replica {command.replica or '(unnamed)'}{at}"
         if accepted and command.site and new_site:

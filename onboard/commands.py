@@ -165,9 +165,11 @@ class CommandTracker:
             for old in sorted(self._sent)[:-256]:
                 del self._sent[old]
 
-    def oldest_unanswered_ms(self, now_ns: int) -> float | None:
-        """Age of the oldest state sent after the last answered one: a lower bound on the next RTT."""
-        answered = self.active.state_seq if self.active else -1
+    def oldest_unanswered_ms(self, now_ns: int, answered: int | None = None) -> float | None:
+        """Age of the oldest state sent after the last answered one (`answered`: the newest State one
+        path answered; None: the newest any Command applied answered): a lower bound on the next RTT."""
+        if answered is None:
+            answered = self.active.state_seq if self.active else -1
         pending = [stamp for seq, stamp in self._sent.items() if seq > answered]
         return (now_ns - min(pending)) / 1e6 if pending else None
 

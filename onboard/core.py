@@ -12,10 +12,10 @@ bus, calls `tick`, and writes what comes back. Everything that decides lives her
   configured flow otherwise (the supervisor then only reports, and the watchdog still hands control to
   the fallback);
 - the SupervisorStatus, with what the drone does (not what it was asked to do) and what was measured;
-- the request for priority to the QoS agent (in flight: wanted while the state's flow is the priority
-  flow, always with `qos = "priority"`, never with `"default"`) and the grant it answers
+- the request for priority to the QoS agent (onboard/asking.py) and the grant it answers
   (docs/qos.md). The drone never waits for it: it switches its link at once; a refusal is an input
-  to the supervisor.
+  to the supervisor;
+- on a drone with two paths, each path's flow and request from its own PFSM (onboard/path_pfsm.py).
 
 No zenoh, MAVLink, OpenCV, threads or wall clock here: tests drive it tick by tick on a fake clock.
 """
@@ -37,19 +37,20 @@ from dynqos.common.messages import (
     Detections,
     QosGrant,
     QosMonitoring,
-    QosRequest,
     Reference,
     State,
     SupervisorStatus,
 )
-from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
+from dynqos.common.modes import ControlSource, Flow, Grant
 from dynqos.common.reference import ReferenceTrack
 from dynqos.onboard.answers import Answers
+from dynqos.onboard.asking import Need, QosAsking
 from dynqos.onboard.commands import SetpointSteps
 from dynqos.onboard.fc import AccelSetpoint, FcSaid, FcState, PositionSetpoint, Setpoint
 from dynqos.onboard.grants import SiteGrants
 from dynqos.onboard.modem import ModemReading
 from dynqos.onboard.monitors import CameraLatencyMonitor, LatencySamples, NetworkDelays
+from dynqos.onboard.path_pfsm import PathSupervisors
 from dynqos.onboard.pid import CascadedPid
 from dynqos.onboard.supervisor import Decision, Inputs, Supervisor
 from dynqos.onboard.supervisor_status import decision_fields
@@ -93,6 +94,11 @@ class OnboardCore:
         self.camera_monitor = CameraLatencyMonitor()
         self.network = NetworkDelays()  # the 5G core's own delay reports, when the agent forwards them
         self.supervisor = Supervisor(config.supervisor, start_ns=start_ns)
+        sites = {p.name: p.site or p.name for p in config.onboard.paths}
+        watchdog_ns = to_ns(config.supervisor.watchdog_s)
+        self.path_pfsms = (
+            PathSupervisors(config.supervisor, sites, watchdog_ns, start_ns) if len(sites) > 1 else None
+        )
         self.pid = CascadedPid()
         self.reference = ReferenceTrack()
         self.samples = LatencySamples()
@@ -119,13 +125,8 @@ class OnboardCore:
         self._status_gap_ms = 0.0  # the longest setpoint gap since the last status
         self._events: list[LogEvent] = []
         self.grants = SiteGrants(to_ns(config.qos.agent_timeout_s))  # each site's agent's last word
-        self._request_period_ns = to_ns(config.qos.request_interval_s)
-        self._requested: bool | None = None  # the last want sent (None: none yet)
-        self._requested_risk = ""  # the risk level that request carried
-        self._next_request_ns = start_ns
-        self._request_seq = 0
-        self._offered_at: tuple[int, int] = (start_ns, 0)  # (when, camera bytes) at the last request
-        self._offered_mbps = 0.0
+        period_ns, th_lat = to_ns(config.qos.request_interval_s), config.supervisor.th_lat
+        self.asking = QosAsking(self.uav, paths if self.path_pfsms else ("",), period_ns, th_lat, start_ns)
 
     # ---- the one entry point ------------------------------------------------------------------------
 
@@ -148,13 +149,13 @@ class OnboardCore:
         setpoint = self._control(inp.fc, now, watchdog)
         self._measure_gap(setpoint, now)
         flow, camera_flow, rate = self._flows()
-        request = self._request(now, flow)
-        if request is not None:
-            publish.append(request)
+        if self.qos != "default" and self.offloading:  # never asks; and nobody asks on the ground
+            publish.extend(self.asking.requests(now, self.qos, self._needs(flow), self.counters.camera_bytes))
         changed = self.control is not before or self.reported_grant(now) is not grant_before
         if self.decision is not None and (now >= self._next_status_ns or changed):
             self._next_status_ns = now + self._status_period_ns
-            publish.append(Outgoing(Stream.STATUS, flow, self._status(now, flow, camera_flow, rate)))
+            status = self._status(now, flow, camera_flow, rate)
+            publish.append(Outgoing(Stream.STATUS, flow, status, path_flows=self._path_flows()))
         return TickOutput(
             setpoint, tuple(publish), camera_flow, rate, tuple(self._events), self.answers.camera_path(now)
         )
@@ -203,42 +204,18 @@ class OnboardCore:
     def reported_grant(self, now: int) -> Grant:
         return self.grants.reported(now)
 
-    def _request(self, now: int, flow: Flow) -> Outgoing | None:
-        """The QosRequest due now: on a change of want at once, else every request_interval_s."""
-        if self.qos == "default" or not self.offloading:
-            return None  # never asks; and nobody asks on the ground
-        # qA flies its state on the priority flow, but asks the network for it only when it came from
-        # a state that already wanted it: not after a watchdog in q1.
-        in_qa = self.decision is not None and self.decision.state is SupervisorState.QA
-        want = self.qos == "priority" or (flow is Flow.PRIORITY and (not in_qa or bool(self._requested)))
-        signals = self.decision.signals if self.decision is not None else None
-        risk = signals.risk.value if signals is not None else "NA"
-        new_need = want and risk != self._requested_risk  # an arbiter ranks by risk: say so at once
-        if want == self._requested and not new_need and now < self._next_request_ns:
-            return None
-        self._requested, self._requested_risk = want, risk
-        self._next_request_ns = now + self._request_period_ns
-        self._request_seq += 1
-        p_lat = signals.p_lat if signals is not None else None
-        excess = 0.0 if p_lat is None else p_lat - self.config.supervisor.th_lat
-        request = QosRequest(
-            uav=self.uav,
-            seq=self._request_seq,
-            stamp_ns=now,
-            want=want,
-            risk=risk,
-            latency_excess=excess,
-            offered_mbps=self._offered(now),
-        )
-        return Outgoing(Stream.QOS, flow, request)
+    def _needs(self, flow: Flow) -> list[Need]:
+        """What each path says about asking for priority: its own PFSM's, or the drone's (one path, or
+        a fixed flow)."""
+        if self.path_pfsms is not None and self.qos == "dynamic":
+            return self.path_pfsms.needs()
+        d = self.decision
+        state, risk, p_lat = (d.state, d.signals.risk.value, d.signals.p_lat) if d else (None, "NA", None)
+        return [Need(path, flow, state, risk, p_lat) for path in self.asking.asked]
 
-    def _offered(self, now: int) -> float:
-        """The camera's bytes per second since the last request (over at least 0.2 s), in Mbit/s."""
-        since, sent = self._offered_at
-        if now - since >= NS_PER_S // 5:
-            self._offered_mbps = (self.counters.camera_bytes - sent) * 8e3 / (now - since)
-            self._offered_at = (now, self.counters.camera_bytes)
-        return self._offered_mbps
+    def _path_flows(self) -> tuple[tuple[str, Flow], ...]:
+        """Each path's own flow while its PFSM sets it (two paths, qos dynamic); () otherwise."""
+        return self.path_pfsms.flows() if self.path_pfsms is not None and self.qos == "dynamic" else ()
 
     def _engage(self, fc: FcState, now: int) -> None:
         """The FC flies offboard: from now on every tick sends a setpoint, starting from a hold here.
@@ -251,6 +228,8 @@ class OnboardCore:
         self._hold.set(fc)
         self.pid.reset()
         self.supervisor = Supervisor(self.config.supervisor, start_ns=now)
+        if self.path_pfsms is not None:
+            self.path_pfsms.restart(now)
         self._log(logging.INFO, "supervisor: judging the flight from q1 (offloading)")
 
     def _state_due(self, now: int) -> bool:
@@ -280,7 +259,7 @@ class OnboardCore:
         )
         self.tracker.state_sent(self._state_seq, now)
         self.counters.states += 1
-        return Outgoing(Stream.STATE, self._flows()[0], message)
+        return Outgoing(Stream.STATE, self._flows()[0], message, path_flows=self._path_flows())
 
     def _supervise(self, now: int, watchdog: bool) -> None:
         cams, rtts = self.camera_monitor.take_new(), self.tracker.take_new_rtts()
@@ -292,7 +271,7 @@ class OnboardCore:
             cc_outstanding_ms=self.tracker.oldest_unanswered_ms(now),
             spaciousness_m=self._space,
             watchdog_expired=watchdog,
-            priority_denied=bool(self._requested) and self.reported_grant(now) is Grant.UNAVAILABLE,
+            priority_denied=self.asking.requested() and self.reported_grant(now) is Grant.UNAVAILABLE,
             sinr_db=modem.sinr_db if (modem := self._fresh_modem(now)) else None,
             network_rtt_ms=self.network.round_trip_ms(now),
         )
@@ -300,6 +279,12 @@ class OnboardCore:
         # on the ground: observed, not judged (see _engage)
         step = self.supervisor.step if self.offloading else self.supervisor.observe
         decision = step(inputs, now)
+        if self.path_pfsms is not None and self.answers.paths is not None:
+            asked = (self.asking, self.grants)
+            paths = self.answers.paths
+            self._events.extend(
+                self.path_pfsms.step(now, inputs, paths, self.tracker, asked, judge=self.offloading)
+            )
         if decision.transition is not None:
             t = decision.transition
             p_lat = "NA" if t.p_lat is None else f"{t.p_lat:.2f}"
@@ -317,12 +302,18 @@ class OnboardCore:
         self.decision = decision
 
     def _flows(self) -> tuple[Flow, Flow, float]:
-        """(the state's flow, the camera's flow, the camera's rate factor)."""
+        """(the state's flow, the camera's flow, the camera's rate factor). With two paths each path's
+        PFSM sets its flow: the state's flow is then the priority flow if any path takes it, and the
+        camera's is that of the path it rides."""
         if self.qos != "dynamic":
             return Flow(self.qos), Flow(self.qos), 1.0
         if self.decision is None:
             return Flow.DEFAULT, Flow.DEFAULT, 1.0
         a = self.decision.actions
+        if self.path_pfsms is not None and self.answers.paths is not None:
+            flows = self.path_pfsms.flows()
+            flow = Flow.PRIORITY if any(f is Flow.PRIORITY for _, f in flows) else Flow.DEFAULT
+            return flow, self.path_pfsms.camera_flow(self.answers.paths.camera), a.camera_rate_factor
         return a.flow, a.camera_flow, a.camera_rate_factor
 
     # ---- who flies --------------------------------------------------------------------------------------
@@ -444,6 +435,7 @@ class OnboardCore:
             fc_text=said.text if said else "",
             fc_severity=said.severity if said else None,
             **self.answers.status_fields(),
+            path_states=self.path_pfsms.states() if self.path_pfsms is not None else (),
             **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),
         )
 
@@ -477,6 +469,7 @@ class OnboardCore:
             "max_setpoint_gap_ms": f"{self.max_setpoint_gap_ms:.1f}",
             "max_command_gap_ms": f"{self.tracker.longest_gap_ns / 1e6:.1f}",
             **self.answers.health(),
+            **(self.path_pfsms.health() if self.path_pfsms is not None else {}),
         }
 
 

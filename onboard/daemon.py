@@ -51,7 +51,7 @@ from dynqos.onboard.modem import modem_poller
 from dynqos.onboard.px4_events import EventCatalogue
 from dynqos.onboard.systemd import SystemdNotifier
 from dynqos.onboard.takeoff import Do, ExitAction, TakeoffSequencer, on_exit
-from dynqos.onboard.tick import TickInput, TickOutput
+from dynqos.onboard.tick import Outgoing, TickInput, TickOutput
 from dynqos.onboard.uplink import Uplink
 
 log = logging.getLogger(__name__)
@@ -262,9 +262,7 @@ class OnboardDaemon:
         elif out.setpoint is not None:
             link.send_position(out.setpoint.pos_m, out.setpoint.yaw_rad)
         for item in out.publish:
-            for name, path in self.paths.items():  # every path: the first to arrive is the one that counts
-                message = as_carried(item.message, name, self.path_sites)
-                self.uplink.put(item.flow, path.publishers[item.stream].pick(item.flow), message)
+            self._put(item)
             if self.metrics is not None and isinstance(item.message, SupervisorStatus):
                 self.metrics.observe(item.message)
         for publishers in self.camera_publishers.values():
@@ -275,6 +273,15 @@ class OnboardDaemon:
                 out.camera_rate_factor,
             )
         return out
+
+    def _put(self, item: Outgoing) -> None:
+        """On every path it goes by (the first to arrive is the one that counts), on that path's flow."""
+        for name, path in self.paths.items():
+            if item.path and item.path != name:
+                continue
+            message = as_carried(item.message, name, self.path_sites)
+            flow = item.flow_on(name)
+            self.uplink.put(flow, path.publishers[item.stream].pick(flow), message)
 
     def _downlink(self) -> list[Received]:
         """What every path delivered since the last tick, by arrival, each item tagged with its path."""

@@ -4,7 +4,7 @@ With one site (every grant's `site` is "") this is the agent's last word, as it 
 two paths asks each site's agent for its own path (each agent its own operator, docs/multipath.md) and
 hears both agents by both paths: its priority counts as granted when either site grants it (the
 Commands it flies come by whichever path answers first), and as denied only when every site heard
-within [qos] agent_timeout_s denies it.
+within [qos] agent_timeout_s denies it; each path's own PFSM reads its own site's grant (`of`).
 """
 
 from __future__ import annotations
@@ -45,6 +45,11 @@ class SiteGrants:
     def agent_heard(self, now_ns: int) -> bool:
         """An agent answered within the timeout (else: links only, nobody asks the network)."""
         return bool(self._heard(now_ns))
+
+    def of(self, site: str, now_ns: int) -> Grant:
+        """`site`'s own last grant, if its agent was heard within the timeout (else NONE)."""
+        grant, at = self.last.get(site, (Grant.NONE, now_ns))
+        return grant if now_ns - at <= self.agent_timeout_ns else Grant.NONE
 
     def reported(self, now_ns: int) -> Grant:
         """The best grant of the sites heard within the timeout (NONE when none was)."""

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field, replace
 from dynqos.common.bus import Bus, Received, SubscriptionStats, Token
 from dynqos.common.config import Config
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import Message, QosRequest
+from dynqos.common.messages import Message, QosRequest, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import default_flow_endpoint, priority_flow_endpoint
 from dynqos.onboard.camera_stream import FlowPublishers
@@ -74,7 +74,10 @@ def _endpoints(config: Config, connect_default: str, connect_priority: str) -> l
 
 def as_carried(message: Message, path: str, sites: dict[str, str]) -> Message:
     """`message` as `path` carries it (`sites`: each path's site): a QoS request names the site whose
-    agent it is for, so each site's agent asks its own operator for its own path; the rest as it is."""
+    agent it is for, so each site's agent asks its own operator for its own path; a State names its
+    path, so each site answers each copy and the drone times each path's uplink; the rest as it is."""
     if path and isinstance(message, QosRequest):
         return replace(message, site=sites.get(path, path))
+    if path and isinstance(message, State):
+        return replace(message, path=path)
     return message

@@ -1,8 +1,11 @@
 """A drone on more than one path: what each path answers, and which path the camera takes. Pure.
 
-Every State goes out on every path, and every edge site answers it; each path's command RTT is timed
-from the State's stamp to the arrival of a genuine answer by that path (the first or a duplicate), so
-the slower path is measured too, not only the winner. The camera is too heavy to send twice, so it
+Every State goes out on every path, each copy naming its path, and every edge site answers every copy
+it hears (the first solved, a later one with the same Command under its own path). A path's command
+RTT is timed from the State's stamp to the first answer to that path's copy, by whichever path it came
+down: so it times the path's uplink (where a cell's load is) and the slower path is measured too, not
+only the winner. Answers from an edge that does not name the copy's path count for the path they
+arrived by. The camera is too heavy to send twice, so it
 rides one path: the one with the lowest median RTT over its last `WINDOW` answers among the paths that
 answered within the watchdog. It moves only when the other path is `HYSTERESIS` better and the camera
 has stayed `DWELL_NS` where it is, so two paths of about equal latency do not toss the camera between
@@ -34,6 +37,9 @@ class PathRecord:
     new_rtts: deque[float] = field(
         default_factory=lambda: deque(maxlen=MAX_STATUS_SAMPLES)
     )  # since the last status
+    # since the path's own PFSM last stepped (onboard/path_pfsm.py)
+    unjudged_rtts: deque[float] = field(default_factory=lambda: deque(maxlen=MAX_STATUS_SAMPLES))
+    answered_seq: int = -1  # the newest State this path answered
 
     def answering(self, now_ns: int, within_ns: int) -> bool:
         return self.last_heard_ns is not None and now_ns - self.last_heard_ns <= within_ns
@@ -52,17 +58,22 @@ class Paths:
         self.camera_since_ns = start_ns
         self.camera_moves = 0
 
-    def heard(self, path: str, rtt_ms: float | None, arrival_ns: int, *, won: bool) -> None:
-        """A genuine answer (accepted, or a duplicate of one) arrived by `path`."""
+    def heard(
+        self, path: str, rtt_ms: float | None, arrival_ns: int, *, won: bool, state_seq: int = -1
+    ) -> None:
+        """A genuine answer (accepted, or a duplicate of one) to State `state_seq` arrived by `path`."""
         record = self.records.get(path)
         if record is None:
             return
         record.answers += 1
         record.wins += won
         record.last_heard_ns = arrival_ns
-        if rtt_ms is not None and rtt_ms >= 0:
+        first = state_seq < 0 or state_seq > record.answered_seq  # the first answer to this copy
+        record.answered_seq = max(record.answered_seq, state_seq)
+        if first and rtt_ms is not None and rtt_ms >= 0:
             record.rtts.push(rtt_ms)
             record.new_rtts.append(rtt_ms)
+            record.unjudged_rtts.append(rtt_ms)
 
     def answering(self, now_ns: int) -> list[str]:
         """The paths that answered within the watchdog, in configured order."""

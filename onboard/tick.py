@@ -56,9 +56,21 @@ class TickInput:
 
 @dataclass(frozen=True, slots=True)
 class Outgoing:
+    """One message for the bus: on every path (`path` ""), or on the one path named. Each path sends it
+    on `flow`, or on the flow `path_flows` names for that path (a drone with two paths, whose paths
+    each have their own PFSM: docs/supervisor.md)."""
+
     stream: Stream
     flow: Flow
     message: Message
+    path: str = ""
+    path_flows: tuple[tuple[str, Flow], ...] = ()
+
+    def flow_on(self, path: str) -> Flow:
+        for name, flow in self.path_flows:
+            if name == path:
+                return flow
+        return self.flow
 
 
 @dataclass(frozen=True, slots=True)

@@ -12,9 +12,12 @@ fails.
 
 from __future__ import annotations
 
+import subprocess
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from tests.procs import DYNQOS
 
 Summary = dict[str, Any]
 
@@ -60,3 +63,14 @@ def fly_for_behaviour(
     assert behaved(summary), summary["failure"]
     check(summary, out)
     return summary
+
+
+def run_file(scenario: Path, out: Path, timeout_s: float = 280) -> subprocess.CompletedProcess[str]:
+    """`dynqos run SCENARIO --out OUT`, its output kept: a scenario file a test wrote."""
+    return subprocess.run(
+        [DYNQOS, "run", str(scenario), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        check=False,
+    )

@@ -136,3 +136,15 @@ def test_environment_overrides_are_pure_and_ordered() -> None:
     assert environment_overrides(env) == [("DYNQOS_A__Y", "a.y=two"), ("DYNQOS_B__X", "b.x=1")]
     with pytest.raises(ConfigError, match="environment variable DYNQOS_A__Y: a: unknown key"):
         load_config(environment=environment_overrides(env))
+
+
+def test_the_demo_s_help_names_every_shipped_scenario(capsys: pytest.CaptureFixture[str]) -> None:
+    from dynqos.cli.experiment_cmd import DEFAULT_FOUR
+    from dynqos.experiment.scenario import DEFAULT_SCENARIOS, builtin_names
+
+    assert DEFAULT_FOUR == DEFAULT_SCENARIOS
+    with pytest.raises(SystemExit):
+        main(["demo", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in builtin_names():  # argparse may break a name at its hyphen
+        assert name in text or name.replace("-", "- ") in text, name

@@ -40,6 +40,7 @@ class TwoPaths:
     site_lag_ms: dict[str, float] = field(default_factory=lambda: {"a": 0.0, "b": 3.0})
     site_accel: dict[str, float] = field(default_factory=lambda: {"a": 0.50, "b": 0.52})
     site_up: dict[str, bool] = field(default_factory=lambda: {"a": True, "b": True})
+    space_m: float = 8.0  # the depth camera's spaciousness: LR
     now: int = 1_000 * MS
     pending: list[tuple[int, Received]] = field(default_factory=list)
     outputs: list[TickOutput] = field(default_factory=list)
@@ -50,7 +51,7 @@ class TwoPaths:
         due = sorted((r for t, r in self.pending if t <= self.now), key=lambda r: r.arrival_ns)
         self.pending = [(t, r) for t, r in self.pending if t > self.now]
         out = self.core.tick(
-            TickInput(now_ns=self.now, fc=fc, downlink=due, offboard=True, spaciousness_m=8.0)
+            TickInput(now_ns=self.now, fc=fc, downlink=due, offboard=True, spaciousness_m=self.space_m)
         )
         for item in out.publish:
             assert decode(encode(item.message)) == item.message

@@ -78,3 +78,45 @@ def test_a_site_reads_its_own_entry_of_the_state() -> None:
     assert followed_at(state, "b") == (1, "b1")
     assert followed_at(state, "c") == (0, "")  # never answered first: nobody followed there yet
     assert followed_at(state, "") == (9, "x")  # one site: the State's own fields, as before
+
+
+def _state(seq: int, stamp_ns: int, path: str) -> State:
+    return State(uav="uav1", seq=seq, stamp_ns=stamp_ns, pos_m=(0.0, 0.0, -1.5), vel_mps=(0.0, 0.0, 0.0),
+                 quat=(1.0, 0.0, 0.0, 0.0), path=path)  # fmt: skip
+
+
+def test_a_site_answers_each_path_s_copy_of_a_state_with_the_same_command_under_its_path() -> None:
+    """The drone times each path's uplink by the answers to that path's copy (onboard/paths.py): the
+    first copy is solved, a later copy by another path gets the same Command again, at once if it was
+    answered already, else once it is; a copy by a path already answered is stale."""
+    clock = FakeClock(1_000 * MS)
+    bus = MemoryBus(clock)
+    bus.declare_token(keys.drone_presence("uav1"))
+    mpc = _mpc("a1", "a", bus, clock)
+    commands: BoundedQueue[Received] = BoundedQueue(1000)
+    bus.subscribe(keys.downlink("uav1", Downlink.COMMAND), commands, expect=(Command,))
+    drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+    turn(mpc, clock.now_ns())
+    # both copies in one batch: the second waits for the solve of the first
+    stamp = clock.now_ns()
+    drone.put(_state(1, stamp, "a"))
+    drone.put(_state(1, stamp, "b"))
+    turn(mpc, clock.now_ns())
+    first = [i.message for i in commands.drain()]
+    assert [c.state_path for c in first] == ["a", "b"]
+    assert first[0].accel_mps2 == first[1].accel_mps2
+    assert {c.seq for c in first} == {1}
+    # the next State's copy by path b arrives 30 ms after path a's, which is answered already
+    clock.advance_s(0.05)
+    stamp = clock.now_ns()
+    drone.put(_state(2, stamp, "a"))
+    turn(mpc, clock.now_ns())
+    clock.advance_s(0.03)
+    drone.put(_state(2, stamp, "b"))
+    drone.put(_state(2, stamp, "b"))  # the same path's copy again: stale, not answered twice
+    turn(mpc, clock.now_ns())
+    second = [i.message for i in commands.drain()]
+    assert [c.state_path for c in second] == ["a", "b"]
+    assert second[1].edge_hold_ns < 5 * MS  # held from its own arrival, not from path a's
+    assert mpc.counters.copies == 2
+    assert mpc.counters.commands == 2  # two solves for two States

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,7 +22,7 @@ from dynqos.experiment.scenario import builtin_scenario, scenario_config
 from dynqos.experiment.sites import site_configs, site_processes, with_two_paths
 from dynqos.reports.multipath import multipath_lines, path_figures
 from dynqos.reports.summary import _cpu
-from tests.procs import DYNQOS
+from tests.flights import run_file
 
 MS = 1_000_000
 
@@ -47,8 +46,10 @@ def test_what_two_sites_need_is_refused_plainly() -> None:
         replace(builtin_scenario("dual-homed"), qos_backend="nef")
     with pytest.raises(ConfigError, match="1, or 2"):
         replace(single, sites=3)
-    with pytest.raises(ConfigError, match="one drone"):
-        replace(builtin_scenario("fleet-arbiter"), faults=(Fault(at_s=1, kind="site_kill"),))
+    with pytest.raises(ConfigError, match="simulated drones"):
+        replace(builtin_scenario("dual-homed"), vehicle="px4")
+    fleet = replace(builtin_scenario("fleet-arbiter"), sites=2, faults=(Fault(at_s=1, kind="site_kill"),))
+    assert fleet.fleet  # a fleet on two sites, with a site fault, is a scenario
 
 
 def test_site_b_gets_its_own_router_linked_to_a_and_the_drone_a_path_through_each_cell() -> None:
@@ -112,12 +113,15 @@ def _status(seq: int, t_ms: int, **fields: object) -> SupervisorStatus:
 
 
 def test_the_figures_of_a_drone_on_two_paths_count_from_the_flights_start() -> None:
+    Q1, Q2, Q3 = SupervisorState.Q1, SupervisorState.Q2, SupervisorState.Q3
     statuses = [
         _status(1, 0, site_wins=(("a", 5),), duplicates=7, rtt_samples_ms=(99.0,)),  # before t0: not counted
         _status(2, 1000, site_wins=(("a", 9), ("b", 1)), duplicates=10, camera_path="a",
-                rtt_samples_ms=(10.0, 12.0), path_rtt_samples_ms=(("a", (10.0, 13.0)), ("b", (12.0,)))),
+                rtt_samples_ms=(10.0, 12.0), path_rtt_samples_ms=(("a", (10.0, 13.0)), ("b", (12.0,))),
+                path_states=(("a", Q1, Flow.DEFAULT), ("b", Q3, Flow.PRIORITY))),
         _status(3, 2000, site_wins=(("a", 10), ("b", 8)), duplicates=20, camera_path="b",
-                rtt_samples_ms=(30.0,), path_rtt_samples_ms=(("a", (40.0,)), ("b", (30.0, 31.0)))),
+                rtt_samples_ms=(30.0,), path_rtt_samples_ms=(("a", (40.0,)), ("b", (30.0, 31.0))),
+                path_states=(("a", Q2, Flow.PRIORITY), ("b", Q2, Flow.PRIORITY))),
         _status(4, 3000, site_wins=(("a", 10), ("b", 13)), duplicates=25, camera_path="b"),
     ]  # fmt: skip
     m = path_figures(
@@ -132,13 +136,14 @@ def test_the_figures_of_a_drone_on_two_paths_count_from_the_flights_start() -> N
     assert m["rtt_ms_by_path"]["a"]["n"] == 3
     assert m["rtt_ms_by_path"]["b"]["n"] == 3
     assert m["camera_path_s"] == {"a": 1.0, "b": 1.0}
+    assert m["priority_s_by_path"] == {"a": 1.0, "b": 2.0}  # each path's own PFSM's flow
     summary = {"scenario": "dual-homed", "ok": True, "multipath": m, "fallback_flown_s": 0.0}
     summary |= {"uav_delivered_mbps": 50.2, "bg_delivered_mbps": 30.0}
     summary["cells"] = {"b": {"uav_delivered_mbps": 0.4, "bg_delivered_mbps": None}}
     rows = multipath_lines([summary])
     winner = next(row for row in rows if row.startswith("| dual-homed | 1 | 12 / "))
     assert "| 30 / 30 / 30 | 11 / " in winner
-    assert "| 0.08 / 0.92 | 15 | 0.0 |" in winner
+    assert "| 0.08 / 0.92 | 1.0 / 2.0 | 15 | 0.0 |" in winner
     assert rows[-1] == "| dual-homed | 1 | 50.2 / 30.0 | 0.4 / - |"  # each cell's uplink
     assert multipath_lines([{"scenario": "baseline", "ok": True}]) == []
 
@@ -162,13 +167,7 @@ def test_a_dual_homed_drone_flies_through_load_a_site_kill_and_a_cell_outage_wit
         )
     )  # fmt: skip
     out = tmp_path / "run"
-    result = subprocess.run(
-        [DYNQOS, "run", str(scenario), "--out", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=280,
-        check=False,
-    )
+    result = run_file(scenario, out)
     assert result.returncode == 0, result.stderr[-3000:]
     summary = json.loads((out / "dh" / "summary.json").read_text())
     onboard = (out / "dh" / "logs" / "onboard.log").read_text()
@@ -196,8 +195,12 @@ def test_a_dual_homed_drone_flies_through_load_a_site_kill_and_a_cell_outage_wit
     assert summary["cells"]["b"]["uav_delivered_mbps"] > 0  # its counters: States and statuses at least
     # each site's agent asked its own operator; none of their sessions is left, the killed site's neither
     operators = summary["qos_network"]["operators"]
-    assert operators["a"]["created"] >= 1, operators  # the load on cell A: priority asked on both paths
+    # each path asked by its own PFSM: the circle's high risk (q2) sends both paths to priority
+    assert operators["a"]["created"] >= 1, operators
     assert operators["b"]["created"] >= 1, operators
+    assert "supervisor, path a: q1 -> q2" in onboard, onboard[-3000:]
+    assert m["priority_s_by_path"]["a"] > 0, m
+    assert set(m["priority_s_by_path"]) == {"a", "b"}, m
     assert (operators["a"]["open_at_end"], operators["b"]["open_at_end"]) == (0, 0), operators
     assert "## Two paths, two sites" in (out / "report.md").read_text()
 

@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 import argparse
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from dynqos.cli.options import Commands, common_options, described
 from dynqos.common.config import Config
 from dynqos.common.errors import DynqosError
+
+DEFAULT_FOUR = ("baseline", "bg-noqos", "bg-dynqos", "bg-staticqos")  # the demo's default scenarios
+
+
+def _builtin_names() -> list[str]:
+    """The shipped scenarios' names, read without importing the experiment (the parser stays quick)."""
+    files = resources.files("dynqos") / "scenarios"
+    return sorted(p.name.removesuffix(".toml") for p in files.iterdir() if p.name.endswith(".toml"))
+
 
 FLIES = (
     "Starts the router, cell emulator, simulator, planner, MPC, detector and onboard daemon as processes, "
@@ -34,8 +44,7 @@ def add(commands: Commands) -> None:
                 action="append",
                 metavar="NAME",
                 help="baseline, bg-noqos, bg-dynqos, bg-staticqos (repeatable; default: these four), or "
-                "bg-dynqos-hover, bg-dynqos-refused, capacity-drop, faults, replicas, soak, fleet-noqos, "
-                "fleet-allprio, fleet-arbiter, fleet-replicas, coverage-hole, fleet-blind, fleet-planned",
+                + ", ".join(n for n in _builtin_names() if n not in DEFAULT_FOUR),
             )
         _flight_options(sub)
         sub.set_defaults(handler=run_demo, own_config=OWN_CONFIG)

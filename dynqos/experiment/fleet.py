@@ -12,6 +12,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -21,7 +22,7 @@ from dynqos.common.config import Config, ZenohConfig
 from dynqos.common.keys import Downlink
 from dynqos.common.messages import QosDecision
 from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Received, Role, open_bus
+from dynqos.common.transport import Received, Role, endpoints, open_bus
 from dynqos.experiment.cells import with_cell
 from dynqos.experiment.faults import FaultInjector
 from dynqos.experiment.flight import (
@@ -33,9 +34,19 @@ from dynqos.experiment.flight import (
     start_replicas,
     wait_for_offload,
 )
+from dynqos.experiment.link_relay import LinkRelay
 from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, Scenario, fleet_configs, write_config
+from dynqos.experiment.sites import (
+    SiteFaults,
+    operators_qod,
+    site_configs,
+    start_router_and_cell_b,
+    start_site_b,
+    with_site_b_bearers,
+    with_two_paths,
+)
 from dynqos.experiment.vehicles import (
     contacts,
     px4_workdir,
@@ -68,6 +79,7 @@ def run_fleet(
     logs = folder / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     shared, drones, px4 = _configs(scenario, folder)  # px4: None, dynqos's vehicles fly
+    shared, shared_b, relay = _sites(scenario, shared)
     shared_path = folder / "dynqos.toml"
     paths = {uav: folder / f"{uav}.toml" for uav in drones}
     write_config(shared_path, scenario, shared)
@@ -83,27 +95,40 @@ def run_fleet(
         cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
         sink_port = free_port() if scenario.qos_agents == 1 else 0  # several agents poll (scenario.py)
         write_config(shared_path, scenario, with_cell(shared, cell, sink_port=sink_port))
+        cells = {"a": cell}
+        if shared_b is not None:
+            path_b, cells["b"] = start_router_and_cell_b(procs, scenario, shared_b, folder)
         for uav, config in drones.items():
-            write_config(paths[uav], scenario, with_cell(config, cell))
+            config = with_cell(config, cell)
+            write_config(paths[uav], scenario, with_two_paths(config, cells) if shared_b else config)
         _start_edge(procs, scenario, shared, drones, paths, folder, px4)
+        if shared_b is not None:
+            start_site_b(procs, scenario, path_b)
         _record_fleet(
             scenario,
-            shared.zenoh,
+            (shared.zenoh, shared_b.zenoh if shared_b else None),
             procs,
             paths,
-            cell["control_port"],
+            {site: int(c["control_port"]) for site, c in cells.items()},
             rec,
             recs,
             decisions,
             stop,
             progress,
             shared.cell.uplink_mbps,
+            relay,
         )
 
-    ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
+    try:
+        ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
+    finally:
+        if relay is not None:
+            relay.close()
     onboard_logs = {uav: _read(logs / f"onboard-{uav}.log") for uav in drones}
     summary = summarise_fleet(scenario, rec, recs, decisions, onboard_logs, ok=ok, failure=failure)
     summary["vehicle"] = scenario.vehicle
+    if scenario.sites == 2 and scenario.qos_backend == "camara":
+        summary["qos_network"] = {"operators": operators_qod(folder)}  # sessions at each site's operator
     for uav, instance in zip(drones, px4 or [], strict=False):  # what each PX4 did
         with_px4_flight(summary, px4_workdir(folder, instance), scenario, uav)
         summary["drones"][uav]["px4"]["contacts"] = contacts(world_of(drones[uav]), track(recs[uav]))
@@ -114,6 +139,18 @@ def run_fleet(
         summary["checks"]["nothing_left_booked"] = not plan["release_failed"]
     write_fleet(folder, scenario, rec, recs, decisions, summary)
     return summary
+
+
+def _sites(scenario: Scenario, shared: Config) -> tuple[Config, Config | None, LinkRelay | None]:
+    """With two sites (docs/multipath.md): site A's config and site B's, B's router linked to A's
+    through a relay the runner can cut when a path_partition fault needs it, and cell B's bearers to
+    B's router."""
+    partition = any(f.kind == "path_partition" for f in scenario.faults)
+    relay = LinkRelay(shared.zenoh.default_port) if partition else None
+    if scenario.sites != 2:
+        return shared, None, relay
+    shared, shared_b = site_configs(shared, ZenohConfig(**flow_ports()), relay.port if relay else 0)
+    return shared, with_site_b_bearers(shared_b, shared.zenoh), relay
 
 
 def _start_edge(
@@ -177,25 +214,32 @@ def _start_vehicles(
         )
 
 
+def cell_event(port: int) -> Callable[[dict[str, Any]], object]:
+    return lambda event: post_json(port, "/events", event)
+
+
 def _read(path: Path) -> str:
     return path.read_text(errors="replace") if path.exists() else ""
 
 
 def _record_fleet(
     scenario: Scenario,
-    zenoh: ZenohConfig,
+    zenohs: tuple[ZenohConfig, ZenohConfig | None],
     procs: Processes,
     paths: dict[str, Path],
-    cell_port: int,
+    cell_ports: dict[str, int],
     rec: Recording,
     recs: dict[str, Recording],
     decisions: list[QosDecision],
     stop: threading.Event,
     progress: bool,
     uplink_mbps: float,
+    relay: LinkRelay | None = None,
 ) -> None:
-    """Start every drone, wait until all of them offload, then fly the scenario."""
-    bus = open_bus(zenoh, Role.EDGE)
+    """Start every drone, wait until all of them offload, then fly the scenario. With two sites the
+    recorder hears the drones through either router, so that it hears on when one site is killed."""
+    connect = [endpoints(z, Role.EDGE)[0][0] for z in zenohs if z is not None]
+    bus = open_bus(zenohs[0], Role.EDGE, connect=connect)
     try:
         streams = {uav: Streams.subscribe(bus, uav) for uav in paths}
         heard: BoundedQueue[Received] = BoundedQueue(QUEUE_ITEMS)
@@ -211,13 +255,15 @@ def _record_fleet(
         watched = next(iter(paths)) if any(f.kind in REPLICA_FAULTS for f in scenario.faults) else None
         injector = FaultInjector(
             procs,
-            lambda event: post_json(cell_port, "/events", event),
+            cell_event(cell_ports["a"]),
             bus,
             uplink_mbps=uplink_mbps,
             watch_uav=watched,
+            sites=SiteFaults(procs, {site: cell_event(port) for site, port in cell_ports.items()}, relay),
         )
         try:
-            fly(scenario, procs, cell_port, injector, rec, stop, progress)
+            more_cells = {site: port for site, port in cell_ports.items() if site != "a"}
+            fly(scenario, procs, cell_ports["a"], injector, rec, stop, progress, more_cells)
         finally:
             injector.close()
             rec.faults = injector.windows

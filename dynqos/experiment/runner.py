@@ -36,8 +36,8 @@ from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_c
 from dynqos.experiment.sites import (
     SiteFaults,
     operators_qod,
-    site_b_folder,
     site_configs,
+    start_router_and_cell_b,
     start_site_b,
     with_two_paths,
 )
@@ -137,11 +137,7 @@ def _start_edge_and_cell(
     ports = {"a": int(cell["control_port"])}
     path_b = folder / "dynqos-b.toml"
     if config_b is not None:
-        write_config(path_b, scenario, config_b)
-        procs.start("router-b", ["edge", "router"], config=path_b)
-        site_b_folder(folder).mkdir(exist_ok=True)
-        cell_b = procs.start("cell-b", ["sim", "cell", "--out", str(site_b_folder(folder))], config=path_b)
-        write_config(path_b, scenario, with_cell(config_b, cell_b))
+        path_b, cell_b = start_router_and_cell_b(procs, scenario, config_b, folder)
         config = with_two_paths(config, {"a": cell, "b": cell_b})
         ports["b"] = int(cell_b["control_port"])
     write_config(config_path, scenario, config)

@@ -197,17 +197,15 @@ class Scenario:
     def _check_sites(self) -> None:
         if self.sites not in (1, 2):
             raise ConfigError("sites", "1, or 2 for a drone on two paths (docs/multipath.md)")
-        if self.sites == 2 and (self.fleet or self.qos_backend == "nef" or self.vehicle != "sim"):
+        if self.sites == 2 and (self.qos_backend == "nef" or self.vehicle != "sim"):
             raise ConfigError(
-                "sites", 'two sites fly one simulated drone with qos_backend "links" or "camara" (for now)'
+                "sites", 'two sites fly simulated drones with qos_backend "links" or "camara" (for now)'
             )
         for i, fault in enumerate(self.faults):
             if (fault.site == "b" or fault.kind == "path_partition") and self.sites < 2:
                 raise ConfigError(
                     f"faults[{i}].site", f"{'site b' if fault.site == 'b' else fault.kind} needs sites = 2"
                 )
-            if fault.kind in ("site_kill", "cell_outage") and self.fleet:
-                raise ConfigError(f"faults[{i}].kind", f"{fault.kind} flies one drone (for now)")
 
     def _check_fleet(self) -> None:
         if self.qos_policy == "arbiter" and self.qos_backend == "links":
@@ -261,8 +259,8 @@ REPLICA_FAULTS = {
 }
 
 
-# the faults a fleet scenario may inject: they act on the edge's processes or the whole cell, and each
-# replica fault on the replica serving the fleet's first drone
+# the faults a fleet scenario may inject: they act on the edge's processes, a whole site, a whole cell or
+# the link between the sites, and each replica fault on the replica serving the fleet's first drone
 FLEET_FAULTS = (
     "mpc_replica_kill",
     "mpc_replica_hang",
@@ -271,6 +269,9 @@ FLEET_FAULTS = (
     "qos_agent_hang",
     "replica_join",
     "background",
+    "site_kill",
+    "cell_outage",
+    "path_partition",
 )
 
 
@@ -318,12 +319,16 @@ def load_scenario(path: str | Path) -> Scenario:
         raise exc.with_source(source) from None
 
 
-def builtin_scenario(name: str) -> Scenario:
+def builtin_names() -> list[str]:
+    """The scenarios dynqos ships (dynqos/scenarios/*.toml), by name."""
     files = resources.files("dynqos") / "scenarios"
-    path = files / f"{name}.toml"
+    return sorted(p.name.removesuffix(".toml") for p in files.iterdir() if p.name.endswith(".toml"))
+
+
+def builtin_scenario(name: str) -> Scenario:
+    path = resources.files("dynqos") / "scenarios" / f"{name}.toml"
     if not path.is_file():
-        known = sorted(p.name.removesuffix(".toml") for p in files.iterdir() if p.name.endswith(".toml"))
-        raise ConfigError("--scenario", f"unknown scenario {name!r} (known: {', '.join(known)})")
+        raise ConfigError("--scenario", f"unknown scenario {name!r} (known: {', '.join(builtin_names())})")
     with resources.as_file(path) as real:
         return load_scenario(real)
 

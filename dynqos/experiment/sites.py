@@ -19,10 +19,11 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common.config import Config, OnboardPathConfig, ZenohConfig
+from dynqos.experiment.cells import with_cell
 from dynqos.experiment.faults import Fault, FaultWindow
 from dynqos.experiment.link_relay import LinkRelay
 from dynqos.experiment.processes import Processes
-from dynqos.experiment.scenario import Scenario, replica_names
+from dynqos.experiment.scenario import Scenario, replica_names, write_config
 from dynqos.reports.summary import qod_sessions
 
 log = logging.getLogger(__name__)
@@ -82,6 +83,34 @@ def site_configs(config: Config, zenoh_b: ZenohConfig, link_port: int = 0) -> tu
         cell=replace(config.cell, seed=config.cell.seed + 1),
     )
     return a, b
+
+
+def with_site_b_bearers(config_b: Config, zenoh_a: ZenohConfig) -> Config:
+    """Cell B's bearers (a fleet's: a pair per drone) forwarded to site B's router: each named bearer
+    set for site A's ports gets site B's instead (the drones' own bearers of one site are unnamed: the
+    cell forwards them to its config's router)."""
+    z = config_b.zenoh
+    to_b = {zenoh_a.default_port: z.default_port, zenoh_a.priority_port: z.priority_port}
+    bearers = []
+    for bearer in config_b.cell.bearers:
+        host, _, port = bearer.target.rpartition(":")
+        bearers.append(replace(bearer, target=f"{host}:{to_b.get(int(port), int(port))}"))
+    return replace(config_b, cell=replace(config_b.cell, bearers=tuple(bearers)))
+
+
+def start_router_and_cell_b(
+    procs: Processes, scenario: Scenario, config_b: Config, folder: Path
+) -> tuple[Path, dict[str, Any]]:
+    """Site B's router and cell B, from site B's own config (written at dynqos-b.toml, and again once
+    cell B is up, with its QoD API for site B's agents); returns the config's path and cell B's ready
+    line."""
+    path_b = folder / "dynqos-b.toml"
+    write_config(path_b, scenario, config_b)
+    procs.start("router-b", ["edge", "router"], config=path_b)
+    site_b_folder(folder).mkdir(exist_ok=True)
+    cell_b = procs.start("cell-b", ["sim", "cell", "--out", str(site_b_folder(folder))], config=path_b)
+    write_config(path_b, scenario, with_cell(config_b, cell_b))
+    return path_b, cell_b
 
 
 def with_two_paths(config: Config, cells: dict[str, dict[str, Any]]) -> Config:

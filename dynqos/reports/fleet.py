@@ -19,6 +19,7 @@ from dynqos.experiment.scenario import Scenario, run_id
 from dynqos.onboard.supervisor import PRIORITY_STATES as SUPERVISOR_PRIORITY_STATES
 from dynqos.onboard.supervisor import RATE_ADAPTATION_STATES as SUPERVISOR_RATE_ADAPTATION_STATES
 from dynqos.reports.figures import figure
+from dynqos.reports.multipath import fault_spans, path_figures
 from dynqos.reports.summary import cell_rates, summarise, write_scenario
 
 # What each drone's entry carries of the single-drone summary.
@@ -82,6 +83,9 @@ def _drone(
     admitted, delivered = single["uav_admitted_mbps"], single["uav_delivered_mbps"]
     out["delivered_share"] = delivered / admitted if admitted and delivered is not None else None
     out["cell_queue_ms"] = _queue_delays(rec, uav)
+    out["fallback_flown_s"] = single["fallback_flown_s"]
+    if scenario.sites == 2:  # a drone on two paths (docs/multipath.md)
+        out["multipath"] = path_figures(statuses, rec.t0_ns, *fault_spans(rec.faults))
     return out
 
 

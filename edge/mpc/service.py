@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +36,7 @@ from dynqos.edge.runtime import EdgeCore, Ports, serve
 
 log = logging.getLogger(__name__)
 
+MAX_PATHS = 8  # later copies of one State kept until it is answered (a drone has a few paths)
 SCANS_PER_LEASE = 16  # a takeover is at most a sixteenth of the lease late (3 ms at 50 ms)
 
 
@@ -48,6 +49,7 @@ class MpcCounters:
     references: int = 0
     other_shard: int = 0
     not_mine: int = 0  # states of drones this replica neither flies nor stands by for
+    copies: int = 0  # a State's later copies by another path, each answered with the same Command
     solve_ms: list[float] = field(default_factory=list)
 
 
@@ -74,6 +76,11 @@ class MpcService(EdgeCore):
             self.replica, lease_ns=round(cfg.takeover_after_s * 1e9), holdoff_ns=round(cfg.holdoff_s * 1e9)
         )
         self.newest: dict[str, Received] = {}  # the newest state per drone we stand by for
+        # A drone on two paths sends each State by both (docs/multipath.md): the first copy is solved and
+        # each later copy gets the same Command under its own path, so the drone times each uplink.
+        self._copies: dict[str, list[Received]] = {}  # later copies of the newest state, not answered yet
+        self._answered: dict[str, Command] = {}  # the last Command sent to each drone
+        self._paths_heard: dict[str, set[str]] = {}  # the paths the newest state came by
         # Takeovers due and idle drones are found by scanning every drone: SCANS_PER_LEASE times per
         # lease, and at once when the live set changed (a scan per state cost 17 us at 100 drones).
         self._scan_period_ns = round(cfg.takeover_after_s * 1e9 / SCANS_PER_LEASE)
@@ -180,9 +187,32 @@ class MpcService(EdgeCore):
             if uav in fresh:  # superseded in this batch
                 self.counters.stale += 1
             self.newest[uav] = item
+            self._copies.pop(uav, None)
+            self._paths_heard[uav] = {message.path}
             fresh.add(uav)
+        elif message.seq == previous.message.seq and message.path not in (heard := self._paths_heard[uav]):
+            if len(heard) < MAX_PATHS:
+                heard.add(message.path)
+                self._copy(uav, item)
         else:
             self.counters.stale += 1
+
+    def _copy(self, uav: str, item: Received) -> None:
+        """Another path's copy of the newest State: answered with its Command, now or once solved."""
+        answered = self._answered.get(uav)
+        if answered is not None and answered.seq == item.message.seq:
+            self._send_copy(uav, answered, item)
+        else:
+            copies = self._copies.setdefault(uav, [])
+            if len(copies) < MAX_PATHS:
+                copies.append(item)
+
+    def _send_copy(self, uav: str, command: Command, item: Received) -> None:
+        state = item.message
+        assert isinstance(state, State)
+        hold_ns = max(0, self.clock.now_ns() - item.arrival_ns)
+        self.publishers[uav].put(replace(command, state_path=state.path, edge_hold_ns=hold_ns))
+        self.counters.copies += 1
 
     def _answer(self, uav: str, item: Received) -> None:
         ctrl = self._controller(uav)
@@ -214,15 +244,23 @@ class MpcService(EdgeCore):
             term=self.assignment.term(uav),
             replica=self.replica,
             site=self.config.mpc.site,
+            state_path=state.path,
         )
         self.publishers[uav].put(command)
         self.counters.commands += 1
+        self._answered[uav] = command
+        for copy in self._copies.pop(uav, []):
+            if copy.message.seq == state.seq:
+                self._send_copy(uav, command, copy)
 
     def _drop_idle(self) -> None:
         now = self.clock.now_ns()
         timeout_ns = round(self.config.mpc.idle_timeout_s * 1e9)
         for uav in [u for u, item in self.newest.items() if now - item.arrival_ns > timeout_ns]:
             del self.newest[uav]
+            self._copies.pop(uav, None)
+            self._answered.pop(uav, None)
+            self._paths_heard.pop(uav, None)
             self.assignment.forget(uav)
             self.controllers.pop(uav, None)
             publisher = self.publishers.pop(uav, None)
@@ -240,7 +278,8 @@ class MpcService(EdgeCore):
             f"stepped_down={a.counters.stepped_down} tokens_refused={a.counters.members_refused} "
             f"shard={self.config.mpc.shard_index}/{self.config.mpc.shard_count} "
             f"drones={len(self.controllers)} followed={len(self.feeds.subscribed)} "
-            f"states={c.states} not_mine={c.not_mine} commands={c.commands} stale={c.stale} "
+            f"states={c.states} not_mine={c.not_mine} commands={c.commands} copies={c.copies} "
+            f"stale={c.stale} "
             f"rejected={rejected} solve_failures={c.solve_failures} "
             f"references={c.references} queue_drops={self.inbox.dropped} "
             f"solve_ms_p50={np.percentile(solve, 50):.3f} solve_ms_p99={np.percentile(solve, 99):.3f}"
