@@ -18,11 +18,11 @@ import time
 from typing import Any
 
 from dynqos.bench.report import bench_parser, emit, judged, provenance
-from dynqos.bench.rig import router_rig
+from dynqos.bench.rig import hovering_state, router_rig
 from dynqos.common import keys
 from dynqos.common.config import ZenohConfig
 from dynqos.common.keys import Downlink, Flow, Stream
-from dynqos.common.messages import Command, State
+from dynqos.common.messages import Command
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, open_bus
 
@@ -68,16 +68,7 @@ def _load(zcfg: ZenohConfig, drones: int, seconds: float) -> dict[str, Any]:
                 seq = seq_base + tick + 1
                 if tick >= warmup:
                     sent[(uav, seq)] = time.perf_counter()
-                state = State(
-                    uav=uav,
-                    seq=seq,
-                    stamp_ns=time.monotonic_ns(),
-                    pos_m=(0.01 * i, 0.0, -1.5),
-                    vel_mps=(0.0, 0.0, 0.0),
-                    quat=(1.0, 0.0, 0.0, 0.0),
-                    rtt_est_ms=0.0,
-                )
-                pub.put(state)
+                pub.put(hovering_state(uav, seq, i))
             _collect(commands, sent, latencies, until=start + (tick + 1) * PERIOD_S)
         _collect(commands, sent, latencies, until=time.perf_counter() + 0.2)  # the last tick's answers
         del tokens  # the drones leave (the MPC stops following them)

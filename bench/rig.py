@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 from dynqos.common.config import ZenohConfig
+from dynqos.common.messages import State
 from dynqos.experiment.processes import Processes, flow_ports
 
 
@@ -29,3 +31,17 @@ def router_rig(extra_toml: str = "") -> Iterator[tuple[ZenohConfig, Processes]]:
             yield zcfg, procs
         finally:
             procs.stop_all()
+
+
+def hovering_state(uav: str, seq: int, index: int, term: int = 0, replica: str = "") -> State:
+    """A load drone's State: the `index`-th drone of a fleet hovering in a row, following `replica`."""
+    return State(
+        uav=uav,
+        seq=seq,
+        stamp_ns=time.monotonic_ns(),
+        pos_m=(0.01 * index, 0.0, -1.5),
+        vel_mps=(0.0, 0.0, 0.0),
+        quat=(1.0, 0.0, 0.0, 0.0),
+        command_term=term,
+        command_replica=replica,
+    )

@@ -36,6 +36,11 @@ def _get(value: dict[str, Any] | None, key: str) -> float | None:
     return None if value is None else value[key]
 
 
+def _edge_scale(result: dict[str, Any], mode: str, processes: int, key: str) -> float | None:
+    run = next((r for r in result["runs"] if (r["mode"], r["processes"]) == (mode, processes)), None)
+    return None if run is None else run[key]
+
+
 # name -> the figures that summarise it (the ones docs/benchmarks.md quotes with their spread)
 HEADLINES: dict[str, Headline] = {
     "supervisor_step": lambda r: {"step_median_us": r["step"]["median_us"]},
@@ -62,6 +67,11 @@ HEADLINES: dict[str, Headline] = {
     "fleet_zenoh": lambda r: {
         "drones_one_process": r["one_process"]["max_drones_at_20hz"],
         "drones_two_processes": r["two_processes"]["max_drones_at_20hz"],
+    },
+    "edge_scale": lambda r: {
+        "drones_one": _edge_scale(r, "one", 1, "max_drones_at_20hz"),
+        "drones_two_replicas": _edge_scale(r, "replicas", 2, "max_drones_at_20hz"),
+        "mpc_cpu_two_replicas_over_one": _edge_scale(r, "replicas", 2, "mpc_cpu_per_drone_over_one"),
     },
     "edge_per_drone": lambda r: {
         "per_drone_core_share": r["per_drone_core_share"],

@@ -31,6 +31,7 @@ from dynqos.common.keys import (
     ROOT,
     Downlink,
     Stream,
+    any_replica_beat,
     any_replica_of,
     check_uav_id,
     clock_probe,
@@ -54,13 +55,14 @@ class EdgeRole:
 
 EDGE_ROLES: dict[str, EdgeRole] = {
     "mpc": EdgeRole(
-        # the commands too: a standby watches the ones the replica flying a drone sends (edge/replicas.py)
+        # the replicas' heartbeats too: a standby watches the beats of the one flying a drone
+        # (edge/replicas.py, `beats`)
         reads=(
             uplink_all_drones(Stream.STATE),
             downlink_all_drones(Downlink.REFERENCE),
-            downlink_all_drones(Downlink.COMMAND),
+            any_replica_beat("mpc"),
         ),
-        writes=(downlink_all_drones(Downlink.COMMAND),),
+        writes=(downlink_all_drones(Downlink.COMMAND), any_replica_beat("mpc")),
         tokens=(any_replica_of("mpc"),),
         watches=(drones_present(),),  # it follows the drones it serves (edge/feeds.py)
     ),

@@ -116,6 +116,14 @@ class Bus(Protocol):
     def unsubscribe(self, key_expr: str, stats: SubscriptionStats) -> None:
         """Undeclare the subscriber declared on `key_expr` with `stats` (none: nothing happens)."""
 
+    def subscribe_newest(
+        self, key_expr: str, *, expect: tuple[type[Message], ...] = (), stats: SubscriptionStats | None = None
+    ) -> Newest:
+        """Keep only the newest sample on `key_expr` until it is taken, without a Python call per sample
+        (zenoh: a one-slot ring in Rust): for what is read now and then, not answered (an MPC standby's
+        view of the drones it stands by for)."""
+        ...
+
     def declare_token(self, key: str) -> Token: ...
 
     def watch_tokens(self, key_expr: str, on_change: TokenWatcher) -> None: ...
@@ -134,9 +142,42 @@ class RawBus(Bus, Protocol):
         """The session's zenoh id (what rmw_zenoh names a node's session by)."""
         ...
 
-    def raw_subscribe(self, key_expr: str, on_payload: Callable[[str, bytes], None]) -> None:
-        """`on_payload(key, payload)` on zenoh's thread for every sample; it must not block."""
+    def raw_subscribe(
+        self, key_expr: str, on_payload: Callable[[str, bytes], None], *, direct: bool = False
+    ) -> None:
+        """`on_payload(key, payload)` on zenoh's thread for every sample (ours too); it must not block.
+        `direct`: on the receiving thread itself, no Python thread of its own."""
         ...
+
+
+class Newest:
+    """The newest sample on a key, decoded when taken through the one receive path (`delivery`)."""
+
+    def __init__(
+        self,
+        take_raw: Callable[[], tuple[str, bytes] | None],
+        close: Callable[[], None],
+        stats: SubscriptionStats,
+        expect: tuple[type[Message], ...],
+        clock: Clock,
+    ) -> None:
+        self._take_raw = take_raw
+        self._close = close
+        self._clock = clock
+        self._slot: BoundedQueue[Received] = BoundedQueue(1)
+        self._deliver = delivery(self._slot, stats, expect, decode)
+
+    def take(self) -> Received | None:
+        """The newest sample since the last take (None: nothing new, or it was rejected and counted);
+        its arrival time is now (it waited in the slot)."""
+        raw = self._take_raw()
+        if raw is None:
+            return None
+        self._deliver(raw[0], raw[1], self._clock.now_ns())
+        return self._slot.get_nowait()
+
+    def close(self) -> None:
+        self._close()
 
 
 def delivery(
@@ -264,13 +305,38 @@ class MemoryBus:
                 self.subscriptions.append(stats)
         return stats
 
+    def subscribe_newest(
+        self, key_expr: str, *, expect: tuple[type[Message], ...] = (), stats: SubscriptionStats | None = None
+    ) -> Newest:
+        stats = stats or SubscriptionStats(key_expr)
+        slot: list[tuple[str, bytes]] = []
+
+        def keep(key: str, data: bytes, _ns: int) -> None:
+            slot[:] = [(key, data)]
+
+        def take_raw() -> tuple[str, bytes] | None:
+            return slot.pop() if slot else None
+
+        entry = (key_matcher(key_expr), keep, (key_expr, -1))
+
+        def close() -> None:
+            with self._lock:
+                if entry in self._subscribers:
+                    self._subscribers.remove(entry)
+
+        with self._lock:
+            self._subscribers.append(entry)
+        return Newest(take_raw, close, stats, expect, self._clock)
+
     def unsubscribe(self, key_expr: str, stats: SubscriptionStats) -> None:
         with self._lock:
             self._subscribers = [s for s in self._subscribers if s[2] != (key_expr, id(stats))]
 
     zid = "0123456789abcdef0123456789abcdef"  # a session id, for what names itself by one (rmw_zenoh)
 
-    def raw_subscribe(self, key_expr: str, on_payload: Callable[[str, bytes], None]) -> None:
+    def raw_subscribe(
+        self, key_expr: str, on_payload: Callable[[str, bytes], None], *, direct: bool = False
+    ) -> None:
         with self._lock:
             self._subscribers.append(
                 (key_matcher(key_expr), lambda key, data, _ns: on_payload(key, data), (key_expr, 0))

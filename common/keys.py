@@ -130,6 +130,21 @@ def replica_token(service: str, group: str, replica: str) -> str:
     return f"{ROOT}/edge/replicas/{service}/{group}/{replica}"
 
 
+def replica_beat(service: str, group: str, replica: str) -> str:
+    """A replica's heartbeat (an empty put every few ms from its loop): a token says a process lives;
+    its beats say its loop still turns (edge/replicas.py, `beats`)."""
+    return f"{ROOT}/edge/beats/{service}/{group}/{replica}"
+
+
+def replica_beats(service: str, group: str = "all") -> str:
+    return f"{ROOT}/edge/beats/{service}/{group}/*"
+
+
+def any_replica_beat(service: str) -> str:
+    """Every heartbeat of an edge service's replicas, in any group (what its ACL rules cover)."""
+    return f"{ROOT}/edge/beats/{service}/**"
+
+
 def any_replica_of(service: str) -> str:
     """Every token of an edge service's replicas, in any group (what its ACL rules cover)."""
     return f"{ROOT}/edge/replicas/{service}/**"

@@ -29,10 +29,10 @@ import zenoh
 
 from dynqos.common.acl import access_control_policy
 from dynqos.common.bus import Bus as Bus
+from dynqos.common.bus import Newest, SubscriptionStats, delivery
 from dynqos.common.bus import Priority as Priority
 from dynqos.common.bus import Publisher as Publisher
 from dynqos.common.bus import Received as Received
-from dynqos.common.bus import SubscriptionStats, delivery
 from dynqos.common.clock import Clock, MonotonicClock
 from dynqos.common.config import ZenohConfig
 from dynqos.common.errors import ConfigError, TransportError
@@ -350,6 +350,27 @@ class ZenohBus:
                 self.subscriptions.append(stats)
         return stats
 
+    def subscribe_newest(
+        self, key_expr: str, *, expect: tuple[type[Message], ...] = (), stats: SubscriptionStats | None = None
+    ) -> Newest:
+        stats = stats or SubscriptionStats(key_expr)
+        subscriber = self._session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(1))
+        with self._lock:
+            self._subscribers.append(subscriber)
+
+        def take_raw() -> tuple[str, bytes] | None:
+            sample = subscriber.try_recv()
+            return None if sample is None else (str(sample.key_expr), sample.payload.to_bytes())
+
+        def close() -> None:
+            with self._lock:
+                if subscriber not in self._subscribers:
+                    return  # the session closed it already
+                self._subscribers.remove(subscriber)
+            subscriber.undeclare()  # type: ignore[no-untyped-call]
+
+        return Newest(take_raw, close, stats, expect, self._clock)
+
     def unsubscribe(self, key_expr: str, stats: SubscriptionStats) -> None:
         with self._lock:
             subscriber = self._declared.pop((key_expr, id(stats)), None)
@@ -381,13 +402,18 @@ class ZenohBus:
     def zid(self) -> str:
         return str(self._session.info.zid())
 
-    def raw_subscribe(self, key_expr: str, on_payload: Callable[[str, bytes], None]) -> None:
-        """`on_payload(key, payload)` for every sample on `key_expr`, undecoded (the ROS 2 bridge's)."""
+    def raw_subscribe(
+        self, key_expr: str, on_payload: Callable[[str, bytes], None], *, direct: bool = False
+    ) -> None:
+        """`on_payload(key, payload)` for every sample on `key_expr`, undecoded (the ROS 2 bridge's).
+        `direct`: on zenoh's receiving thread, no Python thread of its own (for a callback that only
+        notes what came, like the replicas' heartbeats)."""
 
         def on_sample(sample: zenoh.Sample) -> None:
             on_payload(str(sample.key_expr), sample.payload.to_bytes())
 
-        subscriber = self._session.declare_subscriber(key_expr, on_sample)
+        handler = zenoh.handlers.Callback(on_sample, indirect=False) if direct else on_sample
+        subscriber = self._session.declare_subscriber(key_expr, handler)
         with self._lock:
             self._subscribers.append(subscriber)
 

@@ -10,8 +10,10 @@ on two sites. A drone that holds no token is served by no MPC or planner (docs/r
 
 The set is reconciled on the service's worker thread when a drone comes or goes, and when the caller
 says its assignment changed (a replica joined or left, a role changed); token changes arrive on zenoh's
-thread and wait, bounded, in a map. Every drone's subscriber of one input shares one SubscriptionStats,
-so the metrics count an input, not a drone.
+thread and wait, bounded, in a map. A drone the caller only stands by for (`quiet`) has its pullable
+input kept newest-only instead (`Bus.subscribe_newest`), read when the caller pulls: an MPC standby
+needs a drone's newest state, not a Python call for each of them. Every drone's subscriber of one
+input shares one SubscriptionStats, so the metrics count an input, not a drone.
 """
 
 from __future__ import annotations
@@ -22,9 +24,9 @@ from dataclasses import dataclass, field
 
 from dynqos.common import keys
 from dynqos.common.acl import reserved_name
-from dynqos.common.bus import Bus, Received, SubscriptionStats
+from dynqos.common.bus import Bus, Newest, Received, SubscriptionStats
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import Command, Message, MissionRequest, Reference, State
+from dynqos.common.messages import Message, MissionRequest, Reference, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.edge.presence import Presence, Watch
 
@@ -43,12 +45,16 @@ class Feed:
     all_drones: str  # every drone's (the metrics' label)
     expect: tuple[type[Message], ...]
     remote_only: bool = False
+    pullable: bool = False  # for a quiet drone, kept newest-only and pulled (not with remote_only)
     stats: SubscriptionStats = field(default_factory=SubscriptionStats)
 
 
-def states() -> Feed:
+def states(*, pullable: bool = False) -> Feed:
     return Feed(
-        lambda uav: keys.uplink_any_flow(uav, Stream.STATE), keys.uplink_all_drones(Stream.STATE), (State,)
+        lambda uav: keys.uplink_any_flow(uav, Stream.STATE),
+        keys.uplink_all_drones(Stream.STATE),
+        (State,),
+        pullable=pullable,
     )
 
 
@@ -70,16 +76,6 @@ def missions() -> Feed:
     )
 
 
-def commands() -> Feed:
-    """Other replicas' commands (ours never: zenoh drops them before decoding)."""
-    return Feed(
-        lambda uav: keys.downlink(uav, Downlink.COMMAND),
-        keys.downlink_all_drones(Downlink.COMMAND),
-        (Command,),
-        remote_only=True,
-    )
-
-
 def drone_id(uav: str) -> bool:
     """A drone's id as its presence token names it: the id rule, and never an edge service's name."""
     return keys.UAV_ID_PATTERN.fullmatch(uav) is not None and not reserved_name(uav)
@@ -92,6 +88,9 @@ class DroneFeeds:
         self.queue = queue
         self.feeds = feeds
         self.subscribed: set[str] = set()
+        self.pulled: dict[str, Newest] = {}  # quiet drones: their pullable input, newest-only
+        if sum(feed.pullable for feed in feeds) > 1:
+            raise ValueError("at most one pullable feed")
         for feed in feeds:
             feed.stats.key_expr = feed.all_drones
             bus.subscriptions.append(feed.stats)
@@ -106,31 +105,62 @@ class DroneFeeds:
         """Presence tokens refused: an invalid or edge id, beyond MAX_DRONES, or a flood of changes."""
         return self.presence.refused
 
-    def reconcile(self, wanted: Callable[[str], bool], *, assignment_changed: bool) -> None:
+    def reconcile(
+        self,
+        wanted: Callable[[str], bool],
+        *,
+        assignment_changed: bool,
+        quiet: Callable[[str], bool] | None = None,
+    ) -> None:
         """The worker: subscribe to each present drone `wanted` says this replica serves or stands by
-        for, unsubscribe from the others and from drones that went."""
+        for (its pullable input newest-only while `quiet` says so), unsubscribe from the others and
+        from drones that went."""
         if not self.presence.take() and not assignment_changed:
             return
         want = {uav for uav in self.present if wanted(uav)}
-        for uav in want - self.subscribed:
-            for feed in self.feeds:
-                # direct: no Python thread per subscriber (three per drone would be hundreds)
-                self.bus.subscribe(
-                    feed.key(uav),
-                    self.queue,
-                    expect=feed.expect,
-                    remote_only=feed.remote_only,
-                    stats=feed.stats,
-                    direct=True,
-                )
-            log.info("%s: following drone %s (%d followed)", self.service, uav, len(self.subscribed) + 1)
-            self.subscribed.add(uav)
+        for uav in want:
+            pull = quiet is not None and quiet(uav)
+            if uav not in self.subscribed:
+                for feed in self.feeds:
+                    self._declare(uav, feed, pull=pull and feed.pullable)
+                log.info("%s: following drone %s (%d followed)", self.service, uav, len(self.subscribed) + 1)
+                self.subscribed.add(uav)
+            elif pull != (uav in self.pulled):  # declared anew before the old one goes: no gap
+                for feed in (f for f in self.feeds if f.pullable):
+                    old = self.pulled.pop(uav, None)
+                    self._declare(uav, feed, pull=pull)
+                    if old is not None:
+                        old.close()
+                    else:
+                        self.bus.unsubscribe(feed.key(uav), feed.stats)
         for uav in self.subscribed - want:
+            pulled = self.pulled.pop(uav, None)
+            if pulled is not None:
+                pulled.close()
             for feed in self.feeds:
-                self.bus.unsubscribe(feed.key(uav), feed.stats)
+                if not (feed.pullable and pulled is not None):
+                    self.bus.unsubscribe(feed.key(uav), feed.stats)
             self.subscribed.discard(uav)
             why = "its token went" if uav not in self.present else "not ours now"
             log.info("%s: no longer following drone %s (%s)", self.service, uav, why)
+
+    def _declare(self, uav: str, feed: Feed, *, pull: bool) -> None:
+        if pull:
+            self.pulled[uav] = self.bus.subscribe_newest(feed.key(uav), expect=feed.expect, stats=feed.stats)
+            return
+        # direct: no Python thread per subscriber (three per drone would be hundreds)
+        self.bus.subscribe(
+            feed.key(uav),
+            self.queue,
+            expect=feed.expect,
+            remote_only=feed.remote_only,
+            stats=feed.stats,
+            direct=True,
+        )
+
+    def pull(self) -> list[Received]:
+        """The quiet drones' newest inputs since the last pull."""
+        return [item for newest in self.pulled.values() if (item := newest.take()) is not None]
 
     def rejected(self) -> int:
         return sum(feed.stats.rejected for feed in self.feeds)

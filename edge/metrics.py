@@ -33,6 +33,11 @@ def mpc(service: MpcService, m: ProcessMetrics) -> None:
     def families() -> Iterator[Metric]:
         c = service.counters
         yield gauge("dynqos_mpc_drones", "Drones this MPC serves (its shard)", len(service.controllers))
+        yield gauge(
+            "dynqos_mpc_drones_flying",
+            "Drones this replica flies now (not those it stands by for): what the autoscaler reads",
+            service.flying(),
+        )
         yield counter("dynqos_mpc_states", "States taken in for this shard", c.states)
         yield counter("dynqos_mpc_commands", "Commands published", c.commands)
         yield counter("dynqos_mpc_stale_states", "States skipped for a newer one", c.stale)

@@ -9,7 +9,11 @@ partition with an old term is ignored and steps down.
 
 A replica takes a drone (with the highest term it has seen + 1) when it is the first-ranked live
 replica and the holder is gone, is another replica ranked below it (a join moves the drone back), or
-has left a state unanswered for `lease_ns` (a hung process keeps its token; its silence does not).
+has been silent for `lease_ns` (a hung process keeps its token; its silence does not). Silent means,
+by default, that it left a state unanswered that long (a standby then watches the holder's commands);
+with `beats`, that its heartbeat stopped that long: a standby then needs none of the holder's
+commands, only its beats, one per replica and not per drone (the MPC's case: receiving and decoding
+every command it does not send cost a standby most of what serving costs, docs/benchmarks.md).
 A replica that was just displaced waits `holdoff_ns` before it takes a drone back by rank alone, so a
 replica that flaps does not drag its drones with it.
 """
@@ -52,6 +56,7 @@ class Seat:
     latest_seq: int = -1  # the newest state seen
     answered_seq: int = -1  # the newest state the holder has answered
     unanswered_since_ns: int | None = None  # when a state newer than `answered_seq` was first seen
+    holder_since_ns: int = 0  # when `holder` was first seen holding `term` (its lease counts from then)
     displaced_ns: int | None = None  # when another replica took this drone from us
 
 
@@ -74,17 +79,28 @@ class ReplicaCounters:
 
 
 class Assignment:
-    def __init__(self, me: str, *, lease_ns: int, holdoff_ns: int, drone_arbitrates: bool = True) -> None:
+    def __init__(
+        self, me: str, *, lease_ns: int, holdoff_ns: int, drone_arbitrates: bool = True, beats: bool = False
+    ) -> None:
         """`drone_arbitrates`: the drone reports whom it follows (the MPC's case), which settles two
-        replicas that took the same term; otherwise (the planner's) the better ranked of them keeps it."""
+        replicas that took the same term; otherwise (the planner's) the better ranked of them keeps it.
+        `beats`: a holder is silent when its heartbeat (`on_beat`) stops, not when a state waits."""
         check_replica_id(me)
         self.me = me
         self.lease_ns = lease_ns
         self.holdoff_ns = holdoff_ns
         self.drone_arbitrates = drone_arbitrates
+        self.beats = beats
         self.members: set[str] = {me}
         self.seats: dict[str, Seat] = {}
         self.counters = ReplicaCounters()
+        self.beat_ns: dict[str, int] = {}  # each other live replica's newest heartbeat
+        # The newest arrival of anything heard (a state, a beat). Silence is judged against it, not the
+        # clock: a replica whose own receiving fell behind (its zenoh thread waiting for the GIL) hears
+        # the states late too, and must not take that for its peer's silence.
+        self.heard_ns = 0
+        self._orders: dict[str, list[str]] = {}  # `ranked` per drone for the live set (blake2b per member)
+        self._rescan = True  # the live set changed since the last tick: every seat is looked at
 
     # membership -------------------------------------------------------------------------------------
     def join(self, replica: str) -> bool:
@@ -94,19 +110,43 @@ class Assignment:
             self.counters.members_refused += 1
             return False
         self.members.add(replica)
+        self._orders.clear()
+        self._rescan = True
         return True
 
     def leave(self, replica: str) -> bool:
         if replica == self.me or replica not in self.members:
             return False
         self.members.discard(replica)
+        self.beat_ns.pop(replica, None)
+        self._orders.clear()
+        self._rescan = True
         return True
+
+    def on_beat(self, replica: str, now_ns: int) -> None:
+        """A heartbeat (with `beats`): another replica's says it is alive and its loop turns; our own,
+        back through the router, that what we hear is current (a state or a peer's beat would have come
+        by the same way)."""
+        if replica == self.me:
+            self.heard_ns = max(self.heard_ns, now_ns)
+        elif replica in self.members:
+            self.beat_ns[replica] = max(now_ns, self.beat_ns.get(replica, now_ns))
+            self.heard_ns = max(self.heard_ns, now_ns)
+
+    def order(self, uav: str) -> list[str]:
+        """The live replicas, best first for `uav` (cached until the live set changes)."""
+        order = self._orders.get(uav)
+        if order is None:
+            if len(self._orders) >= 4 * 4096:  # drone ids from the wire: bounded
+                self._orders.clear()
+            order = self._orders[uav] = ranked(uav, self.members)
+        return order
 
     def role(self, uav: str) -> Role:
         seat = self.seats.get(uav)
         if seat is not None and seat.holder == self.me:
             return Role.SERVE
-        return Role.WATCH if self.me in ranked(uav, self.members)[:2] else Role.IDLE
+        return Role.WATCH if self.me in self.order(uav)[:2] else Role.IDLE
 
     def mine(self, uav: str) -> bool:
         """Whether this replica should receive the drone's messages at all (primary, standby or holder)."""
@@ -116,6 +156,7 @@ class Assignment:
     def on_state(self, uav: str, seq: int, drone_term: int, drone_holder: str, now_ns: int) -> Change | None:
         """A state from the drone, carrying the term (and its holder) the drone accepts now."""
         seat = self.seats.setdefault(uav, Seat())
+        self.heard_ns = max(self.heard_ns, now_ns)
         if seq < seat.latest_seq:  # the drone restarted (or states crossed): count from here
             seat.answered_seq = -1
         seat.latest_seq = seq
@@ -130,7 +171,8 @@ class Assignment:
                 now_ns,
                 f"the drone follows {drone_holder or '?'}",
             )
-        if seat.holder != self.me and seq > seat.answered_seq and seat.unanswered_since_ns is None:
+        waiting = seat.holder != self.me and seq > seat.answered_seq and seat.unanswered_since_ns is None
+        if waiting and not self.beats:
             seat.unanswered_since_ns = now_ns
         return change or self._maybe_take(uav, seat, now_ns)
 
@@ -144,7 +186,7 @@ class Assignment:
         if term > seat.term or seat.holder is None:
             change = self._new_holder(uav, seat, term, replica, now_ns, f"{replica} holds term {term}")
         elif not self.drone_arbitrates and seat.holder == self.me and replica != self.me:
-            order = ranked(uav, self.members | {replica})
+            order = ranked(uav, self.members | {replica})  # a replica not (yet) live: not cached
             if order.index(replica) < order.index(self.me):  # both took this term: the better ranked keeps it
                 change = self._new_holder(
                     uav, seat, term, replica, now_ns, f"{replica} also took term {term}"
@@ -161,6 +203,7 @@ class Assignment:
         """Another holder (or term): its lease starts now, whatever the last one left unanswered."""
         was_mine = seat.holder == self.me
         seat.term, seat.holder = term, holder
+        seat.holder_since_ns = now_ns
         seat.answered_seq = -1
         seat.unanswered_since_ns = None
         if was_mine and holder != self.me:
@@ -169,6 +212,7 @@ class Assignment:
 
     def forget(self, uav: str) -> None:
         self.seats.pop(uav, None)
+        self._orders.pop(uav, None)
 
     # decisions ---------------------------------------------------------------------------------------
     def _step_down(self, uav: str, seat: Seat, now_ns: int, reason: str) -> Change:
@@ -179,7 +223,7 @@ class Assignment:
     def _maybe_take(self, uav: str, seat: Seat, now_ns: int) -> Change | None:
         if seat.holder == self.me:
             return None
-        order = ranked(uav, self.members)
+        order = self.order(uav)
         holder = seat.holder
         if holder is None and not self.drone_arbitrates and len(self.members) > 1:
             # Nobody told us who holds it (the drone does not say): give the peers a lease to speak up,
@@ -194,8 +238,8 @@ class Assignment:
             if seat.displaced_ns is not None and now_ns - seat.displaced_ns < self.holdoff_ns:
                 return None
             candidates, reason = order, f"ranked above {holder}"
-        elif seat.unanswered_since_ns is not None and now_ns - seat.unanswered_since_ns > self.lease_ns:
-            late_ms = (now_ns - seat.unanswered_since_ns) / 1e6
+        elif (silent_ns := self._silent_ns(seat, holder, now_ns)) > self.lease_ns:
+            late_ms = silent_ns / 1e6
             candidates, reason = [r for r in order if r != holder], f"{holder} silent for {late_ms:.0f} ms"
         else:
             return None
@@ -203,13 +247,27 @@ class Assignment:
             return None
         seat.term += 1
         seat.holder = self.me
+        seat.holder_since_ns = now_ns
         seat.unanswered_since_ns = None
         seat.displaced_ns = None
         self.counters.takeovers += 1
         return Change(uav, Role.SERVE, seat.term, f"took over: {reason}")
 
+    def _silent_ns(self, seat: Seat, holder: str, now_ns: int) -> int:
+        """How long the holder has been silent: with `beats`, from its last heartbeat (or from when it
+        took the drone, if later) to the newest thing heard; else since the oldest state it left
+        unanswered (-1: none waits)."""
+        if self.beats:
+            return min(now_ns, self.heard_ns) - max(self.beat_ns.get(holder, 0), seat.holder_since_ns)
+        return -1 if seat.unanswered_since_ns is None else now_ns - seat.unanswered_since_ns
+
     def tick(self, now_ns: int) -> list[Change]:
-        """Takeovers due now without a new message: a holder's token went, or its lease ran out."""
+        """Takeovers due now without a new message: a holder's token went, or its lease ran out. With
+        `beats`, the seats are looked at only after the live set changed or while a peer is silent (a
+        seat's holder is silent no longer than the replica itself): not every drone every period."""
+        if self.beats and not self._rescan and not self._a_peer_is_silent(now_ns):
+            return []
+        self._rescan = False
         changes = []
         for uav, seat in self.seats.items():
             if seat.holder != self.me and seat.latest_seq >= 0 and self.role(uav) is Role.WATCH:
@@ -217,6 +275,10 @@ class Assignment:
                 if change is not None:
                     changes.append(change)
         return changes
+
+    def _a_peer_is_silent(self, now_ns: int) -> bool:
+        heard = min(now_ns, self.heard_ns)
+        return any(heard - self.beat_ns.get(r, 0) > self.lease_ns for r in self.members if r != self.me)
 
     def term(self, uav: str) -> int:
         seat = self.seats.get(uav)

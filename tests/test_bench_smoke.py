@@ -78,6 +78,16 @@ def test_loop_and_fleet_over_real_zenoh(smoke: tuple[dict[str, Any], str]) -> No
         (row,) = fleet[key]["rows"]
         assert row["drones"] == 10
         assert row["answered"] > 0
+    scale = _result(smoke, "edge_scale")  # one process, then two replicas, 10 drones from a load process
+    assert [(r["mode"], r["processes"]) for r in scale["runs"]] == [("one", 1), ("replicas", 2)]
+    for run in scale["runs"]:
+        (row,) = run["rows"]
+        assert row["answered"] > 0.5
+        mpcs = [name for name in row["core_share"] if name.startswith("mpc")]
+        assert len(mpcs) == run["processes"]
+        assert all(row["core_share"][name] > 0 for name in mpcs)  # each worked: flew, or stood by
+        assert row["core_share"]["load0"] > 0
+    assert scale["cores"] >= 1
     edge = _result(smoke, "edge_per_drone")
     assert [r["drones"] for r in edge["rows"]] == [1, 2]
     for row in edge["rows"]:

@@ -148,3 +148,24 @@ def test_the_demo_s_help_names_every_shipped_scenario(capsys: pytest.CaptureFixt
     text = " ".join(capsys.readouterr().out.split())
     for name in builtin_names():  # argparse may break a name at its hyphen
         assert name in text or name.replace("-", "- ") in text, name
+
+
+def test_math_threads_are_set_before_numpy_loads_and_a_users_variable_wins() -> None:
+    """`[mpc] math_threads` reaches the BLAS under numpy only if set before numpy is imported: run_edge
+    sets it before it imports the service, and nothing before it imports numpy."""
+    import subprocess
+    import sys
+
+    from dynqos.cli.edge_cmd import MATH_THREADS_VARIABLES, limit_math_threads
+
+    environ = {"OMP_NUM_THREADS": "4"}
+    limit_math_threads(1, environ)
+    assert environ == {**dict.fromkeys(MATH_THREADS_VARIABLES, "1"), "OMP_NUM_THREADS": "4"}
+    probe = (
+        "import sys; from dynqos.cli import main; from dynqos.common.config import load_config; "
+        "load_config(None, ['mpc.math_threads=3']); print('numpy' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
+    with pytest.raises(ConfigError, match="math_threads"):
+        load_config(None, ["mpc.math_threads=0"])

@@ -142,6 +142,9 @@ def test_production_overlay_turns_on_mtls_access_control_and_mpc_replicas(tmp_pa
         "name": "dynqos-mpc",
     }
     assert hpa["spec"]["minReplicas"] >= 2
+    pods_metrics = [m["pods"]["metric"]["name"] for m in hpa["spec"]["metrics"] if m["type"] == "Pods"]
+    assert pods_metrics == ["dynqos_mpc_drones_flying"]
+    assert pods_metrics[0] in _mpc_metric_names()  # what the HPA reads is what the MPC exports
     planner = workloads["dynqos-planner"]
     assert planner["spec"]["replicas"] == 2
     (planner_env,) = planner["spec"]["template"]["spec"]["containers"][0]["env"]
@@ -413,3 +416,19 @@ def test_zenoh_configs_in_deploy_are_in_sync_and_parse(tmp_path: Path) -> None:
     production = (DEPLOY / "zenoh" / "router-production.json5").read_text()
     assert '"enable_mtls": true' in production
     assert '"default_permission": "deny"' in production
+
+
+def _mpc_metric_names() -> set[str]:
+    """The metric families an MPC process exports (on an in-memory bus, registry only)."""
+    from dynqos.common.bus import MemoryBus
+    from dynqos.common.config import load_config
+    from dynqos.common.metrics import ProcessMetrics
+    from dynqos.edge import metrics
+    from dynqos.edge.mpc.service import MpcService
+    from dynqos.edge.runtime import Ports
+
+    config = load_config(None, ['mpc.replica_id="m1"'])
+    service = MpcService(config, Ports(MemoryBus()))
+    registry = ProcessMetrics("mpc", config.metrics)
+    metrics.mpc(service, registry)
+    return {family.name for family in registry.registry.collect()}

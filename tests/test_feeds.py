@@ -71,6 +71,7 @@ def test_each_replica_follows_only_the_drones_it_flies_or_stands_by_for(
                   for uav in DRONES}  # fmt: skip
     for uav, pub in publishers.items():
         pub.put(_state(uav, 1, clock))
+    clock.advance_s(0.01)  # an MPC standby reads its drones' newest states once per beat period
     _settle(services)
     received = [s.feeds.feeds[0].stats.received for s in services]
     assert received == [len(s.feeds.subscribed) for s in services]

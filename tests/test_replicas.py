@@ -200,6 +200,155 @@ def _state(seq: int, clock: FakeClock, term: int, holder: str) -> State:
                  command_replica=holder)  # fmt: skip
 
 
+def beating(me: str, *others: str) -> Assignment:
+    a = Assignment(me, lease_ns=LEASE, holdoff_ns=HOLDOFF, beats=True)
+    for other in others:
+        a.join(other)
+    return a
+
+
+def test_with_beats_a_standby_takes_over_when_the_holders_beats_stop_not_when_a_state_waits() -> None:
+    """The MPC's leases: the holder is silent when its heartbeat stops; a standby needs no commands."""
+    uav = drone_ranked("a", "b", ("a", "b"))
+    standby = beating("b", "a")
+    standby.on_state(uav, 1, 1, "a", 0)  # the drone follows a
+    t = 0
+    for seq in range(2, 30):  # a beats every 10 ms; no command is ever seen, and none is needed
+        t = seq * 50 * MS
+        for beat in range(5):
+            standby.on_beat("a", t - beat * 10 * MS)
+        assert standby.on_state(uav, seq, 1, "a", t) is None
+        assert standby.tick(t + MS) == []
+    assert standby.role(uav) is Role.WATCH
+    last_beat = t  # a hangs: its beats stop, the drone's states go on
+    assert standby.on_state(uav, 30, 1, "a", last_beat + LEASE) is None  # not before the lease
+    assert standby.tick(last_beat + LEASE) == []
+    change = standby.on_state(uav, 31, 1, "a", last_beat + LEASE + MS)
+    assert change is not None
+    assert (change.role, change.term) == (Role.SERVE, 2)
+    assert "silent" in change.reason
+    standby.on_beat("b", t)  # its own beats and a stranger's are not a peer's
+    standby.on_beat("zed", t)
+    assert set(standby.beat_ns) == {"a"}
+
+
+def test_with_beats_a_standby_that_hears_late_does_not_take_its_own_lag_for_silence() -> None:
+    """Silence runs to the newest thing heard, not the clock: a replica whose receiving stalled (its
+    zenoh thread waiting for the GIL) heard neither the beats nor the states meanwhile."""
+    uav = drone_ranked("a", "b", ("a", "b"))
+    standby = beating("b", "a")
+    standby.on_state(uav, 1, 1, "a", 0)
+    standby.on_beat("a", 5 * MS)
+    assert standby.tick(5 * MS + 10 * LEASE) == []  # nothing heard since: no judgement
+    change = standby.on_state(uav, 2, 1, "a", 5 * MS + LEASE + MS)  # a state after the lease, no beat
+    assert change is not None
+    assert (change.role, change.term) == (Role.SERVE, 2)
+
+
+def test_with_beats_its_own_beats_back_through_the_router_say_a_peers_silence_is_real() -> None:
+    uav = drone_ranked("a", "b", ("a", "b"))
+    standby = beating("b", "a")
+    standby.on_state(uav, 1, 1, "a", 0)
+    standby.on_beat("a", 5 * MS)
+    standby.on_beat("b", 5 * MS + LEASE)  # ours, heard when a's should have been
+    assert standby.tick(5 * MS + LEASE) == []  # not silent beyond the lease yet
+    standby.on_beat("b", 6 * MS + LEASE)
+    changes = standby.tick(6 * MS + LEASE)  # no state since: our own beats alone tell
+    assert [(c.role, c.term) for c in changes] == [(Role.SERVE, 2)]
+
+
+def test_with_beats_a_new_holder_gets_a_whole_lease_before_its_first_beat() -> None:
+    uav = drone_ranked("a", "b", ("a", "b"))
+    standby = beating("b", "a")
+    standby.on_state(uav, 1, 1, "a", 1000 * MS)  # a is known to hold it from now; no beat heard yet
+    standby.on_state(uav, 2, 1, "a", 1000 * MS + LEASE)
+    assert standby.tick(1000 * MS + LEASE) == []
+    change = standby.on_state(uav, 3, 1, "a", 1001 * MS + LEASE)
+    assert change is not None
+    assert change.role is Role.SERVE
+
+
+def test_the_rank_cache_follows_the_live_set() -> None:
+    a = replica("a", "b")
+    uav = drone_ranked("c", "a", ("a", "b", "c"))
+    assert a.order(uav) == ranked(uav, {"a", "b"})
+    a.join("c")
+    assert a.order(uav)[:2] == ["c", "a"]
+    a.leave("c")
+    assert a.order(uav) == ranked(uav, {"a", "b"})
+
+
+def test_a_hung_mpc_service_is_replaced_when_its_beats_stop_and_no_standby_hears_commands() -> None:
+    """Two MPC services on the in-memory bus: the standby subscribes to no commands; when the one flying
+    the drone stops turning (hung: no beats, no answers), the standby answers within the lease."""
+    clock = FakeClock(1_000_000_000)
+    bus = MemoryBus(clock)
+    bus.declare_token(keys.drone_presence("uav1"))
+    a, b = _mpc("mpc-a", bus, clock), _mpc("mpc-b", bus, clock)
+    commands: BoundedQueue[Received] = BoundedQueue(1000)
+    bus.subscribe(keys.downlink("uav1", Downlink.COMMAND), commands, expect=(Command,))
+    drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+    followed = (0, "")
+    got: list[Command] = []
+    live = [a, b]
+    for seq in range(1, 40):
+        drone.put(_state(seq, clock, *followed))
+        for _ in range(5):  # 10 ms turns: each live service beats and answers
+            for service in live:
+                turn(service, clock.now_ns())
+            got += [i.message for i in commands.drain() if isinstance(i.message, Command)]
+            clock.advance_s(0.01)
+        if got:
+            followed = (got[-1].term, got[-1].replica)
+        if seq == 10:
+            flying = a if got[-1].replica == "mpc-a" else b
+            live.remove(flying)  # hung: its token stays, it neither beats nor answers
+            hung_at = len(got)
+    standby = live[0]
+    assert len([c for c in got[:hung_at] if c.replica == standby.replica]) == 0  # it stood by, silent
+    after = got[hung_at:]
+    assert after
+    assert {(c.replica, c.term) for c in after} == {(standby.replica, got[hung_at - 1].term + 1)}
+    assert after[0].state_seq <= 12  # the lease (50 ms) and a turn: the next state or the one after
+    assert standby.feeds.subscribed == {"uav1"}
+    inputs = {feed.all_drones for feed in standby.feeds.feeds}  # the commands are the drone's alone
+    assert keys.downlink_all_drones(Downlink.COMMAND) not in inputs
+
+
+def test_a_standby_reads_only_the_newest_state_and_is_pushed_them_once_it_flies() -> None:
+    """The drones a replica stands by for are kept newest-only and read once per beat period; once it
+    takes one over, that drone's states come to it one by one again."""
+    clock = FakeClock(1_000_000_000)
+    bus = MemoryBus(clock)
+    bus.declare_token(keys.drone_presence("uav1"))
+    a, b = _mpc("mpc-a", bus, clock), _mpc("mpc-b", bus, clock)
+    for service in (a, b):
+        turn(service, clock.now_ns())
+    first = a if ranked("uav1", {"mpc-a", "mpc-b"})[0] == "mpc-a" else b
+    second = b if first is a else a
+    assert set(second.feeds.pulled) == {"uav1"}
+    assert not first.feeds.pulled
+    drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+    for seq in (1, 2, 3):  # three states within one beat period
+        drone.put(_state(seq, clock, 0, ""))
+        clock.advance_s(0.003)
+        turn(first, clock.now_ns())
+    turn(second, clock.now_ns())
+    assert second.counters.states == 0  # not yet: read once per beat period
+    clock.advance_s(0.002)
+    turn(second, clock.now_ns())
+    assert second.counters.states == 1  # read once: the newest
+    assert second.newest["uav1"].message.seq == 3
+    assert first.counters.states == 3  # the one that flies it hears each
+    first.membership.token.close()  # its process is gone
+    turn(second, clock.now_ns())
+    assert second.assignment.role("uav1") is Role.SERVE
+    assert not second.feeds.pulled  # flying it now: pushed each state
+    drone.put(_state(4, clock, 1, second.replica))
+    turn(second, clock.now_ns())
+    assert second.counters.states == 2
+
+
 def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goes() -> None:
     """The service wiring on the in-memory bus (same codec and checks as zenoh) and a fake clock: the
     drone's states, the commands each replica sees of the other, the tokens; a token flood is counted."""

@@ -126,6 +126,11 @@ class MpcConfig:
     # crc32(id) % count == index. Replicas need none of it.
     shard_index: int = 0
     shard_count: Annotated[int, In(1, 1024, "must be in 1..1024")] = 1
+    # Threads of the BLAS and OpenMP under numpy (OPENBLAS/OMP/MKL_NUM_THREADS, set before numpy loads;
+    # an environment variable already set wins). Each QP is small and solved on one thread; left to
+    # their default, every process starts one spinning thread per core, and replicas on one host fight
+    # over them (docs/benchmarks.md, `edge_scale`).
+    math_threads: Annotated[int, In(1, 256, "must be in 1..256")] = 1
 
     def __post_init__(self) -> None:
         _check_replica(self.replica_id, self.takeover_after_s, self.holdoff_s, max_takeover_s=1.0)

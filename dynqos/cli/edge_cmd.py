@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
+from collections.abc import MutableMapping
 
 from dynqos.cli.options import (
     Commands,
@@ -105,7 +107,18 @@ def add(commands: Commands) -> None:
     onboard.set_defaults(handler=run_onboard)
 
 
+MATH_THREADS_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def limit_math_threads(threads: int, environ: MutableMapping[str, str]) -> None:
+    """[mpc] math_threads for the BLAS and OpenMP under numpy: read once, when numpy loads, so set
+    before any service module is imported (a variable the user set wins)."""
+    for name in MATH_THREADS_VARIABLES:
+        environ.setdefault(name, str(threads))
+
+
 def run_edge(args: argparse.Namespace, config: Config) -> int:
+    limit_math_threads(config.mpc.math_threads, os.environ)
     # The service's module is imported first: a missing extra is said before any network is opened.
     service = importlib.import_module(SERVICES[args.edge_command][0])
     code: int = service.run(with_metrics(args, config), health_file=path_or_none(args.health_file))

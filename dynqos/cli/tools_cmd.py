@@ -13,10 +13,10 @@ from dynqos.common.errors import DynqosError
 
 BENCH = (
     "Runs each benchmark against its floor and target (all by default: supervisor_step, mpc_step, "
-    "control_loop, fleet_zenoh, edge_per_drone, camera_rate, onboard_camera, vehicle_sim, cell_forward, "
-    "supervisor_reaction, fleet_flight, observability, ros2_bridge), prints one verdict line each, and "
-    "writes bench-results.json (every figure) and bench-results.md (the tables) into --out. Benchmarks "
-    "report; the exit code is 0 whatever the verdicts. docs/benchmarks.md explains each one."
+    "control_loop, fleet_zenoh, edge_scale, edge_per_drone, camera_rate, onboard_camera, vehicle_sim, "
+    "cell_forward, supervisor_reaction, fleet_flight, observability, ros2_bridge), prints one verdict line "
+    "each, and writes bench-results.json (every figure) and bench-results.md (the tables) into --out. "
+    "Benchmarks report; the exit code is 0 whatever the verdicts. docs/benchmarks.md explains each one."
 )
 CERTS = (
     "Writes into --out (made 0700): ca.pem and ca-key.pem (kept and reused if present), router.pem (server "

@@ -74,11 +74,6 @@ class DroneController:
                 out[j] = active.accel[k]
         return out
 
-    def observe(self, state_stamp_ns: int, accel_mps2: tuple[tuple[float, float, float], ...]) -> None:
-        """A command another replica sent this drone: what the drone is applying, so that a standby's
-        first plan after a takeover compensates the delay with the inputs actually in flight."""
-        self._sent.append(_SentCommand(state_stamp_ns, np.array(accel_mps2, dtype=float)))
-
     def step(self, state: State, arrival_ns: int) -> Plan | None:
         """A plan for this state, or None if it is stale (an older or repeated seq)."""
         if self.last_seq is not None and state.seq <= self.last_seq:

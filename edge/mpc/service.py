@@ -6,9 +6,12 @@ A failed solve sends nothing and is counted; the drone's watchdog takes over. Id
 dropped after `idle_timeout_s`.
 
 Any number of processes may run side by side: each declares a liveliness token, and edge/replicas.py
-decides from the live set which one flies each drone (the others stand by for it, watching the
-commands it sends, and take over when its token goes or it leaves a state unanswered for
-`takeover_after_s`). Commands carry the replica's term, which the drone uses to refuse a replaced one.
+decides from the live set which one flies each drone (the next one stands by for it, keeping the
+drone's newest state, and takes over when its token goes or its heartbeat stops for
+`takeover_after_s`: the beat, sent from the loop every fifth of that, says the loop still turns).
+Commands carry the replica's term, which the drone uses to refuse a replaced one; a standby learns
+who flies a drone from the drone's own States (the term and replica it follows), not from the
+commands, which it no longer receives (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -17,12 +20,13 @@ import logging
 import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 from prometheus_client import Histogram
 
 from dynqos.common import keys
-from dynqos.common.bus import Priority, Publisher, Received
+from dynqos.common.bus import Priority, Publisher, RawBus, Received
 from dynqos.common.config import Config
 from dynqos.common.keys import Downlink
 from dynqos.common.messages import Command, Reference, State
@@ -31,13 +35,14 @@ from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
 from dynqos.edge.mpc.controller import DroneController
 from dynqos.edge.mpc.problem import SolveError
-from dynqos.edge.replicas import Assignment, Role
+from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Role
 from dynqos.edge.runtime import EdgeCore, Ports, serve
 
 log = logging.getLogger(__name__)
 
 MAX_PATHS = 8  # later copies of one State kept until it is answered (a drone has a few paths)
-SCANS_PER_LEASE = 16  # a takeover is at most a sixteenth of the lease late (3 ms at 50 ms)
+BEATS_PER_LEASE = 5  # a holder beats five times per lease: four late or lost beats are no takeover;
+# a standby watches as often (a takeover is at most a fifth of the lease late: 10 ms at 50 ms)
 
 
 @dataclass
@@ -73,7 +78,10 @@ class MpcService(EdgeCore):
         cfg = config.mpc
         self.replica = cfg.replica_id or default_replica_id()
         self.assignment = Assignment(
-            self.replica, lease_ns=round(cfg.takeover_after_s * 1e9), holdoff_ns=round(cfg.holdoff_s * 1e9)
+            self.replica,
+            lease_ns=round(cfg.takeover_after_s * 1e9),
+            holdoff_ns=round(cfg.holdoff_s * 1e9),
+            beats=True,
         )
         self.newest: dict[str, Received] = {}  # the newest state per drone we stand by for
         # A drone on two paths sends each State by both (docs/multipath.md): the first copy is solved and
@@ -81,23 +89,56 @@ class MpcService(EdgeCore):
         self._copies: dict[str, list[Received]] = {}  # later copies of the newest state, not answered yet
         self._answered: dict[str, Command] = {}  # the last Command sent to each drone
         self._paths_heard: dict[str, set[str]] = {}  # the paths the newest state came by
-        # Takeovers due and idle drones are found by scanning every drone: SCANS_PER_LEASE times per
-        # lease, and at once when the live set changed (a scan per state cost 17 us at 100 drones).
-        self._scan_period_ns = round(cfg.takeover_after_s * 1e9 / SCANS_PER_LEASE)
-        self._next_scan_ns = 0
+        # Once per beat period, and at once when the live set changed, a replica watches: it reads the
+        # newest states of the drones it stands by for, and scans every drone's seat for a takeover due
+        # and an idle drone (a scan per state cost 17 us at 100 drones).
+        self._next_watch_ns = 0
         # Replicas of one static shard (or all, unsharded) share its drones among themselves; with sites,
         # within their site only: each site answers every drone (docs/multipath.md).
         group = "all" if cfg.shard_count == 1 else f"shard-{cfg.shard_index}-of-{cfg.shard_count}"
         group = f"site-{cfg.site}-{group}" if cfg.site else group
         self.membership = Membership("mpc", group, self.assignment, bus)
-        # each drone's state, its references, and the other replicas' commands to it (a standby's view)
-        self.feeds = DroneFeeds(
-            "mpc", bus, self.inbox, [feeds.states(), feeds.references(), feeds.commands()]
+        # The replicas' heartbeats: each beat's arrival noted on zenoh's thread (the newest per replica,
+        # a bounded map), handed to the assignment on the loop.
+        self._beat = bus.publisher(
+            keys.replica_beat("mpc", group, self.replica), Priority.REAL_TIME, express=True
         )
+        self._beat_period_ns = round(cfg.takeover_after_s * 1e9 / BEATS_PER_LEASE)
+        self._next_beat_ns = 0
+        self._beats_heard: dict[str, int] = {}
+        cast(RawBus, bus).raw_subscribe(keys.replica_beats("mpc", group), self._on_beat, direct=True)
+        # Each drone's state and its references (its holder's commands are no standby's business). A
+        # drone it stands by for has its states kept newest-only in zenoh and read once per beat period:
+        # decoded and queued one by one, they cost a standby most of what serving costs
+        # (docs/benchmarks.md, `edge_scale`).
+        self.feeds = DroneFeeds("mpc", bus, self.inbox, [feeds.states(pullable=True), feeds.references()])
         self.feeds.reconcile(self._wanted, assignment_changed=True)
         self.health_interval_s = cfg.health_interval_s
         self._fresh: set[str] = set()  # drones with a new state to answer at the next tick
         self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
+
+    def _quiet(self, uav: str) -> bool:
+        """A drone this replica stands by for and is not ranked first for: its states are only read."""
+        return self.assignment.role(uav) is Role.WATCH and self.assignment.order(uav)[0] != self.replica
+
+    def _on_beat(self, key: str, _payload: bytes) -> None:
+        """Zenoh's thread: a replica's heartbeat (its name checked when the assignment takes it). Our
+        own come back through the router as well: they say our receiving is up to date."""
+        name = keys.replica_of_token(key)
+        if name in self._beats_heard or len(self._beats_heard) < MAX_REPLICAS:
+            self._beats_heard[name] = self.clock.now_ns()
+
+    def _take_beats(self, now_ns: int) -> None:
+        """The beats heard, into the assignment (before any state is judged); ours, when due."""
+        for name, heard_ns in dict(self._beats_heard).items():  # a copy: zenoh's thread adds to it
+            self.assignment.on_beat(name, heard_ns)
+        self._maybe_beat(now_ns)
+
+    def _maybe_beat(self, now_ns: int) -> None:
+        """Our heartbeat, when due: also between two answers of a long batch (busy is not hung)."""
+        if now_ns >= self._next_beat_ns:
+            self._next_beat_ns = now_ns + self._beat_period_ns
+            self._beat.put_bytes(b"")
 
     def _mine(self, uav: str) -> bool:
         cfg = self.config.mpc
@@ -118,55 +159,49 @@ class MpcService(EdgeCore):
         return ctrl
 
     def handle(self, events: list[Received], now_ns: int) -> None:
-        """States, references and the other replicas' commands, oldest first."""
+        """States and references, oldest first."""
         self.membership.apply()
+        self._take_beats(now_ns)
         for item in events:
             message = item.message
             if isinstance(message, Reference):
                 self._on_reference(message, item.arrival_ns)
-            elif isinstance(message, Command):
-                self._on_command(message, item.arrival_ns)
             elif isinstance(message, State):
                 self._on_state(item, message, self._fresh)
 
     def tick(self, now_ns: int) -> float:
         """Answer the fresh states; take over the drones whose holder went silent; drop idle drones."""
         self.membership.apply()
+        self._take_beats(now_ns)
+        watch = now_ns >= self._next_watch_ns or self.membership.changed
+        if watch:
+            self._next_watch_ns = now_ns + self._beat_period_ns
+            for item in self.feeds.pull():
+                assert isinstance(item.message, State)
+                self._on_state(item, item.message, self._fresh)
         fresh, self._fresh = self._fresh, set()
-        scan = now_ns >= self._next_scan_ns or self.membership.changed
-        if scan:  # every drone's seat and age: not on every state (a fleet's states come one by one)
-            self._next_scan_ns = now_ns + self._scan_period_ns
+        if watch:
             for change in self.assignment.tick(now_ns):
                 self.membership.log_change(change)
                 fresh.add(change.uav)  # a takeover answers the newest state at once
         for uav in fresh & self.newest.keys():
             if self.assignment.role(uav) is Role.SERVE:
                 self._answer(uav, self.newest[uav])
+                self._maybe_beat(self.clock.now_ns())
             else:
-                self._controller(uav)  # a standby keeps a warm controller, fed by the holder's commands
-        if scan:
+                self._controller(uav)  # a standby keeps a controller ready (an OSQP setup is ~1 ms)
+        if watch:
             self._drop_idle()
-        self.feeds.reconcile(self._wanted, assignment_changed=self.membership.take_changed())
-        # standing by: often enough to see a holder's lease run out in time
-        return min(0.1, self.config.mpc.takeover_after_s / 4) if self.newest else 0.1
+        self.feeds.reconcile(
+            self._wanted, assignment_changed=self.membership.take_changed(), quiet=self._quiet
+        )
+        # with drones: beating, and often enough to see a holder's lease run out in time
+        return self._beat_period_ns / 1e9 if self.newest else 0.1
 
     def _on_reference(self, message: Reference, arrival_ns: int) -> None:
         if self._mine(message.uav) and self.assignment.mine(message.uav):
             self.counters.references += 1
             self._controller(message.uav).reference.update(message, arrival_ns)
-
-    def _on_command(self, message: Command, arrival_ns: int) -> None:
-        if not self._mine(message.uav) or not self.assignment.mine(message.uav):
-            return  # another shard's drone, or one we neither fly nor stand by for
-        if message.site != self.config.mpc.site:
-            return  # another site's replicas: their terms are theirs (a linked router shows us them)
-        change = self.assignment.on_command(
-            message.uav, message.state_seq, message.term, message.replica, arrival_ns
-        )
-        self.membership.log_change(change)
-        ctrl = self.controllers.get(message.uav)
-        if ctrl is not None and message.replica != self.replica:
-            ctrl.observe(message.state_stamp_ns, message.accel_mps2)
 
     def _on_state(self, item: Received, message: State, fresh: set[str]) -> None:
         uav = message.uav
@@ -267,6 +302,10 @@ class MpcService(EdgeCore):
             if publisher is not None:
                 publisher.close()
             log.info("mpc: drone %s idle for %.0f s, dropped", uav, self.config.mpc.idle_timeout_s)
+
+    def flying(self) -> int:
+        """Drones this replica answers now."""
+        return sum(1 for uav in self.newest if self.assignment.role(uav) is Role.SERVE)
 
     def health(self) -> str:
         c = self.counters
