@@ -124,9 +124,9 @@ class Assignment:
         return True
 
     def on_beat(self, replica: str, now_ns: int) -> None:
-        """A heartbeat (with `beats`): another replica's says it is alive and its loop turns; our own,
-        back through the router, that what we hear is current (a state or a peer's beat would have come
-        by the same way)."""
+        """A heartbeat (with `beats`): another replica's says it is alive and its loop turns; our own
+        (delivered within our session, not through the router) that our own loop turns: silence is
+        not counted while we ourselves do not run."""
         if replica == self.me:
             self.heard_ns = max(self.heard_ns, now_ns)
         elif replica in self.members:

@@ -245,7 +245,7 @@ def test_with_beats_a_standby_that_hears_late_does_not_take_its_own_lag_for_sile
     assert (change.role, change.term) == (Role.SERVE, 2)
 
 
-def test_with_beats_its_own_beats_back_through_the_router_say_a_peers_silence_is_real() -> None:
+def test_with_beats_its_own_beats_say_it_ran_while_its_peer_was_silent() -> None:
     uav = drone_ranked("a", "b", ("a", "b"))
     standby = beating("b", "a")
     standby.on_state(uav, 1, 1, "a", 0)

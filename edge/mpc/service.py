@@ -123,7 +123,7 @@ class MpcService(EdgeCore):
 
     def _on_beat(self, key: str, _payload: bytes) -> None:
         """Zenoh's thread: a replica's heartbeat (its name checked when the assignment takes it). Our
-        own come back through the router as well: they say our receiving is up to date."""
+        own are delivered within our session: they say our own loop turns (edge/replicas.py)."""
         name = keys.replica_of_token(key)
         if name in self._beats_heard or len(self._beats_heard) < MAX_REPLICAS:
             self._beats_heard[name] = self.clock.now_ns()
