@@ -95,9 +95,10 @@ class Assignment:
         self.seats: dict[str, Seat] = {}
         self.counters = ReplicaCounters()
         self.beat_ns: dict[str, int] = {}  # each other live replica's newest heartbeat
-        # The newest arrival of anything heard (a state, a beat). Silence is judged against it, not the
-        # clock: a replica whose own receiving fell behind (its zenoh thread waiting for the GIL) hears
-        # the states late too, and must not take that for its peer's silence.
+        # The newest arrival of anything heard (a state, a peer's beat, our own beat). Silence is judged
+        # against it, not the clock: a replica that does not run itself counts no silence meanwhile.
+        # Not covered: right after a stall of our own, our first beat may come before the backlog of a
+        # peer's beats (docs/reliability.md).
         self.heard_ns = 0
         self._orders: dict[str, list[str]] = {}  # `ranked` per drone for the live set (blake2b per member)
         self._rescan = True  # the live set changed since the last tick: every seat is looked at
