@@ -76,6 +76,7 @@ class ReplicaCounters:
     stepped_down: int = 0
     stale_commands: int = 0  # commands seen with a term below the drone's (a fenced replica)
     members_refused: int = 0  # tokens beyond MAX_REPLICAS or with an invalid name
+    own_stalls: int = 0  # turns of our own loop late enough to hold the judging of silence (`on_turn`)
 
 
 class Assignment:
@@ -95,11 +96,12 @@ class Assignment:
         self.seats: dict[str, Seat] = {}
         self.counters = ReplicaCounters()
         self.beat_ns: dict[str, int] = {}  # each other live replica's newest heartbeat
-        # The newest arrival of anything heard (a state, a peer's beat, our own beat). Silence is judged
-        # against it, not the clock: a replica that does not run itself counts no silence meanwhile.
-        # Not covered: right after a stall of our own, our first beat may come before the backlog of a
-        # peer's beats (docs/reliability.md).
-        self.heard_ns = 0
+        # Silence is judged against our own loop's time (`on_turn`), held still across a stall of our
+        # own until the peers' beats that zenoh's threads held meanwhile have come in.
+        self.loop_ns = 0
+        self.stall_ns = lease_ns // 5  # a turn this much later than due is a stall of our own
+        self._turn_ns = 0  # our loop's last turn
+        self._held_until_ns = 0  # no silence is counted before this (a stall of our own just ended)
         self._orders: dict[str, list[str]] = {}  # `ranked` per drone for the live set (blake2b per member)
         self._rescan = True  # the live set changed since the last tick: every seat is looked at
 
@@ -125,14 +127,27 @@ class Assignment:
         return True
 
     def on_beat(self, replica: str, now_ns: int) -> None:
-        """A heartbeat (with `beats`): another replica's says it is alive and its loop turns; our own
-        (delivered within our session, not through the router) that our own loop turns: silence is
-        not counted while we ourselves do not run."""
-        if replica == self.me:
-            self.heard_ns = max(self.heard_ns, now_ns)
-        elif replica in self.members:
+        """A heartbeat (with `beats`): another replica's says it is alive and its loop turns (our own,
+        delivered within our session, say nothing about our receiving and are not counted)."""
+        if replica != self.me and replica in self.members:
             self.beat_ns[replica] = max(now_ns, self.beat_ns.get(replica, now_ns))
-            self.heard_ns = max(self.heard_ns, now_ns)
+
+    def on_turn(self, now_ns: int, due_gap_ns: int) -> int:
+        """Our loop turned (with `beats`), its last turn having asked for the next within `due_gap_ns`.
+        A peer's silence is counted on this loop's time, not on the clock, and not across a stall of
+        our own: a process that was descheduled, or whose loop held the GIL, received nothing meanwhile
+        either, and right after it the backlog of its peers' beats still waits on zenoh's threads (our
+        own beat, sent at once, would come first). So a turn later than due by more than `stall_ns` holds
+        the time still for twice that, while the backlog comes in. Returns the stall's gap (0: none)."""
+        gap_ns = now_ns - self._turn_ns if self._turn_ns else 0
+        stalled = gap_ns > due_gap_ns + self.stall_ns
+        if stalled:
+            self._held_until_ns = now_ns + 2 * self.stall_ns
+            self.counters.own_stalls += 1
+        self._turn_ns = max(self._turn_ns, now_ns)
+        if now_ns >= self._held_until_ns:
+            self.loop_ns = max(self.loop_ns, now_ns)
+        return gap_ns if stalled else 0
 
     def order(self, uav: str) -> list[str]:
         """The live replicas, best first for `uav` (cached until the live set changes)."""
@@ -157,7 +172,6 @@ class Assignment:
     def on_state(self, uav: str, seq: int, drone_term: int, drone_holder: str, now_ns: int) -> Change | None:
         """A state from the drone, carrying the term (and its holder) the drone accepts now."""
         seat = self.seats.setdefault(uav, Seat())
-        self.heard_ns = max(self.heard_ns, now_ns)
         if seq < seat.latest_seq:  # the drone restarted (or states crossed): count from here
             seat.answered_seq = -1
         seat.latest_seq = seq
@@ -256,10 +270,10 @@ class Assignment:
 
     def _silent_ns(self, seat: Seat, holder: str, now_ns: int) -> int:
         """How long the holder has been silent: with `beats`, from its last heartbeat (or from when it
-        took the drone, if later) to the newest thing heard; else since the oldest state it left
+        took the drone, if later) to our loop's time (`on_turn`); else since the oldest state it left
         unanswered (-1: none waits)."""
         if self.beats:
-            return min(now_ns, self.heard_ns) - max(self.beat_ns.get(holder, 0), seat.holder_since_ns)
+            return min(now_ns, self.loop_ns) - max(self.beat_ns.get(holder, 0), seat.holder_since_ns)
         return -1 if seat.unanswered_since_ns is None else now_ns - seat.unanswered_since_ns
 
     def tick(self, now_ns: int) -> list[Change]:
@@ -278,7 +292,7 @@ class Assignment:
         return changes
 
     def _a_peer_is_silent(self, now_ns: int) -> bool:
-        heard = min(now_ns, self.heard_ns)
+        heard = min(now_ns, self.loop_ns)
         return any(heard - self.beat_ns.get(r, 0) > self.lease_ns for r in self.members if r != self.me)
 
     def term(self, uav: str) -> int:

@@ -207,63 +207,94 @@ def beating(me: str, *others: str) -> Assignment:
     return a
 
 
+TURN = 10 * MS  # the MPC's loop turns once per beat period
+
+
+def turns(a: Assignment, start_ns: int, count: int, beats_from: str | None = None) -> int:
+    """`count` turns of our loop on time after `start_ns` (a peer beating at each, if named); the last."""
+    t = start_ns
+    for _ in range(count):
+        t += TURN
+        a.on_turn(t, TURN)
+        if beats_from:
+            a.on_beat(beats_from, t)
+    return t
+
+
 def test_with_beats_a_standby_takes_over_when_the_holders_beats_stop_not_when_a_state_waits() -> None:
     """The MPC's leases: the holder is silent when its heartbeat stops; a standby needs no commands."""
     uav = drone_ranked("a", "b", ("a", "b"))
     standby = beating("b", "a")
+    standby.on_turn(0, TURN)
     standby.on_state(uav, 1, 1, "a", 0)  # the drone follows a
     t = 0
     for seq in range(2, 30):  # a beats every 10 ms; no command is ever seen, and none is needed
-        t = seq * 50 * MS
-        for beat in range(5):
-            standby.on_beat("a", t - beat * 10 * MS)
+        t = turns(standby, t, 5, beats_from="a")
         assert standby.on_state(uav, seq, 1, "a", t) is None
-        assert standby.tick(t + MS) == []
+        assert standby.tick(t) == []
     assert standby.role(uav) is Role.WATCH
-    last_beat = t  # a hangs: its beats stop, the drone's states go on
-    assert standby.on_state(uav, 30, 1, "a", last_beat + LEASE) is None  # not before the lease
-    assert standby.tick(last_beat + LEASE) == []
+    last_beat = t  # a hangs: its beats stop, the drone's states go on, our loop turns on
+    t = turns(standby, t, 5)
+    assert standby.on_state(uav, 30, 1, "a", t) is None  # not before the lease
+    assert standby.tick(t) == []
+    standby.on_turn(last_beat + LEASE + MS, TURN)
     change = standby.on_state(uav, 31, 1, "a", last_beat + LEASE + MS)
     assert change is not None
     assert (change.role, change.term) == (Role.SERVE, 2)
     assert "silent" in change.reason
+    assert standby.counters.own_stalls == 0
     standby.on_beat("b", t)  # its own beats and a stranger's are not a peer's
     standby.on_beat("zed", t)
     assert set(standby.beat_ns) == {"a"}
 
 
-def test_with_beats_a_standby_that_hears_late_does_not_take_its_own_lag_for_silence() -> None:
-    """Silence runs to the newest thing heard, not the clock: a replica whose receiving stalled (its
-    zenoh thread waiting for the GIL) heard neither the beats nor the states meanwhile."""
+def test_with_beats_a_standby_that_stalled_does_not_take_its_own_stall_for_its_peers_silence() -> None:
+    """A replica descheduled (or its loop holding the GIL) received nothing meanwhile; on its first turn
+    after, its peer's backlog of beats still waits on zenoh's threads. Its time is held until it came."""
     uav = drone_ranked("a", "b", ("a", "b"))
     standby = beating("b", "a")
+    standby.on_turn(0, TURN)
     standby.on_state(uav, 1, 1, "a", 0)
-    standby.on_beat("a", 5 * MS)
-    assert standby.tick(5 * MS + 10 * LEASE) == []  # nothing heard since: no judgement
-    change = standby.on_state(uav, 2, 1, "a", 5 * MS + LEASE + MS)  # a state after the lease, no beat
-    assert change is not None
-    assert (change.role, change.term) == (Role.SERVE, 2)
+    t = turns(standby, 0, 3, beats_from="a")
+    assert standby.on_turn(t + 2 * TURN - MS, TURN) == 0  # late by under a beat period: jitter, no stall
+    assert standby.counters.own_stalls == 0
+    stall_ends = t + 2 * TURN - MS + 10 * LEASE  # a stall of our own: nothing heard, no turn
+    assert standby.on_turn(stall_ends, TURN) == 10 * LEASE
+    assert standby.counters.own_stalls == 1
+    t = stall_ends
+    assert standby.tick(t) == []
+    assert standby.on_state(uav, 2, 1, "a", t) is None
+    t = turns(standby, t, 5, beats_from="a")  # the backlog comes in: a beats, nothing is taken
+    assert standby.tick(t) == []
+    assert standby.role(uav) is Role.WATCH
 
 
-def test_with_beats_its_own_beats_say_it_ran_while_its_peer_was_silent() -> None:
+def test_with_beats_a_peer_silent_across_our_own_stall_is_taken_over_once_the_hold_ends() -> None:
     uav = drone_ranked("a", "b", ("a", "b"))
     standby = beating("b", "a")
+    standby.on_turn(0, TURN)
     standby.on_state(uav, 1, 1, "a", 0)
-    standby.on_beat("a", 5 * MS)
-    standby.on_beat("b", 5 * MS + LEASE)  # ours, heard when a's should have been
-    assert standby.tick(5 * MS + LEASE) == []  # not silent beyond the lease yet
-    standby.on_beat("b", 6 * MS + LEASE)
-    changes = standby.tick(6 * MS + LEASE)  # no state since: our own beats alone tell
+    t = turns(standby, 0, 3, beats_from="a")
+    t += 10 * LEASE  # we stall; a hangs meanwhile, and no backlog comes
+    standby.on_turn(t, TURN)
+    assert standby.tick(t) == []
+    t = turns(standby, t, 1)
+    assert standby.tick(t) == []  # still held (twice the stall threshold)
+    t = turns(standby, t, 1)
+    changes = standby.tick(t)  # no state since: our own loop's time alone tells
     assert [(c.role, c.term) for c in changes] == [(Role.SERVE, 2)]
 
 
 def test_with_beats_a_new_holder_gets_a_whole_lease_before_its_first_beat() -> None:
     uav = drone_ranked("a", "b", ("a", "b"))
     standby = beating("b", "a")
-    standby.on_state(uav, 1, 1, "a", 1000 * MS)  # a is known to hold it from now; no beat heard yet
-    standby.on_state(uav, 2, 1, "a", 1000 * MS + LEASE)
-    assert standby.tick(1000 * MS + LEASE) == []
-    change = standby.on_state(uav, 3, 1, "a", 1001 * MS + LEASE)
+    t = turns(standby, 1000 * MS - TURN, 1)
+    standby.on_state(uav, 1, 1, "a", t)  # a is known to hold it from now; no beat heard yet
+    t = turns(standby, t, 5)
+    standby.on_state(uav, 2, 1, "a", t)
+    assert standby.tick(t) == []
+    standby.on_turn(t + MS, TURN)
+    change = standby.on_state(uav, 3, 1, "a", t + MS)
     assert change is not None
     assert change.role is Role.SERVE
 

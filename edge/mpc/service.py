@@ -43,6 +43,7 @@ log = logging.getLogger(__name__)
 MAX_PATHS = 8  # later copies of one State kept until it is answered (a drone has a few paths)
 BEATS_PER_LEASE = 5  # a holder beats five times per lease: four late or lost beats are no takeover;
 # a standby watches as often (a takeover is at most a fifth of the lease late: 10 ms at 50 ms)
+IDLE_TURN_NS = 100_000_000  # with no drone, the loop turns ten times a second
 
 
 @dataclass
@@ -105,6 +106,7 @@ class MpcService(EdgeCore):
         )
         self._beat_period_ns = round(cfg.takeover_after_s * 1e9 / BEATS_PER_LEASE)
         self._next_beat_ns = 0
+        self._turn_gap_ns = IDLE_TURN_NS  # the longest our loop asked to wait before its next turn
         self._beats_heard: dict[str, int] = {}
         cast(RawBus, bus).raw_subscribe(keys.replica_beats("mpc", group), self._on_beat, direct=True)
         # Each drone's state and its references (its holder's commands are no standby's business). A
@@ -122,20 +124,30 @@ class MpcService(EdgeCore):
         return self.assignment.role(uav) is Role.WATCH and self.assignment.order(uav)[0] != self.replica
 
     def _on_beat(self, key: str, _payload: bytes) -> None:
-        """Zenoh's thread: a replica's heartbeat (its name checked when the assignment takes it). Our
-        own are delivered within our session: they say our own loop turns (edge/replicas.py)."""
+        """Zenoh's thread: a peer's heartbeat (its name checked when the assignment takes it; our own,
+        delivered within our session, are not news)."""
         name = keys.replica_of_token(key)
-        if name in self._beats_heard or len(self._beats_heard) < MAX_REPLICAS:
+        if name != self.replica and (name in self._beats_heard or len(self._beats_heard) < MAX_REPLICAS):
             self._beats_heard[name] = self.clock.now_ns()
 
     def _take_beats(self, now_ns: int) -> None:
         """The beats heard, into the assignment (before any state is judged); ours, when due."""
+        self._turned(now_ns)
         for name, heard_ns in dict(self._beats_heard).items():  # a copy: zenoh's thread adds to it
             self.assignment.on_beat(name, heard_ns)
-        self._maybe_beat(now_ns)
 
-    def _maybe_beat(self, now_ns: int) -> None:
-        """Our heartbeat, when due: also between two answers of a long batch (busy is not hung)."""
+    def _turned(self, now_ns: int) -> None:
+        """Our loop runs (also between two answers of a long batch: busy is not hung): the assignment
+        notes it (a late turn is a stall of our own, edge/replicas.py), and our heartbeat, when due."""
+        stall_ns = self.assignment.on_turn(now_ns, self._turn_gap_ns)
+        if stall_ns and self.newest:
+            hold_ms = 2 * self.assignment.stall_ns / 1e6
+            log.info(
+                "mpc %s: our loop did not turn for %.0f ms: no peer judged silent for the next %.0f ms",
+                self.replica,
+                stall_ns / 1e6,
+                hold_ms,
+            )
         if now_ns >= self._next_beat_ns:
             self._next_beat_ns = now_ns + self._beat_period_ns
             self._beat.put_bytes(b"")
@@ -187,16 +199,19 @@ class MpcService(EdgeCore):
         for uav in fresh & self.newest.keys():
             if self.assignment.role(uav) is Role.SERVE:
                 self._answer(uav, self.newest[uav])
-                self._maybe_beat(self.clock.now_ns())
-            else:
+            elif uav not in self.controllers:
                 self._controller(uav)  # a standby keeps a controller ready (an OSQP setup is ~1 ms)
+            else:
+                continue
+            self._turned(self.clock.now_ns())
         if watch:
             self._drop_idle()
         self.feeds.reconcile(
             self._wanted, assignment_changed=self.membership.take_changed(), quiet=self._quiet
         )
         # with drones: beating, and often enough to see a holder's lease run out in time
-        return self._beat_period_ns / 1e9 if self.newest else 0.1
+        self._turn_gap_ns = self._beat_period_ns if self.newest else IDLE_TURN_NS
+        return self._turn_gap_ns / 1e9
 
     def _on_reference(self, message: Reference, arrival_ns: int) -> None:
         if self._mine(message.uav) and self.assignment.mine(message.uav):
@@ -314,7 +329,8 @@ class MpcService(EdgeCore):
         a = self.assignment
         return (
             f"{self.membership.health(self.newest, 'flying')} "
-            f"stepped_down={a.counters.stepped_down} tokens_refused={a.counters.members_refused} "
+            f"stepped_down={a.counters.stepped_down} own_stalls={a.counters.own_stalls} "
+            f"tokens_refused={a.counters.members_refused} "
             f"shard={self.config.mpc.shard_index}/{self.config.mpc.shard_count} "
             f"drones={len(self.controllers)} followed={len(self.feeds.subscribed)} "
             f"states={c.states} not_mine={c.not_mine} commands={c.commands} copies={c.copies} "
