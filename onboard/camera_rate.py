@@ -29,9 +29,10 @@ import itertools
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 from dynqos.common.errors import ConfigError
+from dynqos.onboard.trendline import TrendlineEstimator
 
 NS_PER_MS = 1_000_000
 ABS_SEND_TIME_UNITS = 1 << 18  # aiortc's (RTP's) abs-send-time: 6.18 fixed-point seconds, 24 bits
@@ -65,6 +66,7 @@ class DelayRateControl:
     floor: float = 0.25  # the least rate factor it sets (the supervisor's min_rate_factor)
     feedback_timeout_s: float = 1.0
     memory: int = 128  # images remembered for their acks
+    delay_filter: str = "kalman"  # or "trendline" (onboard/trendline.py)
     counts: FeedbackCounts = field(default_factory=FeedbackCounts)
     target_bps: float | None = None  # None: no estimate yet (the camera keeps the supervisor's rate)
     _images: OrderedDict[tuple[int, str], tuple[PartSent, ...]] = field(default_factory=OrderedDict)
@@ -80,7 +82,7 @@ class DelayRateControl:
             raise ValueError(f"nominal_fps must be > 0, got {self.nominal_fps}")
         if not 0 < self.floor <= 1:
             raise ValueError(f"floor must be in (0, 1], got {self.floor}")
-        self._estimator = new_estimator()
+        self._estimator = new_estimator(self.delay_filter)
 
     def sent(self, seq: int, kind: str, parts: Sequence[PartSent]) -> None:
         """The camera handed image `seq` (`kind`) to the link in `parts`."""
@@ -112,7 +114,7 @@ class DelayRateControl:
             return False
         del self._images[(seq, kind)]
         if self._clock_changed(image[0].sent_ns, arrival_ns):
-            self._estimator = new_estimator()
+            self._estimator = new_estimator(self.delay_filter)
             self.counts.restarts += 1
         for part, offset_us in zip(image, part_arrivals_us, strict=True):
             arrived_ns = arrival_ns + offset_us * 1000
@@ -170,9 +172,10 @@ def abs_send_time(sent_ns: int) -> int:
     return (sent_ns * ABS_SEND_TIME_UNITS // 1_000_000_000) & 0xFFFFFF
 
 
-def new_estimator() -> Any:
-    """aiortc's port of WebRTC's receive-side delay-based estimator, or a ConfigError that says how to
-    install it (`[onboard] camera_rate_control = "delay"` needs it; the default, "none", does not)."""
+def new_estimator(delay_filter: str = "kalman") -> Any:
+    """aiortc's port of WebRTC's receive-side delay-based estimator (with libwebrtc's trendline filter
+    in place of its Kalman filter for "trendline"), or a ConfigError that says how to install it
+    (`[onboard] camera_rate_control = "delay"` needs it; the default, "none", does not)."""
     try:
         from aiortc.rate import RemoteBitrateEstimator
     except ImportError as exc:
@@ -180,4 +183,9 @@ def new_estimator() -> Any:
             "onboard.camera_rate_control",
             f'"delay" needs aiortc ({exc}): pip install "dynqos[camera-rate]"',
         ) from exc
-    return RemoteBitrateEstimator()
+    estimator = RemoteBitrateEstimator()
+    if delay_filter == "trendline":
+        estimator.estimator = cast(Any, TrendlineEstimator())  # aiortc's OveruseEstimator interface
+    elif delay_filter != "kalman":
+        raise ValueError(f'delay_filter must be "kalman" or "trendline", got {delay_filter!r}')
+    return estimator

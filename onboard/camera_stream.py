@@ -105,6 +105,7 @@ class CameraStream:
                 config.camera_fps,
                 floor=config.camera_rate_floor,
                 feedback_timeout_s=config.camera_feedback_timeout_s,
+                delay_filter=config.camera_delay_filter,
             )
             if config.camera_rate_control == "delay" and config.camera_fps > 0
             else None

@@ -326,6 +326,9 @@ class OnboardConfig:
     # delay-based estimator (aiortc's port) under the supervisor's rate factor, down to camera_rate_floor;
     # without a report for camera_feedback_timeout_s the rate halves, each timeout, to that floor
     camera_rate_control: Literal["none", "delay"] = "none"
+    # the estimator's filter on the delay: "kalman" (aiortc's, WebRTC's 2016 one) or "trendline"
+    # (libwebrtc's since, onboard/trendline.py)
+    camera_delay_filter: Literal["kalman", "trendline"] = "kalman"
     camera_rate_floor: Annotated[float, In(0.01, 1.0, "must be in 0.01..1")] = 0.25
     camera_feedback_timeout_s: Annotated[float, In(0.1, 60, "must be in 0.1..60 s")] = 1.0
     files_dir: str = ""
