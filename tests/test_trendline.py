@@ -9,7 +9,7 @@ import pytest
 
 pytest.importorskip("aiortc", reason="the camera-rate extra (aiortc) is not installed")
 
-from aiortc.rate import BandwidthUsage, OveruseDetector
+from aiortc.rate import BandwidthUsage, OveruseDetector, OveruseEstimator
 
 from dynqos.onboard.camera_rate import DelayRateControl, new_estimator
 from dynqos.onboard.trendline import GAIN, WINDOW, TrendlineEstimator, linear_fit_slope
@@ -23,10 +23,11 @@ def test_the_slope_is_the_least_squares_one() -> None:
     assert linear_fit_slope(deque([(5.0, 1.0), (5.0, 2.0)])) is None  # one x: no line
 
 
-def _detect(extra_delays_ms: list[float]) -> list[BandwidthUsage]:
+def _detect(extra_delays_ms: list[float], kalman: bool = False) -> list[BandwidthUsage]:
     """Groups sent every 10 ms whose arrival deltas exceed that by `extra_delays_ms`: the detector's
-    verdict after each."""
-    estimator, detector = TrendlineEstimator(), OveruseDetector()
+    verdict after each (on the trendline, or on aiortc's Kalman filter)."""
+    estimator = OveruseEstimator() if kalman else TrendlineEstimator()
+    detector = OveruseDetector()
     now, verdicts = 0.0, []
     for extra in extra_delays_ms:
         now += GROUP_MS + extra
@@ -35,15 +36,19 @@ def _detect(extra_delays_ms: list[float]) -> list[BandwidthUsage]:
     return verdicts
 
 
-def test_a_queue_that_keeps_building_is_over_use_within_a_window() -> None:
-    verdicts = _detect([2.0] * 60)  # each group 2 ms later than the last: the queue grows 200 ms/s
+def test_a_queue_that_keeps_building_is_over_use_within_a_window_sooner_than_with_the_kalman_filter() -> None:
+    building = [2.0] * 60  # each group 2 ms later than the last: the queue grows 200 ms/s
+    verdicts, kalman = _detect(building), _detect(building, kalman=True)
     assert BandwidthUsage.OVERUSING in verdicts
-    assert verdicts.index(BandwidthUsage.OVERUSING) < 2 * WINDOW
+    assert verdicts.index(BandwidthUsage.OVERUSING) <= WINDOW  # measured: 20 groups
+    assert kalman.index(BandwidthUsage.OVERUSING) > WINDOW  # measured: 37
 
 
 def test_bursts_that_build_no_queue_are_not_over_use() -> None:
     """A cellular uplink's grants: a group held 8 ms, the next delivered with it (no delay kept)."""
-    assert BandwidthUsage.OVERUSING not in _detect([8.0, -8.0] * 100)
+    for held_ms in (8.0, 20.0):
+        assert BandwidthUsage.OVERUSING not in _detect([held_ms, -held_ms] * 100)
+        assert BandwidthUsage.OVERUSING not in _detect([held_ms, -held_ms] * 100, kalman=True)  # nor Kalman
 
 
 def test_a_steady_link_has_no_trend_and_a_draining_queue_is_under_use() -> None:
