@@ -4,10 +4,10 @@ aiortc ports the receive-side estimator of WebRTC as it was around 2016: a Kalma
 group's delay variation. libwebrtc replaced it with a trendline filter (`TrendlineEstimator`,
 modules/congestion_controller/goog_cc/trendline_estimator.cc): the one-way delay accumulated over the
 groups, smoothed, and the slope of a least-squares line through the last 20 of them. On the traced LTE
-uplinks the camera carried a fifth to two thirds of what the link could with the Kalman filter, and
-the filter was the first suspect; flown with this one, it carried the same (docs/camera.md): what
-slows the camera is queueing the link really does in its gaps, and GCC's slow climb after each
-decrease, not how the gradient is filtered. It is kept as a setting so that the two can be compared.
+uplinks the camera carried a fifth to two thirds of what the link could with the Kalman filter. On a
+bare model of those links this filter carries 0.78 of it against 0.51-0.53; in flight, beside the
+supervisor and the trace's fades, the two carried the same (docs/camera.md). It is a setting, not the
+default, until a flight shows it better.
 
 It stands in for aiortc's `OveruseEstimator` inside its `RemoteBitrateEstimator` (inter-arrival
 groups, the over-use detector with its adaptive threshold, AIMD rate control are aiortc's, unchanged):
