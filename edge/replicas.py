@@ -100,6 +100,7 @@ class Assignment:
         # own until the peers' beats that zenoh's threads held meanwhile have come in.
         self.loop_ns = 0
         self.stall_ns = lease_ns // 5  # a turn this much later than due is a stall of our own
+        self.hold_ns = 2 * self.stall_ns  # after which no silence is counted for this long
         self._turn_ns = 0  # our loop's last turn
         self._held_until_ns = 0  # no silence is counted before this (a stall of our own just ended)
         self._orders: dict[str, list[str]] = {}  # `ranked` per drone for the live set (blake2b per member)
@@ -138,11 +139,12 @@ class Assignment:
         our own: a process that was descheduled, or whose loop held the GIL, received nothing meanwhile
         either, and right after it the backlog of its peers' beats still waits on zenoh's threads (our
         own beat, sent at once, would come first). So a turn later than due by more than `stall_ns` holds
-        the time still for twice that, while the backlog comes in. Returns the stall's gap (0: none)."""
+        the time still for `hold_ns` (twice that) while the backlog comes in. Returns the stall's gap
+        (0: none)."""
         gap_ns = now_ns - self._turn_ns if self._turn_ns else 0
         stalled = gap_ns > due_gap_ns + self.stall_ns
         if stalled:
-            self._held_until_ns = now_ns + 2 * self.stall_ns
+            self._held_until_ns = now_ns + self.hold_ns
             self.counters.own_stalls += 1
         self._turn_ns = max(self._turn_ns, now_ns)
         if now_ns >= self._held_until_ns:

@@ -141,12 +141,11 @@ class MpcService(EdgeCore):
         notes it (a late turn is a stall of our own, edge/replicas.py), and our heartbeat, when due."""
         stall_ns = self.assignment.on_turn(now_ns, self._turn_gap_ns)
         if stall_ns and self.newest:
-            hold_ms = 2 * self.assignment.stall_ns / 1e6
             log.info(
                 "mpc %s: our loop did not turn for %.0f ms: no peer judged silent for the next %.0f ms",
                 self.replica,
                 stall_ns / 1e6,
-                hold_ms,
+                self.assignment.hold_ns / 1e6,
             )
         if now_ns >= self._next_beat_ns:
             self._next_beat_ns = now_ns + self._beat_period_ns
