@@ -25,6 +25,7 @@ from typing import Any
 DYNQOS = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
 KEPT_STDERR_LINES = 20_000  # what stop() returns: the log's tail, bounded
 LIVE_STDERR_LINES = 10_000  # what lines() can still hand out; older ones are dropped when nobody reads
+STOP_WAIT_S = 15.0  # how long stop() waits after SIGTERM before it kills the child
 
 
 class DynqosProcess:
@@ -37,6 +38,7 @@ class DynqosProcess:
         executable: str | Path = DYNQOS,
     ) -> None:
         self.args = args
+        self.killed = False  # stop() had to kill it: it did not end within STOP_WAIT_S of SIGTERM
         self.proc = subprocess.Popen(
             [str(executable), *args, "--config", str(config)],
             stdout=subprocess.PIPE,
@@ -92,16 +94,28 @@ class DynqosProcess:
                 return
             yield text
 
+    @property
+    def returncode(self) -> int | None:
+        """How the child ended (negative: the signal that ended it), None while it runs."""
+        return self.proc.poll()
+
+    def ended(self) -> str:
+        """How it ended, for an assertion's message."""
+        how = "killed after not stopping" if self.killed else "stopped"
+        return f"dynqos {' '.join(self.args)}: {how}, exit code {self.returncode}"
+
     def alive(self) -> bool:
         return self.proc.poll() is None
 
     def stop(self) -> str:
-        """SIGTERM our own child by its pid; kill it if it does not stop. Returns its stderr."""
+        """SIGTERM our own child by its pid; kill it if it does not stop (`killed` says so, `returncode`
+        how it ended). Returns its stderr."""
         if self.proc.poll() is None:
             self.proc.terminate()
         try:
-            self.proc.wait(timeout=15)
+            self.proc.wait(timeout=STOP_WAIT_S)
         except subprocess.TimeoutExpired:
+            self.killed = True
             self.proc.kill()
             self.proc.wait(timeout=5)
         deadline = time.monotonic() + 5

@@ -153,6 +153,9 @@ def test_every_bad_message_is_rejected_and_valid_traffic_still_served(
     logs = {name: procs[name].stop() for name in ("mpc", "planner", "detector", "onboard")}
     for name in logs:
         assert "Traceback" not in logs[name], logs[name][-2000:]
+        # each stopped on its SIGTERM and said so: its last counters are in its "stopped" line
+        assert not procs[name].killed, (procs[name].ended(), logs[name][-2000:])
+        assert procs[name].returncode == 0, (procs[name].ended(), logs[name][-2000:])
     state_key = keys.uplink("uav1", Flow.PRIORITY, Stream.STATE)
     ref_key = keys.downlink("uav1", Downlink.REFERENCE)
     rgb = keys.uplink("uav1", Flow.DEFAULT, Stream.CAMERA_RGB)
