@@ -6,7 +6,11 @@ with it, and the supervisor throttles the camera only a dwell time later. A queu
 first in the one-way delay's growth, before any loss and before the round trip is high for long: that is
 what WebRTC's delay-based congestion control (Google Congestion Control) reads, and aiortc ships its
 estimator in pure Python (`aiortc.rate.RemoteBitrateEstimator`: inter-arrival groups, a Kalman filter on
-the delay gradient, an over-use detector, AIMD rate control), used here as it is.
+the delay gradient, an over-use detector, AIMD rate control), used here as it is. Or, with `controller =
+"queue"`, a queue-delay target (onboard/queue_rate.py): on cellular traces GCC held the camera far under
+what the link carried; on one of three the target kept the supervisor's goodput at GCC's delay, on the
+others it flew as GCC did (docs/camera.md).
+This module is what both share: the feedback's checks, the timeout, and the factor.
 
 The edge acks each image when its last part is in (edge/detector), saying when each part arrived by the
 edge's clock; the drone knows when it handed each part to the link and its size. Only differences of
@@ -32,6 +36,7 @@ from dataclasses import dataclass, field
 from typing import Any, cast
 
 from dynqos.common.errors import ConfigError
+from dynqos.onboard.queue_rate import PartAck, QueueDelayRate
 from dynqos.onboard.trendline import TrendlineEstimator
 
 NS_PER_MS = 1_000_000
@@ -66,7 +71,9 @@ class DelayRateControl:
     floor: float = 0.25  # the least rate factor it sets (the supervisor's min_rate_factor)
     feedback_timeout_s: float = 1.0
     memory: int = 128  # images remembered for their acks
-    delay_filter: str = "kalman"  # or "trendline" (onboard/trendline.py)
+    delay_filter: str = "kalman"  # or "trendline" (onboard/trendline.py); GCC's
+    controller: str = "gcc"  # aiortc's GCC, or "queue": a queue-delay target (onboard/queue_rate.py)
+    queue_target_ms: float = 15.0  # "queue": the queue an image may meet before the rate comes down
     counts: FeedbackCounts = field(default_factory=FeedbackCounts)
     target_bps: float | None = None  # None: no estimate yet (the camera keeps the supervisor's rate)
     _images: OrderedDict[tuple[int, str], tuple[PartSent, ...]] = field(default_factory=OrderedDict)
@@ -82,7 +89,14 @@ class DelayRateControl:
             raise ValueError(f"nominal_fps must be > 0, got {self.nominal_fps}")
         if not 0 < self.floor <= 1:
             raise ValueError(f"floor must be in (0, 1], got {self.floor}")
-        self._estimator = new_estimator(self.delay_filter)
+        if self.controller not in ("gcc", "queue"):
+            raise ValueError(f'controller must be "gcc" or "queue", got {self.controller!r}')
+        self._estimator = self._new_estimator()
+
+    def _new_estimator(self) -> Any:
+        if self.controller == "queue":
+            return QueueDelayRate(target_ms=self.queue_target_ms)
+        return new_estimator(self.delay_filter)
 
     def sent(self, seq: int, kind: str, parts: Sequence[PartSent]) -> None:
         """The camera handed image `seq` (`kind`) to the link in `parts`."""
@@ -114,18 +128,30 @@ class DelayRateControl:
             return False
         del self._images[(seq, kind)]
         if self._clock_changed(image[0].sent_ns, arrival_ns):
-            self._estimator = new_estimator(self.delay_filter)
+            self._estimator = self._new_estimator()
             self.counts.restarts += 1
-        for part, offset_us in zip(image, part_arrivals_us, strict=True):
-            arrived_ns = arrival_ns + offset_us * 1000
-            answer = self._estimator.add(arrived_ns // NS_PER_MS, abs_send_time(part.sent_ns), part.nbytes, 0)
-            if answer is not None:
-                self.target_bps = float(answer[0])
+        arrivals = [arrival_ns + offset_us * 1000 for offset_us in part_arrivals_us]
+        self._estimate(image, arrivals)
         self._last_sent_ns = image[-1].sent_ns
         self._last_arrival_ns = arrival_ns + part_arrivals_us[-1] * 1000
         self._feedback_ns = now_ns
         self.counts.read += 1
         return True
+
+    def _estimate(self, image: tuple[PartSent, ...], arrivals: list[int]) -> None:
+        """Hand an image's parts, sent and arrived, to the controller; keep the target it answers."""
+        if isinstance(self._estimator, QueueDelayRate):
+            acks = [
+                PartAck(part.sent_ns, arrived, part.nbytes)
+                for part, arrived in zip(image, arrivals, strict=True)
+            ]
+            target = self._estimator.image(acks)
+            self.target_bps = self.target_bps if target is None else target
+            return
+        for part, arrived_ns in zip(image, arrivals, strict=True):
+            answer = self._estimator.add(arrived_ns // NS_PER_MS, abs_send_time(part.sent_ns), part.nbytes, 0)
+            if answer is not None:
+                self.target_bps = float(answer[0])
 
     def _clock_changed(self, sent_ns: int, arrival_ns: int) -> bool:
         if self._last_arrival_ns is None or self._last_sent_ns is None:

@@ -106,6 +106,8 @@ class CameraStream:
                 floor=config.camera_rate_floor,
                 feedback_timeout_s=config.camera_feedback_timeout_s,
                 delay_filter=config.camera_delay_filter,
+                controller=config.camera_rate_controller,
+                queue_target_ms=config.camera_queue_target_ms,
             )
             if config.camera_rate_control == "delay" and config.camera_fps > 0
             else None

@@ -82,7 +82,8 @@ class OnboardDaemon:
     ) -> None:
         """`camera`: the source `[onboard] camera = "sim"` needs (sim/vehicle/camera.py), handed in by the
         starter; the drone's own sources (`files`, `device`) are built here from the config."""
-        if config.onboard.camera_rate_control == "delay":
+        onboard = config.onboard
+        if onboard.camera_rate_control == "delay" and onboard.camera_rate_controller == "gcc":
             new_estimator()  # without the camera-rate extra: one error line, before any network
         self.config = config
         self.sim_camera = camera

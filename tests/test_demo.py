@@ -152,7 +152,17 @@ def test_bad_scenario_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
-    "name", ["baseline", "bg-noqos", "bg-dynqos", "bg-staticqos", "faults", "trace-none", "trace-delay"]
+    "name",
+    [
+        "baseline",
+        "bg-noqos",
+        "bg-dynqos",
+        "bg-staticqos",
+        "faults",
+        "trace-none",
+        "trace-delay",
+        "trace-queue",
+    ],
 )
 def test_a_scenarios_config_is_written_and_read_back_unchanged(tmp_path: Path, name: str) -> None:
     """What the runner writes is exactly what every process reads: qos, camera size and pace, the

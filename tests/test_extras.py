@@ -104,8 +104,8 @@ def _config(path: Path, extra: str = "") -> Path:
 def test_the_onboard_extra_runs_the_drone_without_matplotlib_scipy_or_osqp(
     wheel: Path, tmp_path: Path
 ) -> None:
-    """`dynqos[onboard]` runs the daemon; `dynqos[onboard,camera-rate]` also its camera rate controller
-    (docs/camera.md), which the drone's install alone refuses in one line."""
+    """`dynqos[onboard]` runs the daemon and the camera's queue-delay target; `dynqos[onboard,camera-rate]`
+    also GCC (docs/camera.md), which the drone's install alone refuses in one line."""
     bin_dir = _venv_with(wheel, "onboard", tmp_path)
     python = bin_dir / "python"
     assert _absent(python, ("matplotlib", "scipy", "osqp", "aiohttp", "jsonschema")) == "[]"
@@ -138,7 +138,12 @@ def test_the_onboard_extra_runs_the_drone_without_matplotlib_scipy_or_osqp(
             assert refused.returncode == 2, refused.stderr
             assert refused.stderr.count("\n") == 1, refused.stderr
             assert 'pip install "dynqos[camera-rate]"' in refused.stderr
-            # ...and with it added to the drone's install, the daemon runs it.
+            # ...while the queue-delay target runs on the drone's install alone (onboard/queue_rate.py)
+            queue = [*delay, "--set", "onboard.camera_rate_controller=queue"]
+            with _started([["onboard", *queue]], config, bin_dir) as ports:
+                line = _healthy_line(ports[" ".join(["onboard", *queue])], time.monotonic() + HEALTH_WAIT_S)
+                assert "camera_rate=" in line, line
+            # ...and with it added to the drone's install, the daemon runs GCC.
             added = _run(
                 bin_dir / "python", "-m", "pip", "install", "-q", "--disable-pip-version-check",
                 f"{wheel}[onboard,camera-rate]",

@@ -1,5 +1,6 @@
-"""The camera on a traced uplink (docs/camera.md): the trace-none, trace-paper and trace-delay scenarios,
-`dynqos demo --trace FILE`, and the report's figures for a flight whose capacity replays a trace."""
+"""The camera on a traced uplink (docs/camera.md): the trace-none, trace-paper, trace-delay and trace-queue
+scenarios, `dynqos demo --trace FILE`, and the report's figures for a flight whose capacity replays a
+trace."""
 
 from __future__ import annotations
 
@@ -18,18 +19,19 @@ from dynqos.reports.summary import cell_rates
 from dynqos.reports.uplink import traced_lines
 from tests.procs import DYNQOS
 
-TRACES = ("trace-none", "trace-paper", "trace-delay")
+TRACES = ("trace-none", "trace-paper", "trace-delay", "trace-queue")
 
 
-def test_the_three_scenarios_fly_the_same_trace_and_differ_in_how_the_camera_is_slowed() -> None:
-    none, paper, delay = (builtin_scenario(name) for name in TRACES)
-    for s in (none, paper, delay):
+def test_the_scenarios_fly_the_same_trace_and_differ_in_how_the_camera_is_slowed() -> None:
+    none, paper, delay, queue = (builtin_scenario(name) for name in TRACES)
+    for s in (none, paper, delay, queue):
         assert s.config["cell"]["trace_mean_mbps"] == 80.0
         assert s.bg_start_s < 0  # the trace is the only thing that changes
     assert (none.supervisor.rate_factor, none.supervisor.min_rate_factor) == (1.0, 1.0)
-    assert paper.supervisor == delay.supervisor  # the supervisor's factor stays the controller's ceiling
+    assert paper.supervisor == delay.supervisor == queue.supervisor  # its factor stays the ceiling
     assert paper.supervisor.rate_factor < 1.0
-    assert delay.config["onboard"]["camera_rate_control"] == "delay"
+    assert delay.config["onboard"] == {"camera_rate_control": "delay"}  # GCC, the default controller
+    assert queue.config["onboard"] == {"camera_rate_control": "delay", "camera_rate_controller": "queue"}
     assert "onboard" not in none.config
     assert "onboard" not in paper.config
 
@@ -92,31 +94,38 @@ def test_the_report_tables_the_traced_flights_only() -> None:
 @pytest.mark.slow
 @pytest.mark.integration
 @pytest.mark.timeout(300)
-def test_a_flight_on_a_trace_counts_its_capacity_and_the_controller_reads_the_acks(tmp_path: Path) -> None:
+@pytest.mark.parametrize("scenario", ["trace-delay", "trace-queue"])
+def test_a_flight_on_a_trace_counts_its_capacity_and_the_controller_reads_the_acks(
+    tmp_path: Path, scenario: str
+) -> None:
     """A synthetic trace with a one-second period: 0.8 s at one packet a millisecond, then 0.2 s at
-    five. Rescaled to the scenario's 80 Mbit/s, any whole number of periods averages exactly that."""
+    five. Rescaled to the scenario's 80 Mbit/s, any whole number of periods averages exactly that. Each
+    controller (GCC, the queue-delay target) reads the detector's acks and sets the camera's rate."""
     trace = tmp_path / "steps.up"
     stamps = [*range(1, 801), *(t for t in range(801, 1001) for _ in range(5))]
     trace.write_text("\n".join(map(str, stamps)) + "\n")
     out = tmp_path / "run"
     result = subprocess.run(
-        [DYNQOS, "demo", "--scenario", "trace-delay", "--trace", str(trace), "--duration", "10",
+        [DYNQOS, "demo", "--scenario", scenario, "--trace", str(trace), "--duration", "10",
          "--out", str(out)],
         capture_output=True, text=True, timeout=280, check=False,
     )  # fmt: skip
-    summary = json.loads((out / "trace-delay" / "summary.json").read_text())
+    summary = json.loads((out / scenario / "summary.json").read_text())
     assert summary["uplink_trace"] == "steps.up", result.stderr[-2000:]
     assert summary["uplink_capacity_mbps"] == pytest.approx(80.0, rel=0.1)
     assert 0 < summary["uav_delivered_mbps"] <= 1.02 * summary["uplink_capacity_mbps"]
     assert summary["uplink_share"] == pytest.approx(
         summary["uav_delivered_mbps"] / summary["uplink_capacity_mbps"]
     )
-    health = (out / "trace-delay" / "logs" / "onboard.log").read_text()
+    health = (out / scenario / "logs" / "onboard.log").read_text()
     read = [int(n) for n in re.findall(r"camera_acks_read=(\d+)", health)]
     refused = [int(n) for n in re.findall(r"camera_acks_refused=(\d+)", health)]
     assert read
     assert read[-1] > 10 * 10
     assert refused[-1] == 0
+    targets = re.findall(r"camera_target_mbps=(\S+)", health)
+    assert targets
+    assert targets[-1] != "-"  # the controller answered a target
     report = (out / "report.md").read_text()
     assert "## The camera on a traced uplink" in report
-    assert "| trace-delay | steps.up | 1 |" in report
+    assert f"| {scenario} | steps.up | 1 |" in report

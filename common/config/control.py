@@ -329,6 +329,11 @@ class OnboardConfig:
     # the estimator's filter on the delay: "kalman" (aiortc's, WebRTC's 2016 one) or "trendline"
     # (libwebrtc's since, onboard/trendline.py)
     camera_delay_filter: Literal["kalman", "trendline"] = "kalman"
+    # which controller reads the reports: "gcc" (WebRTC's, above) or "queue", a queue-delay target
+    # (SCReAM v2's idea, onboard/queue_rate.py): slow to what arrived while an image meets a queue of
+    # more than camera_queue_target_ms, climb while it meets less
+    camera_rate_controller: Literal["gcc", "queue"] = "gcc"
+    camera_queue_target_ms: Annotated[float, In(5, 2000, "must be in 5..2000 ms")] = 15.0
     camera_rate_floor: Annotated[float, In(0.01, 1.0, "must be in 0.01..1")] = 0.25
     camera_feedback_timeout_s: Annotated[float, In(0.1, 60, "must be in 0.1..60 s")] = 1.0
     files_dir: str = ""
