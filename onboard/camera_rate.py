@@ -79,7 +79,7 @@ class DelayRateControl:
     _images: OrderedDict[tuple[int, str], tuple[PartSent, ...]] = field(default_factory=OrderedDict)
     _frame_bits: dict[int, float] = field(default_factory=dict)
     _bits_per_frame: float | None = None
-    _estimator: Any = None
+    _estimator: QueueDelayRate | GccRate | None = None
     _last_sent_ns: int | None = None  # the newest part read: later acks must be of later parts
     _last_arrival_ns: int | None = None
     _feedback_ns: int | None = None  # when an ack was last read, or the timeout last fired
@@ -93,10 +93,10 @@ class DelayRateControl:
             raise ValueError(f'controller must be "gcc" or "queue", got {self.controller!r}')
         self._estimator = self._new_estimator()
 
-    def _new_estimator(self) -> Any:
+    def _new_estimator(self) -> QueueDelayRate | GccRate:
         if self.controller == "queue":
             return QueueDelayRate(target_ms=self.queue_target_ms)
-        return new_estimator(self.delay_filter)
+        return GccRate(new_estimator(self.delay_filter))
 
     def sent(self, seq: int, kind: str, parts: Sequence[PartSent]) -> None:
         """The camera handed image `seq` (`kind`) to the link in `parts`."""
@@ -133,25 +133,19 @@ class DelayRateControl:
         arrivals = [arrival_ns + offset_us * 1000 for offset_us in part_arrivals_us]
         self._estimate(image, arrivals)
         self._last_sent_ns = image[-1].sent_ns
-        self._last_arrival_ns = arrival_ns + part_arrivals_us[-1] * 1000
+        self._last_arrival_ns = arrivals[-1]
         self._feedback_ns = now_ns
         self.counts.read += 1
         return True
 
     def _estimate(self, image: tuple[PartSent, ...], arrivals: list[int]) -> None:
         """Hand an image's parts, sent and arrived, to the controller; keep the target it answers."""
-        if isinstance(self._estimator, QueueDelayRate):
-            acks = [
-                PartAck(part.sent_ns, arrived, part.nbytes)
-                for part, arrived in zip(image, arrivals, strict=True)
-            ]
-            target = self._estimator.image(acks)
-            self.target_bps = self.target_bps if target is None else target
-            return
-        for part, arrived_ns in zip(image, arrivals, strict=True):
-            answer = self._estimator.add(arrived_ns // NS_PER_MS, abs_send_time(part.sent_ns), part.nbytes, 0)
-            if answer is not None:
-                self.target_bps = float(answer[0])
+        assert self._estimator is not None  # made in __post_init__
+        acks = [
+            PartAck(part.sent_ns, arrived, part.nbytes) for part, arrived in zip(image, arrivals, strict=True)
+        ]
+        target = self._estimator.image(acks)
+        self.target_bps = self.target_bps if target is None else target
 
     def _clock_changed(self, sent_ns: int, arrival_ns: int) -> bool:
         if self._last_arrival_ns is None or self._last_sent_ns is None:
@@ -191,6 +185,30 @@ def _consistent(image: tuple[PartSent, ...], arrival_ns: int, part_arrivals_us: 
     if len(part_arrivals_us) != len(image) or arrival_ns <= 0 or part_arrivals_us[0] != 0:
         return False
     return all(b >= a for a, b in itertools.pairwise(part_arrivals_us))
+
+
+@dataclass(slots=True)
+class GccRate:
+    """aiortc's estimator behind the queue-delay target's interface: an image's parts in, a target out
+    (None while it has none)."""
+
+    estimator: Any
+
+    def image(self, parts: Sequence[PartAck]) -> float | None:
+        target = None
+        for part in parts:
+            arrived_ms = part.arrived_ns // NS_PER_MS
+            answer = self.estimator.add(arrived_ms, abs_send_time(part.sent_ns), part.nbytes, 0)
+            if answer is not None:
+                target = float(answer[0])
+        return target
+
+
+def check_installed(rate_control: str, controller: str) -> None:
+    """A ConfigError naming the extra when the settings need aiortc and it is missing (GCC does; the
+    queue-delay target and no controller do not), so a daemon says so before it opens any network."""
+    if rate_control == "delay" and controller == "gcc":
+        new_estimator()
 
 
 def abs_send_time(sent_ns: int) -> int:

@@ -40,7 +40,7 @@ from dynqos.common.metrics import ProcessMetrics
 from dynqos.common.modes import Flow
 from dynqos.common.transport import Role, open_bus
 from dynqos.onboard.camera import DeviceCamera, FilesCamera
-from dynqos.onboard.camera_rate import new_estimator
+from dynqos.onboard.camera_rate import check_installed
 from dynqos.onboard.camera_stream import CameraStream, FlowPublishers, PathPublishers
 from dynqos.onboard.core import OnboardCore, hold_at, setpoint_period_ns
 from dynqos.onboard.fc import AccelSetpoint, FcState
@@ -83,8 +83,7 @@ class OnboardDaemon:
         """`camera`: the source `[onboard] camera = "sim"` needs (sim/vehicle/camera.py), handed in by the
         starter; the drone's own sources (`files`, `device`) are built here from the config."""
         onboard = config.onboard
-        if onboard.camera_rate_control == "delay" and onboard.camera_rate_controller == "gcc":
-            new_estimator()  # without the camera-rate extra: one error line, before any network
+        check_installed(onboard.camera_rate_control, onboard.camera_rate_controller)
         self.config = config
         self.sim_camera = camera
         self.cfg = config.onboard

@@ -87,6 +87,21 @@ def test_a_feedback_clock_that_jumps_restarts_the_estimator_and_the_target_holds
     assert control.target_bps == 3e6
 
 
+def test_after_a_clock_jump_the_queue_target_reads_the_new_clock_not_a_queue() -> None:
+    """A detector replica whose clock is a minute ahead: the queue-delay target starts again, so on a
+    free link it follows what arrives. Kept from the old clock, its least delay would read the minute as
+    a queue and halve the camera."""
+    control = DelayRateControl(15.0, controller="queue")
+    period = 66 * MS
+    for seq in range(1, 41):  # 2.6 s of images of 4 x 4 kB (2 Mbit/s), each acked 5 ms after it left
+        jump = 60_000 * MS if seq > 20 else 0
+        _image(control, seq, seq * period)
+        assert control.acked(seq, "rgb", seq * period + 5 * MS + jump, (0, 1000, 2000, 3000), seq * period)
+    assert control.counts.restarts == 1
+    assert control.target_bps is not None
+    assert control.target_bps >= 1.5e6
+
+
 def test_without_feedback_the_rate_halves_each_timeout_down_to_the_floor(controller: str) -> None:
     control = DelayRateControl(10.0, floor=0.25, feedback_timeout_s=1.0, controller=controller)
     for seq in range(1, 4):  # 3 images of 4 x 4096 B: the average image once the next is sent

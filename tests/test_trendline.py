@@ -11,7 +11,7 @@ pytest.importorskip("aiortc", reason="the camera-rate extra (aiortc) is not inst
 
 from aiortc.rate import BandwidthUsage, OveruseDetector, OveruseEstimator
 
-from dynqos.onboard.camera_rate import DelayRateControl, new_estimator
+from dynqos.onboard.camera_rate import DelayRateControl, GccRate, new_estimator
 from dynqos.onboard.trendline import GAIN, WINDOW, TrendlineEstimator, linear_fit_slope
 
 GROUP_MS = 10  # a group sent every 10 ms
@@ -70,6 +70,7 @@ def test_the_rate_control_takes_the_filter_it_is_given() -> None:
     assert isinstance(new_estimator("trendline").estimator, TrendlineEstimator)
     assert not isinstance(new_estimator("kalman").estimator, TrendlineEstimator)
     control = DelayRateControl(15.0, delay_filter="trendline")
-    assert isinstance(control._estimator.estimator, TrendlineEstimator)
+    assert isinstance(control._estimator, GccRate)
+    assert isinstance(control._estimator.estimator.estimator, TrendlineEstimator)
     with pytest.raises(ValueError, match="delay_filter"):
         new_estimator("median")
