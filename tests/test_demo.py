@@ -162,6 +162,7 @@ def test_bad_scenario_file_is_one_line_and_exit_2(tmp_path: Path) -> None:
         "trace-none",
         "trace-delay",
         "trace-queue",
+        "trace-split",
     ],
 )
 def test_a_scenarios_config_is_written_and_read_back_unchanged(tmp_path: Path, name: str) -> None:

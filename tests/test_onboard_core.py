@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dynqos.common.bus import Received
-from dynqos.common.config import Config, OnboardConfig, load_config
+from dynqos.common.config import Config, OnboardConfig, SupervisorConfig, load_config
 from dynqos.common.keys import Stream
 from dynqos.common.messages import (
     CameraAck,
@@ -290,6 +290,30 @@ def test_a_fixed_flow_ignores_the_supervisors_flow_and_rate(qos: str) -> None:
     assert {(o.camera_flow, o.camera_rate_factor) for o in outs} == {(Flow(qos), 1.0)}
     assert {s.flow for s in rig.statuses(outs)} == {Flow(qos)}
     assert rig.core.control is ControlSource.EDGE  # and the edge keeps flying while commands come
+
+
+@pytest.mark.parametrize("qos", ["dynamic", "default", "priority"])
+def test_a_camera_pinned_to_the_default_flow_stays_there_while_the_state_moves(qos: str) -> None:
+    """`[supervisor] camera_flow = "default"`: in every QoS mode the state takes the flow it takes
+    without the pin (the priority flow on high latency in dynamic QoS, the fixed flow otherwise) and
+    the camera never leaves the default flow, the fallback and the probe included."""
+    pinned = replace(config(qos), supervisor=replace(SupervisorConfig(), camera_flow="default"))
+    rig = Rig(OnboardCore(pinned, start_ns=1_000 * MS), spaciousness_m=4.0)
+    rig.run_until(ControlSource.EDGE, 4.0)
+    rig.run(3.0)
+    rig.rtt_ms = 120.0  # a loaded default flow: q3 in dynamic QoS
+    outs = rig.run(3.0)
+    rig.edge_up = False  # the fallback (qA), then back
+    outs += rig.run(2.0)
+    rig.edge_up, rig.rtt_ms = True, 20.0
+    outs += rig.run(12.0)
+    state_flows = {p.flow for o in outs for p in o.publish}
+    assert state_flows == ({Flow.DEFAULT, Flow.PRIORITY} if qos == "dynamic" else {Flow(qos)})
+    assert {o.camera_flow for o in outs} == {Flow.DEFAULT}
+    assert {s.camera_flow for s in rig.statuses(outs)} == {Flow.DEFAULT}
+    if qos == "dynamic":
+        states = {s.state for s in rig.statuses(outs)}
+        assert {SupervisorState.Q3, SupervisorState.QA, SupervisorState.Q1} <= states
 
 
 def test_camera_acks_become_latency_samples_in_the_status() -> None:

@@ -1,12 +1,13 @@
-"""The camera on a traced uplink (docs/camera.md): the trace-none, trace-paper, trace-delay and trace-queue
-scenarios, `dynqos demo --trace FILE`, and the report's figures for a flight whose capacity replays a
-trace."""
+"""The camera on a traced uplink (docs/camera.md): the trace-none, trace-paper, trace-delay, trace-queue
+and trace-split scenarios, `dynqos demo --trace FILE`, and the report's figures for a flight whose
+capacity replays a trace."""
 
 from __future__ import annotations
 
 import json
 import re
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -19,16 +20,19 @@ from dynqos.reports.summary import cell_rates
 from dynqos.reports.uplink import traced_lines
 from tests.procs import DYNQOS
 
-TRACES = ("trace-none", "trace-paper", "trace-delay", "trace-queue")
+TRACES = ("trace-none", "trace-paper", "trace-delay", "trace-queue", "trace-split")
 
 
 def test_the_scenarios_fly_the_same_trace_and_differ_in_how_the_camera_is_slowed() -> None:
-    none, paper, delay, queue = (builtin_scenario(name) for name in TRACES)
-    for s in (none, paper, delay, queue):
+    none, paper, delay, queue, split = (builtin_scenario(name) for name in TRACES)
+    for s in (none, paper, delay, queue, split):
         assert s.config["cell"]["trace_mean_mbps"] == 80.0
         assert s.bg_start_s < 0  # the trace is the only thing that changes
     assert (none.supervisor.rate_factor, none.supervisor.min_rate_factor) == (1.0, 1.0)
     assert paper.supervisor == delay.supervisor == queue.supervisor  # its factor stays the ceiling
+    assert paper.supervisor.camera_flow == "state"
+    assert split.supervisor == replace(queue.supervisor, camera_flow="default")  # and only that apart
+    assert split.config == queue.config
     assert paper.supervisor.rate_factor < 1.0
     assert delay.config["onboard"] == {"camera_rate_control": "delay"}  # GCC, the default controller
     assert queue.config["onboard"] == {"camera_rate_control": "delay", "camera_rate_controller": "queue"}

@@ -48,6 +48,10 @@ class SupervisorConfig:
     recover_max_s: float = 16.0
     rate_factor: float = 0.5
     min_rate_factor: float = 0.25
+    # The camera's flow: "state" rides the state's (the paper: the whole application moves); "default"
+    # keeps it on the default flow whatever the state's, so the state never waits behind the camera's
+    # queue in the UE (docs/supervisor.md, "The camera's flow").
+    camera_flow: Literal["state", "default"] = "state"
     rate_step_s: Annotated[float, In(0.0, 600, "must be in 0..600 s")] = 1.0
     watchdog_s: Annotated[float, In(0.001, 60, "must be in 0.001..60 s")] = 0.15
     # The modem's SINR as proactive evidence of high latency (docs/radio.md): off by default; on, a SINR
