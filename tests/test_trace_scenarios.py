@@ -31,7 +31,8 @@ def test_the_scenarios_fly_the_same_trace_and_differ_in_how_the_camera_is_slowed
     assert (none.supervisor.rate_factor, none.supervisor.min_rate_factor) == (1.0, 1.0)
     assert paper.supervisor == delay.supervisor == queue.supervisor  # its factor stays the ceiling
     assert paper.supervisor.camera_flow == "state"
-    assert split.supervisor == replace(queue.supervisor, camera_flow="default")  # and only that apart
+    assert split.supervisor == replace(queue.supervisor, camera_flow="default")  # the camera pinned...
+    assert (split.qos, queue.qos) == ("priority", "dynamic")  # ...the state on the priority flow
     assert split.config == queue.config
     assert paper.supervisor.rate_factor < 1.0
     assert delay.config["onboard"] == {"camera_rate_control": "delay"}  # GCC, the default controller

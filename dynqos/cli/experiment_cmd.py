@@ -115,8 +115,8 @@ def _flight_options(sub: argparse.ArgumentParser) -> None:
         "--trace",
         metavar="FILE",
         help="the cell's uplink capacity replays this Mahimahi trace (one packet opportunity a line), "
-        "rescaled to the scenario's [cell] trace_mean_mbps; the trace-none, trace-paper, trace-delay "
-        "and trace-queue scenarios need one (docs/camera.md)",
+        "rescaled to the scenario's [cell] trace_mean_mbps; the trace-none, trace-paper, trace-delay, "
+        "trace-queue and trace-split scenarios need one (docs/camera.md)",
     )
     sub.add_argument(
         "--px4-dir",
