@@ -5,16 +5,19 @@ A router, M real `dynqos edge mpc` processes and G load processes (each a zenoh 
 its share of the fleet, as the drones' daemons do: a presence token per drone, its State every 50 ms on
 the priority flow, express, reporting the term and replica it follows) all on this machine. A fleet of
 D drones is served when at least 99% of its states are answered and the p99 state-to-command time is
-under the 50 ms period. For each M and mode: the fleet sizes in turn up to the first not served, each
+under the 50 ms period, over a span that starts once the fleet settled (every drone appearing at once
+is a cold start; each load process says how long it took, and per tick when the late and unanswered
+states fell). For each M and mode: the fleet sizes in turn up to the first not served, each
 process's CPU (router, every MPC, every load process) as a share of a core per drone, and
 `efficiency` = drones served with M processes / (M x drones served with one). Its smoke mode (CI, two
 cores) flies one small fleet with one process and with two replicas; its full mode says how many cores
-it had. The floor beside it: one process's CPU per drone at the same fleet (whatever the mode, each
-drone's State must be decoded, solved and answered once).
+it had, and `--per-process` scales the fleet sizes with M (for a host of many cores). The floor beside
+it: one process's CPU per drone at the same fleet (whatever the mode, each drone's State must be
+decoded, solved and answered once).
 
 Run: dynqos bench edge_scale (suite settings), or with its own options:
   python -m dynqos.bench.edge_scale [--processes 1,2] [--modes replicas,sharding] [--loaders 2]
-      [--counts 25,50,75,100,125,150,175,200,250] [--seconds 3] [--quick] [--out FILE]
+      [--counts 25,50,75,100,125,150,175,200,250] [--per-process] [--seconds 3] [--quick] [--out FILE]
 """
 
 from __future__ import annotations
@@ -22,10 +25,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import selectors
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, field
 from typing import Any
 
 from dynqos.bench.report import bench_parser, emit, judged, provenance
@@ -39,7 +44,12 @@ from dynqos.common.transport import Priority, Received, Role, open_bus
 from dynqos.experiment.processes import Processes, child_environment, cpu_s
 
 PERIOD_S = 0.05
-WARMUP_TICKS = 10  # before the measured span: the replicas settle who serves each drone
+# Before the measured span the fleet settles: every drone appearing at once is a cold start (each MPC
+# subscribes, builds its controllers and takes its drones). The span starts once SETTLED_TICKS periods in
+# a row had every State answered within the period, or after WARMUP_MAX_TICKS whatever happened; each
+# load process says how long it took (`settle_s`).
+SETTLED_TICKS = 5
+WARMUP_MAX_TICKS = 200
 READY_TIMEOUT_S = 60.0  # a load process declares its drones and sees the MPC subscribe within this
 MODES = ("replicas", "sharding")
 
@@ -53,13 +63,20 @@ class Followed:
     replica: str = ""
 
 
-def _drain(
-    inbox: BoundedQueue[Received],
-    sent: dict[tuple[str, int], float],
-    followed: dict[str, Followed],
-    latencies: list[float],
-    until: float,
-) -> None:
+@dataclass
+class Tally:
+    """A load process's count of the answers: the States in flight ((uav, seq) -> when sent); during the
+    warm-up, per seq how many were answered within the period; from `first_measured` on, every latency
+    and the seqs of those answered late."""
+
+    sent: dict[tuple[str, int], float] = field(default_factory=dict)
+    prompt: Counter[int] = field(default_factory=Counter)
+    first_measured: int | None = None
+    latencies: list[float] = field(default_factory=list)
+    late: list[int] = field(default_factory=list)
+
+
+def _drain(inbox: BoundedQueue[Received], tally: Tally, followed: dict[str, Followed], until: float) -> None:
     """Commands until `until`: each first answer timed against its State, the highest term followed."""
     while (item := inbox.get(max(0.0, until - time.perf_counter()))) is not None:
         command = item.message
@@ -68,14 +85,22 @@ def _drain(
         seen = followed[command.uav]
         if command.term > seen.term or (command.term == seen.term and not seen.replica):
             seen.term, seen.replica = command.term, command.replica
-        t_sent = sent.pop((command.uav, command.state_seq), None)
-        if t_sent is not None:
-            latencies.append(time.perf_counter() - t_sent)
+        t_sent = tally.sent.pop((command.uav, command.state_seq), None)
+        if t_sent is None:
+            continue
+        latency = time.perf_counter() - t_sent
+        if tally.first_measured is None or command.state_seq < tally.first_measured:
+            tally.prompt[command.state_seq] += latency <= PERIOD_S
+            continue
+        tally.latencies.append(latency)
+        if latency > PERIOD_S:
+            tally.late.append(command.state_seq)
 
 
 def load(zcfg: ZenohConfig, first: int, count: int, ticks: int) -> dict[str, Any]:
     """Fly drones uav<first>.. as their daemons would: "ready" once the MPC follows each, then, after a
-    "go" line on stdin, WARMUP_TICKS + `ticks` States each; the measured span's answers as JSON."""
+    "go" line on stdin, States every period: the warm-up until the fleet settled, then `ticks` measured;
+    the measured span's answers as JSON."""
     uavs = [f"uav{i}" for i in range(first, first + count)]
     with open_bus(zcfg, Role.DRONE) as bus:
         inbox: BoundedQueue[Received] = BoundedQueue(500_000)
@@ -93,22 +118,46 @@ def load(zcfg: ZenohConfig, first: int, count: int, ticks: int) -> dict[str, Any
         if sys.stdin.readline().strip() != "go":
             raise SystemExit("edge_scale load: no go")
         followed = {uav: Followed() for uav in uavs}
-        sent: dict[tuple[str, int], float] = {}
-        latencies: list[float] = []
+        tally = Tally()
         seq_base = time.monotonic_ns() // 1_000_000  # rising across fleet sizes (the MPC keeps its seqs)
         cpu0, start = time.process_time(), time.perf_counter()
-        for tick in range(WARMUP_TICKS + ticks):
+        tick, settled_run = 0, 0
+        warmup: int | None = None  # the ticks the fleet took to settle
+        measured_start = start
+        while warmup is None or tick < warmup + ticks:
+            seq = seq_base + tick + 1
+            if warmup is None and (settled_run >= SETTLED_TICKS or tick >= WARMUP_MAX_TICKS):
+                warmup, tally.first_measured = tick, seq
+                cpu0, measured_start = time.process_time(), time.perf_counter()
+                print("measuring", flush=True)
             for i, (uav, pub) in enumerate(zip(uavs, pubs, strict=True)):
-                seq = seq_base + tick + 1
-                if tick >= WARMUP_TICKS:
-                    sent[(uav, seq)] = time.perf_counter()
+                tally.sent[(uav, seq)] = time.perf_counter()
                 seen = followed[uav]
                 pub.put(hovering_state(uav, seq, i, seen.term, seen.replica))
-            _drain(inbox, sent, followed, latencies, until=start + (tick + 1) * PERIOD_S)
-        _drain(inbox, sent, followed, latencies, until=time.perf_counter() + 0.3)  # the last answers
-        cpu = time.process_time() - cpu0
+            _drain(inbox, tally, followed, until=start + (tick + 1) * PERIOD_S)
+            if warmup is None and tick:  # the tick before this one: answers had two periods to come
+                settled_run = settled_run + 1 if tally.prompt[seq - 1] == count else 0
+            tick += 1
+        cpu, measured_s = time.process_time() - cpu0, time.perf_counter() - measured_start
+        print("done", flush=True)
+        _drain(inbox, tally, followed, until=time.perf_counter() + 0.3)  # the last answers
         del tokens
-    return {"states": count * ticks, "latencies_ms": [round(s * 1000, 3) for s in latencies], "cpu_s": cpu}
+    assert tally.first_measured is not None
+    late_by_tick, missing_by_tick = [0] * ticks, [0] * ticks  # when in the span the misses fell
+    for seq in tally.late:
+        late_by_tick[seq - tally.first_measured] += 1
+    for _, seq in (key for key in tally.sent if key[1] >= tally.first_measured):
+        missing_by_tick[seq - tally.first_measured] += 1
+    return {
+        "states": count * ticks,
+        "latencies_ms": [round(s * 1000, 3) for s in tally.latencies],
+        "cpu_s": cpu,
+        "measured_s": measured_s,
+        "settle_s": round((tally.first_measured - seq_base - 1) * PERIOD_S, 2),
+        "settled": settled_run >= SETTLED_TICKS,
+        "late_by_tick": late_by_tick,
+        "missing_by_tick": missing_by_tick,
+    }
 
 
 # the sweep -----------------------------------------------------------------------------------------------
@@ -135,17 +184,21 @@ def fleet(zcfg: ZenohConfig, procs: Processes, drones: int, loaders: int, second
             assert proc.stdout is not None
             if proc.stdout.readline().strip() != "ready":
                 raise RuntimeError(f"a load process did not get ready (exit {proc.wait(10)})")
-        edge = {name: p.pid for name, p in procs.procs.items()}
-        before = {name: cpu_s(pid) or 0.0 for name, pid in edge.items()}
-        t0 = time.perf_counter()
         for proc in load_procs:
             assert proc.stdin is not None
             proc.stdin.write("go\n")
             proc.stdin.flush()
-        results = [json.loads(proc.communicate(timeout=seconds + 60)[0]) for proc in load_procs]
+        # the edge's CPU from the last load process's first measured tick to the first one's last
+        _each_says(load_procs, "measuring")
+        edge = {name: p.pid for name, p in procs.procs.items()}
+        before = {name: cpu_s(pid) or 0.0 for name, pid in edge.items()}
+        t0 = time.perf_counter()
+        _first_says(load_procs, seconds + 30)
         span = time.perf_counter() - t0
         after = {name: cpu_s(pid) or 0.0 for name, pid in edge.items()}
         health = {name: _last_health(procs, name) for name in edge if name.startswith("mpc")}
+        _each_says(load_procs, "done")
+        results = [_result(proc) for proc in load_procs]
     finally:
         for proc in load_procs:
             if proc.poll() is None:
@@ -155,7 +208,7 @@ def fleet(zcfg: ZenohConfig, procs: Processes, drones: int, loaders: int, second
     answered = len(latencies) / sum(r["states"] for r in results)
     p99 = latencies[min(len(latencies) - 1, int(0.99 * len(latencies)))]
     share = {name: (after[name] - before[name]) / span for name in edge}
-    share.update({f"load{g}": r["cpu_s"] / span for g, r in enumerate(results)})
+    share.update({f"load{g}": r["cpu_s"] / r["measured_s"] for g, r in enumerate(results)})
     return {
         "drones": drones,
         "answered": answered,
@@ -164,8 +217,42 @@ def fleet(zcfg: ZenohConfig, procs: Processes, drones: int, loaders: int, second
         "served": answered >= 0.99 and p99 < PERIOD_S * 1000,
         "core_share": {k: round(v, 4) for k, v in share.items()},
         "mpc_core_share_per_drone": sum(v for k, v in share.items() if k.startswith("mpc")) / drones,
+        "settle_s": max(r["settle_s"] for r in results),
+        "settled": all(r["settled"] for r in results),
+        "late_by_tick": [sum(at_tick) for at_tick in zip(*(r["late_by_tick"] for r in results), strict=True)],
+        "missing_by_tick": [
+            sum(at_tick) for at_tick in zip(*(r["missing_by_tick"] for r in results), strict=True)
+        ],
         "mpc_health": health,
     }
+
+
+def _each_says(load_procs: list[subprocess.Popen[str]], word: str) -> None:
+    for proc in load_procs:
+        assert proc.stdout is not None
+        if (line := proc.stdout.readline().strip()) != word:
+            raise RuntimeError(f"a load process said {line!r}, not {word!r} (exit {proc.poll()})")
+
+
+def _result(proc: subprocess.Popen[str]) -> dict[str, Any]:
+    """A load process's last line, its JSON, read as its other lines were (its stdout is buffered: a
+    second reader of the pipe would miss what a readline took ahead)."""
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    proc.wait(30)
+    if not line:
+        raise RuntimeError(f"a load process ended without its result (exit {proc.returncode})")
+    result: dict[str, Any] = json.loads(line)
+    return result
+
+
+def _first_says(load_procs: list[subprocess.Popen[str]], timeout_s: float) -> None:
+    """Until the first load process has something to say (its "done"), or `timeout_s`."""
+    with selectors.DefaultSelector() as selector:
+        for proc in load_procs:
+            assert proc.stdout is not None
+            selector.register(proc.stdout, selectors.EVENT_READ)
+        selector.select(timeout_s)
 
 
 def _last_health(procs: Processes, name: str) -> dict[str, str]:
@@ -199,12 +286,19 @@ def sweep(mode: str, processes: int, counts: list[int], loaders: int, seconds: f
 
 
 def run(
-    processes: list[int], modes: list[str], counts: list[int], loaders: int, seconds: float
+    processes: list[int],
+    modes: list[str],
+    counts: list[int],
+    loaders: int,
+    seconds: float,
+    per_process: bool = False,
 ) -> dict[str, Any]:
+    """`per_process`: the counts are per MPC process, so M processes fly M x each (one sweep fits all M)."""
     one = sweep("one", 1, counts, loaders, seconds) if 1 in processes else None
     runs = [one] if one else []
     for m in (m for m in processes if m > 1):
-        runs += [sweep(mode, m, counts, loaders, seconds) for mode in modes]
+        scaled = [c * m for c in counts] if per_process else counts
+        runs += [sweep(mode, m, scaled, loaders, seconds) for mode in modes]
     base = one["max_drones_at_20hz"] if one else 0
     for r in runs:
         r["efficiency"] = r["max_drones_at_20hz"] / (r["processes"] * base) if base else None
@@ -215,6 +309,7 @@ def run(
         "cores": os.cpu_count(),
         "loaders": loaders,
         "seconds_per_step": seconds,
+        "counts_per_process": per_process,
         "runs": runs,
     }
 
@@ -233,19 +328,31 @@ def _cpu_ratio(run_: dict[str, Any], one: dict[str, Any] | None) -> float | None
 
 
 def verdict(result: dict[str, Any]) -> str:
+    """Two replicas against one process (any host); eight replicas too where the sweep has them (a host
+    of 16 cores or more: at least 6x one process's drones and at least 600)."""
     runs = {(r["mode"], r["processes"]): r for r in result["runs"]}
     one = runs.get(("one", 1))
     two = runs.get(("replicas", 2))
-    if one is None or two is None:
-        return judged(False, "needs one process and two replicas in the sweep")
-    ratio = two["mpc_cpu_per_drone_over_one"]
-    met = two["max_drones_at_20hz"] >= one["max_drones_at_20hz"] and ratio is not None and ratio <= 1.3
-    return judged(
-        met,
-        f"two replicas serve {two['max_drones_at_20hz']} drones, one process {one['max_drones_at_20hz']}; "
-        f"their MPC CPU per drone {'-' if ratio is None else f'{ratio:.2f}x'} one's (target >= one's "
-        f"drones, <= 1.3x; {result['cores']} cores)",
-    )
+    eight = runs.get(("replicas", 8))
+    if one is None or (two is None and eight is None):
+        return judged(False, "needs one process and two or eight replicas in the sweep")
+    base = one["max_drones_at_20hz"]
+    met, said = True, []
+    if two is not None:
+        ratio = two["mpc_cpu_per_drone_over_one"]
+        met = two["max_drones_at_20hz"] >= base and ratio is not None and ratio <= 1.3
+        said.append(
+            f"two replicas serve {two['max_drones_at_20hz']} drones, one process {base}; their MPC CPU per "
+            f"drone {'-' if ratio is None else f'{ratio:.2f}x'} one's (target >= one's drones, <= 1.3x)"
+        )
+    if eight is not None:
+        served = eight["max_drones_at_20hz"]
+        met = met and served >= max(6 * base, 600)
+        said.append(
+            f"eight replicas serve {served} drones, {served / base if base else 0:.1f}x one's "
+            "(target >= 6x and >= 600)"
+        )
+    return judged(met, "; ".join(said) + f"; {result['cores']} cores")
 
 
 def markdown(result: dict[str, Any]) -> str:
@@ -289,6 +396,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--modes", default="replicas,sharding", help="replicas, sharding or both (default)")
     parser.add_argument("--loaders", type=int, default=2, help="load processes (default 2)")
     parser.add_argument("--counts", type=_ints, help="fleet sizes in turn (default 25,50,75,...,200,250)")
+    parser.add_argument(
+        "--per-process", action="store_true", help="the counts are per MPC process: M processes fly M x each"
+    )
     parser.add_argument("--seconds", type=float, default=3.0, help="measured per fleet size (default 3)")
     parser.add_argument("--quick", action="store_true", help="smoke mode: 10 drones, one and two replicas")
     parser.add_argument("--load", help=argparse.SUPPRESS)  # first,count,ticks: one load process
@@ -309,7 +419,7 @@ def main(argv: list[str] | None = None) -> int:
         result = run([1, 2], ["replicas"], [10], 1, 1.0)
     else:
         counts = args.counts or [25, 50, 75, 100, 125, 150, 175, 200, 250]
-        result = run(sorted(set(args.processes)), modes, counts, args.loaders, args.seconds)
+        result = run(sorted(set(args.processes)), modes, counts, args.loaders, args.seconds, args.per_process)
     return emit(result, markdown(result), args.out, verdict(result))
 
 

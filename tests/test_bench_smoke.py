@@ -87,6 +87,10 @@ def test_loop_and_fleet_over_real_zenoh(smoke: tuple[dict[str, Any], str]) -> No
         assert len(mpcs) == run["processes"]
         assert all(row["core_share"][name] > 0 for name in mpcs)  # each worked: flew, or stood by
         assert row["core_share"]["load0"] > 0
+        # the span measured after the warm-up, its misses placed in it tick by tick (1 s: 20 ticks)
+        assert row["settle_s"] >= 0
+        assert len(row["late_by_tick"]) == len(row["missing_by_tick"]) == 20
+        assert sum(row["missing_by_tick"]) == round(10 * 20 * (1 - row["answered"]))
     assert scale["cores"] >= 1
     edge = _result(smoke, "edge_per_drone")
     assert [r["drones"] for r in edge["rows"]] == [1, 2]

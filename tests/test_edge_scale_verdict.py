@@ -1,0 +1,41 @@
+"""The edge_scale benchmark's verdict (bench/edge_scale.py): what it judges from a sweep's runs, so a
+larger host's eight replicas are held to their own target and not passed on two replicas alone."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from dynqos.bench.edge_scale import verdict
+
+
+def _run(mode: str, processes: int, served: int, cpu_over_one: float | None = None) -> dict[str, Any]:
+    return {
+        "mode": mode,
+        "processes": processes,
+        "max_drones_at_20hz": served,
+        "mpc_cpu_per_drone_over_one": cpu_over_one,
+    }
+
+
+def _result(*runs: dict[str, Any]) -> dict[str, Any]:
+    return {"cores": 16, "runs": [_run("one", 1, 100, 1.0), *runs]}
+
+
+def test_two_replicas_are_judged_on_drones_and_cpu() -> None:
+    assert verdict(_result(_run("replicas", 2, 100, 1.25))).startswith("meets")
+    assert verdict(_result(_run("replicas", 2, 75, 1.25))).startswith("misses")  # fewer than one
+    assert verdict(_result(_run("replicas", 2, 100, 1.4))).startswith("misses")  # CPU over 1.3x
+
+
+def test_eight_replicas_must_serve_six_times_one_and_at_least_600() -> None:
+    two = _run("replicas", 2, 100, 1.2)
+    said = verdict(_result(two, _run("replicas", 8, 400)))
+    assert said.startswith("misses")
+    assert "eight replicas serve 400 drones, 4.0x" in said
+    assert verdict(_result(two, _run("replicas", 8, 600))).startswith("meets")
+    small = {"cores": 16, "runs": [_run("one", 1, 50, 1.0), two, _run("replicas", 8, 400)]}
+    assert verdict(small).startswith("misses")  # 8x one's, but under 600
+
+
+def test_a_sweep_without_one_process_cannot_be_judged() -> None:
+    assert "needs one process" in verdict({"cores": 2, "runs": [_run("replicas", 2, 100, 1.0)]})
