@@ -25,13 +25,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import selectors
+import queue
 import subprocess
 import sys
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any
+from typing import IO, Any
 
 from dynqos.bench.report import bench_parser, emit, judged, provenance
 from dynqos.bench.rig import hovering_state, router_rig
@@ -179,31 +180,29 @@ def fleet(zcfg: ZenohConfig, procs: Processes, drones: int, loaders: int, second
     """One fleet size: every load process ready, then go; answers, latencies and each process's CPU."""
     ticks = round(seconds / PERIOD_S)
     load_procs = _loaders(zcfg, drones, loaders, ticks)
+    lines = _Lines(load_procs)
     try:
-        for proc in load_procs:
-            assert proc.stdout is not None
-            if proc.stdout.readline().strip() != "ready":
-                raise RuntimeError(f"a load process did not get ready (exit {proc.wait(10)})")
+        lines.until("ready", every=True, timeout_s=READY_TIMEOUT_S + 30)
         for proc in load_procs:
             assert proc.stdin is not None
             proc.stdin.write("go\n")
             proc.stdin.flush()
         # the edge's CPU from the last load process's first measured tick to the first one's last
-        _each_says(load_procs, "measuring")
+        lines.until("measuring", every=True, timeout_s=WARMUP_MAX_TICKS * PERIOD_S + 30)
         edge = {name: p.pid for name, p in procs.procs.items()}
         before = {name: cpu_s(pid) or 0.0 for name, pid in edge.items()}
         t0 = time.perf_counter()
-        _first_says(load_procs, seconds + 30)
+        lines.until("done", every=False, timeout_s=seconds + 30)
         span = time.perf_counter() - t0
         after = {name: cpu_s(pid) or 0.0 for name, pid in edge.items()}
         health = {name: _last_health(procs, name) for name in edge if name.startswith("mpc")}
-        _each_says(load_procs, "done")
-        results = [_result(proc) for proc in load_procs]
+        lines.until("{", every=True, timeout_s=30)  # each one's result, a JSON line
+        results = [json.loads(said[-1]) for said in lines.said]
     finally:
         for proc in load_procs:
             if proc.poll() is None:
                 proc.kill()
-                proc.wait(5)
+            proc.wait(5)
     latencies = sorted(ms for r in results for ms in r["latencies_ms"]) or [float("inf")]
     answered = len(latencies) / sum(r["states"] for r in results)
     p99 = latencies[min(len(latencies) - 1, int(0.99 * len(latencies)))]
@@ -227,32 +226,38 @@ def fleet(zcfg: ZenohConfig, procs: Processes, drones: int, loaders: int, second
     }
 
 
-def _each_says(load_procs: list[subprocess.Popen[str]], word: str) -> None:
-    for proc in load_procs:
-        assert proc.stdout is not None
-        if (line := proc.stdout.readline().strip()) != word:
-            raise RuntimeError(f"a load process said {line!r}, not {word!r} (exit {proc.poll()})")
+class _Lines:
+    """Each load process's stdout, read line by line on a thread of its own into one queue, so that
+    every wait has its time-out and no read misses what another took ahead."""
 
-
-def _result(proc: subprocess.Popen[str]) -> dict[str, Any]:
-    """A load process's last line, its JSON, read as its other lines were (its stdout is buffered: a
-    second reader of the pipe would miss what a readline took ahead)."""
-    assert proc.stdout is not None
-    line = proc.stdout.readline()
-    proc.wait(30)
-    if not line:
-        raise RuntimeError(f"a load process ended without its result (exit {proc.returncode})")
-    result: dict[str, Any] = json.loads(line)
-    return result
-
-
-def _first_says(load_procs: list[subprocess.Popen[str]], timeout_s: float) -> None:
-    """Until the first load process has something to say (its "done"), or `timeout_s`."""
-    with selectors.DefaultSelector() as selector:
-        for proc in load_procs:
+    def __init__(self, load_procs: list[subprocess.Popen[str]]) -> None:
+        self.said: list[list[str]] = [[] for _ in load_procs]
+        self._queue: queue.Queue[tuple[int, str | None]] = queue.Queue()
+        for index, proc in enumerate(load_procs):
             assert proc.stdout is not None
-            selector.register(proc.stdout, selectors.EVENT_READ)
-        selector.select(timeout_s)
+            threading.Thread(target=self._read, args=(index, proc.stdout), daemon=True).start()
+
+    def _read(self, index: int, stream: IO[str]) -> None:
+        for line in stream:
+            self._queue.put((index, line.strip()))
+        self._queue.put((index, None))  # its end
+
+    def until(self, start: str, *, every: bool, timeout_s: float) -> None:
+        """Until every load process (or, not `every`, one) has said a line starting with `start`."""
+        deadline = time.monotonic() + timeout_s
+        have = [bool(said) and said[-1].startswith(start) for said in self.said]
+        while not (all(have) if every else any(have)):
+            try:
+                index, line = self._queue.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise RuntimeError(f"no load process said {start!r} within {timeout_s:.0f} s") from None
+            if line is None and have[index]:  # it said it, then ended: its end is no news
+                continue
+            if line is None:
+                last = self.said[index][-1][:80] if self.said[index] else "nothing"
+                raise RuntimeError(f"load process {index} ended before it said {start!r} (last: {last!r})")
+            self.said[index].append(line)
+            have[index] = line.startswith(start)
 
 
 def _last_health(procs: Processes, name: str) -> dict[str, str]:

@@ -306,8 +306,7 @@ class OnboardCore:
         PFSM sets its flow: the state's flow is then the priority flow if any path takes it, and the
         camera's is that of the path it rides."""
         if self.qos != "dynamic":
-            pinned = self.config.supervisor.camera_flow == "default"
-            return Flow(self.qos), Flow.DEFAULT if pinned else Flow(self.qos), 1.0
+            return Flow(self.qos), self.supervisor.camera_flow(Flow(self.qos)), 1.0
         if self.decision is None:
             return Flow.DEFAULT, Flow.DEFAULT, 1.0
         a = self.decision.actions

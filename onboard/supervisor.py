@@ -223,17 +223,20 @@ class Supervisor:
     def _ns(seconds: float) -> int:
         return round(seconds * NS_PER_S)
 
+    def camera_flow(self, state_flow: Flow) -> Flow:
+        """The camera's flow beside the state's: the same, or the default flow it is pinned to."""
+        return Flow.DEFAULT if self.config.camera_flow == "default" else state_flow
+
     def actions(self) -> Actions:
         state = self.state
-        pinned = self.config.camera_flow == "default"  # the camera never leaves the default flow
         if state is QA:
-            camera = Flow.DEFAULT if pinned else Flow.PRIORITY
+            camera = self.camera_flow(Flow.PRIORITY)
             return Actions(Flow.PRIORITY, self.config.min_rate_factor, ControlSource.FALLBACK, camera)
         if self._probe_since_ns is not None:  # the camera tries the default flow at q1's rate
             return Actions(Flow.PRIORITY, 1.0, ControlSource.EDGE, Flow.DEFAULT)
         flow = Flow.PRIORITY if state in PRIORITY_STATES else Flow.DEFAULT
         rate = self._rate if state in RATE_ADAPTATION_STATES else 1.0
-        return Actions(flow, rate, ControlSource.EDGE, Flow.DEFAULT if pinned else flow)
+        return Actions(flow, rate, ControlSource.EDGE, self.camera_flow(flow))
 
     def _signals(self, inputs: Inputs, now_ns: int) -> Signals:
         cfg = self.config
