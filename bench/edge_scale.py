@@ -123,12 +123,12 @@ def load(zcfg: ZenohConfig, first: int, count: int, ticks: int) -> dict[str, Any
         seq_base = time.monotonic_ns() // 1_000_000  # rising across fleet sizes (the MPC keeps its seqs)
         cpu0, start = time.process_time(), time.perf_counter()
         tick, settled_run = 0, 0
-        warmup: int | None = None  # the ticks the fleet took to settle
         measured_start = start
-        while warmup is None or tick < warmup + ticks:
+        # the warm-up until the fleet settled, then `ticks` measured from tally.first_measured on
+        while tally.first_measured is None or seq_base + tick + 1 < tally.first_measured + ticks:
             seq = seq_base + tick + 1
-            if warmup is None and (settled_run >= SETTLED_TICKS or tick >= WARMUP_MAX_TICKS):
-                warmup, tally.first_measured = tick, seq
+            if tally.first_measured is None and (settled_run >= SETTLED_TICKS or tick >= WARMUP_MAX_TICKS):
+                tally.first_measured = seq
                 cpu0, measured_start = time.process_time(), time.perf_counter()
                 print("measuring", flush=True)
             for i, (uav, pub) in enumerate(zip(uavs, pubs, strict=True)):
@@ -136,7 +136,7 @@ def load(zcfg: ZenohConfig, first: int, count: int, ticks: int) -> dict[str, Any
                 seen = followed[uav]
                 pub.put(hovering_state(uav, seq, i, seen.term, seen.replica))
             _drain(inbox, tally, followed, until=start + (tick + 1) * PERIOD_S)
-            if warmup is None and tick:  # the tick before this one: answers had two periods to come
+            if tally.first_measured is None and tick:  # the tick before: answers had two periods to come
                 settled_run = settled_run + 1 if tally.prompt[seq - 1] == count else 0
             tick += 1
         cpu, measured_s = time.process_time() - cpu0, time.perf_counter() - measured_start
@@ -147,8 +147,9 @@ def load(zcfg: ZenohConfig, first: int, count: int, ticks: int) -> dict[str, Any
     late_by_tick, missing_by_tick = [0] * ticks, [0] * ticks  # when in the span the misses fell
     for seq in tally.late:
         late_by_tick[seq - tally.first_measured] += 1
-    for _, seq in (key for key in tally.sent if key[1] >= tally.first_measured):
-        missing_by_tick[seq - tally.first_measured] += 1
+    for _, seq in tally.sent:  # unanswered
+        if seq >= tally.first_measured:
+            missing_by_tick[seq - tally.first_measured] += 1
     return {
         "states": count * ticks,
         "latencies_ms": [round(s * 1000, 3) for s in tally.latencies],

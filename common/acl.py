@@ -33,6 +33,7 @@ from dynqos.common.keys import (
     Stream,
     any_replica_beat,
     any_replica_of,
+    any_state_watch,
     check_uav_id,
     clock_probe,
     downlink_all_drones,
@@ -56,13 +57,14 @@ class EdgeRole:
 EDGE_ROLES: dict[str, EdgeRole] = {
     "mpc": EdgeRole(
         # the replicas' heartbeats too: a standby watches the beats of the one flying a drone
-        # (edge/replicas.py, `beats`)
+        # (edge/replicas.py, `beats`), and the few states a second it copies for it (`any_state_watch`)
         reads=(
             uplink_all_drones(Stream.STATE),
             downlink_all_drones(Downlink.REFERENCE),
             any_replica_beat("mpc"),
+            any_state_watch("mpc"),
         ),
-        writes=(downlink_all_drones(Downlink.COMMAND), any_replica_beat("mpc")),
+        writes=(downlink_all_drones(Downlink.COMMAND), any_replica_beat("mpc"), any_state_watch("mpc")),
         tokens=(any_replica_of("mpc"),),
         watches=(drones_present(),),  # it follows the drones it serves (edge/feeds.py)
     ),

@@ -176,6 +176,10 @@ class Newest:
         self._deliver(raw[0], raw[1], self._clock.now_ns())
         return self._slot.get_nowait()
 
+    def poll(self) -> bool:
+        """Whether a sample came since the last take or poll, unread (a heartbeat says so by coming)."""
+        return self._take_raw() is not None
+
     def close(self) -> None:
         self._close()
 

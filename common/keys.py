@@ -16,6 +16,7 @@ declared on, so a receiver subscribes to both flows with one wildcard:
     dynqos/<uav>/down/qos/monitoring      QoS agent -> drone: the core's delay reports (QosMonitoring)
     dynqos/<uav>/clock                    drone -> router -> drone: the preflight's clock probes
     dynqos/<uav>/alive                    liveliness token of a drone, held while its session lives
+    dynqos/<uav>/watch/mpc/<group>        the MPC holding a drone -> its standby: a few of its States
     dynqos/edge/replicas/<service>/<group>/<id>
                                           liveliness token of one replica of an edge service
     dynqos/edge/replicas/qos/<group>/active/<id>
@@ -136,8 +137,22 @@ def replica_beat(service: str, group: str, replica: str) -> str:
     return f"{ROOT}/edge/beats/{service}/{group}/{replica}"
 
 
-def replica_beats(service: str, group: str = "all") -> str:
-    return f"{ROOT}/edge/beats/{service}/{group}/*"
+def state_watch(service: str, group: str, uav: str) -> str:
+    """Where the replica flying a drone puts a few of the drone's States a second for the replica
+    standing by for it (edge/mpc/service.py): the standby follows the drone's term without receiving
+    each of its states. Under the drone's id, so a receiver checks the State is that drone's; no drone
+    may read or write it (common/acl.py)."""
+    return f"{ROOT}/{check_uav_id(uav)}/watch/{service}/{group}"
+
+
+def any_state_watch(service: str) -> str:
+    """Every drone's watch key of an edge service, in any group (what its ACL rules cover)."""
+    return f"{ROOT}/*/watch/{service}/**"
+
+
+def is_state_watch(key: str) -> bool:
+    """Whether `key` is a watch key (a replica's copy), not the drone's own uplink."""
+    return key.split("/", 3)[2:3] == ["watch"]
 
 
 def any_replica_beat(service: str) -> str:

@@ -11,8 +11,9 @@ on two sites. A drone that holds no token is served by no MPC or planner (docs/r
 The set is reconciled on the service's worker thread when a drone comes or goes, and when the caller
 says its assignment changed (a replica joined or left, a role changed); token changes arrive on zenoh's
 thread and wait, bounded, in a map. A drone the caller only stands by for (`quiet`) has its pullable
-input kept newest-only instead (`Bus.subscribe_newest`), read when the caller pulls: an MPC standby
-needs a drone's newest state, not a Python call for each of them. Every drone's subscriber of one
+input kept newest-only instead (`Bus.subscribe_newest`), read when the caller pulls, and on the feed's
+`quiet_key` where it has one: an MPC standby needs a drone's term now and then (the few states a second
+the holder copies to it), not a Python call for each state. Every drone's subscriber of one
 input shares one SubscriptionStats, so the metrics count an input, not a drone.
 """
 
@@ -46,15 +47,17 @@ class Feed:
     expect: tuple[type[Message], ...]
     remote_only: bool = False
     pullable: bool = False  # for a quiet drone, kept newest-only and pulled (not with remote_only)
+    quiet_key: Callable[[str], str] | None = None  # where a quiet drone's input is pulled from (else `key`)
     stats: SubscriptionStats = field(default_factory=SubscriptionStats)
 
 
-def states(*, pullable: bool = False) -> Feed:
+def states(*, pullable: bool = False, quiet_key: Callable[[str], str] | None = None) -> Feed:
     return Feed(
         lambda uav: keys.uplink_any_flow(uav, Stream.STATE),
         keys.uplink_all_drones(Stream.STATE),
         (State,),
         pullable=pullable,
+        quiet_key=quiet_key,
     )
 
 
@@ -146,7 +149,8 @@ class DroneFeeds:
 
     def _declare(self, uav: str, feed: Feed, *, pull: bool) -> None:
         if pull:
-            self.pulled[uav] = self.bus.subscribe_newest(feed.key(uav), expect=feed.expect, stats=feed.stats)
+            key = (feed.quiet_key or feed.key)(uav)
+            self.pulled[uav] = self.bus.subscribe_newest(key, expect=feed.expect, stats=feed.stats)
             return
         # direct: no Python thread per subscriber (three per drone would be hundreds)
         self.bus.subscribe(

@@ -293,6 +293,13 @@ class Assignment:
                     changes.append(change)
         return changes
 
+    def late_peers(self, now_ns: int, after_ns: int) -> set[str]:
+        """The other live replicas (with `beats`) heard, and not for `after_ns` since, on our loop's time
+        (`on_turn`): a standby listens to each state of their drones before their lease runs out. One not
+        heard yet is not late: it has not turned, so flies no drone (its takeovers come from its loop)."""
+        heard = min(now_ns, self.loop_ns)
+        return {r for r, beat_ns in self.beat_ns.items() if r in self.members and heard - beat_ns > after_ns}
+
     def _a_peer_is_silent(self, now_ns: int) -> bool:
         heard = min(now_ns, self.loop_ns)
         return any(heard - self.beat_ns.get(r, 0) > self.lease_ns for r in self.members if r != self.me)

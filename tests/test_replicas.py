@@ -190,8 +190,9 @@ def test_a_drone_known_only_from_commands_is_not_taken_until_its_state_arrives()
     assert b.on_state(uav, 8, 3, "a", 20 * MS) is not None  # a is not in b's live set: b takes it
 
 
-def _mpc(name: str, bus: MemoryBus, clock: FakeClock) -> MpcService:
-    return MpcService(load_config(None, [f'mpc.replica_id="{name}"']), Ports(bus, clock))
+def _mpc(name: str, bus: MemoryBus, clock: FakeClock, reads: str = "copies") -> MpcService:
+    config = load_config(None, [f'mpc.replica_id="{name}"', f'mpc.standby_reads="{reads}"'])
+    return MpcService(config, Ports(bus, clock))
 
 
 def _state(seq: int, clock: FakeClock, term: int, holder: str) -> State:
@@ -346,47 +347,106 @@ def test_a_hung_mpc_service_is_replaced_when_its_beats_stop_and_no_standby_hears
     assert keys.downlink_all_drones(Downlink.COMMAND) not in inputs
 
 
-def test_a_standby_reads_only_the_newest_state_and_is_pushed_them_once_it_flies() -> None:
-    """The drones a replica stands by for are kept newest-only and read once per beat period; once it
-    takes one over, that drone's states come to it one by one again."""
-    clock = FakeClock(1_000_000_000)
+def _pair(clock: FakeClock) -> tuple[MemoryBus, MpcService, MpcService]:
+    """Two MPC services on one in-memory bus, uav1 present; the one ranked first for it, then the other."""
     bus = MemoryBus(clock)
     bus.declare_token(keys.drone_presence("uav1"))
     a, b = _mpc("mpc-a", bus, clock), _mpc("mpc-b", bus, clock)
     for service in (a, b):
         turn(service, clock.now_ns())
     first = a if ranked("uav1", {"mpc-a", "mpc-b"})[0] == "mpc-a" else b
-    second = b if first is a else a
+    return bus, first, b if first is a else a
+
+
+def test_a_standby_reads_the_holders_few_copies_and_takes_each_state_once_it_flies() -> None:
+    """A drone a replica stands by for: it reads the holder's copies of the drone's states (two a
+    second, and each that says the drone follows another term), not each state; once it takes the
+    drone over, it answers the drone's own next state, not a copy, and the states come to it one by one."""
+    clock = FakeClock(1_000_000_000)
+    bus, first, second = _pair(clock)
     assert set(second.feeds.pulled) == {"uav1"}
     assert not first.feeds.pulled
     drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
-    for seq in (1, 2, 3):  # three states within one beat period
-        drone.put(_state(seq, clock, 0, ""))
-        clock.advance_s(0.003)
-        turn(first, clock.now_ns())
-    turn(second, clock.now_ns())
-    assert second.counters.states == 0  # not yet: read once per beat period
-    clock.advance_s(0.002)
-    turn(second, clock.now_ns())
-    assert second.counters.states == 1  # read once: the newest
-    assert second.newest["uav1"].message.seq == 3
-    assert first.counters.states == 3  # the one that flies it hears each
+    followed = (0, "")
+    for seq in range(1, 21):  # one second at 20 Hz
+        drone.put(_state(seq, clock, *followed))
+        for _ in range(5):
+            for service in (first, second):
+                turn(service, clock.now_ns())
+            clock.advance_s(0.01)
+        followed = (first.assignment.term("uav1"), first.replica)
+    assert first.counters.states == 20  # the one that flies it hears each
+    # and copies one at once when the drone follows it (seq 2: term 1), then one every 500 ms
+    assert first.counters.watch_copies == 3
+    assert second.counters.states <= 3  # the standby reads those copies only (newest-only: maybe fewer)
+    assert second.assignment.term("uav1") == first.assignment.term("uav1") == 1
+    assert [second.newest["uav1"].message.seq, second.newest["uav1"].key] == [
+        12,
+        keys.state_watch("mpc", "all", "uav1"),
+    ]
+    assert second.assignment.seats["uav1"].holder == first.replica
+    assert not second.counters.alerts  # the holder beat all along
     first.membership.token.close()  # its process is gone
     turn(second, clock.now_ns())
     assert second.assignment.role("uav1") is Role.SERVE
+    assert second.counters.commands == 0  # a copy is not the drone's newest state: nothing answered yet
     assert not second.feeds.pulled  # flying it now: pushed each state
-    drone.put(_state(4, clock, 1, second.replica))
+    drone.put(_state(21, clock, *followed))
     turn(second, clock.now_ns())
-    assert second.counters.states == 2
+    assert second.counters.commands == 1
+    assert second.assignment.term("uav1") == followed[0] + 1
 
 
-def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goes() -> None:
+def test_a_standby_takes_each_state_once_the_holders_beats_are_late_and_reads_copies_again_after() -> None:
+    """Beats three periods late: the standby takes the drone's states in full before the lease runs out,
+    so that it answers the first state after it; a holder that beats again is read from its copies
+    once the alert has held for 300 ms."""
+    clock = FakeClock(1_000_000_000)
+    bus, first, second = _pair(clock)
+    drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+    for seq in range(1, 11):
+        drone.put(_state(seq, clock, first.assignment.term("uav1"), first.replica))
+        for _ in range(5):
+            for service in (first, second):
+                turn(service, clock.now_ns())
+            clock.advance_s(0.01)
+    assert set(second.feeds.pulled) == {"uav1"}
+    for _ in range(4):  # the holder stalls for 40 ms (not hung: it comes back inside its lease)
+        turn(second, clock.now_ns())
+        clock.advance_s(0.01)
+    turn(second, clock.now_ns())
+    assert second.counters.alerts == 1
+    assert not second.feeds.pulled  # each state now
+    read = second.counters.states
+    drone.put(_state(11, clock, first.assignment.term("uav1"), first.replica))
+    for _ in range(5):
+        for service in (first, second):
+            turn(service, clock.now_ns())
+        clock.advance_s(0.01)
+    assert second.counters.states == read + 1
+    assert not keys.is_state_watch(second.newest["uav1"].key)  # the drone's own state, not a copy
+    assert second.assignment.role("uav1") is Role.WATCH  # the holder came back in its lease
+    assert not second.feeds.pulled  # the alert holds for 300 ms
+    for _ in range(40):
+        for service in (first, second):
+            turn(service, clock.now_ns())
+        clock.advance_s(0.01)
+    assert set(second.feeds.pulled) == {"uav1"}  # quiet again
+    assert second.counters.alerts == 1
+
+
+@pytest.mark.parametrize(("reads", "first_answered"), [("copies", 12), ("states", 11)])
+def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goes(
+    reads: str, first_answered: int
+) -> None:
     """The service wiring on the in-memory bus (same codec and checks as zenoh) and a fake clock: the
-    drone's states, the commands each replica sees of the other, the tokens; a token flood is counted."""
+    drone's states, the commands each replica sees of the other, the tokens; a token flood is counted.
+    A standby that read the holder's copies answers the drone's next state after the holder's token
+    went; one that read each state answers the newest at once."""
     clock = FakeClock(1_000_000_000)
     bus = MemoryBus(clock)
     bus.declare_token(keys.drone_presence("uav1"))  # the drone's daemon announces it
-    a, b = _mpc("mpc-a", bus, clock), _mpc("mpc-b", bus, clock)
+    a, b = _mpc("mpc-a", bus, clock, reads), _mpc("mpc-b", bus, clock, reads)
     commands: BoundedQueue[Received] = BoundedQueue(1000)
     bus.subscribe(keys.downlink("uav1", Downlink.COMMAND), commands, expect=(Command,))
     drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
@@ -414,7 +474,8 @@ def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goe
         a if flying == "mpc-a" else b
     ).membership.token.close()  # its process is gone: the router withdraws the token
     after = [c for seq in range(11, 16) for c in step(seq, [survivor])]
-    assert len(after) == 5
+    # with copies, state 11 came while the survivor read the holder's copies only
+    assert [c.state_seq for c in after] == list(range(first_answered, 16))
     assert {(c.replica, c.term) for c in after} == {(survivor.replica, first[-1].term + 1)}
     for i in range(300):  # a flood of replica tokens: the live set stops growing, each is counted
         bus.declare_token(keys.replica_token("mpc", "all", f"x{i}"))

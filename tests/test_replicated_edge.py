@@ -25,7 +25,11 @@ WATCHDOG_MS = 150
 
 
 @pytest.fixture
-def edge(tmp_path: Path) -> Iterator[LoopProcs]:
+def edge(
+    tmp_path: Path, request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[LoopProcs]:
+    """The loop with two MPC replicas; what a standby reads (`[mpc] standby_reads`) is the parameter."""
+    monkeypatch.setenv("DYNQOS_MPC__STANDBY_READS", getattr(request, "param", "copies"))
     with edge_loop(tmp_path, ("mpc-a", "mpc-b")) as started:
         yield started
 
@@ -45,11 +49,16 @@ def _followed(observer: Observer, condition: Callable[[State], bool], timeout_s:
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("qos", ["dynamic", "default", "priority"])
+@pytest.mark.parametrize(
+    ("edge", "qos"),
+    [("copies", "dynamic"), ("copies", "default"), ("copies", "priority"), ("states", "dynamic")],
+    indirect=["edge"],
+)
 def test_killing_hanging_and_adding_mpc_replicas_never_sends_the_drone_to_its_fallback(
-    edge: LoopProcs, qos: str
+    edge: LoopProcs, qos: str, request: pytest.FixtureRequest
 ) -> None:
-    """In each QoS mode: the drone's states and the commands take that mode's flows."""
+    """In each QoS mode: the drone's states and the commands take that mode's flows. The standby reads
+    the holder's copies, and, once, each of the drone's own states."""
     config, zcfg, procs = edge
     observer = Observer(zcfg)
     try:
@@ -114,6 +123,8 @@ def test_killing_hanging_and_adding_mpc_replicas_never_sends_the_drone_to_its_fa
     assert command_gap < WATCHDOG_MS
     assert setpoint_gap < WATCHDOG_MS  # steadiness is a benchmark target (bench/supervisor_reaction.py)
     assert any("took over" in text for text in mpc_logs.values()), mpc_logs
+    reads = request.node.callspec.params["edge"]
+    assert all(f"standby_reads={reads} " in text for text in mpc_logs.values())
     assert int(re.findall(r" fenced=(\d+)", log)[-1]) >= 5  # the stale terms were refused
     assert "refused a command from MPC replica" in log  # logged once (the hung replica may come first)
 

@@ -6,12 +6,14 @@ A failed solve sends nothing and is counted; the drone's watchdog takes over. Id
 dropped after `idle_timeout_s`.
 
 Any number of processes may run side by side: each declares a liveliness token, and edge/replicas.py
-decides from the live set which one flies each drone (the next one stands by for it, keeping the
-drone's newest state, and takes over when its token goes or its heartbeat stops for
-`takeover_after_s`: the beat, sent from the loop every fifth of that, says the loop still turns).
-Commands carry the replica's term, which the drone uses to refuse a replaced one; a standby learns
-who flies a drone from the drone's own States (the term and replica it follows), not from the
-commands, which it no longer receives (docs/reliability.md).
+decides from the live set which one flies each drone (the next one stands by for it, and takes over
+when its token goes or its heartbeat stops for `takeover_after_s`: the beat, sent from the loop every
+fifth of that, says the loop still turns). Commands carry the replica's term, which the drone uses to
+refuse a replaced one; a standby learns who flies a drone from the drone's own States (the term and
+replica it follows), not from the commands, which it does not receive. Nor does it receive each State:
+the holder copies one every `WATCH_COPY_NS` to the drone's watch key, and only once the holder's beats
+are late (`ALERT_BEATS`) does the standby take the drone's states in full, ready to answer the next one
+when the lease runs out (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -19,14 +21,14 @@ from __future__ import annotations
 import logging
 import zlib
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
-from typing import cast
 
 import numpy as np
 from prometheus_client import Histogram
 
 from dynqos.common import keys
-from dynqos.common.bus import Priority, Publisher, RawBus, Received
+from dynqos.common.bus import Newest, Priority, Publisher, Received
 from dynqos.common.config import Config
 from dynqos.common.keys import Downlink
 from dynqos.common.messages import Command, Reference, State
@@ -35,7 +37,7 @@ from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
 from dynqos.edge.mpc.controller import DroneController
 from dynqos.edge.mpc.problem import SolveError
-from dynqos.edge.replicas import MAX_REPLICAS, Assignment, Role
+from dynqos.edge.replicas import Assignment, Role
 from dynqos.edge.runtime import EdgeCore, Ports, serve
 
 log = logging.getLogger(__name__)
@@ -44,6 +46,14 @@ MAX_PATHS = 8  # later copies of one State kept until it is answered (a drone ha
 BEATS_PER_LEASE = 5  # a holder beats five times per lease: four late or lost beats are no takeover;
 # a standby watches as often (a takeover is at most a fifth of the lease late: 10 ms at 50 ms)
 IDLE_TURN_NS = 100_000_000  # with no drone, the loop turns ten times a second
+WATCH_COPY_NS = 500_000_000  # the holder copies a drone's State to its standby twice a second
+# A peer not heard for three beat periods (60% of the lease; polled beats are heard up to a turn late, so
+# two came too often on 16 busy cores): the standby takes its drones' states in full, in time for the
+# first state after the lease runs out; for at least ALERT_HOLD_NS (a loaded peer does not flap them).
+ALERT_BEATS = 3
+ALERT_HOLD_NS = 300_000_000
+TAKEOVER_ANSWERS_LEASES = 4  # a takeover answers the newest state if it came within four leases
+PULL_BEATS = 5  # the quiet drones' copies are read once per lease (their own states: every beat period)
 
 
 @dataclass
@@ -56,6 +66,8 @@ class MpcCounters:
     other_shard: int = 0
     not_mine: int = 0  # states of drones this replica neither flies nor stands by for
     copies: int = 0  # a State's later copies by another path, each answered with the same Command
+    watch_copies: int = 0  # states copied to the drones' standby (`WATCH_COPY_NS`)
+    alerts: int = 0  # times a peer's beats were late enough to take its drones' states in full
     solve_ms: list[float] = field(default_factory=list)
 
 
@@ -94,47 +106,87 @@ class MpcService(EdgeCore):
         # newest states of the drones it stands by for, and scans every drone's seat for a takeover due
         # and an idle drone (a scan per state cost 17 us at 100 drones).
         self._next_watch_ns = 0
+        self._next_pull_ns = 0
         # Replicas of one static shard (or all, unsharded) share its drones among themselves; with sites,
         # within their site only: each site answers every drone (docs/multipath.md).
         group = "all" if cfg.shard_count == 1 else f"shard-{cfg.shard_index}-of-{cfg.shard_count}"
         group = f"site-{cfg.site}-{group}" if cfg.site else group
         self.membership = Membership("mpc", group, self.assignment, bus)
-        # The replicas' heartbeats: each beat's arrival noted on zenoh's thread (the newest per replica,
-        # a bounded map), handed to the assignment on the loop.
+        # The replicas' heartbeats: one newest-only slot in zenoh per live peer, polled on each turn of
+        # the loop (a Python call per beat on zenoh's thread made each wait for the GIL behind the solves:
+        # eight replicas each took 700 a second, late enough for their peers to take their drones).
+        self._group = group
+        self._beat_slots: dict[str, Newest] = {}
         self._beat = bus.publisher(
             keys.replica_beat("mpc", group, self.replica), Priority.REAL_TIME, express=True
         )
         self._beat_period_ns = round(cfg.takeover_after_s * 1e9 / BEATS_PER_LEASE)
         self._next_beat_ns = 0
         self._turn_gap_ns = IDLE_TURN_NS  # the longest our loop asked to wait before its next turn
-        self._beats_heard: dict[str, int] = {}
-        cast(RawBus, bus).raw_subscribe(keys.replica_beats("mpc", group), self._on_beat, direct=True)
         # Each drone's state and its references (its holder's commands are no standby's business). A
         # drone it stands by for has its states kept newest-only in zenoh and read once per beat period:
         # decoded and queued one by one, they cost a standby most of what serving costs
         # (docs/benchmarks.md, `edge_scale`).
-        self.feeds = DroneFeeds("mpc", bus, self.inbox, [feeds.states(pullable=True), feeds.references()])
+        watch_key = partial(keys.state_watch, "mpc", group)
+        quiet_key = watch_key if cfg.standby_reads == "copies" else None  # else the drone's own states
+        self.feeds = DroneFeeds(
+            "mpc", bus, self.inbox, [feeds.states(pullable=True, quiet_key=quiet_key), feeds.references()]
+        )
+        self._watch_key = watch_key
+        self._pull_period_ns = self._beat_period_ns * (PULL_BEATS if quiet_key else 1)
+        self._watch_publishers: dict[str, Publisher] = {}
+        self._copy_due_ns: dict[str, int] = {}
+        self._copied: dict[
+            str, tuple[int, str]
+        ] = {}  # the term and replica the last copy said the drone follows
+        self._alert_until_ns: dict[
+            str, int
+        ] = {}  # late peers, and until when their drones' states come in full
         self.feeds.reconcile(self._wanted, assignment_changed=True)
         self.health_interval_s = cfg.health_interval_s
         self._fresh: set[str] = set()  # drones with a new state to answer at the next tick
         self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
 
     def _quiet(self, uav: str) -> bool:
-        """A drone this replica stands by for and is not ranked first for: its states are only read."""
-        return self.assignment.role(uav) is Role.WATCH and self.assignment.order(uav)[0] != self.replica
+        """A drone this replica stands by for and is not ranked first for, held by a peer that beats: the
+        holder's copies of its states are read now and then, not each state."""
+        a = self.assignment
+        if a.role(uav) is not Role.WATCH or (first := a.order(uav)[0]) == self.replica:
+            return False
+        seat = a.seats.get(uav)
+        holder = seat.holder if seat is not None and seat.holder is not None else first
+        return holder in a.members and holder not in self._alert_until_ns
 
-    def _on_beat(self, key: str, _payload: bytes) -> None:
-        """Zenoh's thread: a peer's heartbeat (its name checked when the assignment takes it; our own,
-        delivered within our session, are not news)."""
-        name = keys.replica_of_token(key)
-        if name != self.replica and (name in self._beats_heard or len(self._beats_heard) < MAX_REPLICAS):
-            self._beats_heard[name] = self.clock.now_ns()
+    def _alert(self, now_ns: int) -> bool:
+        """The peers whose beats are late by `ALERT_BEATS`: their drones' states in full from now until
+        `ALERT_HOLD_NS` after they were last late. Returns whether that set changed."""
+        late = self.assignment.late_peers(now_ns, ALERT_BEATS * self._beat_period_ns)
+        alerted = self._alert_until_ns
+        new = late - alerted.keys()
+        for peer in new:
+            self.counters.alerts += 1
+            log.info("mpc %s: replica %s is late: its drones' states in full", self.replica, peer)
+        for peer in late:
+            alerted[peer] = now_ns + ALERT_HOLD_NS
+        ended = [p for p, until in alerted.items() if until <= now_ns or p not in self.assignment.members]
+        for peer in ended:
+            del alerted[peer]
+        return bool(new or ended)
 
     def _take_beats(self, now_ns: int) -> None:
-        """The beats heard, into the assignment (before any state is judged); ours, when due."""
+        """The peers that beat since the last turn, into the assignment as heard now (before any state
+        is judged; later than they came by at most a turn, so a silence is judged late by as much, never
+        early); ours, when due. A peer's slot is declared when it joins and closed when it leaves."""
         self._turned(now_ns)
-        for name, heard_ns in dict(self._beats_heard).items():  # a copy: zenoh's thread adds to it
-            self.assignment.on_beat(name, heard_ns)
+        slots, peers = self._beat_slots, self.assignment.members
+        if len(slots) != len(peers) - 1 or not slots.keys() <= peers:
+            for peer in peers - slots.keys() - {self.replica}:
+                slots[peer] = self.bus.subscribe_newest(keys.replica_beat("mpc", self._group, peer))
+            for peer in slots.keys() - peers:
+                slots.pop(peer).close()
+        for peer, slot in slots.items():
+            if slot.poll():
+                self.assignment.on_beat(peer, now_ns)
 
     def _turned(self, now_ns: int) -> None:
         """Our loop runs (also between two answers of a long batch: busy is not hung): the assignment
@@ -185,19 +237,25 @@ class MpcService(EdgeCore):
         self.membership.apply()
         self._take_beats(now_ns)
         watch = now_ns >= self._next_watch_ns or self.membership.changed
+        alerted = False
         if watch:
             self._next_watch_ns = now_ns + self._beat_period_ns
-            for item in self.feeds.pull():
-                assert isinstance(item.message, State)
-                self._on_state(item, item.message, self._fresh)
+            alerted = self._alert(now_ns)
+            if now_ns >= self._next_pull_ns or self.membership.changed:
+                self._next_pull_ns = now_ns + self._pull_period_ns
+                for item in self.feeds.pull():
+                    assert isinstance(item.message, State)
+                    self._on_state(item, item.message, self._fresh)
         fresh, self._fresh = self._fresh, set()
+        took = set()
         if watch:
             for change in self.assignment.tick(now_ns):
                 self.membership.log_change(change)
-                fresh.add(change.uav)  # a takeover answers the newest state at once
-        for uav in fresh & self.newest.keys():
-            if self.assignment.role(uav) is Role.SERVE:
-                self._answer(uav, self.newest[uav])
+                took.add(change.uav)  # a takeover answers the newest state at once
+        for uav in (fresh | took) & self.newest.keys():
+            item = self.newest[uav]
+            if self.assignment.role(uav) is Role.SERVE and self._answerable(item, uav in took, now_ns):
+                self._answer(uav, item)
             elif uav not in self.controllers:
                 self._controller(uav)  # a standby keeps a controller ready (an OSQP setup is ~1 ms)
             else:
@@ -206,11 +264,18 @@ class MpcService(EdgeCore):
         if watch:
             self._drop_idle()
         self.feeds.reconcile(
-            self._wanted, assignment_changed=self.membership.take_changed(), quiet=self._quiet
+            self._wanted, assignment_changed=self.membership.take_changed() or alerted, quiet=self._quiet
         )
         # with drones: beating, and often enough to see a holder's lease run out in time
         self._turn_gap_ns = self._beat_period_ns if self.newest else IDLE_TURN_NS
         return self._turn_gap_ns / 1e9
+
+    def _answerable(self, item: Received, taken: bool, now_ns: int) -> bool:
+        """The drone's own state (a holder's copy is answered by no one: the drone's next state is) and,
+        on a takeover, one that came within a few leases (not one read before this replica went quiet)."""
+        if keys.is_state_watch(item.key):
+            return False
+        return not taken or now_ns - item.arrival_ns <= TAKEOVER_ANSWERS_LEASES * self.assignment.lease_ns
 
     def _on_reference(self, message: Reference, arrival_ns: int) -> None:
         if self._mine(message.uav) and self.assignment.mine(message.uav):
@@ -232,7 +297,12 @@ class MpcService(EdgeCore):
         self.membership.log_change(self.assignment.on_state(uav, message.seq, term, holder, item.arrival_ns))
         previous = self.newest.get(uav)
         restarted = previous is not None and message.seq < previous.message.seq - 1000
-        if previous is None or message.seq > previous.message.seq or restarted:
+        if (
+            previous is None
+            or message.seq > previous.message.seq
+            or restarted
+            or _own_after_copy(previous, item)
+        ):
             if uav in fresh:  # superseded in this batch
                 self.counters.stale += 1
             self.newest[uav] = item
@@ -298,9 +368,28 @@ class MpcService(EdgeCore):
         self.publishers[uav].put(command)
         self.counters.commands += 1
         self._answered[uav] = command
+        self._copy_to_standby(uav, state)
         for copy in self._copies.pop(uav, []):
             if copy.message.seq == state.seq:
                 self._send_copy(uav, command, copy)
+
+    def _copy_to_standby(self, uav: str, state: State) -> None:
+        """With a peer live, the state just answered on the drone's watch key: every `WATCH_COPY_NS`, and
+        at once when it says the drone follows another term (the standby must take the next one)."""
+        now_ns = self.clock.now_ns()
+        followed = followed_at(state, self.config.mpc.site)
+        due = now_ns >= self._copy_due_ns.get(uav, 0) or self._copied.get(uav) != followed
+        if len(self.assignment.members) < 2 or not due:
+            return
+        self._copy_due_ns[uav] = now_ns + WATCH_COPY_NS
+        self._copied[uav] = followed
+        publisher = self._watch_publishers.get(uav)
+        if publisher is None:  # not express: the copies of many drones go in one batch
+            publisher = self._watch_publishers[uav] = self.bus.publisher(
+                self._watch_key(uav), Priority.DATA_HIGH
+            )
+        publisher.put(state)
+        self.counters.watch_copies += 1
 
     def _drop_idle(self) -> None:
         now = self.clock.now_ns()
@@ -312,9 +401,12 @@ class MpcService(EdgeCore):
             self._paths_heard.pop(uav, None)
             self.assignment.forget(uav)
             self.controllers.pop(uav, None)
-            publisher = self.publishers.pop(uav, None)
-            if publisher is not None:
-                publisher.close()
+            self._copy_due_ns.pop(uav, None)
+            self._copied.pop(uav, None)
+            for publishers in (self.publishers, self._watch_publishers):
+                publisher = publishers.pop(uav, None)
+                if publisher is not None:
+                    publisher.close()
             log.info("mpc: drone %s idle for %.0f s, dropped", uav, self.config.mpc.idle_timeout_s)
 
     def flying(self) -> int:
@@ -333,7 +425,8 @@ class MpcService(EdgeCore):
             f"shard={self.config.mpc.shard_index}/{self.config.mpc.shard_count} "
             f"drones={len(self.controllers)} followed={len(self.feeds.subscribed)} "
             f"states={c.states} not_mine={c.not_mine} commands={c.commands} copies={c.copies} "
-            f"stale={c.stale} "
+            f"stale={c.stale} watch_copies={c.watch_copies} alerts={c.alerts} "
+            f"standby_reads={self.config.mpc.standby_reads} "
             f"rejected={rejected} solve_failures={c.solve_failures} "
             f"references={c.references} queue_drops={self.inbox.dropped} "
             f"solve_ms_p50={np.percentile(solve, 50):.3f} solve_ms_p99={np.percentile(solve, 99):.3f}"
@@ -343,6 +436,15 @@ class MpcService(EdgeCore):
 def run(config: Config, *, health_file: Path | None = None) -> int:
     """`dynqos edge mpc` until SIGTERM (edge/service.py's `serve`)."""
     return serve("mpc", config, MpcService, metrics.mpc, health_file=health_file)
+
+
+def _own_after_copy(previous: Received, item: Received) -> bool:
+    """The drone's own State after the holder's copy of it: newer news (it is answered, the copy not)."""
+    return (
+        item.message.seq == previous.message.seq
+        and keys.is_state_watch(previous.key)
+        and not keys.is_state_watch(item.key)
+    )
 
 
 def followed_at(state: State, site: str) -> tuple[int, str]:
