@@ -376,10 +376,11 @@ class MpcService(EdgeCore):
     def _copy_to_standby(self, uav: str, state: State) -> None:
         """With a peer live, the state just answered on the drone's watch key: every `WATCH_COPY_NS`, and
         at once when it says the drone follows another term (the standby must take the next one)."""
+        if len(self.assignment.members) < 2:  # no standby: nothing more on the one replica's hot path
+            return
         now_ns = self.clock.now_ns()
         followed = followed_at(state, self.config.mpc.site)
-        due = now_ns >= self._copy_due_ns.get(uav, 0) or self._copied.get(uav) != followed
-        if len(self.assignment.members) < 2 or not due:
+        if now_ns < self._copy_due_ns.get(uav, 0) and self._copied.get(uav) == followed:
             return
         self._copy_due_ns[uav] = now_ns + WATCH_COPY_NS
         self._copied[uav] = followed
