@@ -57,7 +57,7 @@ class EdgeRole:
 EDGE_ROLES: dict[str, EdgeRole] = {
     "mpc": EdgeRole(
         # the replicas' heartbeats too: a standby watches the beats of the one flying a drone
-        # (edge/replicas.py, `beats`), and the few states a second it copies for it (`any_state_watch`)
+        # (edge/replicas.py, `beats`), and, with standby_reads = "copies", the states it copies for it
         reads=(
             uplink_all_drones(Stream.STATE),
             downlink_all_drones(Downlink.REFERENCE),

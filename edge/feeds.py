@@ -12,8 +12,8 @@ The set is reconciled on the service's worker thread when a drone comes or goes,
 says its assignment changed (a replica joined or left, a role changed); token changes arrive on zenoh's
 thread and wait, bounded, in a map. A drone the caller only stands by for (`quiet`) has its pullable
 input kept newest-only instead (`Bus.subscribe_newest`), read when the caller pulls, and on the feed's
-`quiet_key` where it has one: an MPC standby needs a drone's term now and then (the few states a second
-the holder copies to it), not a Python call for each state. Every drone's subscriber of one
+`quiet_key` where it has one: an MPC standby needs a drone's newest state and term now and then (and
+its newest at once on a takeover), not a Python call for each state. Every drone's subscriber of one
 input shares one SubscriptionStats, so the metrics count an input, not a drone.
 """
 
@@ -162,9 +162,13 @@ class DroneFeeds:
             direct=True,
         )
 
-    def pull(self) -> list[Received]:
-        """The quiet drones' newest inputs since the last pull."""
-        return [item for newest in self.pulled.values() if (item := newest.take()) is not None]
+    def pull(self, only: Callable[[str], bool] | None = None) -> list[Received]:
+        """The quiet drones' newest inputs since the last pull (of the drones `only` says, if given)."""
+        return [
+            item
+            for uav, newest in self.pulled.items()
+            if (only is None or only(uav)) and (item := newest.take()) is not None
+        ]
 
     def rejected(self) -> int:
         return sum(feed.stats.rejected for feed in self.feeds)

@@ -1,11 +1,14 @@
 """The edge_scale benchmark's verdict (bench/edge_scale.py): what it judges from a sweep's runs, so a
-larger host's eight replicas are held to their own target and not passed on two replicas alone."""
+larger host's eight replicas are held to their own target and not passed on two replicas alone; and
+how it reads its load processes."""
 
 from __future__ import annotations
 
-from typing import Any
+import io
+import subprocess
+from typing import Any, cast
 
-from dynqos.bench.edge_scale import verdict
+from dynqos.bench.edge_scale import _Lines, verdict
 
 
 def _run(mode: str, processes: int, served: int, cpu_over_one: float | None = None) -> dict[str, Any]:
@@ -39,3 +42,20 @@ def test_eight_replicas_must_serve_six_times_one_and_at_least_600() -> None:
 
 def test_a_sweep_without_one_process_cannot_be_judged() -> None:
     assert "needs one process" in verdict({"cores": 2, "runs": [_run("replicas", 2, 100, 1.0)]})
+
+
+class _Said:
+    def __init__(self, text: str) -> None:
+        self.stdout = io.StringIO(text)
+
+
+def test_a_load_process_that_measured_and_ended_before_another_began_is_waited_for_not_an_error() -> None:
+    """On a slow host one load process may settle, measure and end before another settles: what it
+    said before its end still counts (it once read as "ended before it said 'measuring'")."""
+    early = "ready\nmeasuring\ndone\n{}\n"
+    lines = _Lines(cast(list[subprocess.Popen[str]], [_Said(early), _Said(early)]))
+    lines.until("ready", every=True, timeout_s=5)
+    lines.until("measuring", every=True, timeout_s=5)
+    lines.until("done", every=True, timeout_s=5)
+    lines.until("{", every=True, timeout_s=5)
+    assert [said[-1] for said in lines.said] == ["{}", "{}"]

@@ -10,7 +10,7 @@ import itertools
 import pytest
 
 from dynqos.common import keys
-from dynqos.common.bus import MemoryBus, Priority, Received
+from dynqos.common.bus import MemoryBus, Priority, Publisher, Received
 from dynqos.common.clock import FakeClock
 from dynqos.common.config import load_config
 from dynqos.common.keys import Downlink, Flow, Stream
@@ -190,9 +190,16 @@ def test_a_drone_known_only_from_commands_is_not_taken_until_its_state_arrives()
     assert b.on_state(uav, 8, 3, "a", 20 * MS) is not None  # a is not in b's live set: b takes it
 
 
-def _mpc(name: str, bus: MemoryBus, clock: FakeClock, reads: str = "copies") -> MpcService:
+def _mpc(name: str, bus: MemoryBus, clock: FakeClock, reads: str = "states") -> MpcService:
     config = load_config(None, [f'mpc.replica_id="{name}"', f'mpc.standby_reads="{reads}"'])
     return MpcService(config, Ports(bus, clock))
+
+
+def _drone_and_commands(bus: MemoryBus) -> tuple[Publisher, BoundedQueue[Received]]:
+    """uav1's State publisher, and every Command sent to it."""
+    commands: BoundedQueue[Received] = BoundedQueue(1000)
+    bus.subscribe(keys.downlink("uav1", Downlink.COMMAND), commands, expect=(Command,))
+    return bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME), commands
 
 
 def _state(seq: int, clock: FakeClock, term: int, holder: str) -> State:
@@ -310,16 +317,15 @@ def test_the_rank_cache_follows_the_live_set() -> None:
     assert a.order(uav) == ranked(uav, {"a", "b"})
 
 
-def test_a_hung_mpc_service_is_replaced_when_its_beats_stop_and_no_standby_hears_commands() -> None:
+@pytest.mark.parametrize("reads", ["states", "copies"])
+def test_a_hung_mpc_service_is_replaced_when_its_beats_stop_and_no_standby_hears_commands(reads: str) -> None:
     """Two MPC services on the in-memory bus: the standby subscribes to no commands; when the one flying
     the drone stops turning (hung: no beats, no answers), the standby answers within the lease."""
     clock = FakeClock(1_000_000_000)
     bus = MemoryBus(clock)
     bus.declare_token(keys.drone_presence("uav1"))
-    a, b = _mpc("mpc-a", bus, clock), _mpc("mpc-b", bus, clock)
-    commands: BoundedQueue[Received] = BoundedQueue(1000)
-    bus.subscribe(keys.downlink("uav1", Downlink.COMMAND), commands, expect=(Command,))
-    drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+    a, b = _mpc("mpc-a", bus, clock, reads), _mpc("mpc-b", bus, clock, reads)
+    drone, commands = _drone_and_commands(bus)
     followed = (0, "")
     got: list[Command] = []
     live = [a, b]
@@ -341,17 +347,17 @@ def test_a_hung_mpc_service_is_replaced_when_its_beats_stop_and_no_standby_hears
     after = got[hung_at:]
     assert after
     assert {(c.replica, c.term) for c in after} == {(standby.replica, got[hung_at - 1].term + 1)}
-    assert after[0].state_seq <= 12  # the lease (50 ms) and a turn: the next state or the one after
+    assert after[0].state_seq == 12  # state 11 came as it hung; 12 as the lease (50 ms) ran out
     assert standby.feeds.subscribed == {"uav1"}
     inputs = {feed.all_drones for feed in standby.feeds.feeds}  # the commands are the drone's alone
     assert keys.downlink_all_drones(Downlink.COMMAND) not in inputs
 
 
-def _pair(clock: FakeClock) -> tuple[MemoryBus, MpcService, MpcService]:
+def _pair(clock: FakeClock, reads: str = "states") -> tuple[MemoryBus, MpcService, MpcService]:
     """Two MPC services on one in-memory bus, uav1 present; the one ranked first for it, then the other."""
     bus = MemoryBus(clock)
     bus.declare_token(keys.drone_presence("uav1"))
-    a, b = _mpc("mpc-a", bus, clock), _mpc("mpc-b", bus, clock)
+    a, b = _mpc("mpc-a", bus, clock, reads), _mpc("mpc-b", bus, clock, reads)
     for service in (a, b):
         turn(service, clock.now_ns())
     first = a if ranked("uav1", {"mpc-a", "mpc-b"})[0] == "mpc-a" else b
@@ -363,7 +369,7 @@ def test_a_standby_reads_the_holders_few_copies_and_takes_each_state_once_it_fli
     second, and each that says the drone follows another term), not each state; once it takes the
     drone over, it answers the drone's own next state, not a copy, and the states come to it one by one."""
     clock = FakeClock(1_000_000_000)
-    bus, first, second = _pair(clock)
+    bus, first, second = _pair(clock, "copies")
     assert set(second.feeds.pulled) == {"uav1"}
     assert not first.feeds.pulled
     drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
@@ -402,7 +408,7 @@ def test_a_standby_takes_each_state_once_the_holders_beats_are_late_and_reads_co
     so that it answers the first state after it; a holder that beats again is read from its copies
     once the alert has held for 300 ms."""
     clock = FakeClock(1_000_000_000)
-    bus, first, second = _pair(clock)
+    bus, first, second = _pair(clock, "copies")
     drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
     for seq in range(1, 11):
         drone.put(_state(seq, clock, first.assignment.term("uav1"), first.replica))
@@ -435,6 +441,48 @@ def test_a_standby_takes_each_state_once_the_holders_beats_are_late_and_reads_co
     assert second.counters.alerts == 1
 
 
+def test_a_standby_reads_the_drones_states_twice_a_second_and_each_beat_once_the_holder_is_late() -> None:
+    """`standby_reads = "states"`: the drone's own states wait newest-only in zenoh and are read twice a
+    second (no copies); once the holder's beats are three periods late they are read each beat period,
+    with no new subscription to wait for, so the takeover answers the drone's newest state at once."""
+    clock = FakeClock(1_000_000_000)
+    bus, first, second = _pair(clock)
+    drone, commands = _drone_and_commands(bus)
+
+    followed = (0, "")
+
+    def fly(seqs: range, services: list[MpcService]) -> list[Command]:
+        nonlocal followed
+        got: list[Command] = []
+        for seq in seqs:
+            drone.put(_state(seq, clock, *followed))
+            for _ in range(5):
+                for service in services:
+                    turn(service, clock.now_ns())
+                clock.advance_s(0.01)
+            got += [i.message for i in commands.drain() if isinstance(i.message, Command)]
+            followed = (got[-1].term, got[-1].replica) if got else followed
+        return got
+
+    assert {c.replica for c in fly(range(1, 21), [first, second])} == {first.replica}
+    assert first.counters.states == 20
+    assert first.counters.watch_copies == 0  # nobody reads copies
+    assert second.counters.states <= 4  # twice a second, and once as the drone came
+    assert not keys.is_state_watch(second.newest["uav1"].key)
+    assert second.assignment.seats["uav1"].holder == first.replica
+    read = second.counters.states
+    assert fly(range(21, 22), [second]) == []  # the holder hangs: state 21 is answered by no one
+    assert second.counters.alerts == 1
+    assert second.assignment.role("uav1") is Role.WATCH
+    assert set(second.feeds.pulled) == {"uav1"}  # still read from zenoh's slot: no new subscription
+    assert second.newest["uav1"].message.seq == 21  # read at the alert, not half a second later
+    after = fly(range(22, 26), [second])
+    assert second.counters.states >= read + 2
+    assert after[0].state_seq == 22  # the lease (50 ms after its last beat): the state that came then
+    assert {(c.replica, c.term) for c in after} == {(second.replica, 2)}
+    assert [c.state_seq for c in after] == list(range(22, 26))
+
+
 @pytest.mark.parametrize(("reads", "first_answered"), [("copies", 12), ("states", 11)])
 def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goes(
     reads: str, first_answered: int
@@ -447,9 +495,7 @@ def test_two_mpc_services_on_one_bus_hand_the_drone_over_when_the_flying_one_goe
     bus = MemoryBus(clock)
     bus.declare_token(keys.drone_presence("uav1"))  # the drone's daemon announces it
     a, b = _mpc("mpc-a", bus, clock, reads), _mpc("mpc-b", bus, clock, reads)
-    commands: BoundedQueue[Received] = BoundedQueue(1000)
-    bus.subscribe(keys.downlink("uav1", Downlink.COMMAND), commands, expect=(Command,))
-    drone = bus.publisher(keys.uplink("uav1", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+    drone, commands = _drone_and_commands(bus)
     followed = (0, "")
 
     def step(seq: int, services: list[MpcService]) -> list[Command]:

@@ -21,15 +21,18 @@ from tests.test_onboard_loop import LoopProcs, Observer, edge_loop, mpc_replica
 
 pytestmark = [pytest.mark.integration]
 
-WATCHDOG_MS = 150
+WATCHDOG_MS = {"states": 150, "copies": 250}  # the drone's watchdog: its default, and what copies need
 
 
 @pytest.fixture
 def edge(
     tmp_path: Path, request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch
 ) -> Iterator[LoopProcs]:
-    """The loop with two MPC replicas; what a standby reads (`[mpc] standby_reads`) is the parameter."""
-    monkeypatch.setenv("DYNQOS_MPC__STANDBY_READS", getattr(request, "param", "copies"))
+    """The loop with two MPC replicas; what a standby reads (`[mpc] standby_reads`) is the parameter,
+    and the holder's copies go with the drone watchdog they need (docs/reliability.md)."""
+    reads = getattr(request, "param", "states")
+    monkeypatch.setenv("DYNQOS_MPC__STANDBY_READS", reads)
+    monkeypatch.setenv("DYNQOS_SUPERVISOR__WATCHDOG_S", str(WATCHDOG_MS[reads] / 1000))
     with edge_loop(tmp_path, ("mpc-a", "mpc-b")) as started:
         yield started
 
@@ -51,14 +54,14 @@ def _followed(observer: Observer, condition: Callable[[State], bool], timeout_s:
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize(
     ("edge", "qos"),
-    [("copies", "dynamic"), ("copies", "default"), ("copies", "priority"), ("states", "dynamic")],
+    [("states", "dynamic"), ("states", "default"), ("states", "priority"), ("copies", "dynamic")],
     indirect=["edge"],
 )
 def test_killing_hanging_and_adding_mpc_replicas_never_sends_the_drone_to_its_fallback(
     edge: LoopProcs, qos: str, request: pytest.FixtureRequest
 ) -> None:
     """In each QoS mode: the drone's states and the commands take that mode's flows. The standby reads
-    the holder's copies, and, once, each of the drone's own states."""
+    the drone's own states, and, once, the holder's copies."""
     config, zcfg, procs = edge
     observer = Observer(zcfg)
     try:
@@ -111,8 +114,8 @@ def test_killing_hanging_and_adding_mpc_replicas_never_sends_the_drone_to_its_fa
     log = procs.pop("onboard").stop()
     mpc_logs = {name: procs.pop(name).stop() for name in [n for n in procs if n.startswith("mpc-")]}
     for name, text in mpc_logs.items():  # what each replica did, then what the drone followed
-        print(name, *re.findall(r"drone uav1: .*", text), sep="\n  ")
-    print(*re.findall(r"controller is now .*", log), sep="\n")
+        print(name, *re.findall(r".*(?:drone uav1: |is late: ).*", text), sep="\n  ")
+    print(*re.findall(r".*controller is now .*", log), sep="\n")
     assert "fallback PID" not in log, re.findall(r".*fallback PID.*", log)[:3]
     assert log.count("controller is now MPC replica") >= 2
     command_gap = max(float(g) for g in re.findall(r"max_command_gap_ms=([\d.]+)", log))
@@ -120,10 +123,10 @@ def test_killing_hanging_and_adding_mpc_replicas_never_sends_the_drone_to_its_fa
     print(
         f"longest gap between accepted commands {command_gap:.0f} ms, between setpoints {setpoint_gap:.0f} ms"
     )
-    assert command_gap < WATCHDOG_MS
-    assert setpoint_gap < WATCHDOG_MS  # steadiness is a benchmark target (bench/supervisor_reaction.py)
-    assert any("took over" in text for text in mpc_logs.values()), mpc_logs
     reads = request.node.callspec.params["edge"]
+    assert command_gap < WATCHDOG_MS[reads]
+    assert setpoint_gap < WATCHDOG_MS[reads]  # steadiness: bench/supervisor_reaction.py
+    assert any("took over" in text for text in mpc_logs.values()), mpc_logs
     assert all(f"standby_reads={reads} " in text for text in mpc_logs.values())
     assert int(re.findall(r" fenced=(\d+)", log)[-1]) >= 5  # the stale terms were refused
     assert "refused a command from MPC replica" in log  # logged once (the hung replica may come first)
@@ -180,7 +183,7 @@ def test_killing_the_planner_replica_that_publishes_continues_the_mission_from_t
         log = procs.pop("onboard").stop()
     assert "fallback PID" not in log, re.findall(r".*fallback PID.*", log)[:3]
     setpoint_gap = max(float(g) for g in re.findall(r"max_setpoint_gap_ms=([\d.]+)", log))
-    assert setpoint_gap < WATCHDOG_MS  # steadiness is a benchmark target (bench/supervisor_reaction.py)
+    assert setpoint_gap < WATCHDOG_MS["states"]  # steadiness: bench/supervisor_reaction.py
 
 
 def _tracks(observer: Observer, since_ns: int, when: str) -> None:

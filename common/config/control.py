@@ -122,11 +122,12 @@ class MpcConfig:
     replica_id: str = ""
     takeover_after_s: float = 0.05
     holdoff_s: float = 2.0
-    # What a standby reads of a drone: "copies", the holder's copy of its State twice a second (about a
-    # tenth of what flying the drone costs; when the holder's token goes at once, the drone's next state
-    # is answered: keep [supervisor] watchdog_s above two state periods); "states", each of the drone's
-    # states kept newest-only (the newest answered at once, at a third of the cost of flying it).
-    standby_reads: Literal["copies", "states"] = "copies"
+    # What a standby reads of a drone: "states", the drone's own states, kept newest-only in zenoh and
+    # read twice a second (each beat period while the holder's beats are late), so a takeover answers
+    # the newest at once; "copies", the holder's copy of its State twice a second (the router forwards
+    # each state once, not twice; a takeover answers the drone's next state, up to two state periods
+    # and a lease after the last command: only for a [supervisor] watchdog_s of 0.25 s or more).
+    standby_reads: Literal["states", "copies"] = "states"
     # The edge site this replica belongs to ("" = one site). Replicas share drones and fence one another
     # within their site; each site answers every drone it serves, and a drone on two paths applies the
     # first Command for each state from whichever site (docs/multipath.md).

@@ -10,16 +10,17 @@ decides from the live set which one flies each drone (the next one stands by for
 when its token goes or its heartbeat stops for `takeover_after_s`: the beat, sent from the loop every
 fifth of that, says the loop still turns). Commands carry the replica's term, which the drone uses to
 refuse a replaced one; a standby learns who flies a drone from the drone's own States (the term and
-replica it follows), not from the commands, which it does not receive. Nor does it receive each State:
-the holder copies one every `WATCH_COPY_NS` to the drone's watch key, and only once the holder's beats
-are late (`ALERT_BEATS`) does the standby take the drone's states in full, ready to answer the next one
-when the lease runs out (docs/reliability.md).
+replica it follows), not from the commands, which it does not receive. Nor is each State a Python call
+on a standby: the drone's states wait newest-only in zenoh and are read twice a second, and each beat
+period once the holder's beats are late (`ALERT_BEATS`), so that when the lease runs out the standby
+answers the drone's newest state at once (`[mpc] standby_reads`, docs/reliability.md).
 """
 
 from __future__ import annotations
 
 import logging
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -46,14 +47,16 @@ MAX_PATHS = 8  # later copies of one State kept until it is answered (a drone ha
 BEATS_PER_LEASE = 5  # a holder beats five times per lease: four late or lost beats are no takeover;
 # a standby watches as often (a takeover is at most a fifth of the lease late: 10 ms at 50 ms)
 IDLE_TURN_NS = 100_000_000  # with no drone, the loop turns ten times a second
-WATCH_COPY_NS = 500_000_000  # the holder copies a drone's State to its standby twice a second
+WATCH_COPY_NS = 500_000_000  # reading copies: the holder copies a drone's State twice a second
 # A peer not heard for three beat periods (60% of the lease; polled beats are heard up to a turn late, so
-# two came too often on 16 busy cores): the standby takes its drones' states in full, in time for the
-# first state after the lease runs out; for at least ALERT_HOLD_NS (a loaded peer does not flap them).
+# two came too often on 16 busy cores): the standby reads its drones' states each beat period (reading
+# copies: takes them in full, subscribed anew), so it holds the newest when the lease runs out; for at
+# least ALERT_HOLD_NS (a loaded peer does not flap them).
 ALERT_BEATS = 3
 ALERT_HOLD_NS = 300_000_000
 TAKEOVER_ANSWERS_LEASES = 4  # a takeover answers the newest state if it came within four leases
-PULL_BEATS = 5  # the quiet drones' copies are read once per lease (their own states: every beat period)
+PULL_BEATS = 5  # the quiet drones' copies are read once per lease
+PULL_STATES_NS = 500_000_000  # reading their own states instead: twice a second (a takeover reads anew)
 
 
 @dataclass
@@ -124,16 +127,19 @@ class MpcService(EdgeCore):
         self._next_beat_ns = 0
         self._turn_gap_ns = IDLE_TURN_NS  # the longest our loop asked to wait before its next turn
         # Each drone's state and its references (its holder's commands are no standby's business). A
-        # drone it stands by for has its states kept newest-only in zenoh and read once per beat period:
-        # decoded and queued one by one, they cost a standby most of what serving costs
-        # (docs/benchmarks.md, `edge_scale`).
+        # drone it stands by for has its states (or the holder's copies of them) kept newest-only in
+        # zenoh and read now and then: decoded and queued one by one, they cost a standby most of what
+        # serving costs (docs/benchmarks.md, `edge_scale`).
         watch_key = partial(keys.state_watch, "mpc", group)
         quiet_key = watch_key if cfg.standby_reads == "copies" else None  # else the drone's own states
         self.feeds = DroneFeeds(
             "mpc", bus, self.inbox, [feeds.states(pullable=True, quiet_key=quiet_key), feeds.references()]
         )
         self._watch_key = watch_key
-        self._pull_period_ns = self._beat_period_ns * (PULL_BEATS if quiet_key else 1)
+        self._reads_copies = quiet_key is not None
+        # the holder's copies once per lease (one comes at once when the drone follows another term);
+        # the drone's own states twice a second, and each beat period while a peer is late (`_alert`)
+        self._pull_period_ns = self._beat_period_ns * PULL_BEATS if quiet_key else PULL_STATES_NS
         self._watch_publishers: dict[str, Publisher] = {}
         self._copy_due_ns: dict[str, int] = {}
         self._copied: dict[
@@ -155,23 +161,35 @@ class MpcService(EdgeCore):
             return False
         seat = a.seats.get(uav)
         holder = seat.holder if seat is not None and seat.holder is not None else first
-        return holder in a.members and holder not in self._alert_until_ns
+        return holder in a.members and not (self._reads_copies and holder in self._alert_until_ns)
 
     def _alert(self, now_ns: int) -> bool:
-        """The peers whose beats are late by `ALERT_BEATS`: their drones' states in full from now until
-        `ALERT_HOLD_NS` after they were last late. Returns whether that set changed."""
+        """The peers whose beats are late by `ALERT_BEATS`: their drones' states read each beat period
+        (reading copies: in full) from now until `ALERT_HOLD_NS` after they were last late. Returns
+        whether that set changed."""
         late = self.assignment.late_peers(now_ns, ALERT_BEATS * self._beat_period_ns)
         alerted = self._alert_until_ns
         new = late - alerted.keys()
         for peer in new:
             self.counters.alerts += 1
-            log.info("mpc %s: replica %s is late: its drones' states in full", self.replica, peer)
+            how = "in full" if self._reads_copies else "read each beat period"
+            log.info("mpc %s: replica %s is late: its drones' states %s", self.replica, peer, how)
         for peer in late:
             alerted[peer] = now_ns + ALERT_HOLD_NS
         ended = [p for p, until in alerted.items() if until <= now_ns or p not in self.assignment.members]
         for peer in ended:
             del alerted[peer]
         return bool(new or ended)
+
+    def _read_quiet(self, fresh: set[str], only: Callable[[str], bool] | None = None) -> None:
+        """The newest state (or copy) of each drone read from zenoh's slot (`only` some), into `fresh`."""
+        for item in self.feeds.pull(only):
+            assert isinstance(item.message, State)
+            self._on_state(item, item.message, fresh)
+
+    def _held_by_late(self, uav: str) -> bool:
+        seat = self.assignment.seats.get(uav)
+        return seat is not None and seat.holder in self._alert_until_ns
 
     def _take_beats(self, now_ns: int) -> None:
         """The peers that beat since the last turn, into the assignment as heard now (before any state
@@ -243,15 +261,17 @@ class MpcService(EdgeCore):
             alerted = self._alert(now_ns)
             if now_ns >= self._next_pull_ns or self.membership.changed:
                 self._next_pull_ns = now_ns + self._pull_period_ns
-                for item in self.feeds.pull():
-                    assert isinstance(item.message, State)
-                    self._on_state(item, item.message, self._fresh)
+                self._read_quiet(self._fresh)
+            elif self._alert_until_ns and not self._reads_copies:  # no subscription to wait for
+                self._read_quiet(self._fresh, self._held_by_late)
         fresh, self._fresh = self._fresh, set()
-        took = set()
+        took: set[str] = set()
         if watch:
             for change in self.assignment.tick(now_ns):
                 self.membership.log_change(change)
                 took.add(change.uav)  # a takeover answers the newest state at once
+            if took and not self._reads_copies:  # whenever its drone's slot was read last
+                self._read_quiet(fresh, took.__contains__)
         for uav in (fresh | took) & self.newest.keys():
             item = self.newest[uav]
             if self.assignment.role(uav) is Role.SERVE and self._answerable(item, uav in took, now_ns):
@@ -374,10 +394,11 @@ class MpcService(EdgeCore):
                 self._send_copy(uav, command, copy)
 
     def _copy_to_standby(self, uav: str, state: State) -> None:
-        """With a peer live, the state just answered on the drone's watch key: every `WATCH_COPY_NS`, and
+        """With a peer live (and the group's standbys reading copies: `standby_reads` is one setting for
+        all its replicas), the state just answered on the drone's watch key: every `WATCH_COPY_NS`, and
         at once when it says the drone follows another term (the standby must take the next one)."""
-        if len(self.assignment.members) < 2:  # no standby: nothing more on the one replica's hot path
-            return
+        if len(self.assignment.members) < 2 or not self._reads_copies:  # no standby reads them: nothing
+            return  # more on the hot path
         now_ns = self.clock.now_ns()
         followed = followed_at(state, self.config.mpc.site)
         if now_ns < self._copy_due_ns.get(uav, 0) and self._copied.get(uav) == followed:
