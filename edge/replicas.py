@@ -307,3 +307,8 @@ class Assignment:
     def term(self, uav: str) -> int:
         seat = self.seats.get(uav)
         return 0 if seat is None else seat.term
+
+    def holder(self, uav: str) -> str | None:
+        """The replica the drone follows, as this one knows it (None: not known)."""
+        seat = self.seats.get(uav)
+        return None if seat is None else seat.holder

@@ -154,13 +154,13 @@ class MpcService(EdgeCore):
         self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
 
     def _quiet(self, uav: str) -> bool:
-        """A drone this replica stands by for and is not ranked first for, held by a peer that beats: the
-        holder's copies of its states are read now and then, not each state."""
+        """A drone this replica stands by for and is not ranked first for, held by a peer that beats: its
+        states (or the holder's copies of them) are read now and then, not each state."""
         a = self.assignment
         if a.role(uav) is not Role.WATCH or (first := a.order(uav)[0]) == self.replica:
             return False
-        seat = a.seats.get(uav)
-        holder = seat.holder if seat is not None and seat.holder is not None else first
+        holder = a.holder(uav)
+        holder = first if holder is None else holder
         return holder in a.members and not (self._reads_copies and holder in self._alert_until_ns)
 
     def _alert(self, now_ns: int) -> bool:
@@ -188,8 +188,7 @@ class MpcService(EdgeCore):
             self._on_state(item, item.message, fresh)
 
     def _held_by_late(self, uav: str) -> bool:
-        seat = self.assignment.seats.get(uav)
-        return seat is not None and seat.holder in self._alert_until_ns
+        return self.assignment.holder(uav) in self._alert_until_ns
 
     def _take_beats(self, now_ns: int) -> None:
         """The peers that beat since the last turn, into the assignment as heard now (before any state
