@@ -8,6 +8,7 @@ call, which stops the service mid-flight (a long flight on a loaded machine went
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import contextlib
 import json
 import os
@@ -126,3 +127,22 @@ class DynqosProcess:
                 if pipe is not None:
                     pipe.close()
         return "".join(self._stderr_tail)
+
+
+def start_together(config: Path, *commands: list[str]) -> list[DynqosProcess]:
+    """Each command started at once and waited for until ready, in the order given: processes that need
+    only what is already up need not wait for one another to load. If one does not become ready, those
+    that did are stopped and its error is raised."""
+    with concurrent.futures.ThreadPoolExecutor(max_workers=len(commands)) as pool:
+        futures = [pool.submit(DynqosProcess, command, config) for command in commands]
+    started, error = [], None
+    for future in futures:
+        try:
+            started.append(future.result())
+        except AssertionError as exc:
+            error = error or exc
+    if error is not None:
+        for proc in reversed(started):
+            proc.stop()
+        raise error
+    return started

@@ -3,6 +3,7 @@ reach, ends with one clear line on stderr and exit code 2: never a traceback."""
 
 from __future__ import annotations
 
+import concurrent.futures
 import socket
 import subprocess
 from collections.abc import Iterator
@@ -134,12 +135,19 @@ def _cases(closed: int, closed2: int, taken: int, tmp: Path) -> list[tuple[list[
     ]
 
 
+def _run(args: list[str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([DYNQOS, *args], capture_output=True, text=True, timeout=60)
+
+
 def test_unreachable_endpoints_and_bad_arguments_are_one_line_and_exit_2(
     busy_ports: tuple[int, int, int], tmp_path: Path
 ) -> None:
     (tmp_path / "a-file").write_text("not a folder")
-    for args, message in _cases(*busy_ports, tmp_path):
-        result = subprocess.run([DYNQOS, *args], capture_output=True, text=True, timeout=60)
+    cases = _cases(*busy_ports, tmp_path)
+    # four at a time: a fifth of them wait out a 1 s connect timeout, the rest are short processes
+    with concurrent.futures.ThreadPoolExecutor(max_workers=4) as pool:
+        results = list(pool.map(_run, (args for args, _ in cases)))
+    for (args, message), result in zip(cases, results, strict=True):
         lines = [line for line in result.stderr.splitlines() if not line[:4].isdigit()]  # log lines aside
         assert result.returncode == 2, (args, result.stderr[-1000:])
         assert len(lines) == 1, (args, result.stderr[-1000:])

@@ -33,7 +33,7 @@ from dynqos.edge.qos.grants import DroneGrant, Op, QodStatus, Session
 from dynqos.edge.qos.nef_calls import NefCalls
 from dynqos.edge.qos.nef_sink import NefSinkGuard
 from tests.conftest import flow_ports, free_tcp_port
-from tests.procs import DynqosProcess
+from tests.procs import DynqosProcess, start_together
 from tests.test_qos_agent import UAV, Drone
 from tests.test_qos_standby import actives
 
@@ -69,8 +69,9 @@ class NefRig:
             f'ipv4Address = {{ publicAddress = "203.0.113.7", privateAddress = "{UE}" }}\n{tail}'
         )
         self.procs: dict[str, DynqosProcess] = {}
-        self.procs["router"] = DynqosProcess(["edge", "router"], self.config)
-        self.procs["cell"] = DynqosProcess(["sim", "cell"], self.config)
+        self.procs["router"], self.procs["cell"] = start_together(
+            self.config, ["edge", "router"], ["sim", "cell"]
+        )
         self.procs["agent"] = DynqosProcess(["edge", "qos"], self.config)
 
     def close(self) -> str:

@@ -27,7 +27,7 @@ from dynqos.common.modes import Grant
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Priority, Publisher, Received, Role, open_bus
 from tests.conftest import flow_ports, free_tcp_port
-from tests.procs import DYNQOS, DynqosProcess
+from tests.procs import DYNQOS, DynqosProcess, start_together
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
 
@@ -105,8 +105,7 @@ def running(config: Path, zcfg: ZenohConfig, cell_port: int) -> Iterator[Rig]:
     """The router, the emulated cell and the agent with `config`; each stopped by its pid after."""
     procs: dict[str, DynqosProcess] = {}
     try:
-        procs["router"] = DynqosProcess(["edge", "router"], config)
-        procs["cell"] = DynqosProcess(["sim", "cell"], config)
+        procs["router"], procs["cell"] = start_together(config, ["edge", "router"], ["sim", "cell"])
         procs["agent"] = DynqosProcess(["edge", "qos"], config)
         yield Rig(config, zcfg, cell_port, procs)
     finally:
@@ -261,8 +260,7 @@ def test_camara_a_profile_the_operator_does_not_offer_stops_the_agent_before_it_
     write_config(config, zcfg, cell_port, "camara", 'qod_inactive_profiles = ["QOS_M"]\n')
     procs: dict[str, DynqosProcess] = {}
     try:
-        procs["router"] = DynqosProcess(["edge", "router"], config)
-        procs["cell"] = DynqosProcess(["sim", "cell"], config)
+        procs["router"], procs["cell"] = start_together(config, ["edge", "router"], ["sim", "cell"])
         for name, why in (("QOS_Z", "QOS_Z is not offered (offered: QOS_E, QOS_L, QOS_M, QOS_S)"),
                           ("QOS_M", "QOS_M is INACTIVE")):  # fmt: skip
             text = config.read_text().replace("[qos.camara]\n", f'[qos.camara]\nqos_profile = "{name}"\n', 1)

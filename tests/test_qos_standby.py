@@ -20,7 +20,7 @@ from dynqos.common.messages import QosGrant
 from dynqos.common.modes import Grant
 from dynqos.common.transport import Role, open_bus
 from tests.conftest import flow_ports, free_tcp_port
-from tests.procs import DynqosProcess
+from tests.procs import DynqosProcess, start_together
 from tests.test_qos_agent import Drone, Rig, write_config
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
@@ -52,8 +52,7 @@ def two_agents(tmp_path: Path, backend: str, policy: str) -> Iterator[Rig]:
     config.write_text(text)
     procs: dict[str, DynqosProcess] = {}
     try:
-        procs["router"] = DynqosProcess(["edge", "router"], config)
-        procs["cell"] = DynqosProcess(["sim", "cell"], config)
+        procs["router"], procs["cell"] = start_together(config, ["edge", "router"], ["sim", "cell"])
         for name in AGENTS:
             procs[name] = agent(name, config)
         yield Rig(config, zcfg, cell_port, procs)

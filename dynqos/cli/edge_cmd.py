@@ -16,6 +16,7 @@ from dynqos.cli.options import (
     with_metrics,
 )
 from dynqos.common.config import Config
+from dynqos.common.errors import ConfigError
 
 SERVICES = {  # name -> (its module, what it does)
     "router": (
@@ -103,10 +104,20 @@ def add(commands: Commands) -> None:
         "line per item, exit 0 only if all pass; nothing is armed or sent (docs/onboard.md)",
     )
     onboard.add_argument("--takeoff", action="store_true", help="arm, take off and start offloading")
+    onboard.add_argument(
+        "--measure-s",
+        type=float,
+        default=MEASURE_S,
+        metavar="S",
+        help=f"check: count the FC's rates and the camera's frames over S seconds "
+        f"({MEASURE_S_RANGE[0]:g}..{MEASURE_S_RANGE[1]:g}, default %(default)g)",
+    )
     metrics_options(onboard)
     onboard.set_defaults(handler=run_onboard)
 
 
+MEASURE_S = 2.0  # the preflight counts rates over this long: 40 Hz asked, one message either way is 1 Hz
+MEASURE_S_RANGE = (0.5, 60.0)
 MATH_THREADS_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
@@ -131,7 +142,10 @@ def run_onboard(args: argparse.Namespace, config: Config) -> int:
     if args.action == "check":
         from dynqos.onboard import check
 
-        return check.run(config)
+        low, high = MEASURE_S_RANGE
+        if not low <= args.measure_s <= high:
+            raise ConfigError("--measure-s", f"must be in {low:g}..{high:g} s, got {args.measure_s:g}")
+        return check.run(config, args.measure_s)
     config = with_metrics(args, config)
     camera = None
     if config.onboard.camera == "sim" and config.onboard.camera_fps > 0:

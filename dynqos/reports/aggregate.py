@@ -17,8 +17,6 @@ import statistics
 from collections.abc import Iterator
 from typing import Any
 
-from scipy import stats as scipy_stats
-
 SKIP = {
     "seed",
     "duration_s",
@@ -56,6 +54,8 @@ def interval(values: list[float]) -> dict[str, float | int]:
     mean = statistics.fmean(values)
     if n < 2:
         return {"mean": mean, "ci95_low": mean, "ci95_high": mean, "n": n}
+    from scipy import stats as scipy_stats  # here: loading it costs every `dynqos demo` a second at start
+
     half = float(scipy_stats.t.ppf(0.975, n - 1)) * statistics.stdev(values) / math.sqrt(n)
     return {"mean": mean, "ci95_low": mean - half, "ci95_high": mean + half, "n": n}
 
