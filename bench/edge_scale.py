@@ -18,6 +18,7 @@ decoded, solved and answered once).
 Run: dynqos bench edge_scale (suite settings), or with its own options:
   python -m dynqos.bench.edge_scale [--processes 1,2] [--modes replicas,sharding] [--loaders 2]
       [--counts 25,50,75,100,125,150,175,200,250] [--per-process] [--seconds 3] [--quick] [--out FILE]
+      [--mpc-set mpc.standby_reads=copies ...]
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ from typing import IO, Any
 from dynqos.bench.report import bench_parser, emit, judged, provenance
 from dynqos.bench.rig import hovering_state, router_rig
 from dynqos.common import keys
-from dynqos.common.config import ZenohConfig
+from dynqos.common.config import ZenohConfig, load_config
+from dynqos.common.errors import DynqosError
 from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import Command
 from dynqos.common.queues import BoundedQueue
@@ -271,7 +273,10 @@ def _last_health(procs: Processes, name: str) -> dict[str, str]:
     return {key: value for key, value in fields}
 
 
-def sweep(mode: str, processes: int, counts: list[int], loaders: int, seconds: float) -> dict[str, Any]:
+def sweep(
+    mode: str, processes: int, counts: list[int], loaders: int, seconds: float, settings: tuple[str, ...] = ()
+) -> dict[str, Any]:
+    """`settings`: KEY=VALUE for every MPC process (`--mpc-set`)."""
     extra = "[mpc]\nidle_timeout_s = 2\nhealth_interval_s = 1\n"
     if mode == "sharding":
         extra += f"shard_count = {processes}\n"
@@ -279,7 +284,9 @@ def sweep(mode: str, processes: int, counts: list[int], loaders: int, seconds: f
     with router_rig(extra) as (zcfg, procs):
         for index in range(processes):
             role = f"mpc.shard_index={index}" if mode == "sharding" else f"mpc.replica_id=mpc{index}"
-            procs.start(f"mpc{index}", ["edge", "mpc", "--set", role])
+            procs.start(
+                f"mpc{index}", ["edge", "mpc", "--set", role, *(a for kv in settings for a in ("--set", kv))]
+            )
         for count in counts:
             row = fleet(zcfg, procs, count, loaders, seconds)
             rows.append(row)
@@ -301,13 +308,15 @@ def run(
     loaders: int,
     seconds: float,
     per_process: bool = False,
+    settings: tuple[str, ...] = (),
 ) -> dict[str, Any]:
-    """`per_process`: the counts are per MPC process, so M processes fly M x each (one sweep fits all M)."""
-    one = sweep("one", 1, counts, loaders, seconds) if 1 in processes else None
+    """`per_process`: the counts are per MPC process, so M processes fly M x each (one sweep fits all M).
+    `settings`: KEY=VALUE for every MPC process."""
+    one = sweep("one", 1, counts, loaders, seconds, settings) if 1 in processes else None
     runs = [one] if one else []
     for m in (m for m in processes if m > 1):
         scaled = [c * m for c in counts] if per_process else counts
-        runs += [sweep(mode, m, scaled, loaders, seconds) for mode in modes]
+        runs += [sweep(mode, m, scaled, loaders, seconds, settings) for mode in modes]
     base = one["max_drones_at_20hz"] if one else 0
     for r in runs:
         r["efficiency"] = r["max_drones_at_20hz"] / (r["processes"] * base) if base else None
@@ -319,6 +328,7 @@ def run(
         "loaders": loaders,
         "seconds_per_step": seconds,
         "counts_per_process": per_process,
+        "mpc_settings": list(settings),
         "runs": runs,
     }
 
@@ -410,6 +420,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--seconds", type=float, default=3.0, help="measured per fleet size (default 3)")
     parser.add_argument("--quick", action="store_true", help="smoke mode: 10 drones, one and two replicas")
+    parser.add_argument(
+        "--mpc-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a setting for every MPC process, e.g. mpc.standby_reads=copies (repeatable)",
+    )
     parser.add_argument("--load", help=argparse.SUPPRESS)  # first,count,ticks: one load process
     parser.add_argument("--ports", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -424,11 +441,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--modes: choose from {', '.join(MODES)}")
     if not 1 <= args.loaders <= 64 or not 0.2 <= args.seconds <= 60:
         parser.error("--loaders must be in 1..64 and --seconds in 0.2..60")
+    settings = tuple(args.mpc_set)
+    try:
+        load_config(None, list(settings))  # a bad key or value is said before anything starts
+    except DynqosError as exc:
+        parser.error(f"--mpc-set: {exc}")
     if args.quick:
-        result = run([1, 2], ["replicas"], [10], 1, 1.0)
+        result = run([1, 2], ["replicas"], [10], 1, 1.0, settings=settings)
     else:
         counts = args.counts or [25, 50, 75, 100, 125, 150, 175, 200, 250]
-        result = run(sorted(set(args.processes)), modes, counts, args.loaders, args.seconds, args.per_process)
+        processes = sorted(set(args.processes))
+        result = run(processes, modes, counts, args.loaders, args.seconds, args.per_process, settings)
     return emit(result, markdown(result), args.out, verdict(result))
 
 

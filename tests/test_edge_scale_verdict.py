@@ -4,10 +4,15 @@ how it reads its load processes."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import subprocess
+from collections.abc import Iterator
 from typing import Any, cast
 
+import pytest
+
+from dynqos.bench import edge_scale
 from dynqos.bench.edge_scale import _Lines, verdict
 
 
@@ -59,3 +64,30 @@ def test_a_load_process_that_measured_and_ended_before_another_began_is_waited_f
     lines.until("done", every=True, timeout_s=5)
     lines.until("{", every=True, timeout_s=5)
     assert [said[-1] for said in lines.said] == ["{}", "{}"]
+
+
+def test_mpc_settings_reach_every_mpc_process_and_a_bad_one_is_refused_before_any_starts(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    started: list[list[str]] = []
+
+    class Procs:
+        def start(self, name: str, args: list[str]) -> None:
+            started.append(args)
+
+    @contextlib.contextmanager
+    def rig(extra: str) -> Iterator[tuple[None, Procs]]:
+        yield None, Procs()
+
+    row = {"drones": 10, "served": True, "answered": 1.0, "p99_ms": 5.0, "mpc_core_share_per_drone": 0.01}
+    monkeypatch.setattr(edge_scale, "router_rig", rig)
+    monkeypatch.setattr(edge_scale, "fleet", lambda *_: dict(row))
+    result = edge_scale.run([1, 2], ["replicas"], [10], 1, 1.0, settings=("mpc.standby_reads=copies",))
+    assert len(started) == 3  # one process, then two replicas
+    assert all(args[-2:] == ["--set", "mpc.standby_reads=copies"] for args in started), started
+    assert result["mpc_settings"] == ["mpc.standby_reads=copies"]
+    with pytest.raises(SystemExit) as stop:
+        edge_scale.main(["--quick", "--mpc-set", "mpc.standby_reads=nope"])
+    assert stop.value.code == 2
+    assert "--mpc-set: --set: mpc.standby_reads: 'nope' is not one of" in capsys.readouterr().err
+    assert len(started) == 3  # nothing more started
