@@ -261,7 +261,7 @@ def check_unit(systemd_root: Path = Path("/run/systemd/system")) -> Item:
     return Item("systemd unit", state != "failed", f"{UNIT}: {state}, {enabled}")
 
 
-def run(config: Config, measure_s: float = 2.0) -> int:
+def run(config: Config, measure_s: float) -> int:
     items = [
         *check_fc(config, measure_s),
         check_camera(config, measure_s),

@@ -139,7 +139,7 @@ def start_together(config: Path, *commands: list[str]) -> list[DynqosProcess]:
     for future in futures:
         try:
             started.append(future.result())
-        except AssertionError as exc:
+        except Exception as exc:  # not ready, or could not start at all: the others are stopped either way
             error = error or exc
     if error is not None:
         for proc in reversed(started):
