@@ -15,7 +15,8 @@ with `beats`, that its heartbeat stopped that long: a standby then needs none of
 commands, only its beats, one per replica and not per drone (the MPC's case: receiving and decoding
 every command it does not send cost a standby most of what serving costs, docs/benchmarks.md).
 A replica that was just displaced waits `holdoff_ns` before it takes a drone back by rank alone, so a
-replica that flaps does not drag its drones with it.
+replica that flaps does not drag its drones with it; the holder's silence takes it back at once (a
+replica that took a drone from a busy peer and then hung is replaced within a lease, not a holdoff).
 """
 
 from __future__ import annotations
@@ -251,11 +252,11 @@ class Assignment:
             candidates, reason = order, f"no replica served it for {(now_ns - waited) / 1e6:.0f} ms"
         elif holder is None or holder not in self.members:
             candidates, reason = order, f"holder {holder or '(none)'} is gone"
-        elif order.index(holder) > order.index(self.me):
-            if seat.displaced_ns is not None and now_ns - seat.displaced_ns < self.holdoff_ns:
-                return None
+        elif order.index(holder) > order.index(self.me) and not self._holding_off(seat, now_ns):
             candidates, reason = order, f"ranked above {holder}"
         elif (silent_ns := self._silent_ns(seat, holder, now_ns)) > self.lease_ns:
+            # also when we rank above the holder but hold off: a holder that took the drone from us
+            # and then hung is replaced by its standby, which is us (the candidates skip the holder)
             late_ms = silent_ns / 1e6
             candidates, reason = [r for r in order if r != holder], f"{holder} silent for {late_ms:.0f} ms"
         else:
@@ -269,6 +270,10 @@ class Assignment:
         seat.displaced_ns = None
         self.counters.takeovers += 1
         return Change(uav, Role.SERVE, seat.term, f"took over: {reason}")
+
+    def _holding_off(self, seat: Seat, now_ns: int) -> bool:
+        """Displaced a moment ago: a drone is not taken back by rank alone (silence still takes it)."""
+        return seat.displaced_ns is not None and now_ns - seat.displaced_ns < self.holdoff_ns
 
     def _silent_ns(self, seat: Seat, holder: str, now_ns: int) -> int:
         """How long the holder has been silent: with `beats`, from its last heartbeat (or from when it

@@ -13,7 +13,7 @@ from dynqos.common.config import DetectorConfig
 from dynqos.common.depthcodec import encode_zstd16
 from dynqos.common.errors import DecodeError
 from dynqos.common.messages import CameraFrame
-from dynqos.edge.detector.circles import decode_depth, decode_rgb, find_circles, locate
+from dynqos.edge.detector.circles import chroma, decode_depth, decode_rgb, find_circles, locate
 from dynqos.sim.vehicle.dynamics import quat_to_rot
 from dynqos.sim.vehicle.render import Renderer
 from dynqos.sim.vehicle.world import default_world
@@ -55,6 +55,17 @@ def rendered_hoop_views(count: int) -> list[View]:
         (u, v), _, _ = cv2.fitEllipse(np.array(rim, np.float32))
         views.append((rgb, depth, (u, v), dist, hoop.radius_m + hoop.tube_m, renderer))
     return views
+
+
+def test_chroma_is_the_spread_of_each_pixels_three_channels() -> None:
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    rgb[0, 0], rgb[0, 1], rgb[0, 2] = (0, 0, 0), (255, 0, 255), (7, 7, 7)
+    spread = chroma(rgb)
+    assert spread.dtype == np.uint8
+    assert spread.shape == (48, 64)
+    assert np.array_equal(spread, rgb.max(axis=2) - rgb.min(axis=2))
+    assert list(spread[0, :3]) == [0, 255, 0]
 
 
 def test_detector_finds_rendered_hoops() -> None:

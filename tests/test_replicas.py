@@ -307,6 +307,45 @@ def test_with_beats_a_new_holder_gets_a_whole_lease_before_its_first_beat() -> N
     assert change.role is Role.SERVE
 
 
+def test_a_replica_holding_off_still_replaces_the_holder_that_displaced_it_and_then_hung() -> None:
+    """b is the drone's primary; its standby a took the drone while b's loop was late (a loaded host),
+    and b stepped down, holding off its rank for two seconds. a then hangs: b, the only other replica,
+    takes the drone when a's beats stop, within a lease, not once its holdoff ends (a CI flight's drones
+    fell back at the watchdog waiting for that)."""
+    uav = drone_ranked("b", "a", ("a", "b"))
+    b = beating("b", "a")
+    t = turns(b, 0, 1, beats_from="a")
+    assert b.on_state(uav, 1, 0, "", t) is not None  # nobody flies it yet: b, ranked first, takes it
+    t = turns(b, t, 5, beats_from="a")
+    step_down = b.on_state(uav, 2, 2, "a", t)  # a took it while b was late
+    assert step_down is not None
+    assert step_down.role is Role.WATCH
+    t = turns(b, t, 5, beats_from="a")
+    assert b.on_state(uav, 3, 2, "a", t) is None  # a beats: holding off, b does not take back by rank
+    assert b.tick(t) == []
+    last_beat = t  # a hangs
+    t = turns(b, t, 4)
+    assert b.tick(t) == []  # within the lease
+    t = turns(b, t, 2)
+    changes = b.tick(t)
+    assert [(c.role, c.term) for c in changes] == [(Role.SERVE, 3)], changes
+    assert "a silent for" in changes[0].reason
+    assert t - last_beat < HOLDOFF / 10
+
+
+def test_without_beats_a_replica_holding_off_replaces_a_silent_holder_within_the_lease() -> None:
+    uav = drone_ranked("b", "a", ("a", "b"))
+    b = replica("b", "a")
+    assert b.on_state(uav, 1, 0, "", 0) is not None
+    assert b.on_command(uav, 1, 2, "a", 10 * MS) is not None  # a took it: b steps down
+    assert b.on_state(uav, 2, 2, "a", 50 * MS) is None
+    assert b.on_command(uav, 2, 2, "a", 55 * MS) is None
+    assert b.on_state(uav, 3, 2, "a", 100 * MS) is None  # a answers no more
+    assert b.tick(100 * MS + LEASE) == []
+    changes = b.tick(100 * MS + LEASE + MS)
+    assert [(c.role, c.term) for c in changes] == [(Role.SERVE, 3)], changes
+
+
 def test_the_rank_cache_follows_the_live_set() -> None:
     a = replica("a", "b")
     uav = drone_ranked("c", "a", ("a", "b", "c"))

