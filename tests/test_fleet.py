@@ -27,7 +27,7 @@ from dynqos.experiment.scenario import (
     write_config,
 )
 from dynqos.reports.fleet import _queue_delays, summarise_fleet
-from tests.flights import fly_for_behaviour, not_ours
+from tests.flights import fly_for_behaviour
 from tests.procs import DYNQOS
 from tests.statuses import status_saying
 
@@ -122,25 +122,20 @@ def _fly_fleet(out: Path, name: str = "fleet-arbiter", duration: str = "30") -> 
 
 @pytest.mark.slow
 @pytest.mark.integration
-@pytest.mark.timeout(600)  # a starved first flight is flown again
+@pytest.mark.timeout(600)  # a flight that failed while starved is flown again
 def test_a_short_arbitrated_fleet_flight_keeps_the_high_risk_drones_loop(tmp_path: Path) -> None:
     """fleet-arbiter, shortened: four drones, two of them in high-risk zones, one busy cell and room for
-    two grants. The flight is not starved (flown once more if it was); the high-risk drones hold
-    priority and keep their RTT within the scenario's 1.2x and their full camera rate under load; the
-    others are denied and adapt; no drone's setpoints pause over 100 ms; no QoD session is left."""
-    out = tmp_path / "run"
-    summary = _fly_fleet(out)
-    # One more flight when the machine starved it, or when it broke its checks while the host took the
-    # cores (tests/flights.py)
-    broke = not all(summary["checks"].values())
-    if summary["failure"].startswith("starved") or (broke and not_ours(summary)):
-        print(f"the cores were not its own the first time ({summary['machine']}): flying again")
-        out = tmp_path / "again"
-        summary = _fly_fleet(out)
-    assert summary["ok"] is True, summary["failure"]  # a starved flight is not ok
-    # The machine was measured over the flight (the starved rule above rests on it). How busy a fleet
-    # keeps it is a speed target (at most 70%, docs/fleet.md, measured over `--repeat 5` runs), not
-    # asserted here: the same code costs a fifth to two fifths more CPU on a slower host.
+    two grants. The high-risk drones hold priority and keep their RTT within the scenario's 1.2x and
+    their full camera rate under load; the others are denied and adapt; no drone's setpoints pause over
+    100 ms; no QoD session is left. As every behaviour flight (tests/flights.py): a starved flight whose
+    behaviour holds passed the harder way; one that broke it while starved, or while the host took the
+    cores, is flown once more and asserted whatever its machine. Whether a fleet starves the machine is
+    the `fleet_flight` benchmark's (docs/benchmarks.md): on the slow host of 2026-11-30 every flight of
+    it was above 85% busy for 4 to 9 of its 30 s, whatever the code of that day, and held its checks."""
+    fly_for_behaviour(_fly_fleet, tmp_path, _check_arbitrated)
+
+
+def _check_arbitrated(summary: dict[str, Any], out: Path) -> None:
     machine = summary["machine"]
     assert machine["seconds_sampled"] >= 25, machine
     assert 0 < machine["busy_share"] <= machine["busy_share_max_1s"] <= 1, machine
