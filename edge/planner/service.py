@@ -31,8 +31,6 @@ from dynqos.edge.runtime import EdgeCore, Ports, serve
 
 log = logging.getLogger(__name__)
 
-INBOX_SIZE = 16384  # a publishing period's arrivals (taken in one batch): 500 drones' states and references
-
 
 def mission_from_config(cfg: PlannerConfig, uav: str | None = None) -> Mission:
     """The planner's mission, or the one `[planner.drones.<uav>]` gives that drone."""
@@ -70,16 +68,10 @@ class PlannerService(EdgeCore):
         self.membership = Membership("planner", "all", self.assignment, bus)
         self.state_seq: dict[str, int] = {}  # the newest state seen per drone
         # the other replicas' references too: whom they publish for, and their mission time
-        # Each drone's states newest-only in zenoh, read once per publishing period (`tick`): the planner
-        # needs a drone's newest state (it is there, it flies offboard, the holder answers it), not a
-        # Python call for each of them, which cost its standby as much CPU as publishing.
         self.feeds = DroneFeeds(
-            "planner",
-            bus,
-            self.inbox,
-            [feeds.states(pullable=True), feeds.references(remote_only=True), feeds.missions()],
+            "planner", bus, self.inbox, [feeds.states(), feeds.references(remote_only=True), feeds.missions()]
         )
-        self.feeds.reconcile(self.assignment.mine, assignment_changed=True, quiet=_every_drone)
+        self.feeds.reconcile(self.assignment.mine, assignment_changed=True)
 
     def _init_mission(self, config: Config, ports: Ports) -> None:
         self.config = config
@@ -101,13 +93,9 @@ class PlannerService(EdgeCore):
         self.health_interval_s = self.cfg.health_interval_s
         self.period_ns = round(1e9 / self.cfg.publish_hz)
         self._next_publish_ns = 0
-        # What arrives is taken once per publishing period, not as it comes: nothing the planner hears
-        # needs an answer sooner (it times them by their arrival), and a wake of the loop for each of
-        # four drones' states cost a fleet's planner 6% of a core, its standby as much.
-        self.batch_s = 1 / self.cfg.publish_hz
 
     def handle(self, events: list[Received], now_ns: int) -> None:
-        """Other replicas' references (their mission time), missions from outside (states: `tick`)."""
+        """New drones, other replicas' references (their mission time), missions from outside."""
         self.membership.apply()
         for item in events:
             message = item.message
@@ -136,16 +124,11 @@ class PlannerService(EdgeCore):
         return self.period_ns / 1e9
 
     def discover(self, now_ns: int) -> None:
-        """The drones' newest states, replicas that came or went, takeovers due, and the drones to
-        follow for it."""
-        self.membership.apply()  # the live set first: a state is judged among the replicas known now
-        for item in self.feeds.pull():
-            assert isinstance(item.message, State)
-            self._on_state(item.message, item.arrival_ns)
+        """Replicas that came or went, takeovers due, and the drones to follow for it."""
+        self.membership.apply()
         for change in self.assignment.tick(now_ns):
             self.membership.log_change(change)
-        changed = self.membership.take_changed()
-        self.feeds.reconcile(self.assignment.mine, assignment_changed=changed, quiet=_every_drone)
+        self.feeds.reconcile(self.assignment.mine, assignment_changed=self.membership.take_changed())
 
     def _on_state(self, message: State, arrival_ns: int) -> None:
         uav = message.uav
@@ -238,11 +221,4 @@ class PlannerService(EdgeCore):
 
 def run(config: Config, *, health_file: Path | None = None) -> int:
     """`dynqos edge planner` until SIGTERM (edge/service.py's `serve`)."""
-    return serve(
-        "planner", config, PlannerService, metrics.planner, health_file=health_file, inbox_size=INBOX_SIZE
-    )
-
-
-def _every_drone(uav: str) -> bool:
-    """Whose states the planner reads newest-only: every drone's (`DroneFeeds.reconcile`'s quiet)."""
-    return True
+    return serve("planner", config, PlannerService, metrics.planner, health_file=health_file)
