@@ -290,19 +290,19 @@ def test_camara_a_duration_past_the_profiles_maximum_is_fitted_before_the_first_
     [
         (("camara", "qod_max_duration_s = 6\n", "renew_before_s = 1\n"), 15.0),
         pytest.param(
-            ("camara", "qod_profile_max_duration_s = { QOS_E = 20 }\n", "duration_s = 600\n"),
-            60.0,
+            ("camara", "qod_profile_max_duration_s = { QOS_E = 10 }\n", "duration_s = 600\n"),
+            30.0,
             marks=[pytest.mark.slow, pytest.mark.timeout(150)],
         ),
     ],
     indirect=["rig"],
-    ids=["cap-6s", "cap-20s-60s-flight"],
+    ids=["cap-6s", "cap-10s-30s-flight"],
 )
 def test_camara_an_operator_that_caps_sessions_gets_renewals_not_an_extend_storm(
     rig: Rig, drone: Drone, flight_s: float
 ) -> None:
-    """An operator capping each session at its profile's maxDuration (6 s; 20 s in the slow case, the
-    agent asking for 600 s and fitting it to 20 by the profile): each session is extended at most once
+    """An operator capping each session at its profile's maxDuration (6 s; 10 s in the slow case, the
+    agent asking for 600 s and fitting it to 10 by the profile): each session is extended at most once
     more than the cap allows, replaced shortly before it ends, and the drone holds an AVAILABLE grant
     nearly all the time it wants one. Before the cap was recognised, each capped extend was due again
     at once (about 1000 calls in 20 s)."""
@@ -321,7 +321,7 @@ def test_camara_an_operator_that_caps_sessions_gets_renewals_not_an_extend_storm
     wanted_s = time.monotonic() - start
     available_s += (time.monotonic() - since) if state is Grant.AVAILABLE else 0.0
     counters = rig.counters()["qod"]
-    cap_s = 6.0 if flight_s < 60 else 20.0
+    cap_s = 6.0 if flight_s < 30 else 10.0
     assert counters["created"] >= wanted_s // cap_s, counters  # renewed, not left to expire once
     assert counters["extended"] <= 2 * counters["created"], counters  # as asked, then one capped
     assert available_s >= 0.95 * wanted_s, (available_s, wanted_s)

@@ -54,14 +54,16 @@ def _followed(observer: Observer, condition: Callable[[State], bool], timeout_s:
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize(
     ("edge", "qos"),
-    [("states", "dynamic"), ("states", "default"), ("states", "priority"), ("copies", "dynamic")],
+    [("states", "default"), ("states", "priority"), ("copies", "dynamic")],
     indirect=["edge"],
 )
 def test_killing_hanging_and_adding_mpc_replicas_never_sends_the_drone_to_its_fallback(
     edge: LoopProcs, qos: str, request: pytest.FixtureRequest
 ) -> None:
     """In each QoS mode: the drone's states and the commands take that mode's flows. The standby reads
-    the drone's own states, and, once, the holder's copies."""
+    the drone's own states, and in the dynamic mode the holder's copies (the dynamic mode with the
+    drone's own states is the shipped `replicas` scenario's, tests/test_faults.py: the same kill, join
+    and hang)."""
     config, zcfg, procs = edge
     observer = Observer(zcfg)
     try:

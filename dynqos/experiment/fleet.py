@@ -32,6 +32,7 @@ from dynqos.experiment.flight import (
     fly_and_stop,
     post_json,
     start_replicas,
+    start_router_and_cell,
     wait_for_offload,
 )
 from dynqos.experiment.link_relay import LinkRelay
@@ -91,8 +92,7 @@ def run_fleet(
     decisions: list[QosDecision] = []
 
     def fly() -> None:
-        procs.start("router", ["edge", "router"])
-        cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
+        cell = start_router_and_cell(procs, folder)
         sink_port = free_port() if scenario.qos_agents == 1 else 0  # several agents poll (scenario.py)
         write_config(shared_path, scenario, with_cell(shared, cell, sink_port=sink_port))
         cells = {"a": cell}
@@ -246,8 +246,13 @@ def _record_fleet(
         bus.subscribe(keys.downlink_all_drones(Downlink.QOS_DECISION), heard, expect=(QosDecision,))
         # One drone at a time takes off and starts offloading: four take-offs at once on two cores
         # are a start-up no fleet flies, and their latencies would be the baseline's.
+        # They stop at once (a PX4 drone lands before its daemon exits: about 8 s each).
+        first = f"onboard-{next(iter(paths))}"
         for uav, path in paths.items():
-            procs.start(f"onboard-{uav}", ["onboard", "--takeoff"], config=path)
+            name = f"onboard-{uav}"
+            procs.start(
+                name, ["onboard", "--takeoff"], config=path, stop_with=None if name == first else first
+            )
             recs[uav].offload_ns = wait_for_offload(streams[uav].states, procs, stop, f"onboard-{uav}")
         # The flight's time zero is when the last drone offloads: from then on every drone is recorded.
         rec.t0_ns = rec.offload_ns = time.monotonic_ns()

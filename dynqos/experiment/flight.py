@@ -38,6 +38,15 @@ def start_replicas(procs: Processes, service: str, count: int) -> None:
         procs.start(name, ["edge", service, "--set", f'{service}.replica_id="{name}"'])
 
 
+def start_router_and_cell(procs: Processes, folder: Path) -> dict[str, Any]:
+    """The edge's router and the emulated cell, at once (the cell connects to the router only when a drone
+    connects to it); the cell's ready line, with its ports."""
+    with procs.together():
+        procs.start("router", ["edge", "router"])
+        procs.start("cell", ["sim", "cell", "--out", str(folder)])
+    return procs.info["cell"]
+
+
 RECORD_PERIOD_S = 0.1  # the recorder's sampling period
 PROGRESS_EVERY_S = 10.0  # a progress log line this often when stderr is not a terminal
 CELL_POLL_S = 0.5  # how often the cell's counters are read

@@ -1,6 +1,7 @@
 """The experiment's processes: `dynqos` subcommands started on free loopback ports, each with its own
 log, stopped in reverse order by their own pids (never by name: other processes on the machine are not
-ours to end). Used by the scenario runner, the fault injector and the benchmarks."""
+ours to end), a layer at a time: the processes started `together` stop together. Used by the scenario
+runner, the fault injector and the benchmarks."""
 
 from __future__ import annotations
 
@@ -149,7 +150,8 @@ def child_environment(environ: Mapping[str, str]) -> dict[str, str]:
 
 
 class Processes:
-    """The scenario's processes, started in order, stopped in reverse, each by its own pid."""
+    """The scenario's processes, started in order, stopped in reverse, each by its own pid. The processes
+    one `together` started are one layer, stopped at once: none of them needs another of them."""
 
     def __init__(self, config: Path, logs: Path, metrics_base: int = 0) -> None:
         self.config = config
@@ -162,6 +164,8 @@ class Processes:
         self.down: set[str] = set()  # killed on purpose (a fault), not a failure
         self.exe = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
         self._batch: list[tuple[str, subprocess.Popen[str], float]] | None = None  # inside `together`
+        self._batch_layer = 0
+        self.layers: dict[str, int] = {}  # each name's layer, from its first start: the order they stop in
 
     @contextlib.contextmanager
     def together(self) -> Iterator[None]:
@@ -170,6 +174,7 @@ class Processes:
         at the same time (a flight's edge services are up in about half the time)."""
         batch: list[tuple[str, subprocess.Popen[str], float]] = []
         self._batch = batch
+        self._batch_layer = len(set(self.layers.values()))
         try:
             yield
         finally:
@@ -184,11 +189,20 @@ class Processes:
         timeout_s: float = 30.0,
         program: list[str] | None = None,
         config: Path | None = None,
+        stop_with: str | None = None,
     ) -> dict[str, Any]:
         """Start `dynqos ARGS --config FILE` (or `PROGRAM ARGS --config FILE`), wait for its ready line
         (inside `together`: later, and {} now). FILE is the scenario's config, or `config` (a fleet's
-        drone has its own)."""
+        drone has its own). `stop_with`: a process already started whose layer this one joins (a
+        fleet's drones start one by one and stop at once)."""
         err = (self.logs / f"{name}.log").open("a" if name in self.started else "w")  # a restart appends
+        if name not in self.layers:
+            if stop_with is not None:
+                self.layers[name] = self.layers[stop_with]
+            elif self._batch is not None:
+                self.layers[name] = self._batch_layer
+            else:
+                self.layers[name] = len(set(self.layers.values()))
         self.started[name] = (args, program, config)
         args = args + self._metrics_option(name, args)
         proc = subprocess.Popen(
@@ -257,14 +271,7 @@ class Processes:
         proc = self.procs[name]
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=5)
-        if proc.stdout is not None:
-            proc.stdout.close()
-        return proc.returncode
+        return self._reaped(proc)
 
     def restart(self, name: str) -> None:
         args, program, config = self.started[name]
@@ -298,21 +305,31 @@ class Processes:
         return out
 
     def stop_all(self) -> dict[str, int | None]:
+        """Stop every process, the last layer first: SIGCONT (in case a fault paused it, or the PX4 it
+        runs) and SIGTERM to each one of a layer, then wait for each. Their exit codes."""
         codes: dict[str, int | None] = {}
-        for name in reversed(list(self.procs)):
-            proc = self.procs[name]
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGCONT)  # in case a fault paused it
-                if (px4 := self._px4_pid(name)) is not None:
-                    with contextlib.suppress(OSError):
-                        os.kill(px4, signal.SIGCONT)  # or the PX4 it runs
-                proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=5)
-            if proc.stdout is not None:
-                proc.stdout.close()
-            codes[name] = proc.returncode
+        for layer in sorted(set(self.layers.values()), reverse=True):
+            names = [name for name in reversed(list(self.procs)) if self.layers[name] == layer]
+            for name in names:
+                proc = self.procs[name]
+                if proc.poll() is None:
+                    proc.send_signal(signal.SIGCONT)
+                    if (px4 := self._px4_pid(name)) is not None:
+                        with contextlib.suppress(OSError):
+                            os.kill(px4, signal.SIGCONT)
+                    proc.send_signal(signal.SIGTERM)
+            for name in names:
+                codes[name] = self._reaped(self.procs[name])
         return codes
+
+    @staticmethod
+    def _reaped(proc: subprocess.Popen[str]) -> int | None:
+        """Wait for a process told to stop, killing it after 15 s; its exit code."""
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=5)
+        if proc.stdout is not None:
+            proc.stdout.close()
+        return proc.returncode

@@ -27,6 +27,7 @@ from dynqos.experiment.flight import (
     post_json,
     start_mcap_recorder,
     start_replicas,
+    start_router_and_cell,
     wait_for_offload,
 )
 from dynqos.experiment.link_relay import LinkRelay
@@ -130,8 +131,7 @@ def _start_edge_and_cell(
     on SIGTERM are gone from the cell's final qod.json. With two sites, site B's router, cell and
     services start from their own config (dynqos/experiment/sites.py)."""
     config, config_b = configs
-    procs.start("router", ["edge", "router"])
-    cell = procs.start("cell", ["sim", "cell", "--out", str(folder)])
+    cell = start_router_and_cell(procs, folder)
     sink_port = free_port() if scenario.qos_agents == 1 else 0
     config = with_cell(config, cell, sink_port=sink_port)
     ports = {"a": int(cell["control_port"])}
