@@ -100,7 +100,7 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    seeds, duration_s, out = flight_args(__doc__, argv, seeds_from=0, duration_s=45.0, quick_s=12.0)
+    seeds, duration_s, out = flight_args(__doc__, argv, seeds_from=0, duration_s=45.0, quick_s=8.0)
     result = run(seeds, duration_s)
     return emit(result, markdown(result), out, verdict(result))
 

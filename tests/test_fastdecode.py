@@ -58,7 +58,7 @@ def test_every_valid_message_takes_the_fast_path_and_decodes_the_same(message: m
     _same(fast, m.decode_checked(data))
 
 
-@settings(max_examples=1500)
+@settings(max_examples=800)
 @given(any_message, st.data())
 def test_what_the_fast_path_accepts_the_reference_accepts_as_the_same_message(
     message: m.Message, data: st.DataObject
@@ -111,7 +111,7 @@ def _construct(cls: type[m.Message], kwargs: dict[str, Any], *, fast: bool) -> t
         base.CONSTRUCTION.enabled = True
 
 
-@settings(max_examples=2500)
+@settings(max_examples=1200)
 @given(any_message, st.data())
 def test_construction_in_c_accepts_refuses_and_normalises_as_the_validators_do(
     message: m.Message, data: st.DataObject

@@ -339,8 +339,8 @@ def _check_replicas(result: dict[str, Any], _: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_soak_ten_minutes_with_the_load_toggling(tmp_path: Path) -> None:
-    """The soak: 600 s, or DYNQOS_SOAK_S seconds (CI flies 120, two load periods, to keep the whole
-    run inside 50 minutes on two cores)."""
+    """The soak: 600 s, or DYNQOS_SOAK_S seconds (CI flies 90, one load period and 30 s of memory
+    after the first minute, to keep the whole run inside 50 minutes on two cores)."""
     soak = builtin_scenario("soak")
     seconds = float(os.environ.get("DYNQOS_SOAK_S", soak.duration_s))
     soak = replace(soak, duration_s=seconds, faults=tuple(f for f in soak.faults if f.at_s + 30 <= seconds))

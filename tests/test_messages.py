@@ -227,7 +227,7 @@ def test_type_and_version_travel_in_every_payload(message: m.Message) -> None:
     assert "seq" in body
 
 
-@settings(max_examples=3000)
+@settings(max_examples=1500)
 @given(st.binary(max_size=4096))
 def test_arbitrary_bytes_give_decode_error_only(data: bytes) -> None:
     with contextlib.suppress(DecodeError):
@@ -242,7 +242,7 @@ def test_truncated_messages_give_decode_error(message: m.Message, data: st.DataO
         m.decode(encoded[:cut])
 
 
-@settings(max_examples=2000)
+@settings(max_examples=1000)
 @given(any_message, st.data())
 def test_corrupted_messages_never_raise_anything_but_decode_error(
     message: m.Message, data: st.DataObject
