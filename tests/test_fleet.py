@@ -115,6 +115,11 @@ def _fly_fleet(out: Path, name: str = "fleet-arbiter", duration: str = "30") -> 
         [DYNQOS, "demo", "--scenario", name, "--duration", duration, "--out", str(out)],
         capture_output=True, text=True, timeout=270, check=False,
     )  # fmt: skip
+    return _flown(result, out, name)
+
+
+def _flown(result: subprocess.CompletedProcess[str], out: Path, name: str) -> dict[str, Any]:
+    """The summary of scenario `name` that a `dynqos` command flew into `out`; it exited 0 if ok, else 1."""
     summary: dict[str, Any] = json.loads((out / name / "summary.json").read_text())
     assert result.returncode == (0 if summary["ok"] else 1), result.stderr[-3000:]
     return summary
@@ -204,13 +209,7 @@ def test_a_fleet_on_a_replicated_edge_never_falls_back_when_its_replicas_are_kil
     )
     assert [d.id for d in load_scenario(three).drones] == ["uav1", "uav2", "uav3"]
 
-    def fly(out: Path) -> dict[str, Any]:
-        flown = run_file(three, out)
-        summary: dict[str, Any] = json.loads((out / "fleet-replicas" / "summary.json").read_text())
-        assert flown.returncode == (0 if summary["ok"] else 1), flown.stderr[-3000:]
-        return summary
-
-    fly_for_behaviour(fly, tmp_path, _check_whole)
+    fly_for_behaviour(lambda out: _flown(run_file(three, out), out, "fleet-replicas"), tmp_path, _check_whole)
 
 
 def _check_whole(summary: dict[str, Any], out: Path) -> None:

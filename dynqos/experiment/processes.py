@@ -6,6 +6,7 @@ runner, the fault injector and the benchmarks."""
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import random
@@ -164,6 +165,7 @@ class Processes:
         self.down: set[str] = set()  # killed on purpose (a fault), not a failure
         self.exe = shutil.which("dynqos") or str(Path(sys.executable).parent / "dynqos")
         self._batch: list[tuple[str, subprocess.Popen[str], float]] | None = None  # inside `together`
+        self._next_layer = itertools.count()  # layers in start order
         self._batch_layer = 0
         self.layers: dict[str, int] = {}  # each name's layer, from its first start: the order they stop in
 
@@ -174,7 +176,7 @@ class Processes:
         at the same time (a flight's edge services are up in about half the time)."""
         batch: list[tuple[str, subprocess.Popen[str], float]] = []
         self._batch = batch
-        self._batch_layer = len(set(self.layers.values()))
+        self._batch_layer = next(self._next_layer)
         try:
             yield
         finally:
@@ -202,7 +204,7 @@ class Processes:
             elif self._batch is not None:
                 self.layers[name] = self._batch_layer
             else:
-                self.layers[name] = len(set(self.layers.values()))
+                self.layers[name] = next(self._next_layer)
         self.started[name] = (args, program, config)
         args = args + self._metrics_option(name, args)
         proc = subprocess.Popen(
