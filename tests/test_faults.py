@@ -206,6 +206,20 @@ def test_outcome_measures_fallback_gaps_and_recovery_from_the_status_stream() ->
         True,
         None,
     )
+    assert not got["fallback_at_start"]
+    assert not calm["fallback_at_start"]
+    # A drone its fallback flew since before the fault began (an earlier fault's, not handed back): the
+    # fault found it in its fallback, it caused none of it, and the hand-back is still measured.
+    earlier = [
+        _status(9_500_000_000, 20.0, "fallback", 9_400_000_000, 160.0),
+        _status(11 * s, 20.0, "fallback", 9_400_000_000, 160.0),
+        statuses[3],
+    ]
+    kept = outcome(window, log, earlier, next_start_ns=25 * s)
+    assert (kept["fallback"], kept["fallback_at_start"], kept["recovered"]) == (True, True, True)
+    assert (kept["fallback_after_last_command_ms"], kept["fallback_after_fault_s"]) == (None, None)
+    assert kept["back_at_edge_after_clear_s"] == pytest.approx(1.5, abs=1e-3)
+    assert not outcome(window, log, earlier[:1], next_start_ns=None)["recovered"]
 
 
 class _NoProcs:
@@ -267,6 +281,8 @@ def _check(result: dict[str, Any], kinds_with_fallback: set[str]) -> None:
         assert fault["max_setpoint_gap_ms"] < T_WD_MS, fault
         if kind in kinds_with_fallback:
             assert fault["fallback"], fault
+            if fault["fallback_at_start"]:
+                continue  # an earlier fault's fallback was still flying it: nothing to time here
             assert fault["fallback_after_last_command_ms"] <= T_WD_MS + TICK_MS + 15, fault
             assert fault["log"], fault  # a line that names what happened
 

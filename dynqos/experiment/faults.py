@@ -404,6 +404,13 @@ def log_times(text: str) -> list[tuple[float, str]]:
     return out
 
 
+def _in_fallback_at(status: Sequence[SupervisorStatus], stamp_ns: int) -> SupervisorStatus | None:
+    """The drone's last status at or before `stamp_ns` when its fallback was flying it then, else None."""
+    before = [s for s in status if s.stamp_ns <= stamp_ns]
+    last = max(before, key=lambda s: s.stamp_ns, default=None)
+    return last if last is not None and last.control_source is ControlSource.FALLBACK else None
+
+
 def outcome(
     window: FaultWindow,
     onboard_log: list[tuple[float, str]],
@@ -422,7 +429,8 @@ def outcome(
     if next_start_ns is not None:
         until_ns = min(until_ns, next_start_ns)
     seen = sorted((s for s in status if window.start_ns <= s.stamp_ns <= until_ns), key=lambda s: s.stamp_ns)
-    fallback = next(
+    at_start = _in_fallback_at(status, window.start_ns)
+    fallback = at_start or next(
         (
             s
             for s in seen
@@ -431,6 +439,7 @@ def outcome(
         ),
         None,
     )
+    entered = None if at_start else fallback  # fell back in this fault's window, and when
     back = None
     if fallback is not None:
         since = fallback.control_changed_ns
@@ -447,10 +456,13 @@ def outcome(
         "kind": fault.kind,
         "at_s": fault.at_s,
         "duration_s": fault.duration_s,
+        # flown by its fallback while the fault lasted: fell back in it, or was there when it began (an
+        # earlier fault's fallback not yet handed back); the two timings are for a fallback it caused
         "fallback": fallback is not None,
-        "fallback_after_last_command_ms": None if fallback is None else fallback.command_age_ms,
+        "fallback_at_start": at_start is not None,
+        "fallback_after_last_command_ms": None if entered is None else entered.command_age_ms,
         "fallback_after_fault_s": (
-            None if fallback is None else round((fallback.control_changed_ns - window.start_ns) / NS_PER_S, 3)
+            None if entered is None else round((entered.control_changed_ns - window.start_ns) / NS_PER_S, 3)
         ),
         "max_setpoint_gap_ms": max(gaps) if gaps else None,
         "max_tracking_error_m": max(errors) if errors else None,

@@ -218,6 +218,7 @@ def _fault_lines(s: dict[str, Any]) -> list[str]:
             f"{fmt(rtt.get('mean'))}, p95 {fmt(rtt.get('p95'))} ms; states (s) {states or '-'}; camera "
             + ("never slowed" if slowed is None else f"slowed {slowed:.2f} s after it began")
             + f"; fallback {f['fallback']}"
+            + (" (already at its start)" if f.get("fallback_at_start") else "")
             + ("" if worst is None else f"; worst tracking error {worst:.2f} m")
         )
     return lines
