@@ -42,9 +42,10 @@ from dynqos.experiment.scenario import REPLICA_FAULTS, Scenario, fleet_configs, 
 from dynqos.experiment.sites import (
     SiteFaults,
     operators_qod,
+    site_b_config,
     site_configs,
-    start_router_and_cell_b,
     start_site_b,
+    with_cell_b,
     with_site_b_bearers,
     with_two_paths,
 )
@@ -92,12 +93,14 @@ def run_fleet(
     decisions: list[QosDecision] = []
 
     def fly() -> None:
-        cell = start_router_and_cell(procs, folder)
+        site_b = None if shared_b is None else site_b_config(scenario, shared_b, folder)
+        cell, cell_b = start_router_and_cell(procs, folder, site_b)
         sink_port = free_port() if scenario.qos_agents == 1 else 0  # several agents poll (scenario.py)
         write_config(shared_path, scenario, with_cell(shared, cell, sink_port=sink_port))
         cells = {"a": cell}
-        if shared_b is not None:
-            path_b, cells["b"] = start_router_and_cell_b(procs, scenario, shared_b, folder)
+        if site_b is not None and shared_b is not None and cell_b is not None:
+            path_b, cells["b"] = site_b[0], cell_b
+            with_cell_b(path_b, scenario, shared_b, cell_b)
         for uav, config in drones.items():
             config = with_cell(config, cell)
             write_config(paths[uav], scenario, with_two_paths(config, cells) if shared_b else config)

@@ -38,13 +38,20 @@ def start_replicas(procs: Processes, service: str, count: int) -> None:
         procs.start(name, ["edge", service, "--set", f'{service}.replica_id="{name}"'])
 
 
-def start_router_and_cell(procs: Processes, folder: Path) -> dict[str, Any]:
+def start_router_and_cell(
+    procs: Processes, folder: Path, site_b: tuple[Path, Path] | None = None
+) -> tuple[dict[str, Any], dict[str, Any] | None]:
     """The edge's router and the emulated cell, at once (the cell connects to the router only when a drone
-    connects to it); the cell's ready line, with its ports."""
+    connects to it), and with `site_b` (site B's config, cell B's folder) site B's router and cell with
+    them; each cell's ready line, with its ports (None: no site B)."""
     with procs.together():
         procs.start("router", ["edge", "router"])
         procs.start("cell", ["sim", "cell", "--out", str(folder)])
-    return procs.info["cell"]
+        if site_b is not None:
+            config_b, folder_b = site_b
+            procs.start("router-b", ["edge", "router"], config=config_b)
+            procs.start("cell-b", ["sim", "cell", "--out", str(folder_b)], config=config_b)
+    return procs.info["cell"], procs.info["cell-b"] if site_b is not None else None
 
 
 RECORD_PERIOD_S = 0.1  # the recorder's sampling period

@@ -37,9 +37,10 @@ from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_c
 from dynqos.experiment.sites import (
     SiteFaults,
     operators_qod,
+    site_b_config,
     site_configs,
-    start_router_and_cell_b,
     start_site_b,
+    with_cell_b,
     with_two_paths,
 )
 from dynqos.experiment.vehicles import (
@@ -131,13 +132,14 @@ def _start_edge_and_cell(
     on SIGTERM are gone from the cell's final qod.json. With two sites, site B's router, cell and
     services start from their own config (dynqos/experiment/sites.py)."""
     config, config_b = configs
-    cell = start_router_and_cell(procs, folder)
+    site_b = None if config_b is None else site_b_config(scenario, config_b, folder)
+    cell, cell_b = start_router_and_cell(procs, folder, site_b)
     sink_port = free_port() if scenario.qos_agents == 1 else 0
     config = with_cell(config, cell, sink_port=sink_port)
     ports = {"a": int(cell["control_port"])}
     path_b = folder / "dynqos-b.toml"
-    if config_b is not None:
-        path_b, cell_b = start_router_and_cell_b(procs, scenario, config_b, folder)
+    if config_b is not None and cell_b is not None:
+        with_cell_b(path_b, scenario, config_b, cell_b)
         config = with_two_paths(config, {"a": cell, "b": cell_b})
         ports["b"] = int(cell_b["control_port"])
     write_config(config_path, scenario, config)

@@ -98,19 +98,17 @@ def with_site_b_bearers(config_b: Config, zenoh_a: ZenohConfig) -> Config:
     return replace(config_b, cell=replace(config_b.cell, bearers=tuple(bearers)))
 
 
-def start_router_and_cell_b(
-    procs: Processes, scenario: Scenario, config_b: Config, folder: Path
-) -> tuple[Path, dict[str, Any]]:
-    """Site B's router and cell B, from site B's own config (written at dynqos-b.toml, and again once
-    cell B is up, with its QoD API for site B's agents); returns the config's path and cell B's ready
-    line."""
+def site_b_config(scenario: Scenario, config_b: Config, folder: Path) -> tuple[Path, Path]:
+    """Site B's own config, written at dynqos-b.toml (again, with its QoD API for site B's agents, once
+    cell B is up: `with_cell_b`), and cell B's folder: what `start_router_and_cell` starts site B from."""
     path_b = folder / "dynqos-b.toml"
     write_config(path_b, scenario, config_b)
-    procs.start("router-b", ["edge", "router"], config=path_b)
     site_b_folder(folder).mkdir(exist_ok=True)
-    cell_b = procs.start("cell-b", ["sim", "cell", "--out", str(site_b_folder(folder))], config=path_b)
+    return path_b, site_b_folder(folder)
+
+
+def with_cell_b(path_b: Path, scenario: Scenario, config_b: Config, cell_b: dict[str, Any]) -> None:
     write_config(path_b, scenario, with_cell(config_b, cell_b))
-    return path_b, cell_b
 
 
 def with_two_paths(config: Config, cells: dict[str, dict[str, Any]]) -> Config:
