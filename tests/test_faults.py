@@ -373,3 +373,23 @@ def test_soak_ten_minutes_with_the_load_toggling(tmp_path: Path) -> None:
     to_priority = [t for t in result["transitions"] if t["to"] in ("q2", "q3", "q4", "q5", "q6")]
     assert len(to_priority) >= onsets, result["transitions"]  # the supervisor cycles with the load
     assert result["setpoint_gap_max_ms"] < T_WD_MS
+
+
+def test_the_report_says_when_a_fault_found_the_drone_in_its_fallback() -> None:
+    from dynqos.reports.markdown import _fault_lines
+
+    fault = {
+        "kind": "coverage_loss",
+        "at_s": 20,
+        "duration_s": 2,
+        "rtt_ms_during": {},
+        "states_s_during": {"qA": 2.0},
+        "camera_slowed_after_s": None,
+        "fallback": True,
+        "fallback_at_start": True,
+        "max_tracking_error_m": None,
+    }
+    (found,) = _fault_lines({"faults": [fault]})
+    assert found.endswith("; fallback True (already at its start)"), found
+    (caused,) = _fault_lines({"faults": [{**fault, "fallback_at_start": False}]})
+    assert caused.endswith("; fallback True"), caused
