@@ -74,6 +74,9 @@ def _start_router(tmp_path: Path, pki: Path, *extra: str) -> tuple[DynqosProcess
         f'zenoh.tls_ca="{pki}/ca.pem"',
         f'zenoh.tls_cert="{pki}/router.pem"',
         f'zenoh.tls_key="{pki}/router-key.pem"',
+        # the production router's metrics port is fixed (9464, on every address): a free one on loopback
+        f"metrics.port={free_tcp_port()}",
+        'metrics.host="127.0.0.1"',
         *extra,
     ]
     config = load_config(PRODUCTION_ROUTER, overrides)
