@@ -92,31 +92,6 @@ class EncodedFrame:
     depth: bytes | None
 
 
-class Handoff:
-    """One frame between the capture thread and the sender: a newer frame replaces one not yet taken."""
-
-    def __init__(self) -> None:
-        self._ready = threading.Condition()
-        self._frame: EncodedFrame | None = None
-        self.replaced = 0  # frames the link's pace left unsent
-
-    def put(self, frame: EncodedFrame) -> bool:
-        """Offer `frame`; False when it replaced one the sender had not taken."""
-        with self._ready:
-            replaced = self._frame is not None
-            self.replaced += replaced
-            self._frame = frame
-            self._ready.notify()
-        return not replaced
-
-    def take(self, timeout_s: float) -> EncodedFrame | None:
-        with self._ready:
-            if self._frame is None:
-                self._ready.wait(timeout_s)
-            frame, self._frame = self._frame, None
-        return frame
-
-
 class CameraStream:
     def __init__(
         self,
@@ -157,11 +132,13 @@ class CameraStream:
         self._feedback_lock = threading.Lock()  # `feedback` hears acks on one thread, sends on the other
         self.acks: BoundedQueue[CameraAck] = BoundedQueue(256)
         self.spaciousness: BoundedQueue[float] = BoundedQueue(8)
-        self.handoff = Handoff()
+        # one frame between capture and sender: a newer frame replaces one not yet taken (`dropped`)
+        self.handoff: BoundedQueue[EncodedFrame] = BoundedQueue(1)
         self._risk: Spaciousness | None = None
         self._thread: threading.Thread | None = None
         self._sender: threading.Thread | None = None
         self.grab_failing = False
+        self._said_dropped = False
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
@@ -188,12 +165,14 @@ class CameraStream:
                 self.stop.wait(NO_FRAME_WAIT_S)  # a camera that gives nothing is not asked again at once
                 continue
             seq += 1
-            if not self.handoff.put(self._encode(raw, seq)) and self.handoff.replaced == 1:
+            self.handoff.put(self._encode(raw, seq))
+            if self.handoff.dropped and not self._said_dropped:
+                self._said_dropped = True
                 log.info("camera: the link's pace is slower than the camera: unsent frames give way to newer")
 
     def _send_loop(self) -> None:
         while not self.stop.is_set():
-            frame = self.handoff.take(0.05)  # a short wait: it sees `stop` soon
+            frame = self.handoff.get(0.05)  # a short wait: it sees `stop` soon
             if frame is not None:
                 self._send_frame(frame)
 
@@ -223,7 +202,8 @@ class CameraStream:
 
     def _encode(self, raw: RawFrame, seq: int) -> EncodedFrame:
         """Stamped when the camera captured it where the source knows (onboard/frame_time.py), else now:
-        the camera latency the supervisor measures runs from that stamp to the detector's ack."""
+        the camera latency the supervisor measures runs from that stamp to the detector's ack. Its depth's
+        spaciousness goes to the control loop from here, whether or not the frame is sent."""
         now = self.clock.now_ns()
         stamp = now if raw.captured_ns is None else min(raw.captured_ns, now)
         rgb = encode_rgb(raw.rgb, self.config.jpeg_quality)

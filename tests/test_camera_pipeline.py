@@ -16,7 +16,7 @@ from dynqos.common.clock import MonotonicClock
 from dynqos.common.config import OnboardConfig
 from dynqos.common.messages import CameraFrame, Message
 from dynqos.onboard.camera import encode_depth, encode_rgb
-from dynqos.onboard.camera_stream import CameraStream, EncodedFrame, FlowPublishers, Handoff
+from dynqos.onboard.camera_stream import CameraStream, EncodedFrame, FlowPublishers
 from dynqos.onboard.pacing import FRAME_HEADER_BYTES, split
 
 pytestmark = [pytest.mark.timeout(60)]
@@ -126,13 +126,27 @@ def test_the_next_frame_is_captured_while_the_last_is_paced() -> None:
 
 
 def test_a_frame_not_yet_taken_gives_way_to_the_newer_one() -> None:
-    handoff = Handoff()
+    events = Events()
+    rgb = FlowPublishers(Recorder(events, "rgb"), Recorder(events, "rgb"))
+    depth = FlowPublishers(Recorder(events, "depth"), Recorder(events, "depth"))
+    stream = CameraStream(
+        "uav1",
+        OnboardConfig(),
+        SlowRender(events, _frame()),
+        rgb,
+        depth,
+        pose=lambda: None,
+        clock=MonotonicClock(),
+        stop=threading.Event(),
+    )  # not started: its hand-off alone
+    handoff = stream.handoff
     first = EncodedFrame(1, 10, _frame(), b"a", None)
     second = EncodedFrame(2, 20, _frame(), b"b", None)
-    assert handoff.put(first)
-    assert not handoff.put(second)  # the link had no time for the first
-    assert handoff.replaced == 1
-    assert handoff.take(0.0) is second
-    assert handoff.take(0.0) is None  # nothing waits twice
-    assert handoff.put(first)
-    assert handoff.take(0.0) is first
+    handoff.put(first)
+    handoff.put(second)  # the link had no time for the first
+    assert handoff.dropped == 1
+    assert handoff.get(0.0) is second
+    assert handoff.get(0.0) is None  # nothing waits twice
+    handoff.put(first)
+    assert handoff.dropped == 1
+    assert handoff.get(0.0) is first
