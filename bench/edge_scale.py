@@ -44,6 +44,7 @@ from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import Command
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, open_bus
+from dynqos.experiment.machine import own_machine, usable_core_count
 from dynqos.experiment.processes import Processes, child_environment, cpu_s
 
 PERIOD_S = 0.05
@@ -324,7 +325,8 @@ def run(
     return {
         "benchmark": "edge_scale",
         **provenance(),
-        "cores": os.cpu_count(),
+        "cores": usable_core_count(),
+        "cpu_quota_cores": None if (quota := own_machine()[1]) is None else quota.cores,
         "loaders": loaders,
         "seconds_per_step": seconds,
         "counts_per_process": per_process,

@@ -4,18 +4,23 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import statistics
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from dynqos.experiment.machine import own_machine, usable_core_count
+
 
 def provenance() -> dict[str, Any]:
+    """When, and on what: the cores this process may use and, in a container, its CPU quota (a
+    benchmark's figures are the quota's, not the host's; dynqos/experiment/cgroup.py)."""
+    quota = own_machine()[1]
+    cores = f"{usable_core_count()} cores" + (f" (a CPU quota of {quota.cores:.2f})" if quota else "")
     return {
         "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}",
+        "machine": f"{platform.machine()}, {cores}, python {platform.python_version()}",
     }
 
 

@@ -5,7 +5,8 @@ was above 85% busy for more than 3 of its seconds (dynqos.experiment.machine.jud
 then partly the CPU's, so it is no result for a table. A test of behaviour asks what the drones did:
 a starved flight whose behaviour holds passed, and the harder way (fewer cores than promised). Only a
 flight that broke the test's assertions while starved, or while the host took more than a tenth of the
-cores (`stolen`: the hypervisor's steal time), is flown once more (the break may be the CPU's or the
+cores (`stolen`: the hypervisor's steal time), or while a CPU quota held its processes (`throttled`: a
+container's quota, dynqos/experiment/cgroup.py), is flown once more (the break may be the CPU's or the
 host's); the second one is asserted whatever its machine was, so a runtime that does not behave still
 fails.
 """
@@ -28,9 +29,10 @@ def starved(summary: Summary) -> bool:
 
 
 def not_ours(summary: Summary) -> bool:
-    """The cores were not the flight's: starved by its own machine, or stolen by the host."""
+    """The cores were not the flight's: starved by its own machine, stolen by the host, or held by the
+    CPU quota of its container."""
     machine = summary.get("machine") or {}
-    return bool(machine.get("starved") or machine.get("stolen"))
+    return bool(machine.get("starved") or machine.get("stolen") or machine.get("throttled"))
 
 
 def behaved(summary: Summary) -> bool:

@@ -50,13 +50,17 @@ def test_lines_hands_out_the_log_as_it_comes_and_ends_with_the_child(tmp_path: P
 
 def summaries(how: str, *flights: tuple[bool, bool]) -> Callable[[Path], dict[str, Any]]:
     """Made-up flights, one per (not its own, fell back) in order; `how` the cores were not its own:
-    "starved" (its machine: not ok) or "stolen" (the host: the verdict stands)."""
+    "starved" (its machine: not ok), "stolen" (the host) or "throttled" (a CPU quota: the verdict stands)."""
     queue = list(flights)
 
     def fly(out: Path) -> dict[str, Any]:
         taken, fell_back = queue.pop(0)
         starved = how == "starved" and taken
-        machine = {"starved": starved, "stolen": how == "stolen" and taken}
+        machine = {
+            "starved": starved,
+            "stolen": how == "stolen" and taken,
+            "throttled": how == "throttled" and taken,
+        }
         failure = "starved: busy" if starved else ""
         return {"ok": not starved, "failure": failure, "machine": machine, "fb": fell_back, "out": out.name}
 
@@ -67,13 +71,14 @@ def check(summary: dict[str, Any], _: Path) -> None:
     assert not summary["fb"], "fell back"
 
 
-@pytest.mark.parametrize("how", ["starved", "stolen"])
+@pytest.mark.parametrize("how", ["starved", "stolen", "throttled"])
 def test_a_behaviour_test_flies_again_only_when_it_failed_on_cores_not_its_own(
     tmp_path: Path, how: str
 ) -> None:
-    """tests/flights.py: a flight that behaved on cores not its own (starved by its machine, or stolen by
-    the host: steal above a tenth) passes; one that broke the check on them is flown again and its second
-    flight decides; one that broke it with cores to spare fails at once."""
+    """tests/flights.py: a flight that behaved on cores not its own (starved by its machine, stolen by the
+    host: steal above a tenth, or held by its container's CPU quota) passes; one that broke the check on
+    them is flown again and its second flight decides; one that broke it with cores to spare fails at
+    once."""
     assert fly_for_behaviour(summaries(how, (True, False)), tmp_path, check)["out"] == "first"
     assert fly_for_behaviour(summaries(how, (True, True), (False, False)), tmp_path, check)["out"] == "again"
     with pytest.raises(AssertionError, match="fell back"):

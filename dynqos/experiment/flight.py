@@ -24,7 +24,7 @@ from dynqos.common.messages import OFFBOARD, Reference, State, SupervisorStatus
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Received
 from dynqos.experiment.faults import FaultInjector, FaultWindow
-from dynqos.experiment.machine import read_cpu_times
+from dynqos.experiment.machine import own_machine, read_cpu_times
 from dynqos.experiment.processes import Processes, resident_memory
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import UAV, Scenario, replica_names, world_path
@@ -221,7 +221,8 @@ def fly(
 
 
 def _sample_machine(rec: Recording, elapsed: float) -> None:
-    times = read_cpu_times()
+    cpus, quota = own_machine()
+    times = read_cpu_times(cpus=cpus, quota=quota)
     if times is not None:
         rec.cpu_times.append((elapsed, times))
 
