@@ -208,10 +208,10 @@ def test_the_kernel_holds_a_busy_process_to_its_quota_and_says_so(tmp_path: Path
     figures = machine_figures(samples, cores=os.cpu_count())
     assert figures is not None
     assert figures["quota_cores"] == pytest.approx(0.2)
-    assert figures["quota_share"] == pytest.approx(1.0, abs=0.1)  # it used its fifth of a core
+    assert figures["quota_share"] > 0.85  # it used its fifth of a core (1.0 on an idle machine)
     assert figures["quota_share_max_1s"] > 0.85
     assert figures["starved"]
-    assert figures["seconds_above_85"] == 5
-    # held 80% of each second on one core: 40% of two cores' time
-    assert figures["throttled_share"] == pytest.approx(0.8 / (os.cpu_count() or 1), abs=0.1)
+    assert figures["seconds_above_85"] >= 4  # of 5 (a busy machine may take a second of it)
+    # held up to 80% of each second on one core (40% of two cores' time on an idle machine)
+    assert 0.05 < figures["throttled_share"] <= 0.8 / (os.cpu_count() or 1) + 0.05
     assert figures["throttled"]
