@@ -10,10 +10,12 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
+from dynqos.experiment import machine
 from dynqos.experiment.cgroup import (
     GroupCpu,
     QuotaGroup,
@@ -26,7 +28,7 @@ from dynqos.experiment.cgroup import (
     parse_quota_v2,
     read_group,
 )
-from dynqos.experiment.machine import CpuTimes, describe, judge, machine_figures, parse_cpu_line
+from dynqos.experiment.machine import CpuTimes, describe, judge, machine_figures, machine_said, parse_cpu_line
 
 # A v1 host (this machine's layout: cpu and cpuacct mounted apart) and a v2 container (its own group
 # is the root its mount shows), as /proc/self/mountinfo says them.
@@ -156,6 +158,19 @@ def test_only_the_usable_cores_lines_are_summed() -> None:
     assert parse_cpu_line(stat, frozenset({1})) == CpuTimes(busy=20, total=50)
     with pytest.raises(ValueError, match="no line of cpus"):
         parse_cpu_line(stat, frozenset({7}))
+
+
+def test_a_run_says_its_machine_first_and_warns_below_two_cores(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`dynqos demo` logs it before the first scenario: cores, quota, and a warning under two."""
+    group = QuotaGroup(cores=1.33, cpu_dir=Path("/x"), usage_dir=None, version=2)
+    for cpus, quota, said in [
+        (frozenset({0, 1}), None, ("2 cores", False)),
+        (frozenset({0, 1}), group, ("2 cores, a CPU quota of 1.33 cores", True)),
+        (frozenset({3}), None, ("1 core", True)),
+        (frozenset(range(8)), replace(group, cores=4.0), ("8 cores, a CPU quota of 4.00 cores", False)),
+    ]:
+        monkeypatch.setattr(machine, "own_machine", lambda c=cpus, q=quota: (c, q))
+        assert machine_said() == said
 
 
 V1_CPU = Path("/sys/fs/cgroup/cpu")

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common.errors import ConfigError
+from dynqos.experiment.machine import SIZED_FOR_CORES, machine_said
 from dynqos.experiment.profile import DEFAULT_PROFILE, Profile, load_profile
 from dynqos.experiment.runner import run_scenario
 from dynqos.experiment.scenario import Scenario, builtin_scenario
@@ -72,6 +73,16 @@ def run_demo(
     signal.signal(signal.SIGTERM, interrupt)
     summaries = []
     started = time.monotonic()
+    machine, short = machine_said()
+    if short:
+        log.warning(
+            "machine: %s, fewer than the %d the scenarios were sized for: a flight may be starved (its "
+            "summary's `machine` says how busy its cores were)",
+            machine,
+            SIZED_FOR_CORES,
+        )
+    else:
+        log.info("machine: %s", machine)
     try:
         for scenario in runs:
             if stop.is_set():

@@ -129,6 +129,20 @@ def usable_core_count() -> int:
     return len(cpus) if cpus is not None else os.cpu_count() or 1
 
 
+SIZED_FOR_CORES = 2  # the scenarios' processes were sized for a machine of two cores
+
+
+def machine_said() -> tuple[str, bool]:
+    """What a run says of its machine before it flies, and whether it has less than the scenarios
+    were sized for (its flights then likely starve, and their summaries will say so)."""
+    cores, group = usable_core_count(), own_machine()[1]
+    quota = float(cores) if group is None else min(cores, group.cores)
+    text = f"{cores} core{'' if cores == 1 else 's'}" + (
+        f", a CPU quota of {group.cores:.2f} cores" if group is not None else ""
+    )
+    return text, quota < SIZED_FOR_CORES
+
+
 def machine_figures(samples: list[tuple[float, CpuTimes]], cores: int | None = None) -> dict[str, Any] | None:
     """What a summary says of the machine, from (seconds into the flight, CpuTimes) taken about every
     second over the recorded flight on `cores` (None: this process's); None with fewer than two
