@@ -138,7 +138,6 @@ class CameraStream:
         self._thread: threading.Thread | None = None
         self._sender: threading.Thread | None = None
         self.grab_failing = False
-        self._said_dropped = False
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
@@ -165,9 +164,9 @@ class CameraStream:
                 self.stop.wait(NO_FRAME_WAIT_S)  # a camera that gives nothing is not asked again at once
                 continue
             seq += 1
+            none_dropped = self.handoff.dropped == 0  # only this thread puts: said once, at the first drop
             self.handoff.put(self._encode(raw, seq))
-            if self.handoff.dropped and not self._said_dropped:
-                self._said_dropped = True
+            if none_dropped and self.handoff.dropped:
                 log.info("camera: the link's pace is slower than the camera: unsent frames give way to newer")
 
     def _send_loop(self) -> None:
