@@ -88,7 +88,7 @@ def test_the_smallest_quota_from_the_own_group_up_binds_in_v2(tmp_path: Path) ->
     (tmp_path / "cgroup").write_text("0::/pod/ctr\n")
     quota = find_quota(tmp_path / "mountinfo", tmp_path / "cgroup")
     assert quota == QuotaGroup(cores=1.5, cpu_dir=root / "pod", usage_dir=root / "pod", version=2)
-    assert read_group(quota) == GroupCpu(1.5, 2_000_000_000, 90_000_000, 7)
+    assert read_group(quota) == GroupCpu(1.5, 2_000_000_000, 90_000_000)
     # no quota anywhere, or no cgroup readable at all: nothing to say
     (root / "pod" / "cpu.max").write_text("max 100000\n")
     (root / "cpu.max").write_text("max 100000\n")
@@ -108,9 +108,9 @@ def test_v1_reads_the_usage_from_cpuacct_mounted_apart(tmp_path: Path) -> None:
     (tmp_path / "cgroup").write_text(CGROUP_V1)
     quota = find_quota(tmp_path / "mountinfo", tmp_path / "cgroup")
     assert quota == QuotaGroup(1.33, root / "cpu" / "ci", root / "cpuacct" / "ci", 1)
-    assert read_group(quota) == GroupCpu(1.33, 7_000_000_000, 5_000_000, 2)
+    assert read_group(quota) == GroupCpu(1.33, 7_000_000_000, 5_000_000)
     (root / "cpuacct" / "ci" / "cpuacct.usage").unlink()  # no usage: the throttling is still said
-    assert read_group(quota) == GroupCpu(1.33, None, 5_000_000, 2)
+    assert read_group(quota) == GroupCpu(1.33, None, 5_000_000)
 
 
 def _quota_flight(
@@ -118,12 +118,12 @@ def _quota_flight(
 ) -> list[tuple[float, CpuTimes]]:
     """One reading a second on two cores, the host `host_share` busy, the group under a 1-core quota
     using `used[i]` of it and held for `held[i]` s (summed over the cores) in second i."""
-    samples = [(0.0, CpuTimes(0, 0, 0, GroupCpu(1.0, 0, 0, 0)))]
+    samples = [(0.0, CpuTimes(0, 0, 0, GroupCpu(1.0, 0, 0)))]
     usage = throttled = busy = total = 0
     for t, (share, hold) in enumerate(zip(used, held, strict=True), 1):
         usage, throttled = usage + round(share * 1e9), throttled + round(hold * 1e9)
         busy, total = busy + round(200 * host_share), total + 200
-        samples.append((float(t), CpuTimes(busy, total, 0, GroupCpu(1.0, usage, throttled, t))))
+        samples.append((float(t), CpuTimes(busy, total, 0, GroupCpu(1.0, usage, throttled))))
     return samples
 
 

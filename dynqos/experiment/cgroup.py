@@ -36,13 +36,12 @@ class QuotaGroup:
 
 @dataclass(frozen=True, slots=True)
 class GroupCpu:
-    """One reading of the quota group: CPU time used and time held by the quota, in nanoseconds (None:
-    not readable), and how many of its periods were throttled."""
+    """One reading of the quota group: CPU time used (None: not readable) and time held by the quota,
+    in nanoseconds."""
 
     quota_cores: float
     usage_ns: int | None
     throttled_ns: int
-    throttled_periods: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -189,4 +188,4 @@ def read_group(group: QuotaGroup) -> GroupCpu | None:
         usage_text = None if group.usage_dir is None else _read(group.usage_dir / "cpuacct.usage")
         usage_ns = int(usage_text) if usage_text is not None and usage_text.strip().isdigit() else None
         throttled_ns = stat.get("throttled_time", 0)
-    return GroupCpu(group.cores, usage_ns, throttled_ns, stat.get("nr_throttled", 0))
+    return GroupCpu(group.cores, usage_ns, throttled_ns)
