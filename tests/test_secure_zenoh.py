@@ -543,7 +543,7 @@ def test_mpc_replicas_find_each_other_and_nobody_else_can_pose_as_one(secure_rou
     ]
     mine = replica.declare_token(keys.replica_token("mpc", "all", "b"))
     assert seen.get(timeout=10) == (keys.replica_token("mpc", "all", "b"), True)
-    assert watcher.alive_tokens(keys.replicas_of("mpc"), timeout_s=2.0) == [
+    assert watcher.alive_tokens(keys.replicas_of("mpc"), timeout_s=10.0) == [
         keys.replica_token("mpc", "all", "b")
     ]
     mine.close()
@@ -569,7 +569,7 @@ def test_only_a_qos_agent_can_claim_to_be_the_active_agent(secure_router: Pki) -
     ]
     mine = agent.declare_token(keys.qos_active("all", "qos-b"))
     assert seen.get(timeout=10) == (keys.qos_active("all", "qos-b"), True)
-    assert watcher.alive_tokens(keys.qos_actives("all"), timeout_s=2.0) == [keys.qos_active("all", "qos-b")]
+    assert watcher.alive_tokens(keys.qos_actives("all"), timeout_s=10.0) == [keys.qos_active("all", "qos-b")]
     mine.close()
     assert seen.get(timeout=10) == (keys.qos_active("all", "qos-b"), False)
     assert seen.empty()

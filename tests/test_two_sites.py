@@ -24,6 +24,7 @@ from tests.procs import DynqosProcess
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 
 T_WD_NS = 150_000_000  # the drone's watchdog: a longer gap between commands would send it to its fallback
+PERIOD_NS = 50_000_000  # the drones' states, 20 Hz
 REPLICAS = ("mpc-a", "mpc-b")
 
 
@@ -39,11 +40,12 @@ def _site(tmp_path: Path, name: str, links: list[str]) -> tuple[Path, ZenohConfi
 
 
 def _fly(zcfg: ZenohConfig, uavs: list[str], seconds: float, at_s: float, action: Callable[[], None]
-         ) -> dict[str, list[tuple[int, Command]]]:  # fmt: skip
+         ) -> tuple[dict[str, list[tuple[int, Command]]], list[int]]:  # fmt: skip
     """20 Hz states for each drone (announced, as its daemon does) for `seconds`; `action` at `at_s`.
-    Returns each drone's commands with their arrival times."""
+    Returns each drone's commands with their arrival times, and when each round of states was sent."""
     bus = open_bus(zcfg, Role.DRONE)
     got: dict[str, list[tuple[int, Command]]] = {uav: [] for uav in uavs}
+    sent: list[int] = []
     try:
         queue: BoundedQueue[Received] = BoundedQueue(10_000)
         tokens = [bus.declare_token(keys.drone_presence(uav)) for uav in uavs]  # held until the end
@@ -58,6 +60,7 @@ def _fly(zcfg: ZenohConfig, uavs: list[str], seconds: float, at_s: float, action
                 action()
                 acted = True
             seq += 1
+            sent.append(time.monotonic_ns())
             for uav, pub in pubs.items():
                 pub.put(State(uav=uav, seq=seq, stamp_ns=time.monotonic_ns(), pos_m=(0.0, 0.0, -1.5),
                               vel_mps=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0)))  # fmt: skip
@@ -68,7 +71,19 @@ def _fly(zcfg: ZenohConfig, uavs: list[str], seconds: float, at_s: float, action
         del tokens
     finally:
         bus.close()
-    return got
+    return got, sent
+
+
+def _own_stall_ns(sent: list[int], start_ns: int, end_ns: int) -> int:
+    """How long, within (start, end), this process (the drones) sent no state beyond the period, where it
+    was late by more than a period: time the edge had no state to answer (a busy host descheduled the
+    test, not the edge's doing). A round's usual lateness counts for nothing."""
+    stalled = 0
+    for a, b in itertools.pairwise(sent):
+        overlap = min(b, end_ns) - max(a, start_ns)
+        if overlap > 2 * PERIOD_NS:
+            stalled += overlap - PERIOD_NS
+    return stalled
 
 
 def test_replicas_at_two_linked_sites_share_the_drones_and_survive_the_loss_of_one_site(
@@ -87,7 +102,7 @@ def test_replicas_at_two_linked_sites_share_the_drones_and_survive_the_loss_of_o
         at_b = [uav for uav in uavs if ranked(uav, REPLICAS)[0] == "mpc-b"]
         assert at_b, "six drones: each site ranks first for some"
         assert len(at_b) < len(uavs), "six drones: each site ranks first for some"
-        got = _fly(zcfg_a, uavs, seconds=8.0, at_s=4.0, action=procs["router-b"].proc.kill)
+        got, sent = _fly(zcfg_a, uavs, seconds=8.0, at_s=4.0, action=procs["router-b"].proc.kill)
         logs = {name: procs.pop(name).stop() for name in ("mpc-a", "mpc-b")}
     finally:
         for proc in reversed(procs.values()):
@@ -101,8 +116,10 @@ def test_replicas_at_two_linked_sites_share_the_drones_and_survive_the_loss_of_o
         if uav in at_b:
             assert "mpc-b" in flyers, f"{uav}: site B's replica never flew it"  # across the link
         times = [t for t, _ in commands][len(commands) // 4 :]  # past the start-up, across the loss
-        longest = max(b - a for a, b in itertools.pairwise(times))
+        gaps = [(b - a - _own_stall_ns(sent, a, b), b - a) for a, b in itertools.pairwise(times)]
+        longest, raw = max(gaps)
         print(
             f"{uav}: {len(commands)} commands, by {sorted(set(flyers))}, longest gap {longest / 1e6:.0f} ms"
+            f" ({raw / 1e6:.0f} ms with the drones' own stalls)"
         )
         assert longest < T_WD_NS, f"{uav}: a {longest / 1e6:.0f} ms gap would have sent it to its fallback"
