@@ -75,9 +75,9 @@ def _fly(zcfg: ZenohConfig, uavs: list[str], seconds: float, at_s: float, action
 
 
 def _own_stall_ns(sent: list[int], start_ns: int, end_ns: int) -> int:
-    """How long, within (start, end), this process (the drones) sent no state beyond the period, where it
-    was late by more than a period: time the edge had no state to answer (a busy host descheduled the
-    test, not the edge's doing). A round's usual lateness counts for nothing."""
+    """The time within (start, end) that the edge had no state to answer because this process (the
+    drones) was descheduled: each pause of over two periods between rounds of states, less the period
+    it would have waited anyway. A round's usual lateness counts for nothing."""
     stalled = 0
     for a, b in itertools.pairwise(sent):
         overlap = min(b, end_ns) - max(a, start_ns)
