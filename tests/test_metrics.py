@@ -188,7 +188,7 @@ def test_every_service_of_a_flight_is_scraped_while_it_flies(tmp_path: Path) -> 
     )  # fmt: skip
     try:
         deadline = time.monotonic() + 120
-        ports = _ports_when_flying(tmp_path, deadline)
+        ports = _ports_when_flying(tmp_path, deadline, run)
         for name, port in ports.items():
             _wait_for_health(port, deadline)
             assert (
@@ -238,15 +238,21 @@ def _port_taken(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
-def _ports_when_flying(folder: Path, deadline: float) -> dict[str, int]:
+def _ports_when_flying(folder: Path, deadline: float, run: subprocess.Popen[str]) -> dict[str, int]:
+    """The services' metrics ports once the run has started its drone; a run that ended first fails at
+    once with what it said, and one still starting at the deadline with what its processes logged."""
     while time.monotonic() < deadline:
         found = list(folder.glob("*/logs/metrics.json"))
         if found:
             ports: dict[str, int] = json.loads(found[0].read_text())
             if "onboard" in ports:
                 return ports
+        if run.poll() is not None:
+            said = run.stderr.read()[-2000:] if run.stderr else ""
+            raise AssertionError(f"the run ended ({run.returncode}) before its drone started: {said}")
         time.sleep(0.2)
-    raise AssertionError("the run never started the drone")
+    logs = {log.name: log.read_text()[-300:] for log in folder.glob("*/logs/*.log")}
+    raise AssertionError(f"the run never started the drone; its logs end: {logs}")
 
 
 def _latest(statuses: queue.Queue[SupervisorStatus], after: int) -> list[SupervisorStatus]:
