@@ -68,10 +68,14 @@ class Pki:
 
 
 def _start_router(tmp_path: Path, pki: Path, *extra: str) -> tuple[DynqosProcess, ZenohConfig]:
+    default_port = free_tcp_port()
+    priority_port = free_tcp_port()
+    while priority_port == default_port:  # the kernel may hand out a freed port again (CI, 2026-12-01)
+        priority_port = free_tcp_port()
     overrides = [
         "zenoh.router_listen_host=127.0.0.1",
-        f"zenoh.default_port={free_tcp_port()}",
-        f"zenoh.priority_port={free_tcp_port()}",
+        f"zenoh.default_port={default_port}",
+        f"zenoh.priority_port={priority_port}",
         f'zenoh.tls_ca="{pki}/ca.pem"',
         f'zenoh.tls_cert="{pki}/router.pem"',
         f'zenoh.tls_key="{pki}/router-key.pem"',
