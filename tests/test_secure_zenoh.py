@@ -34,6 +34,7 @@ from dynqos.common.config import ZenohConfig, load_config
 from dynqos.common.errors import ConfigError, TransportError
 from dynqos.common.keys import clock_probe
 from dynqos.common.transport import Role, open_session
+from dynqos.experiment.processes import flow_ports
 from dynqos.onboard import clock_offset
 from dynqos.onboard.check import probe_clock
 from tests.conftest import free_tcp_port
@@ -68,14 +69,11 @@ class Pki:
 
 
 def _start_router(tmp_path: Path, pki: Path, *extra: str) -> tuple[DynqosProcess, ZenohConfig]:
-    default_port = free_tcp_port()
-    priority_port = free_tcp_port()
-    while priority_port == default_port:  # the kernel may hand out a freed port again (CI, 2026-12-01)
-        priority_port = free_tcp_port()
+    ports = flow_ports()  # two distinct ports (two free_tcp_port calls gave one twice in CI)
     overrides = [
         "zenoh.router_listen_host=127.0.0.1",
-        f"zenoh.default_port={default_port}",
-        f"zenoh.priority_port={priority_port}",
+        f"zenoh.default_port={ports['default_port']}",
+        f"zenoh.priority_port={ports['priority_port']}",
         f'zenoh.tls_ca="{pki}/ca.pem"',
         f'zenoh.tls_cert="{pki}/router.pem"',
         f'zenoh.tls_key="{pki}/router-key.pem"',
