@@ -34,9 +34,9 @@ from dynqos.common.clock import MonotonicClock
 from dynqos.common.config import Config, OnboardConfig, Px4Config, VehicleSimConfig, to_toml
 from dynqos.common.errors import DynqosError
 from dynqos.experiment.processes import Processes, free_port
-from dynqos.onboard.core import hold_at
-from dynqos.onboard.daemon import takeoff_commands
+from dynqos.onboard.fc import hold_at
 from dynqos.onboard.fclink import FcLink
+from dynqos.onboard.parts import takeoff_commands
 from dynqos.onboard.takeoff import Do, TakeoffSequencer
 from dynqos.sim.vehicle.px4_sitl import Px4Ports, free_instances
 

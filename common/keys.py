@@ -14,6 +14,8 @@ declared on, so a receiver subscribes to both flows with one wildcard:
     dynqos/<uav>/down/qos                 QoS agent -> drone: the network's grant (QosGrant)
     dynqos/<uav>/down/qos/decision        QoS agent's arbiter -> drone and tools (QosDecision)
     dynqos/<uav>/down/qos/monitoring      QoS agent -> drone: the core's delay reports (QosMonitoring)
+    dynqos/<uav>/up/<flow>/task/<name>    drone -> a user's task at the edge (TaskRequest)
+    dynqos/<uav>/down/task/<name>         the task's edge service -> drone (TaskAnswer)
     dynqos/<uav>/clock                    drone -> router -> drone: the preflight's clock probes
     dynqos/<uav>/alive                    liveliness token of a drone, held while its session lives
     dynqos/<uav>/watch/mpc/<group>        the MPC holding a drone -> its standby: a few of its States
@@ -98,6 +100,31 @@ def downlink(uav: str, kind: Downlink) -> str:
 
 def downlink_all_drones(kind: Downlink) -> str:
     return f"{ROOT}/*/{Downlink(kind).value}"
+
+
+TASK_NAME_PATTERN = re.compile(r"[a-z][a-z0-9-]{0,31}")
+TASK_NAME_RULE = "use 1 to 32 characters from a-z 0-9 -, starting with a letter"
+
+
+def check_task_name(name: object) -> str:
+    """Return `name` if it can name an offloaded task (a key chunk, a service name), else raise."""
+    if not isinstance(name, str) or TASK_NAME_PATTERN.fullmatch(name) is None:
+        raise KeyExprError(f"task name {str(name)[:40]!r} is invalid: {TASK_NAME_RULE}")
+    return name
+
+
+def task_uplink(uav: str, flow: Flow, task: str) -> str:
+    """A drone's requests to a user's task (docs/offload.md), on the flow they ride."""
+    return f"{ROOT}/{check_uav_id(uav)}/up/{Flow(flow).value}/task/{check_task_name(task)}"
+
+
+def task_uplink_all_drones(task: str) -> str:
+    """What a task's edge service subscribes to: every drone's requests, on both flows."""
+    return f"{ROOT}/*/up/*/task/{check_task_name(task)}"
+
+
+def task_downlink(uav: str, task: str) -> str:
+    return f"{ROOT}/{check_uav_id(uav)}/down/task/{check_task_name(task)}"
 
 
 def clock_probe(uav: str) -> str:

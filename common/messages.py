@@ -50,6 +50,7 @@ from dynqos.common.message_base import (
 )
 from dynqos.common.modes import ControlSource, Flow, Grant, SupervisorState
 from dynqos.common.qos_messages import QosDecision, QosGrant, QosMonitoring, QosRequest
+from dynqos.common.task_messages import TaskAnswer, TaskRequest
 
 # The one place every message is imported from: the base's limits, the camera's and the QoS agent's
 # messages too.
@@ -85,6 +86,8 @@ __all__ = [
     "Reference",
     "State",
     "SupervisorStatus",
+    "TaskAnswer",
+    "TaskRequest",
     "decode",
     "decode_as",
     "decode_checked",
@@ -93,6 +96,7 @@ __all__ = [
 
 
 MAX_SITES = 8  # edge sites a drone may follow at once (State.controllers)
+MAX_STATUS_TASKS = 16  # offloaded tasks a status reports ([onboard] tasks holds at most as many)
 
 # State.mode: flown offboard, the drone follows the edge (or its own fallback); standing by, it is on
 # the ground or taking off, with nothing to follow yet.
@@ -301,6 +305,19 @@ class SupervisorStatus(Message):
         "path_states": f.sequence(
             f.record(f.text(64), f.member(SupervisorState), f.member(Flow)), 0, MAX_SITES
         ),
+        "tasks": f.sequence(
+            f.record(
+                f.text(32),
+                f.choice(("edge", "fallback")),
+                f.integer(),
+                f.integer(),
+                f.integer(),
+                f.real(0.0, 1e9),
+                f.sequence(LATENCY_MS, 0, MAX_STATUS_SAMPLES),
+            ),
+            0,
+            MAX_STATUS_TASKS,
+        ),
     }
 
     stamp_ns: int
@@ -355,6 +372,10 @@ class SupervisorStatus(Message):
     site_wins: tuple[tuple[str, int], ...] = ()
     # each path's own PFSM: its state and the flow its traffic takes (docs/supervisor.md, "Two paths")
     path_states: tuple[tuple[str, SupervisorState, Flow], ...] = ()
+    # the user's offloaded tasks (docs/offload.md): each one's name, whether the edge's answer or its
+    # fallback applies, its requests, answers applied and misses since the daemon started, the seconds
+    # its fallback flew, and its round trips since the last status
+    tasks: tuple[tuple[str, str, int, int, int, float, tuple[float, ...]], ...] = ()
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {
@@ -372,6 +393,8 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         QosGrant,
         QosDecision,
         QosMonitoring,
+        TaskRequest,
+        TaskAnswer,
     )
 }
 

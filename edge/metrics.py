@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import TYPE_CHECKING
 
-from prometheus_client.core import Metric
+from prometheus_client.core import CounterMetricFamily, Metric
 
 from dynqos.common.metrics import (
     SOLVE_BUCKETS,
@@ -23,6 +23,7 @@ if TYPE_CHECKING:  # the services import this module, not the other way round
     from dynqos.edge.planner.fleet_service import FleetPlannerService
     from dynqos.edge.planner.service import PlannerService
     from dynqos.edge.qos.agent import QosAgent
+    from dynqos.edge.tasks import TaskService
 
 
 def mpc(service: MpcService, m: ProcessMetrics) -> None:
@@ -120,5 +121,22 @@ def qos(agent: QosAgent, m: ProcessMetrics) -> None:
         calls = agent.client.calls if agent.client is not None else 0
         yield counter("dynqos_qos_api_calls", "Operator API calls", calls)
         yield from bus_families(agent.bus)
+
+    m.add(families)
+
+
+def task(service: TaskService, m: ProcessMetrics) -> None:
+    """A user's task (docs/offload.md): its calls and each kind of failure, labelled by the task."""
+
+    def families() -> Iterator[Metric]:
+        family = CounterMetricFamily(
+            "dynqos_task_events",
+            "A task's requests, answers, drops and failures (raised, bad_answers, late, hung, bad_requests)",
+            labels=["task", "event"],
+        )
+        for event, n in sorted(service.counters.items()):
+            family.add_metric([service.task.name, event], n)
+        yield family
+        yield from bus_families(service.bus)
 
     m.add(families)

@@ -44,7 +44,7 @@ class Item:
 
 def check_fc(config: Config, measure_s: float) -> list[Item]:
     """The FC and its link's signing: heard within fc_timeout_s, then its position rate over measure_s."""
-    from dynqos.onboard.daemon import fc_link
+    from dynqos.onboard.parts import fc_link
 
     cfg = config.onboard
     link = fc_link(config)
@@ -83,7 +83,7 @@ def _signing(link: FcLink, on: bool) -> Item:
 
 def check_camera(config: Config, measure_s: float) -> Item:
     """Frames from the configured source over measure_s: count, size, valid depth."""
-    from dynqos.onboard.daemon import camera_source
+    from dynqos.onboard.parts import camera_source
 
     cfg = config.onboard
     if cfg.camera == "none" or cfg.camera_fps == 0:

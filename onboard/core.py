@@ -23,13 +23,11 @@ No zenoh, MAVLink, OpenCV, threads or wall clock here: tests drive it tick by ti
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.config import Config
-from dynqos.common.geometry import yaw_of
 from dynqos.common.keys import Stream
 from dynqos.common.messages import (
     CameraAck,
@@ -40,13 +38,15 @@ from dynqos.common.messages import (
     Reference,
     State,
     SupervisorStatus,
+    TaskAnswer,
 )
 from dynqos.common.modes import ControlSource, Flow, Grant
 from dynqos.common.reference import ReferenceTrack
+from dynqos.common.tasks import Task
 from dynqos.onboard.answers import Answers
 from dynqos.onboard.asking import Need, QosAsking
 from dynqos.onboard.commands import SetpointSteps
-from dynqos.onboard.fc import AccelSetpoint, FcSaid, FcState, PositionSetpoint, Setpoint
+from dynqos.onboard.fc import AccelSetpoint, FcSaid, FcState, Hold, PositionSetpoint, Setpoint, triple
 from dynqos.onboard.grants import SiteGrants
 from dynqos.onboard.modem import ModemReading
 from dynqos.onboard.monitors import CameraLatencyMonitor, LatencySamples, NetworkDelays
@@ -54,6 +54,7 @@ from dynqos.onboard.path_pfsm import PathSupervisors
 from dynqos.onboard.pid import CascadedPid
 from dynqos.onboard.supervisor import Decision, Inputs, Supervisor
 from dynqos.onboard.supervisor_status import decision_fields
+from dynqos.onboard.tasks import OnboardTasks, TaskJobs
 from dynqos.onboard.tick import Counters, LogEvent, Outgoing, TickInput, TickOutput
 
 # The setpoint period at [control] setpoint_hz's default; the daemon ticks at `setpoint_period_ns(config)`.
@@ -61,22 +62,11 @@ SETPOINT_PERIOD_NS = NS_PER_S // 50
 STALE_STATE_NS = 500_000_000  # no position from the FC for this long: it is lost, stop using its state
 
 
-@dataclass
-class _Hold:
-    """Where the drone holds (the fallback's target, or the FC-silence hold)."""
-
-    pos_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    yaw_rad: float = 0.0
-
-    def set(self, fc: FcState) -> None:
-        hold = hold_at(fc)
-        self.pos_m, self.yaw_rad = np.array(hold.pos_m), hold.yaw_rad
-
-
 class OnboardCore:
     """The onboard decisions; `tick` once per setpoint period (50 Hz) with what the shell read."""
 
-    def __init__(self, config: Config, start_ns: int) -> None:
+    def __init__(self, config: Config, start_ns: int, tasks: tuple[Task[object, object], ...] = ()) -> None:
+        """`tasks`: the user's offloaded tasks ([onboard] tasks, loaded by the shell; docs/offload.md)."""
         self.config = config
         self.uav = config.drone.id
         self.qos = config.onboard.qos
@@ -109,7 +99,7 @@ class OnboardCore:
         self.control_changed_ns = 0
         self.command_age_ms: float | None = None
         self.max_setpoint_gap_ms = 0.0
-        self._hold = _Hold()
+        self._hold = Hold()
         self._last_accel = np.zeros(3)
         self._space: float | None = None  # the newest spaciousness not yet given to the supervisor
         self._state_seq = 0
@@ -127,11 +117,14 @@ class OnboardCore:
         self.grants = SiteGrants(to_ns(config.qos.agent_timeout_s))  # each site's agent's last word
         period_ns, th_lat = to_ns(config.qos.request_interval_s), config.supervisor.th_lat
         self.asking = QosAsking(self.uav, paths if self.path_pfsms else ("",), period_ns, th_lat, start_ns)
+        self.tasks = OnboardTasks(tasks, start_ns)
+        self._task_answers: list[tuple[TaskAnswer, int]] = []
+        self._now_ns = start_ns
 
     # ---- the one entry point ------------------------------------------------------------------------
 
     def tick(self, inp: TickInput) -> TickOutput:
-        now = inp.now_ns
+        now = self._now_ns = inp.now_ns
         self._events = []
         publish: list[Outgoing] = []
         grant_before = self.reported_grant(now)  # before this tick's grants are taken in
@@ -146,9 +139,10 @@ class OnboardCore:
         elif watchdog and self.control is ControlSource.EDGE:
             self._supervise(now, watchdog)  # the watchdog acts at once, not at the next supervisor tick
         before = self.control
-        setpoint = self._control(inp.fc, now, watchdog)
+        setpoint = self._control(inp.fc, now, watchdog, self.tasks.steer(inp.task_steers, now))
         self._measure_gap(setpoint, now)
         flow, camera_flow, rate = self._flows()
+        jobs = self._task_jobs(inp, flow, camera_flow, rate)
         if self.qos != "default" and self.offloading:  # never asks; and nobody asks on the ground
             publish.extend(self.asking.requests(now, self.qos, self._needs(flow), self.counters.camera_bytes))
         changed = self.control is not before or self.reported_grant(now) is not grant_before
@@ -157,7 +151,13 @@ class OnboardCore:
             status = self._status(now, flow, camera_flow, rate)
             publish.append(Outgoing(Stream.STATUS, flow, status, path_flows=self._path_flows()))
         return TickOutput(
-            setpoint, tuple(publish), camera_flow, rate, tuple(self._events), self.answers.camera_path(now)
+            setpoint,
+            tuple(publish),
+            camera_flow,
+            rate,
+            tuple(self._events),
+            self.answers.camera_path(now),
+            jobs,
         )
 
     # ---- inputs ---------------------------------------------------------------------------------------
@@ -187,6 +187,16 @@ class OnboardCore:
                 self.reference.update(message, item.arrival_ns)
             elif isinstance(message, QosGrant | QosMonitoring) and message.uav == self.uav:
                 self._take_qos(message, item.arrival_ns)
+            elif isinstance(message, TaskAnswer) and message.uav == self.uav:
+                self._task_answers.append((message, item.arrival_ns))
+
+    def _task_jobs(self, inp: TickInput, flow: Flow, camera_flow: Flow, rate: float) -> TaskJobs:
+        """The tasks' tick: what the shell's task threads do next (onboard/tasks.py)."""
+        answers, self._task_answers = self._task_answers, []
+        flows = {"control": flow, "bulk": camera_flow}
+        jobs, said = self.tasks.tick(inp.now_ns, self.offloading, answers, inp.task_sent, flows, rate)
+        self._events.extend(LogEvent(logging.WARNING if "fallback" in t else logging.INFO, t) for t in said)
+        return jobs
 
     def _take_qos(self, message: QosGrant | QosMonitoring, arrival_ns: int) -> None:
         if isinstance(message, QosMonitoring):
@@ -264,11 +274,14 @@ class OnboardCore:
     def _supervise(self, now: int, watchdog: bool) -> None:
         cams, rtts = self.camera_monitor.take_new(), self.tracker.take_new_rtts()
         self.samples.extend(cams, rtts)
+        tasks = self.tasks.take_samples(now)  # a control task's calls count as the MPC's, bulk as frames
         inputs = Inputs(
-            camera_latencies_ms=cams,
-            cc_rtts_ms=rtts,
-            camera_outstanding_ms=self.camera_monitor.oldest_outstanding_ms(now),
-            cc_outstanding_ms=self.tracker.oldest_unanswered_ms(now),
+            camera_latencies_ms=cams + tasks.bulk_rtts_ms,
+            cc_rtts_ms=rtts + tasks.control_rtts_ms,
+            camera_outstanding_ms=_most(
+                self.camera_monitor.oldest_outstanding_ms(now), tasks.bulk_outstanding_ms
+            ),
+            cc_outstanding_ms=_most(self.tracker.oldest_unanswered_ms(now), tasks.control_outstanding_ms),
             spaciousness_m=self._space,
             watchdog_expired=watchdog,
             priority_denied=self.asking.requested() and self.reported_grant(now) is Grant.UNAVAILABLE,
@@ -327,7 +340,8 @@ class OnboardCore:
         )
         return ControlSource.EDGE if wanted and not watchdog else ControlSource.FALLBACK
 
-    def _control(self, fc: FcState | None, now: int, watchdog: bool) -> Setpoint | None:
+    def _control(self, fc: FcState | None, now: int, watchdog: bool, steer: float | None) -> Setpoint | None:
+        """The setpoint of whoever flies; a task's Steer (docs/offload.md) sets its heading."""
         if not self.offloading or fc is None:
             return None
         if now - fc.stamp_ns > STALE_STATE_NS:
@@ -337,7 +351,7 @@ class OnboardCore:
                 self._log(logging.ERROR, f"onboard: {why}: holding position")
                 self._hold.set(fc)
                 self._switch(ControlSource.HOLD, now)
-            return PositionSetpoint(_triple(self._hold.pos_m), self._hold.yaw_rad)
+            return PositionSetpoint(triple(self._hold.pos_m), self._hold.yaw_rad)
         if self.control is ControlSource.HOLD:
             self._log(logging.INFO, "onboard: the flight controller's state is back")
         source = self._source(watchdog)
@@ -365,7 +379,7 @@ class OnboardCore:
             accel = self.pid.step(np.array(fc.pos_m), np.array(fc.vel_mps), target, dt_s, target_vel)
             self.counters.fallback_ticks += 1
         self._last_accel = accel
-        return AccelSetpoint(_triple(accel), yaw)
+        return AccelSetpoint(triple(accel), yaw if steer is None else steer)
 
     def _why_fallback(self, now: int, watchdog: bool) -> str:
         if watchdog:
@@ -436,6 +450,7 @@ class OnboardCore:
             fc_severity=said.severity if said else None,
             **self.answers.status_fields(),
             path_states=self.path_pfsms.states() if self.path_pfsms is not None else (),
+            tasks=self.tasks.status(now),
             **decision_fields(self.decision, self.supervisor.log[-1] if self.supervisor.log else None),
         )
 
@@ -470,16 +485,12 @@ class OnboardCore:
             "max_command_gap_ms": f"{self.tracker.longest_gap_ns / 1e6:.1f}",
             **self.answers.health(),
             **(self.path_pfsms.health() if self.path_pfsms is not None else {}),
+            **self.tasks.health(self._now_ns),
         }
 
 
-def hold_at(fc: FcState) -> PositionSetpoint:
-    """A position hold where the FC says the drone is, facing where it faces."""
-    return PositionSetpoint(fc.pos_m, yaw_of(fc.quat))
-
-
-def _triple(v: np.ndarray) -> tuple[float, float, float]:
-    return (float(v[0]), float(v[1]), float(v[2]))
+def _most(a: float | None, b: float | None) -> float | None:
+    return b if a is None else a if b is None else max(a, b)
 
 
 def setpoint_period_ns(config: Config) -> int:

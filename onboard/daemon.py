@@ -19,12 +19,11 @@ import threading
 from collections.abc import Callable
 from dataclasses import replace
 
-from dynqos.common import keys, mavsign
+from dynqos.common import keys
 from dynqos.common.bus import Bus, Priority, Received
 from dynqos.common.camera import CameraSource
 from dynqos.common.clock import Clock, MonotonicClock, to_ns
 from dynqos.common.config import Config
-from dynqos.common.errors import ConfigError
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.lifecycle import ready_line, serving_metrics, stop_on_signals
 from dynqos.common.messages import (
@@ -39,18 +38,18 @@ from dynqos.common.messages import (
 from dynqos.common.metrics import ProcessMetrics
 from dynqos.common.modes import Flow
 from dynqos.common.transport import Role, open_bus
-from dynqos.onboard.camera import DeviceCamera, FilesCamera
 from dynqos.onboard.camera_rate import check_installed
 from dynqos.onboard.camera_stream import CameraStream, FlowPublishers, PathPublishers
-from dynqos.onboard.core import OnboardCore, hold_at, setpoint_period_ns
-from dynqos.onboard.fc import AccelSetpoint, FcState
-from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD, PX4_SUB_LOITER, FcLink
+from dynqos.onboard.core import OnboardCore, setpoint_period_ns
+from dynqos.onboard.fc import AccelSetpoint, FcState, hold_at
+from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_SUB_LOITER, FcLink
 from dynqos.onboard.links import PathLink, as_carried, path_endpoints
 from dynqos.onboard.metrics import DroneMetrics
 from dynqos.onboard.modem import modem_poller
-from dynqos.onboard.px4_events import EventCatalogue
+from dynqos.onboard.parts import camera_source, fc_link, takeoff_commands
 from dynqos.onboard.systemd import SystemdNotifier
 from dynqos.onboard.takeoff import Do, ExitAction, TakeoffSequencer, on_exit
+from dynqos.onboard.task_runner import TaskRunner, load_tasks
 from dynqos.onboard.tick import Outgoing, TickInput, TickOutput
 from dynqos.onboard.uplink import Uplink
 
@@ -91,7 +90,9 @@ class OnboardDaemon:
         self.clock = clock or MonotonicClock()
         self.takeoff_requested = self.cfg.takeoff if takeoff is None else takeoff
         self.stop = threading.Event()
-        self.core = OnboardCore(config, start_ns=self.clock.now_ns())
+        # the user's tasks ([onboard] tasks): a module that fails to load stops the start in one line
+        self.tasks = TaskRunner(self.uav, load_tasks(self.cfg.tasks), self.clock, self.stop)
+        self.core = OnboardCore(config, start_ns=self.clock.now_ns(), tasks=self.tasks.tasks)
         self.notifier = SystemdNotifier()
         self.offboard = threading.Event()  # set by the take-off thread once the FC flies offboard
         self.link: FcLink | None = None
@@ -169,6 +170,7 @@ class OnboardDaemon:
             routes.append((Downlink.REFERENCE, inbox.references, Reference))
         for kind, queue, expect in routes:
             path.downlink_stats[kind] = bus.subscribe(keys.downlink(self.uav, kind), queue, expect=(expect,))
+        self.tasks.open(path)
         # Announced once it listens: the MPC and planner replicas follow only drones that hold this
         # token (edge/feeds.py); the router withdraws it when this session goes. zenoh counts a key's
         # tokens: with two paths the drone stays present while either path holds its token.
@@ -242,6 +244,7 @@ class OnboardDaemon:
                 if isinstance(received.message, CameraAck):
                     self.camera.acks.put(received.message)
         space = self.camera.spaciousness.drain() if self.camera else []
+        task_sent, task_steers = self.tasks.reports()
         out = self.core.tick(
             TickInput(
                 now_ns=self.clock.now_ns(),
@@ -253,8 +256,11 @@ class OnboardDaemon:
                 uplink_bytes=self.uplink_bytes(),
                 modem=self.modem.latest if self.modem else None,
                 fc_said=link.said,
+                task_sent=task_sent,
+                task_steers=task_steers,
             )
         )
+        self.tasks.hand_out(out.task_jobs, link.state, self.core.offloading)
         for event in out.events:
             log.log(event.level, "%s", event.text)
         if isinstance(out.setpoint, AccelSetpoint):
@@ -306,6 +312,7 @@ class OnboardDaemon:
             self.modem.start()
         if self.camera is not None:
             self.camera.start()
+        self.tasks.start()
         if self.takeoff_requested:
             threading.Thread(target=self._take_off_or_log, name="takeoff", daemon=True).start()
         else:
@@ -338,6 +345,7 @@ class OnboardDaemon:
         if self.camera is not None:
             self.camera.join(timeout_s=5)
         self.uplink.join(timeout_s=1)
+        self.tasks.join(timeout_s=1)
         self._on_exit()
 
     def _on_exit(self) -> None:
@@ -367,6 +375,7 @@ class OnboardDaemon:
         fields["bad_downlink"] = sum(s.rejected for _, s in stats)
         fields["uplink_dropped"] = self.uplink.dropped
         fields["fc_setpoints"] = self.link.setpoints_sent if self.link else 0
+        fields.update(self.tasks.health())
         if (modem := self.core.modem) is not None:  # the last reading, also when no status gets out
             fields["rsrp_dbm"], fields["sinr_db"] = modem.rsrp_dbm, modem.sinr_db
         if self.camera is not None and (feedback := self.camera.feedback) is not None:
@@ -387,55 +396,6 @@ class OnboardDaemon:
             path.bus.close()
         if self.link is not None:
             self.link.close()
-
-
-def takeoff_commands(link: FcLink, altitude_m: float) -> dict[Do, Callable[[int], int | None]]:
-    """What each command step of the take-off (onboard/takeoff.py) sends on the FC link, given its
-    confirmation count; the FC's answer (MAV_RESULT, or None) is what `TakeoffSequencer.answered` takes."""
-    return {
-        Do.TAKEOFF_ALTITUDE: lambda _c: link.set_param("MIS_TAKEOFF_ALT", altitude_m),
-        Do.ARM: link.arm,
-        Do.TAKE_OFF: lambda c: link.takeoff(confirmation=c),
-        Do.OFFBOARD: lambda c: link.set_mode(PX4_MAIN_OFFBOARD, confirmation=c),
-    }
-
-
-def fc_link(config: Config, clock: Clock | None = None) -> FcLink:
-    """The link to the flight controller as [onboard] configures it (not started)."""
-    cfg = config.onboard
-    return FcLink(
-        cfg.mavlink_url,
-        clock=clock,
-        heartbeat_timeout_s=cfg.heartbeat_timeout_s,
-        fc_system_id=cfg.fc_system_id,
-        fc_component_id=cfg.fc_component_id,
-        fly_yaw=cfg.yaw == "command",
-        flow_control=cfg.mavlink_flow_control,
-        signing_key=mavsign.load_key(cfg.mavlink_signing_key) if cfg.mavlink_signing_key else None,
-        link_id=cfg.mavlink_link_id,
-        accept_unsigned=cfg.mavlink_accept_unsigned,
-        events=EventCatalogue.load(cfg.px4_events) if cfg.px4_events else None,
-    )
-
-
-def camera_source(config: Config, sim_camera: CameraSource | None) -> CameraSource | None:
-    """The configured camera (None: none); `sim_camera`, the simulator's, for camera = "sim"."""
-    cfg = config.onboard
-    if cfg.camera == "none" or cfg.camera_fps == 0:
-        return None
-    if cfg.camera == "sim":
-        if sim_camera is None:
-            raise ConfigError(
-                "onboard.camera", '"sim" renders from the simulator, which this start did not hand over'
-            )
-        return sim_camera
-    if cfg.camera == "files":
-        return FilesCamera(cfg.files_dir, cfg.files_intrinsics)
-    if cfg.camera == "realsense":
-        from dynqos.onboard.realsense import RealSenseCamera
-
-        return RealSenseCamera(cfg.realsense_file, cfg.camera_width, cfg.camera_height, cfg.camera_fps)
-    return DeviceCamera(cfg.device_index, cfg.camera_width, cfg.camera_height, cfg.files_intrinsics)
 
 
 def run(config: Config, *, takeoff: bool | None = None, camera: CameraSource | None = None) -> int:

@@ -6,9 +6,12 @@ and never sees MAVLink. Frame: local NED, metres, seconds, radians.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+import numpy as np
 
 from dynqos.common.clock import to_ns
+from dynqos.common.geometry import yaw_of
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,3 +58,24 @@ class PositionSetpoint:
 
 
 Setpoint = AccelSetpoint | PositionSetpoint
+
+
+def hold_at(fc: FcState) -> PositionSetpoint:
+    """A position hold where the FC says the drone is, facing where it faces."""
+    return PositionSetpoint(fc.pos_m, yaw_of(fc.quat))
+
+
+@dataclass
+class Hold:
+    """Where the drone holds (the fallback's target, or the FC-silence hold)."""
+
+    pos_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    yaw_rad: float = 0.0
+
+    def set(self, fc: FcState) -> None:
+        hold = hold_at(fc)
+        self.pos_m, self.yaw_rad = np.array(hold.pos_m), hold.yaw_rad
+
+
+def triple(v: np.ndarray) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))

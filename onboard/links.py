@@ -22,6 +22,7 @@ class Inbox:
     camera_replies: BoundedQueue[Received] = field(default_factory=lambda: BoundedQueue(512))
     references: BoundedQueue[Received] = field(default_factory=lambda: BoundedQueue(16))
     grants: BoundedQueue[Received] = field(default_factory=lambda: BoundedQueue(16))  # the QoS agent's
+    tasks: BoundedQueue[Received] = field(default_factory=lambda: BoundedQueue(64))  # the user's tasks'
 
     def drain(self) -> list[Received]:
         return (
@@ -29,6 +30,7 @@ class Inbox:
             + self.camera_replies.drain()
             + self.references.drain()
             + self.grants.drain()
+            + self.tasks.drain()
         )
 
 

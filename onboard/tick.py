@@ -4,7 +4,7 @@ writes): the seam between onboard/core.py and onboard/daemon.py."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from dynqos.common.bus import Received
 from dynqos.common.keys import Stream
@@ -12,6 +12,7 @@ from dynqos.common.messages import Message
 from dynqos.common.modes import Flow
 from dynqos.onboard.fc import FcSaid, FcState, Setpoint
 from dynqos.onboard.modem import ModemReading
+from dynqos.onboard.tasks import TaskJobs, TaskSent, TaskSteer
 
 
 @dataclass
@@ -52,6 +53,8 @@ class TickInput:
     uplink_bytes: int | None = None  # every byte the drone's publishers put so far (None: unknown)
     modem: ModemReading | None = None  # the modem's newest reading (None: no modem, or none yet)
     fc_said: FcSaid | None = None  # what the FC said last (None: nothing yet)
+    task_sent: Sequence[TaskSent] = ()  # the tasks' requests sent (or skipped) since the last tick
+    task_steers: Sequence[TaskSteer] = ()  # what the tasks' onboard sides made since the last tick
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,3 +90,6 @@ class TickOutput:
     camera_rate_factor: float
     events: tuple[LogEvent, ...]
     camera_path: str = ""  # the path the camera rides (docs/multipath.md; "" = the only one)
+    task_jobs: TaskJobs = field(
+        default_factory=TaskJobs
+    )  # what the tasks' threads run next (docs/offload.md)

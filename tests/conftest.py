@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import os
 import socket
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, settings
 
+from dynqos.common.config import ZenohConfig
 from dynqos.experiment.processes import FlowPorts, free_port
 from dynqos.experiment.processes import flow_ports as _flow_ports
+from tests.procs import DynqosProcess
 
 settings.register_profile("default", max_examples=200, deadline=None)
 settings.register_profile(
@@ -36,6 +39,25 @@ def flow_ports_toml() -> str:
 def free_tcp_port() -> int:
     """A TCP port on 127.0.0.1 that is free right now (the kernel picks it)."""
     return free_port(socket.SOCK_STREAM)
+
+
+@pytest.fixture
+def edge(tmp_path: Path) -> Iterator[tuple[Path, ZenohConfig, list[DynqosProcess]]]:
+    """A router on free ports and its config file (with short health intervals), and a list for the
+    test's own processes, stopped at the end in reverse order."""
+    zcfg = ZenohConfig(**flow_ports())
+    config = tmp_path / "edge.toml"
+    config.write_text(
+        f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"
+        "[mpc]\nhealth_interval_s = 1\n[planner]\nlead_in_s = 1\nhealth_interval_s = 1\n"
+    )
+    procs: list[DynqosProcess] = []
+    try:
+        procs.append(DynqosProcess(["edge", "router"], config))
+        yield config, zcfg, procs
+    finally:
+        for proc in reversed(procs):
+            proc.stop()
 
 
 @pytest.fixture

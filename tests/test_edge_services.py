@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 import re
 import time
-from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -24,27 +23,9 @@ from dynqos.onboard.pacing import split
 from dynqos.sim.vehicle.dynamics import quat_to_rot
 from dynqos.sim.vehicle.render import Renderer
 from dynqos.sim.vehicle.world import default_world
-from tests.conftest import flow_ports
 from tests.procs import DynqosProcess
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
-
-
-@pytest.fixture
-def edge(tmp_path: Path) -> Iterator[tuple[Path, ZenohConfig, list[DynqosProcess]]]:
-    zcfg = ZenohConfig(**flow_ports())
-    config = tmp_path / "edge.toml"
-    config.write_text(
-        f"[zenoh]\ndefault_port = {zcfg.default_port}\npriority_port = {zcfg.priority_port}\n"
-        "[mpc]\nhealth_interval_s = 1\n[planner]\nlead_in_s = 1\nhealth_interval_s = 1\n"
-    )
-    procs: list[DynqosProcess] = []
-    try:
-        procs.append(DynqosProcess(["edge", "router"], config))
-        yield config, zcfg, procs
-    finally:
-        for proc in reversed(procs):
-            proc.stop()
 
 
 def drone_bus(zcfg: ZenohConfig) -> Bus:

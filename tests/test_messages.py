@@ -185,6 +185,26 @@ qos_monitorings = st.builds(
     round_trip_ms=st.none() | reals(0, 1e6),
     period_s=st.integers(1, 3600),
 )
+task_names = st.from_regex(keys.TASK_NAME_PATTERN, fullmatch=True)
+task_requests = st.builds(
+    m.TaskRequest,
+    uav=uav_ids,
+    seq=u63,
+    task=task_names,
+    stamp_ns=u63,
+    budget_ms=reals(0, 1e6),
+    body=st.binary(max_size=256),
+)
+task_answers = st.builds(
+    m.TaskAnswer,
+    uav=uav_ids,
+    seq=u63,
+    task=task_names,
+    stamp_ns=u63,
+    handle_ms=reals(0, 1e6),
+    replica=st.text(max_size=64),
+    body=st.binary(max_size=256),
+)
 mission_requests = st.builds(
     m.MissionRequest,
     uav=uav_ids,
@@ -207,6 +227,8 @@ any_message = st.one_of(
     mission_requests,
     qos_decisions,
     qos_monitorings,
+    task_requests,
+    task_answers,
 )
 
 
@@ -289,6 +311,8 @@ def test_wrong_typed_fields_give_decode_error_naming_the_field(
             m.QosDecision: qos_decisions,
             m.QosMonitoring: qos_monitorings,
             m.MissionRequest: mission_requests,
+            m.TaskRequest: task_requests,
+            m.TaskAnswer: task_answers,
         }[cls]
     )
     body = msgpack.unpackb(m.encode(example), raw=False)

@@ -286,6 +286,9 @@ class OnboardPathConfig:
             _host_port(getattr(self, name), name)
 
 
+MAX_TASKS = 16  # a drone's offloaded tasks, each with its own thread
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 @checked
 class OnboardConfig:
@@ -363,8 +366,17 @@ class OnboardConfig:
     modem_url: str = ""  # modem = "cell": e.g. http://127.0.0.1:40123/radio/uav1
     modem_command: str = "mmcli -m any --signal-get --output-json"
     modem_interval_s: Annotated[float, In(0.1, 60, "must be in 0.1..60 s")] = 1.0
+    # The user's offloaded tasks the drone runs (docs/offload.md): each "MODULE:ATTR" or
+    # "path/file.py:ATTR" naming a dynqos.offload.Onboard
+    tasks: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        _require(len(self.tasks) <= MAX_TASKS, "tasks", f"at most {MAX_TASKS} tasks")
+        _require(
+            all(isinstance(t, str) and ":" in t for t in self.tasks),
+            "tasks",
+            'name each task as "MODULE:ATTR" or "path/file.py:ATTR"',
+        )
         _require(
             self.modem != "cell" or self.modem_url.startswith(("http://", "https://")),
             "modem_url",

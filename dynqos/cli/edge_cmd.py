@@ -67,7 +67,7 @@ ONBOARD = (
 def add(commands: Commands) -> None:
     edge = commands.add_parser(
         "edge",
-        help="edge services: router, mpc, planner, fleet-planner, detector, ros2, qos",
+        help="edge services: router, mpc, planner, fleet-planner, detector, ros2, qos; serve: your own task",
         parents=[common_options(1)],
     )
     services = edge.add_subparsers(dest="edge_command", metavar="SERVICE", required=True)
@@ -89,6 +89,7 @@ def add(commands: Commands) -> None:
         )
         metrics_options(sub)
         sub.set_defaults(handler=run_edge)
+    add_serve(services)
 
     onboard = commands.add_parser(
         "onboard",
@@ -133,6 +134,49 @@ def run_edge(args: argparse.Namespace, config: Config) -> int:
     # The service's module is imported first: a missing extra is said before any network is opened.
     service = importlib.import_module(SERVICES[args.edge_command][0])
     code: int = service.run(with_metrics(args, config), health_file=path_or_none(args.health_file))
+    return code
+
+
+SERVE = (
+    "Serves a task of your own (docs/offload.md): TARGET names its dynqos.offload.Edge, as MODULE:ATTR "
+    "(a module on the Python path or in this folder) or path/to/file.py:ATTR. The handler runs on a "
+    "worker thread; a call that raises, hangs, returns junk or answers past its budget is counted and "
+    "said once, and the drone flies the task's fallback. Replicas of one task share the drones. "
+    f"{CLIENT} Prints one JSON line when ready, a health line every few seconds, stops on SIGTERM."
+)
+
+
+def add_serve(services: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    text = "serve your own offloaded task: dynqos edge serve MODULE:ATTR"
+    sub = services.add_parser("serve", parents=[common_options(2)], help=text, description=SERVE)
+    sub.add_argument("target", metavar="TARGET", help="the task's Edge: MODULE:ATTR or path/file.py:ATTR")
+    sub.add_argument(
+        "--replica-id",
+        default="",
+        metavar="ID",
+        help="this replica's name among the task's replicas (default: <host>-<pid>)",
+    )
+    sub.add_argument("--health-file", metavar="FILE", help="also write each health line to FILE")
+    metrics_options(sub)
+    sub.set_defaults(handler=run_serve)
+
+
+def run_serve(args: argparse.Namespace, config: Config) -> int:
+    from dynqos.common.keys import check_replica_id
+    from dynqos.common.tasks import Edge, load
+
+    limit_math_threads(config.mpc.math_threads, os.environ)
+    edge = load(args.target, Edge)  # a module that fails to import: one line, exit 2
+    if args.replica_id:
+        try:
+            check_replica_id(args.replica_id, "--replica-id")
+        except ValueError as exc:
+            raise ConfigError("--replica-id", str(exc)) from None
+    from dynqos.edge import tasks
+
+    code: int = tasks.run(
+        edge, with_metrics(args, config), health_file=path_or_none(args.health_file), replica=args.replica_id
+    )
     return code
 
 

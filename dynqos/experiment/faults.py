@@ -58,7 +58,11 @@ FaultKind = Literal[
     "site_kill",
     "cell_outage",
     "path_partition",
+    "task_kill",
 ]
+# the faults that SIGKILL processes and restart them when they end; task_kill: every offloaded task's
+# edge service (docs/offload.md)
+PROCESS_KILLS = {"mpc_kill": "mpc", "router_kill": "router", "task_kill": ""}
 SITE_FAULTS = ("site_kill", "cell_outage", "path_partition")  # dynqos/experiment/sites.py acts on them
 FLOOD_FPS = 100.0  # several times what the detector can process
 FLOOD_MAX_FRAMES = 20_000
@@ -277,10 +281,8 @@ class FaultInjector:
         if self._at_site(fault):
             assert self.sites is not None
             self.sites.begin(window)
-        elif kind == "mpc_kill":
-            self.procs.kill("mpc")
-        elif kind == "router_kill":
-            self.procs.kill("router")
+        elif kind in PROCESS_KILLS:
+            self._kill(window)
         elif kind in ("coverage_loss", "downlink_loss"):
             self.cell_event({"kind": kind, "duration_s": fault.duration_s})
         elif kind == "fc_silence":
@@ -301,6 +303,17 @@ class FaultInjector:
         self.windows.append(window)
         return window
 
+    def _kill(self, window: FaultWindow) -> None:
+        kind = window.fault.kind
+        window.target = ",".join(self._task_services() if kind == "task_kill" else [PROCESS_KILLS[kind]])
+        for name in filter(None, window.target.split(",")):
+            self.procs.kill(name)
+        if not window.target:
+            window.notes.append("no task service runs: nothing to kill")
+
+    def _task_services(self) -> list[str]:
+        return [n for n in self.procs.procs if n.startswith("task-") and n not in self.procs.down]
+
     def _at_site(self, fault: Fault) -> bool:
         return self.sites is not None and (fault.kind in SITE_FAULTS or fault.site != "a")
 
@@ -309,10 +322,9 @@ class FaultInjector:
         if self._at_site(window.fault):
             assert self.sites is not None
             self.sites.end(window)
-        elif kind == "mpc_kill":
-            self.procs.restart("mpc")
-        elif kind == "router_kill":
-            self.procs.restart("router")
+        elif kind in PROCESS_KILLS:  # restarted, each from its own command line
+            for name in filter(None, window.target.split(",")):
+                self.procs.restart(name)
         elif kind == "fc_silence":
             self.procs.signal("vehicle", signal.SIGCONT)
         elif kind in ("mpc_replica_kill", "planner_replica_kill") and window.target:

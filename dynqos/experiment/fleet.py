@@ -36,6 +36,7 @@ from dynqos.experiment.flight import (
     wait_for_offload,
 )
 from dynqos.experiment.link_relay import LinkRelay
+from dynqos.experiment.offloaded import offloaded
 from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, Scenario, fleet_configs, write_config
@@ -184,6 +185,8 @@ def _start_edge(
         # The detector is best effort (it drops the frames it cannot keep up with): on one machine it
         # runs below the control path, as it would on its own cores at a real edge.
         procs.start("detector", ["edge", "detector"], program=nice)
+        for task in offloaded(scenario.tasks):  # the user's own tasks, each its own service
+            procs.start(task.process, ["edge", "serve", task.edge])
         if scenario.ros2_bridge:  # best effort as well
             procs.start("ros2", ["edge", "ros2"], program=nice)
 

@@ -31,6 +31,7 @@ from dynqos.experiment.flight import (
     wait_for_offload,
 )
 from dynqos.experiment.link_relay import LinkRelay
+from dynqos.experiment.offloaded import offloaded
 from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, write_config
@@ -150,6 +151,8 @@ def _start_edge_and_cell(
         start_replicas(procs, "planner", scenario.planner_replicas)
         start_replicas(procs, "mpc", scenario.mpc_replicas)
         procs.start("detector", ["edge", "detector"])
+        for task in offloaded(scenario.tasks):
+            procs.start(task.process, ["edge", "serve", task.edge])
         if scenario.ros2_bridge:
             procs.start("ros2", ["edge", "ros2"])
         if config_b is not None:

@@ -37,6 +37,7 @@ from dynqos.common.keys import UAV_ID_PATTERN
 from dynqos.experiment.camera_sizing import camera_size_for, flight_views
 from dynqos.experiment.cells import with_radio
 from dynqos.experiment.faults import Fault
+from dynqos.experiment.offloaded import offloaded
 from dynqos.sim.network.bearer import socket_buffer_bytes
 
 if sys.version_info >= (3, 11):
@@ -147,6 +148,9 @@ class Scenario:
     # Who flies: dynqos's simulated vehicle, or a real PX4 SITL from [px4] dir ([scenario.config.px4],
     # or `dynqos demo --vehicle px4 --px4-dir DIR`; docs/px4.md), one instance per drone.
     vehicle: Literal["sim", "px4"] = "sim"
+    # The user's offloaded tasks (docs/offload.md): modules defining EDGE and ONBOARD; each EDGE is served
+    # beside the edge services (a process task-<name>), each ONBOARD runs in every drone
+    tasks: tuple[str, ...] = ()
 
     @property
     def run_id(self) -> str:
@@ -184,6 +188,7 @@ class Scenario:
             if needs is not None and getattr(self, needs) < 2:
                 raise ConfigError(f"faults[{i}].kind", f"{fault.kind} needs {needs} >= 2 (a standby)")
         self._check_sites()
+        offloaded(self.tasks)  # a task module that does not load stops the run here, in one line
         if self.ros2_bridge and importlib.util.find_spec("rosbags") is None:
             raise ConfigError("ros2_bridge", "needs the ros2 extra: pip install 'dynqos[ros2]'")
         if not 0.5 <= self.memory_sample_s <= 600:
@@ -272,6 +277,7 @@ FLEET_FAULTS = (
     "site_kill",
     "cell_outage",
     "path_partition",
+    "task_kill",
 )
 
 
@@ -389,6 +395,7 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
             # the camera sees the pillars for most of a lap (measured: the baseline in q2, high risk, 22
             # of 30 s) and the scenarios' contrast changes; docs/demo.md says more.
             yaw="free",
+            tasks=tuple(o.onboard for o in offloaded(scenario.tasks)),
         ),
         # The QoS agent's api_root is the cell's control port, known once the cell is up (with_bearers).
         qos=QosConfig(

@@ -17,6 +17,7 @@ from dynqos.reports.fleet import fleet_comparison, fleet_section
 from dynqos.reports.measures import rmse
 from dynqos.reports.mission import mission_comparison
 from dynqos.reports.multipath import multipath_lines
+from dynqos.reports.tasks import task_lines
 from dynqos.reports.uplink import traced_lines
 
 PAPER_TABLE_II = {
@@ -165,6 +166,7 @@ def _single_section(out: Path, s: dict[str, Any], baseline: dict[str, Any] | Non
         *_camera_line(s),
         *_qos_network_line(s),
         *_fault_lines(s),
+        *task_lines(s),
         "- time in states (s): " + ", ".join(f"{k} {v:.1f}" for k, v in s["states_time_s"].items() if v > 0),
         f"- {machine.describe(s.get('machine'))}",
         f"- ok: {s['ok']} {s['failure']}",

@@ -12,11 +12,12 @@ from typing import Any
 from dynqos.common.geometry import yaw_of
 from dynqos.common.messages import SupervisorStatus
 from dynqos.common.modes import ControlSource, SupervisorState
-from dynqos.experiment.faults import log_times, outcome, time_in_states
+from dynqos.experiment.faults import FaultWindow, log_times, outcome, time_in_states
 from dynqos.experiment.machine import judge, machine_figures
 from dynqos.experiment.recording import Recording
 from dynqos.experiment.scenario import Scenario
 from dynqos.reports.measures import reference_errors, rmse, stats, tracking_errors
+from dynqos.reports.tasks import task_figures
 
 # the cell's running totals behind each rate: figure -> (its records' table, the total, bits per unit);
 # a bearer's offered bytes are those its UE buffer admitted
@@ -109,8 +110,7 @@ def _samples(statuses: list[SupervisorStatus], every: str, last: str) -> list[tu
 def summarise(
     scenario: Scenario, rec: Recording, onboard_log: str, *, ok: bool, failure: str
 ) -> dict[str, Any]:
-    machine = machine_figures(rec.cpu_times)
-    ok, failure = judge(ok, failure, machine)
+    ok, failure = judge(ok, failure, machine := machine_figures(rec.cpu_times))
     t0 = rec.t0_ns
     end_ns = max([s.stamp_ns for _, s in rec.states], default=t0)
     settle_ns = t0 + round(scenario.settle_s * 1e9)
@@ -180,12 +180,17 @@ def summarise(
             outcome(w, log_times(onboard_log), statuses, nxt.start_ns if nxt else None, errors)
             for w, nxt in itertools.zip_longest(rec.faults, rec.faults[1:])
         ],
+        "tasks": task_figures(statuses, settle_ns, bg_ns, end_ns, _fault_spans(rec.faults, end_ns)),
         "memory_mb": {name: memory_figures(samples) for name, samples in rec.memory_kb.items()},
         **_cpu(rec),
         "machine": machine,  # how busy all cores were over the recorded flight
         "ok": ok,
         "failure": failure,
     }
+
+
+def _fault_spans(windows: list[FaultWindow], end_ns: int) -> list[tuple[str, int, int]]:
+    return [(w.fault.kind, w.start_ns, w.end_ns or end_ns) for w in windows]
 
 
 def _transitions(statuses: list[SupervisorStatus], t0_ns: int) -> list[dict[str, Any]]:
