@@ -34,11 +34,13 @@ from dynqos.common.keys import (
     any_replica_beat,
     any_replica_of,
     any_state_watch,
+    check_task_name,
     check_uav_id,
     clock_probe,
     downlink_all_drones,
     drone_presence,
     drones_present,
+    task_uplink_all_drones,
     uplink_all_drones,
 )
 
@@ -115,6 +117,23 @@ EDGE_ROLES: dict[str, EdgeRole] = {
 }
 EDGE_PREFIX = "edge-"
 ROUTER_COMMON_NAME = "router"
+TASK_PREFIX = "task-"  # a user's offloaded task's service: task-<name>, its identity edge-task-<name>
+
+
+def task_role(task: str) -> EdgeRole:
+    """A user's task service (docs/offload.md): it reads every drone's requests of that task, writes only
+    its answers, and its replicas find each other by their tokens."""
+    service = TASK_PREFIX + check_task_name(task)
+    return EdgeRole(
+        reads=(task_uplink_all_drones(task),),
+        writes=(f"{ROOT}/*/down/task/{task}",),
+        tokens=(any_replica_of(service),),
+    )
+
+
+def task_common_name(task: str) -> str:
+    """The certificate CN of a user's task service (`edge-task-look-at`)."""
+    return EDGE_PREFIX + TASK_PREFIX + check_task_name(task)
 
 
 def edge_common_name(service: str) -> str:
@@ -197,6 +216,7 @@ def access_control_policy(
     ros2_clients: tuple[str, ...] | list[str] = (),
     ros2_domain_id: int = 0,
     ros2_prefix: str = "dynqos",
+    tasks: tuple[str, ...] | list[str] = (),
 ) -> dict[str, Any]:
     """zenoh's `access_control` config object for `drones`, the edge services and the ROS 2 nodes named
     by `ros2_clients` (the bridge's topics and the domain's discovery tokens; they write only a drone's
@@ -227,6 +247,9 @@ def access_control_policy(
             grant(cn, cn, [*own, _rule(f"{cn}-learn-subscribers", "egress", ["declare_subscriber"], topics)])
             continue
         grant(cn, cn, _reader_and_writer(cn, role.reads, role.writes, role.tokens, role.watches))
+    for task in tasks:  # the user's own services, each only its task's keys
+        cn, role = task_common_name(task), task_role(task)
+        grant(cn, cn, _reader_and_writer(cn, role.reads, role.writes, role.tokens))
     for name in ros2_clients:
         if reserved_name(name) or name in drones:
             raise ValueError(f"{name!r} is an edge or drone identity, not a ROS 2 client")

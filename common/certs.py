@@ -30,7 +30,13 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from dynqos.common.acl import EDGE_ROLES, ROUTER_COMMON_NAME, edge_common_name, reserved_name
+from dynqos.common.acl import (
+    EDGE_ROLES,
+    ROUTER_COMMON_NAME,
+    edge_common_name,
+    reserved_name,
+    task_common_name,
+)
 from dynqos.common.errors import DynqosError
 from dynqos.common.keys import check_uav_id
 
@@ -220,9 +226,10 @@ def make_dev_pki(
     days: int = 365,
     ca_days: int = 1825,
     force: bool = False,
+    tasks: list[str] | tuple[str, ...] = (),
 ) -> dict[str, Issued]:
-    """CA, router, one identity per edge service and one per drone id in `folder`; returns them by
-    common name. Pairs that exist and are still good are kept unless `force`."""
+    """CA, router, one identity per edge service, per user task's service (`tasks`) and per drone id in
+    `folder`; returns them by common name. Pairs that exist and are still good are kept unless `force`."""
     for uav in drones:
         check_uav_id(uav)
         if reserved_name(uav):
@@ -230,7 +237,8 @@ def make_dev_pki(
     ca = DevCa(folder, ca_days=ca_days)
     hosts = tuple(dict.fromkeys(["localhost", "127.0.0.1", *router_hosts]))
     issued: dict[str, Issued] = {}
-    for name in [ROUTER_COMMON_NAME, *(edge_common_name(s) for s in EDGE_ROLES), *drones]:
+    services = [*(edge_common_name(s) for s in EDGE_ROLES), *(task_common_name(t) for t in tasks)]
+    for name in [ROUTER_COMMON_NAME, *services, *drones]:
         existing = ca.pair(name)
         router = name == ROUTER_COMMON_NAME
         if not force and ca.still_good(existing) and (not router or _same_hosts(existing, hosts)):

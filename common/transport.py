@@ -160,7 +160,7 @@ def router_access_control(cfg: ZenohConfig) -> dict[str, Any] | None:
     `acl = "off"` says so, and every setup that lets anyone in is logged as a warning naming the risk."""
     if cfg.tls and cfg.acl_drones:
         return access_control_policy(
-            cfg.acl_drones, cfg.acl_ros2_clients, cfg.acl_ros2_domain_id, cfg.acl_ros2_prefix
+            cfg.acl_drones, cfg.acl_ros2_clients, cfg.acl_ros2_domain_id, cfg.acl_ros2_prefix, cfg.acl_tasks
         )
     if cfg.tls and cfg.acl == "on":
         raise ConfigError(

@@ -100,6 +100,13 @@ def _started(roles: list[list[str]], config: Path, bin_dir: Path | None = None) 
         assert all("Traceback" not in err for err in errors), "\n".join(errors)[-3000:]
 
 
+def _users_task(folder: Path) -> Path:
+    """The example task of docs/offload.md as a user keeps it: a file of their own, outside dynqos."""
+    task = folder / "look_at.py"
+    task.write_text((Path(__file__).resolve().parent.parent / "examples" / "look_at.py").read_text())
+    return task
+
+
 def _config(path: Path, extra: str = "") -> Path:
     path.write_text(
         f"[zenoh]\n{flow_ports_toml()}"
@@ -135,9 +142,11 @@ def test_the_onboard_extra_runs_the_drone_without_matplotlib_scipy_or_osqp(
     with _started([["edge", "router"]], config) as edge_ports:
         vehicle = DynqosProcess(["sim", "vehicle"], config)
         try:
-            with _started([["onboard"]], config, bin_dir) as ports:
-                line = _healthy_line(ports["onboard"], time.monotonic() + HEALTH_WAIT_S)
+            tasks = ["--set", f'onboard.tasks=["{_users_task(tmp_path)}:ONBOARD"]']  # a user's task too
+            with _started([["onboard", *tasks]], config, bin_dir) as ports:
+                line = _healthy_line(ports[" ".join(["onboard", *tasks])], time.monotonic() + HEALTH_WAIT_S)
                 assert "onboard" in line, line
+                assert "task_look-at=edge:0/0" in line, line  # loaded; it calls once flying offboard
                 assert "camera_rate=" not in line  # no rate controller unless asked for
             assert _healthy_line(edge_ports["edge router"], time.monotonic() + HEALTH_WAIT_S)
             # The camera's delay-based rate controller needs the camera-rate extra: one line without it...
@@ -191,12 +200,14 @@ def test_the_edge_extra_starts_every_edge_service_the_qos_agent_with_camara_incl
         "points_m = [[1.0, 1.0]]\n",
     )
     services = ("router", "mpc", "planner", "fleet-planner", "detector", "qos")
-    roles = [["edge", name] for name in services]
+    task = _users_task(tmp_path)  # a user's own task, served as every built-in service is
+    roles = [*(["edge", name] for name in services), ["edge", "serve", f"{task}:EDGE"]]
     with _started(roles, config, bin_dir) as ports:
         deadline = time.monotonic() + HEALTH_WAIT_S
         lines = {role: _healthy_line(port, deadline) for role, port in ports.items()}
     assert lines["edge qos"].startswith("qos: drones=0 sessions=0"), lines
     assert lines["edge fleet-planner"].startswith("fleet-planner: waiting drones=0/1"), lines
+    assert lines[f"edge serve {task}:EDGE"].startswith("task-look-at: requests=0"), lines
     assert set(lines) == {" ".join(r) for r in roles}
     # the ROS 2 face needs the ros2 extra, and says so in one line before any network
     ros2 = _run(bin_dir / "dynqos", "edge", "ros2", "--set", "zenoh.connect_timeout_s=0.5", timeout=60)

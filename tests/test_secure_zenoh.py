@@ -84,7 +84,12 @@ def _start_router(tmp_path: Path, pki: Path, *extra: str) -> tuple[DynqosProcess
     ]
     config = load_config(PRODUCTION_ROUTER, overrides)
     client = dataclasses.replace(  # what the sessions connect with (the ACL is the router's alone)
-        config.zenoh, acl_drones=(), acl_ros2_clients=(), edge_host="127.0.0.1", connect_timeout_s=3
+        config.zenoh,
+        acl_drones=(),
+        acl_ros2_clients=(),
+        acl_tasks=(),
+        edge_host="127.0.0.1",
+        connect_timeout_s=3,
     )
     args = ["edge", "router", *(arg for o in overrides for arg in ("--set", o))]
     return DynqosProcess(args, PRODUCTION_ROUTER), client
@@ -93,7 +98,7 @@ def _start_router(tmp_path: Path, pki: Path, *extra: str) -> tuple[DynqosProcess
 def _pki_fixture(tmp_path: Path, *router_settings: str) -> Iterator[Pki]:
     folder = tmp_path / "pki"
     # uav3: signed by the CA, not in the ACL; ros-ground: a ROS 2 node's identity (a read-only client)
-    make_dev_pki(folder, ["uav1", "uav2", "uav3", "ros-ground"], [])
+    make_dev_pki(folder, ["uav1", "uav2", "uav3", "ros-ground"], [], tasks=["look-at"])
     router, cfg = _start_router(tmp_path, folder, *router_settings)
     pki = Pki(folder, cfg)
     try:
@@ -115,6 +120,12 @@ def secure_router(tmp_path: Path) -> Iterator[Pki]:
 def ros2_router(tmp_path: Path) -> Iterator[Pki]:
     """The production router that also lets the ROS 2 node `ros-ground` read the bridge's topics."""
     yield from _pki_fixture(tmp_path, 'zenoh.acl_ros2_clients=["ros-ground"]')
+
+
+@pytest.fixture
+def task_router(tmp_path: Path) -> Iterator[Pki]:
+    """The production router that also lets a user's task service in (docs/offload.md): look-at."""
+    yield from _pki_fixture(tmp_path, 'zenoh.acl_tasks=["look-at"]')
 
 
 @pytest.fixture
@@ -661,3 +672,100 @@ def test_a_ros_node_steers_only_through_the_bridge_and_only_a_drones_mission_or_
         forger.put("dynqos/uav1/mission", b"forged", allowed_destination=REMOTE)
     _wait_matched(bridge, "dynqos/uav1/mission").put(b"mission")
     assert _wait_for(at_planner, ("dynqos/uav1/mission", b"mission")) == [("dynqos/uav1/mission", b"mission")]
+
+
+TASK_UP, TASK_DOWN = "dynqos/uav1/up/priority/task/look-at", "dynqos/uav1/down/task/look-at"
+# who writes, what it must not write to uav1, and its own output to uav1 (the sentinel)
+TASK_WRITES = {
+    "edge-task-look-at": ("dynqos/uav1/down/cmd", TASK_DOWN),  # a task service commands no drone
+    "edge-detector": (TASK_DOWN, "dynqos/uav1/down/ack/camera"),  # nor does another service answer for it
+}
+
+
+@pytest.mark.parametrize("writer", list(TASK_WRITES))
+def test_a_task_service_answers_only_its_task_and_only_it_does(task_router: Pki, writer: str) -> None:
+    forbidden, allowed = TASK_WRITES[writer]
+    at_drone: Seen = queue.Queue()
+    _collect(task_router.open("uav1"), "dynqos/uav1/down/**", at_drone)
+    edge = task_router.open(writer)
+    sentinel = _wait_matched(edge, allowed)
+    edge.put(forbidden, f"{writer} forging {forbidden}".encode(), allowed_destination=REMOTE)
+    sentinel.put(b"allowed")
+    assert _wait_for(at_drone, (allowed, b"allowed")) == [(allowed, b"allowed")]
+
+
+def test_a_task_service_reads_only_its_tasks_requests(task_router: Pki) -> None:
+    service = task_router.open("edge-task-look-at")
+    at_service: Seen = queue.Queue()
+    forbidden = "dynqos/uav1/up/priority/state"
+    _collect(service, forbidden, at_service)
+    _collect(service, TASK_UP, at_service)
+    _collect(task_router.open("edge-mpc"), "dynqos/*/up/*/state", queue.Queue())  # so the state is routed
+    uav1 = task_router.open("uav1")
+    sentinel = _wait_matched(uav1, TASK_UP)
+    uav1.put(forbidden, b"not for a task service", allowed_destination=REMOTE)
+    sentinel.put(b"allowed")
+    assert _wait_for(at_service, (TASK_UP, b"allowed")) == [(TASK_UP, b"allowed")]
+
+
+def test_dynqos_edge_serve_with_its_identity_answers_a_drone_through_the_access_control(
+    task_router: Pki, tmp_path: Path
+) -> None:
+    """`dynqos edge serve` as a process with the task's certificate answers uav1's requests; a second
+    replica started with the detector's identity gets none (its subscription and token are refused),
+    although it ranks first for uav1: every answer comes from the task's own identity."""
+    from dynqos.common import keys
+    from dynqos.common.messages import TaskAnswer, TaskRequest
+    from dynqos.common.queues import BoundedQueue
+    from dynqos.common.tasks import Codec, Edge, load
+    from dynqos.common.transport import Priority, Received, ZenohBus
+    from dynqos.edge.replicas import ranked
+
+    example = str(Path(__file__).resolve().parents[1] / "examples" / "look_at.py")
+    pairs = ((f"good-{i}", f"impostor-{i}") for i in range(100))
+    names = next(pair for pair in pairs if ranked("uav1", pair)[0] == pair[1])  # the impostor ranks first
+    procs = []
+    for name, identity in zip(names, ("edge-task-look-at", "edge-detector"), strict=True):
+        cfg = task_router.as_(identity)
+        overrides = [
+            f"zenoh.{k}={v}"
+            for k, v in (
+                ("default_port", cfg.default_port),
+                ("priority_port", cfg.priority_port),
+                ("edge_host", '"127.0.0.1"'),
+                ("tls", "true"),
+                ("tls_ca", f'"{cfg.tls_ca}"'),
+                ("tls_cert", f'"{cfg.tls_cert}"'),
+                ("tls_key", f'"{cfg.tls_key}"'),
+            )
+        ]
+        config = tmp_path / f"{name}.toml"
+        config.write_text("")
+        args = [
+            "edge",
+            "serve",
+            f"{example}:EDGE",
+            "--replica-id",
+            name,
+            *(x for o in overrides for x in ("--set", o)),
+        ]
+        procs.append(DynqosProcess(args, config))
+    try:
+        edge: Edge[object, object] = load(f"{example}:EDGE", Edge)
+        codec: Codec[object, object] = Codec(edge.task)
+        drone = ZenohBus(task_router.open("uav1"))
+        answers: BoundedQueue[Received] = BoundedQueue(64)
+        drone.subscribe(keys.task_downlink("uav1", "look-at"), answers, expect=(TaskAnswer,))
+        pub = drone.publisher(TASK_UP, Priority.REAL_TIME)
+        body = codec.encode_request(edge.task.request(pos_m=(1.0, 1.0, -1.5)))  # type: ignore[call-arg]
+        got = None
+        for seq in range(1, 100):  # until the service is up and subscribed (each a fresh request)
+            pub.put(TaskRequest(uav="uav1", seq=seq, task="look-at", stamp_ns=0, budget_ms=500, body=body))
+            if (got := answers.get(0.2)) is not None:
+                break
+        assert got is not None, "no answer through the access control"
+        assert isinstance(got.message, TaskAnswer)
+        assert got.message.replica == names[0]
+    finally:
+        logs = [proc.stop() for proc in procs]
+    assert "requests=0" in logs[1].rsplit("stopped;", 1)[-1], logs[1][-2000:]

@@ -12,7 +12,7 @@ from dynqos.common.acl import reserved_name
 from dynqos.common.config.radio import PredictionConfig, RadioConfig
 from dynqos.common.config.validate import In, _host_port, _require, checked
 from dynqos.common.errors import ConfigError, KeyExprError
-from dynqos.common.keys import UAV_ID_PATTERN, check_uav_id
+from dynqos.common.keys import TASK_NAME_PATTERN, TASK_NAME_RULE, UAV_ID_PATTERN, check_uav_id
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -58,6 +58,9 @@ class ZenohConfig:
     acl_ros2_clients: tuple[str, ...] = ()
     acl_ros2_domain_id: Annotated[int, In(0, 232, "must be in 0..232 (ROS 2 domain ids)")] = 0
     acl_ros2_prefix: str = "dynqos"
+    # router with access control: the user's offloaded tasks let in (docs/offload.md), each service by
+    # its identity edge-task-<name> and to its own task's keys only
+    acl_tasks: tuple[str, ...] = ()
     # router: the routers of other edge sites to link to (zenoh endpoints, `tcp/<host>:<port>`), so that
     # replicas at both sites see each other's tokens and share the drones (docs/deploy.md)
     router_links: tuple[str, ...] = ()
@@ -91,6 +94,13 @@ class ZenohConfig:
             re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", self.acl_ros2_prefix) is not None,
             "acl_ros2_prefix",
             "must be a ROS name: a letter, then letters, digits, _",
+        )
+        for task in self.acl_tasks:
+            _require(
+                TASK_NAME_PATTERN.fullmatch(task) is not None, "acl_tasks", f"{task!r}: {TASK_NAME_RULE}"
+            )
+        _require(
+            not self.acl_tasks or bool(self.acl_drones), "acl_tasks", "needs the router's access control"
         )
         _require(self.acl in ("on", "off"), "acl", f'must be "on" or "off", got {self.acl!r}')
         for link in self.router_links:

@@ -120,6 +120,14 @@ def _add_keys(commands: Commands, own: argparse.ArgumentParser) -> None:
         "--drone", metavar="ID", action="append", default=[], dest="drones", help="a drone id (repeatable)"
     )
     certs.add_argument(
+        "--task",
+        metavar="NAME",
+        action="append",
+        default=[],
+        dest="tasks",
+        help="a task of your own (repeatable): its service's identity edge-task-NAME (docs/offload.md)",
+    )
+    certs.add_argument(
         "--router-host",
         metavar="NAME",
         action="append",
@@ -189,9 +197,10 @@ def make_certs(args: argparse.Namespace, config: Config) -> int:
             days=args.days,
             ca_days=args.ca_days,
             force=args.force,
+            tasks=args.tasks,
         )
     except KeyExprError as exc:
-        raise DynqosError(f"--drone: {exc}") from None
+        raise DynqosError(f"--drone or --task: {exc}") from None
     for name, pair in issued.items():
         print(f"{name}: {pair.cert} {pair.key}{' (kept)' if pair.kept else ''}")
     print(f"ca: {Path(args.out) / 'ca.pem'}")
