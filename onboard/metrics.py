@@ -152,3 +152,22 @@ class DroneMetrics:
             counter = CounterMetricFamily(name, doc, labels=["uav"])
             counter.add_metric([uav], total)
             yield counter
+        if s.tasks:
+            yield from _task_families(uav, s)
+
+
+def _task_families(uav: str, s: SupervisorStatus) -> Iterator[Metric]:
+    """The user's offloaded tasks (docs/offload.md): calls, answers applied and misses, by task, and
+    whether each flies its fallback now."""
+    calls = CounterMetricFamily(
+        "dynqos_task_calls", "A task's requests, answers applied and misses", labels=["uav", "task", "event"]
+    )
+    fallback = GaugeMetricFamily(
+        "dynqos_task_fallback", "1 while a task flies its fallback", labels=["uav", "task"]
+    )
+    for name, mode, requests, applied, misses, _fallback_s, _rtts in s.tasks:
+        for event, n in (("requests", requests), ("applied", applied), ("misses", misses)):
+            calls.add_metric([uav, name, event], n)
+        fallback.add_metric([uav, name], 1.0 if mode == "fallback" else 0.0)
+    yield calls
+    yield fallback

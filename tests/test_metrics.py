@@ -100,6 +100,19 @@ def test_drone_metrics_follow_the_statuses_they_are_handed() -> None:
     )
 
 
+def test_a_drones_offloaded_tasks_are_counted_by_task_and_say_when_they_fall_back() -> None:
+    metrics = ProcessMetrics("onboard", MetricsConfig())
+    drone = DroneMetrics("uav1", metrics, CommandCounters(), None)
+    drone.observe(_status("q1"))
+    before = _samples(generate_latest(metrics.registry).decode())
+    drone.observe(_status("q1", tasks=(("look-at", "fallback", 40, 35, 5, 0.5, (12.0,)),)))
+    samples = _samples(generate_latest(metrics.registry).decode())
+    assert not any(name.startswith("dynqos_task") for name, _labels in before)  # none without tasks
+    assert _value(samples, "dynqos_task_calls_total", uav="uav1", task="look-at", event="requests") == 40
+    assert _value(samples, "dynqos_task_calls_total", uav="uav1", task="look-at", event="misses") == 5
+    assert _value(samples, "dynqos_task_fallback", uav="uav1", task="look-at") == 1
+
+
 def test_bus_metrics_count_received_and_rejected_by_cause() -> None:
     bus = MemoryBus()
     sink: BoundedQueue[Any] = BoundedQueue(16)

@@ -22,6 +22,7 @@ from dynqos.common.config import Config, OnboardPathConfig, ZenohConfig
 from dynqos.experiment.cells import with_cell
 from dynqos.experiment.faults import Fault, FaultWindow
 from dynqos.experiment.link_relay import LinkRelay
+from dynqos.experiment.offloaded import offloaded
 from dynqos.experiment.processes import Processes
 from dynqos.experiment.scenario import Scenario, replica_names, write_config
 from dynqos.reports.summary import qod_sessions
@@ -31,7 +32,7 @@ log = logging.getLogger(__name__)
 SITES = ("a", "b")
 # the processes of a site (one site's edge: what a site kill takes down at once); the cell is the
 # operator's radio, not the site's, and the recorders are the ground station's
-SITE_SERVICES = ("router", "qos", "planner", "mpc", "detector")
+SITE_SERVICES = ("router", "qos", "planner", "mpc", "detector", "task")  # task-<name>: a user's task
 
 
 def process_name(name: str, site: str) -> str:
@@ -51,8 +52,8 @@ def site_processes(procs: Processes, site: str) -> list[str]:
 
 
 def start_site_b(procs: Processes, scenario: Scenario, config: Path) -> None:
-    """Site B's QoS agents, planners, MPCs and detector, as many as site A's, named (and identified as
-    replicas) with `-b` after site A's names."""
+    """Site B's QoS agents, planners, MPCs, detector and task services, as many as site A's, named (and
+    identified as replicas) with `-b` after site A's names."""
     for service, count in (
         ("qos", scenario.qos_agents),
         ("planner", scenario.planner_replicas),
@@ -62,6 +63,9 @@ def start_site_b(procs: Processes, scenario: Scenario, config: Path) -> None:
             b = process_name(name, "b")
             procs.start(b, ["edge", service, "--set", f'{service}.replica_id="{b}"'], config=config)
     procs.start("detector-b", ["edge", "detector"], config=config)
+    for task in offloaded(scenario.tasks):  # a replica of each user task's service at site B too
+        b = process_name(task.process, "b")
+        procs.start(b, ["edge", "serve", task.edge, "--replica-id", b], config=config)
 
 
 def site_configs(config: Config, zenoh_b: ZenohConfig, link_port: int = 0) -> tuple[Config, Config]:

@@ -86,6 +86,8 @@ def _drone(
     out["fallback_flown_s"] = single["fallback_flown_s"]
     if scenario.sites == 2:  # a drone on two paths (docs/multipath.md)
         out["multipath"] = path_figures(statuses, rec.t0_ns, *fault_spans(rec.faults))
+    if single["tasks"]:  # the drone's own offloaded tasks (docs/offload.md)
+        out["tasks"] = single["tasks"]
     return out
 
 
