@@ -5,8 +5,9 @@ Items: the flight controller (heartbeat, mode, armed, the position and attitude 
 being asked for 50 Hz), MAVLink signing (on and every message checked, or off, said as a risk), the
 camera (frames, size, the fraction of valid depth), the edge router on each flow (a zenoh session
 opened as this drone, with its certificate where TLS is on), the wall-clock offset to the edge
-(onboard/clock_offset.py), the QoS settings, and the systemd unit. Nothing is armed, no setpoint is
-sent, nothing is published to any other process (the clock probes go to the router and back).
+(onboard/clock_offset.py), the QoS settings, each offloaded task's module, and the systemd unit.
+Nothing is armed, no setpoint is sent, nothing is published to any other process (the clock probes go
+to the router and back).
 """
 
 from __future__ import annotations
@@ -261,12 +262,30 @@ def check_unit(systemd_root: Path = Path("/run/systemd/system")) -> Item:
     return Item("systemd unit", state != "failed", f"{UNIT}: {state}, {enabled}")
 
 
+def check_tasks(config: Config) -> list[Item]:
+    """Each of [onboard] tasks: its module loads and declares an Onboard (docs/offload.md); what it
+    declares, so that a person sees the rate and deadline the drone will hold it to."""
+    from dynqos.common.tasks import Onboard, TaskError, load
+
+    items = []
+    for target in config.onboard.tasks:
+        try:
+            task = load(target, Onboard).task
+        except TaskError as exc:
+            items.append(Item(f"task {target.rpartition(':')[0][-17:]}", False, str(exc)[:200]))
+            continue
+        detail = f"{target}: {task.rate_hz:g} Hz, deadline {task.deadline_s * 1000:g} ms, {task.flow} flow"
+        items.append(Item(f"task {task.name}", True, detail))
+    return items
+
+
 def run(config: Config, measure_s: float) -> int:
     items = [
         *check_fc(config, measure_s),
         check_camera(config, measure_s),
         *check_router(config),
         check_qos(config),
+        *check_tasks(config),
     ]
     items.append(check_unit())
     for item in items:

@@ -104,3 +104,25 @@ def test_the_systemd_item_says_when_systemd_does_not_run(tmp_path: Path) -> None
     item = check_unit(tmp_path / "absent")
     assert item.ok
     assert "systemd is not running here" in item.detail
+
+
+def test_each_offloaded_task_is_an_item_its_module_loaded_or_said_why_not(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    from dynqos.common.config import Config
+    from dynqos.onboard.check import check_tasks
+
+    example = Path(__file__).resolve().parents[1] / "examples" / "look_at.py"
+    (tmp_path / "broken.py").write_text("raise RuntimeError('no GPU here')\n")
+    config = Config()
+    config = replace(
+        config,
+        onboard=replace(config.onboard, tasks=(f"{example}:ONBOARD", f"{tmp_path / 'broken.py'}:ONBOARD")),
+    )
+    good, bad = check_tasks(config)
+    assert good.ok
+    assert good.line().startswith("PASS  task look-at")
+    assert "10 Hz, deadline 80 ms, control flow" in good.detail
+    assert not bad.ok
+    assert "RuntimeError: no GPU here" in bad.detail
+    assert check_tasks(Config()) == []  # no item where no task runs
