@@ -212,7 +212,7 @@ def load(target: str, kind: type[Any]) -> Any:
         raise
     except BaseException as exc:  # the user's module may raise anything, SystemExit included
         raise TaskError(
-            f"{target}: importing {module_name} failed: {type(exc).__name__}: {_short(exc)}"
+            f"{target}: its module failed to import: {type(exc).__name__}: {_short(exc)}"
         ) from None
     found = getattr(module, attr, None)
     if not isinstance(found, kind):

@@ -272,7 +272,7 @@ def check_tasks(config: Config) -> list[Item]:
         try:
             task = load(target, Onboard).task
         except TaskError as exc:
-            items.append(Item(f"task {target.rpartition(':')[0][-17:]}", False, str(exc)[:200]))
+            items.append(Item(f"task {target.rpartition(':')[0][-17:]}", False, str(exc)[:400]))
             continue
         detail = f"{target}: {task.rate_hz:g} Hz, deadline {task.deadline_s * 1000:g} ms, {task.flow} flow"
         items.append(Item(f"task {task.name}", True, detail))

@@ -26,7 +26,7 @@ EXAMPLE = str(ROOT / "examples" / "look_at.py")
 
 TASK_HEAD = "import msgspec\nfrom dynqos.offload import Edge, Task\n"
 BAD_MODULES = {
-    "raises.py:EDGE": ("raise RuntimeError('boom')\n", "importing", "RuntimeError: boom"),
+    "raises.py:EDGE": ("raise RuntimeError('boom')\n", "failed to import", "RuntimeError: boom"),
     "wrong.py:EDGE": ("EDGE = 3\n", "EDGE is a int", "not a dynqos.offload.Edge"),
     "rate.py:EDGE": (
         TASK_HEAD + "EDGE = Edge(Task('t', dict, dict, rate_hz=0, deadline_s=0.1), handle=print)\n",
