@@ -552,6 +552,16 @@ def _queried(bus: Bus, key_expr: str, token: str, within_s: float = 10.0) -> boo
     return False
 
 
+def _next_change(seen: queue.Queue[tuple[str, bool]], told: tuple[str, bool]) -> tuple[str, bool]:
+    """The next change that is not `told` again. A token declared while the watch's history query
+    runs (zenoh's liveliness subscriber with history=True) can be told present twice, by the query and
+    by the live subscriber: on a busy host (the README's pass of CI at 09970cb) the second came after
+    the test's own queries. The edge takes a token's presence as a set (edge/presence.py)."""
+    while (change := seen.get(timeout=10)) == told:
+        pass
+    return change
+
+
 def test_mpc_replicas_find_each_other_and_nobody_else_can_pose_as_one(secure_router: Pki) -> None:
     """The one liveliness the ACL allows: MPC replicas' tokens, declared, watched and queried by edge-mpc
     identities (edge/replicas.py). A drone's or the detector's token there never reaches them: the
@@ -573,7 +583,10 @@ def test_mpc_replicas_find_each_other_and_nobody_else_can_pose_as_one(secure_rou
     assert seen.get(timeout=10) == (keys.replica_token("mpc", "all", "b"), True)
     assert _queried(watcher, keys.replicas_of("mpc"), keys.replica_token("mpc", "all", "b"))
     mine.close()
-    assert seen.get(timeout=10) == (keys.replica_token("mpc", "all", "b"), False)
+    assert _next_change(seen, (keys.replica_token("mpc", "all", "b"), True)) == (
+        keys.replica_token("mpc", "all", "b"),
+        False,
+    )
     assert seen.empty()
     for token in impostors:
         token.close()
@@ -597,7 +610,10 @@ def test_only_a_qos_agent_can_claim_to_be_the_active_agent(secure_router: Pki) -
     assert seen.get(timeout=10) == (keys.qos_active("all", "qos-b"), True)
     assert _queried(watcher, keys.qos_actives("all"), keys.qos_active("all", "qos-b"))
     mine.close()
-    assert seen.get(timeout=10) == (keys.qos_active("all", "qos-b"), False)
+    assert _next_change(seen, (keys.qos_active("all", "qos-b"), True)) == (
+        keys.qos_active("all", "qos-b"),
+        False,
+    )
     assert seen.empty()
     for token in impostors:
         token.close()
