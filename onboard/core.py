@@ -195,7 +195,7 @@ class OnboardCore:
         answers, self._task_answers = self._task_answers, []
         flows = {"control": flow, "bulk": camera_flow}
         jobs, said = self.tasks.tick(inp.now_ns, self.offloading, answers, inp.task_sent, flows, rate)
-        self._events.extend(LogEvent(logging.WARNING if "fallback" in t else logging.INFO, t) for t in said)
+        self._events.extend(LogEvent(level, text) for level, text in said)
         return jobs
 
     def _take_qos(self, message: QosGrant | QosMonitoring, arrival_ns: int) -> None:

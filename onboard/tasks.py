@@ -21,6 +21,7 @@ a bulk task's like the camera's.
 from __future__ import annotations
 
 import enum
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -213,10 +214,10 @@ class OnboardTasks:
         sent: Sequence[TaskSent],
         flows: dict[str, Flow],
         rate_factor: float,
-    ) -> tuple[TaskJobs, list[str]]:
+    ) -> tuple[TaskJobs, list[tuple[int, str]]]:
         """One control tick: the shell's reports in, the jobs out, and what to log. `flows`: the flow of
         each class now (control: the State's, bulk: the camera's)."""
-        events: list[str] = []
+        events: list[tuple[int, str]] = []  # (a logging level, the line)
         for report in sent:
             if (timer := self.timers.get(report.task)) is not None:
                 timer.sent(report.seq, report.sent_ns)
@@ -229,12 +230,14 @@ class OnboardTasks:
             if timer.answered(answer.seq, arrival_ns) is Verdict.APPLY:
                 apply.append(answer)
                 if was is Mode.FALLBACK:
-                    events.append(f"task {answer.task}: answers in time again: the edge's answer applies")
+                    said = f"task {answer.task}: answers in time again: the edge's answer applies"
+                    events.append((logging.INFO, said))
         requests, fallback = [], []
         for name, timer in self.timers.items():
             missed = timer.expire(now_ns)
             if missed:
-                events.append(f"task {name}: no answer within {timer.task.deadline_s * 1000:g} ms: fallback")
+                said = f"task {name}: no answer within {timer.task.deadline_s * 1000:g} ms: fallback"
+                events.append((logging.WARNING, said))
             if not flying:
                 continue
             seq = timer.due(now_ns, rate_factor)

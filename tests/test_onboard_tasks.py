@@ -4,6 +4,7 @@ what the supervisor hears of it, and the heading a Steer sets."""
 
 from __future__ import annotations
 
+import logging
 import math
 
 import msgspec
@@ -117,7 +118,7 @@ def test_the_tasks_hand_out_requests_on_their_classes_flow_and_fallbacks_at_a_mi
     jobs, said = tasks.tick(60 * MS, True, [], [TaskSent("ctl", 1, 0), TaskSent("blk", 1, None)], FLOWS, 1.0)
     assert jobs.fallback == ("ctl",)
     assert jobs.requests == ()
-    assert said == ["task ctl: no answer within 50 ms: fallback"]
+    assert said == [(logging.WARNING, "task ctl: no answer within 50 ms: fallback")]
     assert tasks.timers["blk"].counts.skipped == 1
     jobs, _ = tasks.tick(100 * MS, True, [], [], FLOWS, 1.0)
     assert jobs.fallback == ("ctl",)
@@ -127,7 +128,7 @@ def test_the_tasks_hand_out_requests_on_their_classes_flow_and_fallbacks_at_a_mi
     )
     assert [a.seq for a in jobs.apply] == [2]
     assert jobs.fallback == ()
-    assert said == ["task ctl: answers in time again: the edge's answer applies"]
+    assert said == [(logging.INFO, "task ctl: answers in time again: the edge's answer applies")]
 
 
 def test_nothing_is_asked_on_the_ground() -> None:
