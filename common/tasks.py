@@ -36,8 +36,8 @@ from dynqos.common.keys import check_task_name
 from dynqos.common.message_base import MAX_PAYLOAD_BYTES
 
 FLOW_CLASSES = ("control", "bulk")
-RATE_RANGE_HZ = (0.1, 100.0)
-DEADLINE_RANGE_S = (0.005, 10.0)
+RATE_RANGE_HZ = (0.1, 1000.0)  # as [control] t_mpc_s allows
+DEADLINE_RANGE_S = (0.001, 60.0)  # as [supervisor] watchdog_s allows
 DEFAULT_MAX_BYTES = 64 * 1024
 NDARRAY_EXT = 1  # the msgpack extension code of a numpy array
 MAX_ARRAY_DIMS = 8
@@ -157,6 +157,37 @@ class Onboard(Generic[Req, Ans]):
             _require(self.task, callable(getattr(self, name)), f"Onboard.{name} must be callable")
 
 
+@dataclass(frozen=True, slots=True)
+class Service(Generic[Req, Ans]):
+    """A task's edge side as a core on the edge runtime, for work one function per call cannot do: state
+    kept between calls (the MPC's warm starts, per drone), time of its own (replicas' leases, the
+    detector's frames joined from their parts), or a wire of its own. `make(config, ports, replica)`
+    builds the core (an `EdgeCore`, edge/runtime.py), which declares its subscriptions and publishers
+    on `ports.bus`; `replica` is `--replica-id` ("": the core's own default). `name` is the process's
+    name in logs, health, metrics and its identity (default task-<name>); `metrics(core, process)`
+    registers its Prometheus families. The MPC and the detector are served this way."""
+
+    task: Task[Req, Ans]
+    make: Callable[[Any, Any, str], Any]
+    name: str = ""
+    metrics: Callable[[Any, Any], None] | None = None
+
+    def __post_init__(self) -> None:
+        _check_task(self.task, "Service")
+        _require(self.task, callable(self.make), "Service.make must be callable")
+        ok = self.metrics is None or callable(self.metrics)
+        _require(self.task, ok, "Service.metrics must be callable")
+        if self.name:
+            try:
+                check_task_name(self.name)
+            except KeyExprError as exc:
+                raise TaskError(f"task {self.task.name}: Service.name: {exc}") from None
+
+    @property
+    def service_name(self) -> str:
+        return self.name or f"task-{self.task.name}"
+
+
 class Codec(Generic[Req, Ans]):
     """A task's bodies to and from bytes, each checked against its type and its size bound."""
 
@@ -199,7 +230,7 @@ class Codec(Generic[Req, Ans]):
             raise PayloadError(f"{what} is not a {_type_name(decoder.type)}: {_short(exc)}") from None
 
 
-def load(target: str, kind: type[Any]) -> Any:
+def load(target: str, kind: type[Any] | tuple[type[Any], ...]) -> Any:
     """The object `target` names, "module:ATTR" or "path/file.py:ATTR", checked to be a `kind`. Raises
     TaskError in one line (a module that fails to import, a missing name, the wrong kind), never the
     user's traceback."""
@@ -217,7 +248,10 @@ def load(target: str, kind: type[Any]) -> Any:
     found = getattr(module, attr, None)
     if not isinstance(found, kind):
         what = "nothing" if found is None else f"a {type(found).__name__}"
-        raise TaskError(f"{target}: {attr} is {what}, not a dynqos.offload.{kind.__name__}")
+        kinds = " or ".join(
+            f"dynqos.offload.{k.__name__}" for k in (kind if isinstance(kind, tuple) else [kind])
+        )
+        raise TaskError(f"{target}: {attr} is {what}, not a {kinds}")
     return found
 
 

@@ -9,6 +9,6 @@
 Everything else in dynqos is the runtime's own and may change between releases; these names do not.
 """
 
-from dynqos.common.tasks import Drone, Edge, Onboard, PayloadError, Steer, Task, TaskError
+from dynqos.common.tasks import Drone, Edge, Onboard, PayloadError, Service, Steer, Task, TaskError
 
-__all__ = ["Drone", "Edge", "Onboard", "PayloadError", "Steer", "Task", "TaskError"]
+__all__ = ["Drone", "Edge", "Onboard", "PayloadError", "Service", "Steer", "Task", "TaskError"]

@@ -28,7 +28,8 @@ from dynqos.common import keys
 from dynqos.common.bus import Priority, Publisher, Received
 from dynqos.common.config import Config
 from dynqos.common.messages import TaskAnswer, TaskRequest
-from dynqos.common.tasks import Codec, Edge, PayloadError
+from dynqos.common.metrics import ProcessMetrics
+from dynqos.common.tasks import Codec, Edge, PayloadError, Service, Task
 from dynqos.edge import metrics
 from dynqos.edge.membership import LiveSet, default_replica_id
 from dynqos.edge.runtime import EdgeCore, Ports, Runtime, serve
@@ -242,10 +243,36 @@ def service_name(task: str) -> str:
     return f"task-{task}"
 
 
-def run(edge: Edge[Any, Any], config: Config, *, health_file: Path | None = None, replica: str = "") -> int:
-    """`dynqos edge serve` until SIGTERM (edge/runtime.py's `serve`)."""
+def run(
+    declared: Edge[Any, Any] | Service[Any, Any],
+    config: Config,
+    *,
+    health_file: Path | None = None,
+    replica: str = "",
+) -> int:
+    """`dynqos edge serve` until SIGTERM (edge/runtime.py's `serve`): an `Edge`'s function on a
+    TaskService, a `Service`'s own core (the MPC, the detector: `dynqos edge mpc` comes here too)."""
+    if isinstance(declared, Service):
+        name, task = declared.service_name, declared.task
+        log.info("%s: serving task %s (%s)", name, task.name, _declared(task))
+
+        def build(cfg: Config, ports: Ports) -> EdgeCore:
+            core: EdgeCore = declared.make(cfg, ports, replica)
+            return core
+
+        register = declared.metrics or _no_metrics
+        return serve(name, config, build, register, health_file=health_file)
+    edge = declared
 
     def make(cfg: Config, ports: Ports) -> TaskService:
         return TaskService(edge, cfg, ports, replica=replica)
 
     return serve(service_name(edge.task.name), config, make, metrics.task, health_file=health_file)
+
+
+def _declared(task: Task[Any, Any]) -> str:
+    return f"{task.rate_hz:g} Hz, deadline {task.deadline_s * 1e3:g} ms, {task.flow} flow"
+
+
+def _no_metrics(core: Any, process: ProcessMetrics) -> None:
+    """A Service that registers nothing of its own: the process's metrics alone."""

@@ -26,6 +26,7 @@ import logging
 
 import numpy as np
 
+from dynqos.common import builtin_tasks
 from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.config import Config
 from dynqos.common.keys import Stream
@@ -71,9 +72,11 @@ class OnboardCore:
         self.uav = config.drone.id
         self.qos = config.onboard.qos
         paths = tuple(p.name for p in config.onboard.paths) or ("",)
+        self.mpc = builtin_tasks.mpc(config)  # the MPC's rate and deadline, as its edge side declares them
+        watchdog_ns = self.mpc.deadline_ns
         self.answers = Answers(
             self.uav,
-            to_ns(config.supervisor.watchdog_s),
+            watchdog_ns,
             config.supervisor.window[1],
             paths,
             start_ns,
@@ -85,7 +88,6 @@ class OnboardCore:
         self.network = NetworkDelays()  # the 5G core's own delay reports, when the agent forwards them
         self.supervisor = Supervisor(config.supervisor, start_ns=start_ns)
         sites = {p.name: p.site or p.name for p in config.onboard.paths}
-        watchdog_ns = to_ns(config.supervisor.watchdog_s)
         self.path_pfsms = (
             PathSupervisors(config.supervisor, sites, watchdog_ns, start_ns) if len(sites) > 1 else None
         )
@@ -104,7 +106,7 @@ class OnboardCore:
         self._space: float | None = None  # the newest spaciousness not yet given to the supervisor
         self._state_seq = 0
         self._status_seq = 0
-        self._t_mpc_ns = to_ns(config.control.t_mpc_s)
+        self._t_mpc_ns = self.mpc.period_ns
         self._status_period_ns = round(NS_PER_S / config.onboard.status_hz)
         self.modem: ModemReading | None = None
         self.fc_said: FcSaid | None = None

@@ -78,10 +78,21 @@ def _commands_for(zcfg: ZenohConfig, uavs: dict[str, float], wanted: int) -> dic
     return commands
 
 
-def test_mpc_serves_two_drones_at_once(edge: tuple[Path, ZenohConfig, list[DynqosProcess]]) -> None:
+# The MPC and the detector are tasks on the public API (common/builtin_tasks.py): `dynqos edge mpc` and
+# `dynqos edge serve` of its declared Service are one path, so each test flies both.
+SERVED_AS = {
+    "mpc": (["edge", "mpc"], ["edge", "serve", "dynqos.edge.mpc.service:SERVICE", "--replica-id", "mpc-s"]),
+    "detector": (["edge", "detector"], ["edge", "serve", "dynqos.edge.detector.service:SERVICE"]),
+}
+
+
+@pytest.mark.parametrize("served", [0, 1], ids=["edge-mpc", "edge-serve"])
+def test_mpc_serves_two_drones_at_once(
+    edge: tuple[Path, ZenohConfig, list[DynqosProcess]], served: int
+) -> None:
     config, zcfg, procs = edge
     procs.append(DynqosProcess(["edge", "planner"], config))
-    procs.append(DynqosProcess(["edge", "mpc"], config))
+    procs.append(DynqosProcess(SERVED_AS["mpc"][served], config))
     commands = _commands_for(zcfg, {"uav1": 0.0, "uav2": 3.0}, 40)
     for got in commands.values():
         assert got[-1].edge_hold_ns < 50_000_000
@@ -90,6 +101,9 @@ def test_mpc_serves_two_drones_at_once(edge: tuple[Path, ZenohConfig, list[Dynqo
     assert commands["uav1"][-1].accel_mps2[0][0] > 0
     mpc_log = procs[-1].stop()
     assert "drones=2" in mpc_log
+    assert "mpc: serving task mpc (20 Hz, deadline 150 ms, control flow)" in mpc_log
+    if served:  # --replica-id names the replica that signs each Command (fencing)
+        assert {c.replica for got in commands.values() for c in got} == {"mpc-s"}
 
 
 def test_mpc_replicas_share_the_fleet_by_drone_id(
@@ -142,11 +156,12 @@ def test_three_mpc_replicas_each_receive_only_the_drones_they_fly_or_stand_by_fo
         assert " not_mine=0 " in log[log.rindex("mpc: stopped") :]
 
 
+@pytest.mark.parametrize("served", [0, 1], ids=["edge-detector", "edge-serve"])
 def test_detector_acks_every_frame_and_finds_the_hoop(
-    edge: tuple[Path, ZenohConfig, list[DynqosProcess]],
+    edge: tuple[Path, ZenohConfig, list[DynqosProcess]], served: int
 ) -> None:
     config, zcfg, procs = edge
-    procs.append(DynqosProcess(["edge", "detector"], config))
+    procs.append(DynqosProcess(SERVED_AS["detector"][served], config))
     world = default_world()
     renderer = Renderer(world, seed=3)
     pos = np.array([2.0, -2.2, -1.5])
@@ -225,6 +240,7 @@ def test_detector_acks_every_frame_and_finds_the_hoop(
     assert procs[-1].alive()
     log = procs[-1].stop()
     assert "rejected=" in log
+    assert "detector: serving task detector (15 Hz, deadline 1000 ms, bulk flow)" in log
 
 
 def test_detector_acks_a_paced_frame_once_its_last_part_is_in(

@@ -27,13 +27,18 @@ EXAMPLE = str(ROOT / "examples" / "look_at.py")
 TASK_HEAD = "import msgspec\nfrom dynqos.offload import Edge, Task\n"
 BAD_MODULES = {
     "raises.py:EDGE": ("raise RuntimeError('boom')\n", "failed to import", "RuntimeError: boom"),
-    "wrong.py:EDGE": ("EDGE = 3\n", "EDGE is a int", "not a dynqos.offload.Edge"),
+    "wrong.py:EDGE": ("EDGE = 3\n", "EDGE is a int", "not a dynqos.offload.Edge or dynqos.offload.Service"),
     "rate.py:EDGE": (
         TASK_HEAD + "EDGE = Edge(Task('t', dict, dict, rate_hz=0, deadline_s=0.1), handle=print)\n",
         "task t: rate_hz must be",
         "",
     ),
     "name.py:EDGE": (TASK_HEAD + "EDGE = Edge(Task('T!', dict, dict, 10, 0.1), print)\n", "task name", ""),
+    "service.py:EDGE": (
+        TASK_HEAD.replace("Edge", "Service") + "EDGE = Service(Task('t', dict, dict, 10, 0.1), make=3)\n",
+        "task t: Service.make must be callable",
+        "",
+    ),
     "missing.py:EDGE": (None, "no such file", ""),
     "noattr.py": ("X = 1\n", "name a task as MODULE:ATTR", ""),
 }

@@ -133,13 +133,22 @@ def run_edge(args: argparse.Namespace, config: Config) -> int:
     limit_math_threads(config.mpc.math_threads, os.environ)
     # The service's module is imported first: a missing extra is said before any network is opened.
     service = importlib.import_module(SERVICES[args.edge_command][0])
-    code: int = service.run(with_metrics(args, config), health_file=path_or_none(args.health_file))
+    config, health_file = with_metrics(args, config), path_or_none(args.health_file)
+    declared = getattr(service, "SERVICE", None)
+    if declared is not None:  # a service declared as a task (the MPC, the detector): served as any task
+        from dynqos.edge import tasks
+
+        code: int = tasks.run(declared, config, health_file=health_file)
+        return code
+    code = service.run(config, health_file=health_file)
     return code
 
 
 SERVE = (
-    "Serves a task of your own (docs/offload.md): TARGET names its dynqos.offload.Edge, as MODULE:ATTR "
-    "(a module on the Python path or in this folder) or path/to/file.py:ATTR. The handler runs on a "
+    "Serves a task of your own (docs/offload.md): TARGET names its dynqos.offload.Edge (a function) or "
+    "Service (a core on the edge runtime), as MODULE:ATTR (a module on the Python path or in this "
+    "folder) or path/to/file.py:ATTR; `dynqos edge mpc` is `serve dynqos.edge.mpc.service:SERVICE`. "
+    "An Edge's handler runs on a "
     "worker thread; a call that raises, hangs, returns junk or answers past its budget is counted and "
     "said once, and the drone flies the task's fallback. Replicas of one task share the drones. "
     f"{CLIENT} Prints one JSON line when ready, a health line every few seconds, stops on SIGTERM."
@@ -149,7 +158,9 @@ SERVE = (
 def add_serve(services: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     text = "serve your own offloaded task: dynqos edge serve MODULE:ATTR"
     sub = services.add_parser("serve", parents=[common_options(2)], help=text, description=SERVE)
-    sub.add_argument("target", metavar="TARGET", help="the task's Edge: MODULE:ATTR or path/file.py:ATTR")
+    sub.add_argument(
+        "target", metavar="TARGET", help="the task's Edge or Service: MODULE:ATTR or path/file.py:ATTR"
+    )
     sub.add_argument(
         "--replica-id",
         default="",
@@ -163,10 +174,10 @@ def add_serve(services: argparse._SubParsersAction[argparse.ArgumentParser]) -> 
 
 def run_serve(args: argparse.Namespace, config: Config) -> int:
     from dynqos.common.keys import check_replica_id
-    from dynqos.common.tasks import Edge, load
+    from dynqos.common.tasks import Edge, Service, load
 
     limit_math_threads(config.mpc.math_threads, os.environ)
-    edge = load(args.target, Edge)  # a module that fails to import: one line, exit 2
+    declared = load(args.target, (Edge, Service))  # a module that fails to import: one line, exit 2
     if args.replica_id:
         try:
             check_replica_id(args.replica_id, "--replica-id")
@@ -175,7 +186,10 @@ def run_serve(args: argparse.Namespace, config: Config) -> int:
     from dynqos.edge import tasks
 
     code: int = tasks.run(
-        edge, with_metrics(args, config), health_file=path_or_none(args.health_file), replica=args.replica_id
+        declared,
+        with_metrics(args, config),
+        health_file=path_or_none(args.health_file),
+        replica=args.replica_id,
     )
     return code
 

@@ -16,23 +16,24 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
-from pathlib import Path
+from dataclasses import dataclass, replace
 
 from prometheus_client import Histogram
 
 from dynqos.common import keys
+from dynqos.common.builtin_tasks import DETECTOR
 from dynqos.common.bus import Priority, Publisher, Received
 from dynqos.common.config import Config
 from dynqos.common.errors import DecodeError
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import CameraAck, CameraFrame, Detections
 from dynqos.common.queues import BoundedQueue
+from dynqos.common.tasks import Service
 from dynqos.edge import metrics
 from dynqos.edge.detector.assembler import FrameAssembler
 from dynqos.edge.detector.circles import decode_depth, decode_rgb, find_circles, locate
 from dynqos.edge.membership import LiveSet, default_replica_id
-from dynqos.edge.runtime import EdgeCore, Ports, Runtime, serve
+from dynqos.edge.runtime import EdgeCore, Ports, Runtime
 
 log = logging.getLogger(__name__)
 
@@ -200,6 +201,11 @@ class DetectorService(EdgeCore):
         self.replicas.close()
 
 
-def run(config: Config, *, health_file: Path | None = None) -> int:
-    """`dynqos edge detector` until SIGTERM (edge/service.py's `serve`)."""
-    return serve("detector", config, DetectorService, metrics.detector, health_file=health_file)
+def _make(config: Config, ports: Ports, replica: str) -> DetectorService:
+    if replica:  # --replica-id over [detector] replica_id
+        config = replace(config, detector=replace(config.detector, replica_id=replica))
+    return DetectorService(config, ports)
+
+
+# `dynqos edge detector` is `dynqos edge serve dynqos.edge.detector.service:SERVICE` (edge/tasks.py).
+SERVICE = Service(DETECTOR, make=_make, name="detector", metrics=metrics.detector)

@@ -23,23 +23,24 @@ import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
-from pathlib import Path
 
 import numpy as np
 from prometheus_client import Histogram
 
 from dynqos.common import keys
+from dynqos.common.builtin_tasks import MPC
 from dynqos.common.bus import Newest, Priority, Publisher, Received
 from dynqos.common.config import Config
 from dynqos.common.keys import Downlink
 from dynqos.common.messages import Command, Reference, State
+from dynqos.common.tasks import Service
 from dynqos.edge import feeds, metrics
 from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
 from dynqos.edge.mpc.controller import DroneController
 from dynqos.edge.mpc.problem import SolveError
 from dynqos.edge.replicas import Assignment, Role
-from dynqos.edge.runtime import EdgeCore, Ports, serve
+from dynqos.edge.runtime import EdgeCore, Ports
 
 log = logging.getLogger(__name__)
 
@@ -454,9 +455,14 @@ class MpcService(EdgeCore):
         )
 
 
-def run(config: Config, *, health_file: Path | None = None) -> int:
-    """`dynqos edge mpc` until SIGTERM (edge/service.py's `serve`)."""
-    return serve("mpc", config, MpcService, metrics.mpc, health_file=health_file)
+def _make(config: Config, ports: Ports, replica: str) -> MpcService:
+    if replica:  # --replica-id over [mpc] replica_id
+        config = replace(config, mpc=replace(config.mpc, replica_id=replica))
+    return MpcService(config, ports)
+
+
+# `dynqos edge mpc` is `dynqos edge serve dynqos.edge.mpc.service:SERVICE` (edge/tasks.py's `run`).
+SERVICE = Service(MPC, make=_make, name="mpc", metrics=metrics.mpc)
 
 
 def _own_after_copy(previous: Received, item: Received) -> bool:
