@@ -53,10 +53,10 @@ class Frames:
 
 def _frames(count: int) -> Frames:
     """RGB-D frames as fleet-arbiter's first drone sees them: its world, mission, camera size and parts."""
-    from dynqos.experiment.camera_sizing import flight_views
-    from dynqos.experiment.scenario import builtin_scenario, fleet_configs
     from dynqos.onboard.camera import encode_depth, encode_rgb
     from dynqos.onboard.pacing import split
+    from dynqos.plan.camera_sizing import flight_views
+    from dynqos.plan.scenario import builtin_scenario, fleet_configs
     from dynqos.sim.vehicle.camera import SimCamera
     from dynqos.sim.vehicle.world import load_world
 

@@ -25,7 +25,7 @@ from typing import Any
 from dynqos.bench.report import emit, flight_args, judged, pct, provenance
 from dynqos.bench.suite import spread
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import builtin_scenario
+from dynqos.plan.scenario import builtin_scenario
 
 BUSY_TARGET = 0.70
 

@@ -28,7 +28,7 @@ from typing import Any
 from dynqos.bench.report import emit, flight_args, judged, pct, provenance
 from dynqos.bench.suite import spread
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import builtin_scenario
+from dynqos.plan.scenario import builtin_scenario
 
 MODES = ("single-homed", "dual-homed")
 ONBOARD_TARGET = 1.5  # the onboard daemon's CPU on two paths over one

@@ -29,7 +29,7 @@ from typing import Any
 from dynqos.bench.report import emit, flight_args, judged, provenance
 from dynqos.bench.suite import spread
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import builtin_scenario
+from dynqos.plan.scenario import builtin_scenario
 
 WINDOW_S = 1.0
 BOUND = 1.2

@@ -1,7 +1,7 @@
 """Flights whose test asserts behaviour (no fallback, recovery in time) on a machine that may be busy.
 
 A flight's summary is `ok: false, failure: "starved: ..."` when its processes all ran but the machine
-was above 85% busy for more than 3 of its seconds (dynqos.experiment.machine.judge): its latencies are
+was above 85% busy for more than 3 of its seconds (dynqos.reports.machine.judge): its latencies are
 then partly the CPU's, so it is no result for a table. A test of behaviour asks what the drones did:
 a starved flight whose behaviour holds passed, and the harder way (fewer cores than promised). Only a
 flight that broke the test's assertions while starved, or while the host took more than a tenth of the

@@ -35,8 +35,8 @@ def test_each_built_in_service_is_a_declared_task_served_like_a_users(
 def test_the_declarations_carry_the_wire_types_and_flows() -> None:
     assert (builtin_tasks.MPC.request, builtin_tasks.MPC.answer) == (State, Command)
     assert (builtin_tasks.DETECTOR.request, builtin_tasks.DETECTOR.answer) == (CameraFrame, Detections)
-    assert builtin_tasks.MPC.flow == "control" and not builtin_tasks.MPC.stateless
-    assert builtin_tasks.DETECTOR.flow == "bulk" and builtin_tasks.DETECTOR.stateless
+    assert (builtin_tasks.MPC.flow, builtin_tasks.MPC.stateless) == ("control", False)
+    assert (builtin_tasks.DETECTOR.flow, builtin_tasks.DETECTOR.stateless) == ("bulk", True)
 
 
 def test_the_declarations_are_the_configs_defaults() -> None:
@@ -62,5 +62,5 @@ def test_a_config_sets_the_mpcs_rate_and_deadline_for_both_sides() -> None:
 
 
 def test_a_service_must_name_a_valid_process() -> None:
-    with pytest.raises(TaskError, match="Service.name"):
+    with pytest.raises(TaskError, match=r"Service\.name"):
         Service(builtin_tasks.MPC, make=print, name="Not A Name")

@@ -9,8 +9,8 @@ import pytest
 
 from dynqos.common.config import ZenohConfig
 from dynqos.common.geometry import yaw_of
-from dynqos.experiment.camera_sizing import attitude, flight_views, frame_bits
-from dynqos.experiment.scenario import builtin_scenario, scenario_config
+from dynqos.plan.camera_sizing import attitude, flight_views, frame_bits
+from dynqos.plan.scenario import builtin_scenario, scenario_config
 from dynqos.sim.network.bearer import MIN_SOCKET_BUFFER, SOCKET_BUFFER, socket_buffer_bytes
 
 

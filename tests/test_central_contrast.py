@@ -20,7 +20,7 @@ import pytest
 
 from dynqos.common.config import CellConfig
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import Scenario, builtin_scenario
+from dynqos.plan.scenario import Scenario, builtin_scenario
 from tests.flights import fly_for_behaviour, not_ours
 
 FAIR_SHARE_MBPS = CellConfig().uplink_mbps / 2  # the drone and one background user, equal weights

@@ -17,7 +17,6 @@ import pytest
 
 from dynqos.experiment import machine
 from dynqos.experiment.cgroup import (
-    GroupCpu,
     QuotaGroup,
     find_quota,
     group_dir,
@@ -28,7 +27,9 @@ from dynqos.experiment.cgroup import (
     parse_quota_v2,
     read_group,
 )
-from dynqos.experiment.machine import CpuTimes, describe, judge, machine_figures, machine_said, parse_cpu_line
+from dynqos.experiment.machine import machine_said, parse_cpu_line
+from dynqos.plan.recording import CpuTimes, GroupCpu
+from dynqos.reports.machine import describe, judge, machine_figures
 
 # A v1 host (this machine's layout: cpu and cpuacct mounted apart) and a v2 container (its own group
 # is the root its mount shows), as /proc/self/mountinfo says them.

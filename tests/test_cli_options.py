@@ -140,7 +140,7 @@ def test_environment_overrides_are_pure_and_ordered() -> None:
 
 def test_the_demo_s_help_names_every_shipped_scenario(capsys: pytest.CaptureFixture[str]) -> None:
     from dynqos.cli.experiment_cmd import DEFAULT_FOUR
-    from dynqos.experiment.scenario import DEFAULT_SCENARIOS, builtin_names
+    from dynqos.plan.scenario import DEFAULT_SCENARIOS, builtin_names
 
     assert DEFAULT_FOUR == DEFAULT_SCENARIOS
     with pytest.raises(SystemExit):

@@ -277,7 +277,7 @@ def test_a_scenario_sets_any_setting_by_section_over_what_it_derives(tmp_path: P
     flight's config over the scenario's own (the breeze it flies in, its camera parts), are checked
     when the scenario is read, and a key that became a setting says where it went."""
     from dynqos.common.config import ZenohConfig
-    from dynqos.experiment.scenario import load_scenario, scenario_config
+    from dynqos.plan.scenario import load_scenario, scenario_config
 
     path = write(
         tmp_path,

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from dynqos.common.config import ZenohConfig, load_config
-from dynqos.experiment.cells import with_cell
-from dynqos.experiment.scenario import builtin_scenario, scenario_config, write_config
+from dynqos.plan.cells import with_cell
+from dynqos.plan.scenario import builtin_scenario, scenario_config, write_config
 from tests.procs import DYNQOS
 
 # The command watchdog ([supervisor] watchdog_s): a setpoint stall that long would be a control outage.

@@ -18,10 +18,12 @@ from dynqos.common.errors import ConfigError
 from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import QosGrant, Reference, State, SupervisorStatus
 from dynqos.common.modes import Grant
-from dynqos.experiment.faults import Fault, FaultInjector, FaultWindow, log_times, outcome, time_in_states
+from dynqos.experiment.faults import FaultInjector
 from dynqos.experiment.processes import Processes
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import Scenario, builtin_scenario
+from dynqos.plan.faults import Fault, FaultWindow
+from dynqos.plan.scenario import Scenario, builtin_scenario
+from dynqos.reports.outcomes import log_times, outcome, time_in_states
 from tests.flights import fly_for_behaviour, starved
 from tests.statuses import status
 

@@ -15,11 +15,11 @@ import pytest
 from dynqos.common.config import ZenohConfig, load_config
 from dynqos.common.errors import ConfigError
 from dynqos.common.messages import State
-from dynqos.experiment.cells import with_cell
-from dynqos.experiment.faults import Fault
-from dynqos.experiment.recording import Recording
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import (
+from dynqos.plan.cells import with_cell
+from dynqos.plan.faults import Fault
+from dynqos.plan.recording import Recording
+from dynqos.plan.scenario import (
     FLEET_FAULTS,
     builtin_scenario,
     fleet_configs,

@@ -20,7 +20,7 @@ from typing import Any
 import pytest
 
 from dynqos.experiment.fleet import run_fleet
-from dynqos.experiment.scenario import Scenario, builtin_scenario
+from dynqos.plan.scenario import Scenario, builtin_scenario
 
 TASKS = ("hole-site", "pillar-sw")
 

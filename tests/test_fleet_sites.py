@@ -12,8 +12,8 @@ import pytest
 
 from dynqos.common.config import ZenohConfig
 from dynqos.experiment.processes import flow_ports
-from dynqos.experiment.scenario import builtin_scenario, fleet_configs
 from dynqos.experiment.sites import site_configs, with_site_b_bearers, with_two_paths
+from dynqos.plan.scenario import builtin_scenario, fleet_configs
 from tests.flights import fly_for_behaviour, run_file
 
 

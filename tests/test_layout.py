@@ -1,12 +1,15 @@
 """The module graph keeps the architecture's layers, so a reader can follow it and each role installs
 and starts on its own (docs/architecture.md draws them):
 
-    common  <-  onboard | edge | sim  <-  experiment, reports, observers, bench  <-  cli
+    common  <-  onboard | edge | sim  <-  plan  <-  experiment, reports, observers, bench  <-  cli
 
 - `common` imports no component; `onboard`, `edge` and `sim` import none of each other (what two
   components share lives in `common`; the simulator is handed to the drone by whoever starts both);
-- the components import nothing of the experiment, reports, observers, bench or CLI, and those import
-  no CLI;
+- the components import nothing of the plan, experiment, reports, observers, bench or CLI, and those
+  import no CLI;
+- a flight is data (`plan`: the scenario, its faults, what a flight recorded), which imports nothing
+  that flies or reports; the reports read a Recording and its plan and import nothing of the
+  experiment, which flies (the experiment uses the reports to write them);
 - the pure modules (the logic the I/O shells call, tested on an injected clock) import no I/O: none of
   zenoh, pymavlink, cv2, aiohttp, asyncio, threading or time, and nothing that brings in the first five;
 - no module imports itself back, function-level imports included.
@@ -34,6 +37,7 @@ PACKAGES = {
 }
 COMPONENTS = ("dynqos.onboard", "dynqos.edge", "dynqos.sim")
 ABOVE = ("dynqos.experiment", "dynqos.reports", "dynqos.observers", "dynqos.bench")
+PLAN = "dynqos.plan"
 CLI = "dynqos.cli"
 PURE = (
     "dynqos.onboard.supervisor",
@@ -138,7 +142,11 @@ def layer_breaches(graph: Graph) -> set[tuple[str, str]]:
             elif _component(module) and not (_in(target, "dynqos.common") or _in(target, "dynqos._version")):
                 if _component(target) != _component(module):
                     out.add((module, target))
-            elif _in(module, ABOVE) and _in(target, CLI):
+            elif (
+                (_in(module, ABOVE) and _in(target, CLI))
+                or (_in(module, PLAN) and _in(target, (*ABOVE, CLI)))
+                or (_in(module, "dynqos.reports") and _in(target, "dynqos.experiment"))
+            ):
                 out.add((module, target))
     return out
 
@@ -243,8 +251,11 @@ def test_each_forbidden_direction_is_caught() -> None:
         ("dynqos.onboard.camera", "dynqos.sim.vehicle.render"),  # onboard -> sim
         ("dynqos.sim.network.cell", "dynqos.edge.qos.grants"),  # sim -> edge
         ("dynqos.common.config", "dynqos.onboard.pid"),  # common -> a component
-        ("dynqos.onboard.daemon", "dynqos.experiment.scenario"),  # a component -> the experiment
+        ("dynqos.onboard.daemon", "dynqos.plan.scenario"),  # a component -> the experiment
         ("dynqos.reports.summary", "dynqos.cli"),  # reports -> the CLI
+        ("dynqos.reports.summary", "dynqos.experiment.faults"),  # reports -> what flies (the old circle)
+        ("dynqos.plan.scenario", "dynqos.experiment.runner"),  # the plan -> what flies
+        ("dynqos.plan.recording", "dynqos.reports.machine"),  # the plan -> the reports
     ]:
         mutated = {m: set(t) for m, t in graph.items()}
         mutated[module].add(target)

@@ -7,15 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from dynqos.experiment.machine import (
-    CpuTimes,
-    busy_share,
-    describe,
-    judge,
-    machine_figures,
-    parse_cpu_line,
-    read_cpu_times,
-)
+from dynqos.experiment.machine import parse_cpu_line, read_cpu_times
+from dynqos.plan.recording import CpuTimes
+from dynqos.reports.machine import busy_share, describe, judge, machine_figures
 
 STAT = """cpu  237491 3186 34901 606039 2155 0 5747 4819 0 0
 cpu0 82231 1602 14105 343587 316 0 2775 2466 0 0
@@ -54,17 +48,17 @@ def _flight(shares: list[float]) -> list[tuple[float, CpuTimes]]:
 
 
 def test_a_flight_with_headroom_is_not_starved_and_one_without_is() -> None:
-    calm = machine_figures(_flight([0.5] * 20 + [0.95] * 3))
+    calm = machine_figures(_flight([0.5] * 20 + [0.95] * 3), cores=2)
     assert calm is not None
     assert calm["busy_share"] == pytest.approx((0.5 * 20 + 0.95 * 3) / 23)
     assert calm["busy_share_max_1s"] == pytest.approx(0.95)
     assert (calm["seconds_above_85"], calm["seconds_sampled"], calm["starved"]) == (3, 23, False)
-    busy = machine_figures(_flight([0.5] * 20 + [0.9] * 4))
+    busy = machine_figures(_flight([0.5] * 20 + [0.9] * 4), cores=2)
     assert busy is not None
     assert busy["starved"]
     assert "STARVED" in describe(busy)
     assert "STARVED" not in describe(calm)
-    assert machine_figures(_flight([])) is None
+    assert machine_figures(_flight([]), cores=2) is None
     assert describe(None) == "machine: not measured (no /proc/stat)"
     # A starved flight is not a result: not ok, and its failure says why; a calm one keeps its verdict.
     ok, failure = judge(True, "", busy)
@@ -83,8 +77,8 @@ def _stolen(shares: list[float], steal: float) -> list[tuple[float, CpuTimes]]:
 
 def test_a_host_that_takes_the_cores_is_said_and_the_verdict_stands() -> None:
     """29% steal was seen here in a CI run whose flights failed on latency; 2% is this host's usual."""
-    usual = machine_figures(_stolen([0.45] * 30, 0.02))
-    taken = machine_figures(_stolen([0.6] * 30, 0.29))
+    usual = machine_figures(_stolen([0.45] * 30, 0.02), cores=2)
+    taken = machine_figures(_stolen([0.6] * 30, 0.29), cores=2)
     assert usual is not None
     assert taken is not None
     assert usual["steal_share"] == pytest.approx(0.02, abs=1e-3)
@@ -95,6 +89,6 @@ def test_a_host_that_takes_the_cores_is_said_and_the_verdict_stands() -> None:
     assert "STOLEN" in describe(taken)
     assert "STOLEN" not in describe(usual)
     assert judge(True, "", taken) == (True, "")  # a flight that held its bounds anyway is a result
-    just = machine_figures(_stolen([0.5] * 30, 0.10))
+    just = machine_figures(_stolen([0.5] * 30, 0.10), cores=2)
     assert just is not None
     assert not just["stolen"]  # the bound itself is not stolen

@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from dynqos.common.messages import State, SupervisorStatus
-from dynqos.experiment.recording import Recording
+from dynqos.plan.recording import Recording
 from dynqos.reports.aggregate import aggregate
 from dynqos.reports.mission import fallback_s, mission_comparison, mission_figures
 from tests.statuses import status as quiet

@@ -9,8 +9,8 @@ import pytest
 
 from dynqos.common.config import ZenohConfig
 from dynqos.common.errors import ConfigError
-from dynqos.experiment.offloaded import offloaded
-from dynqos.experiment.scenario import builtin_scenario, load_scenario, scenario_config
+from dynqos.plan.offloaded import offloaded
+from dynqos.plan.scenario import builtin_scenario, load_scenario, scenario_config
 
 ROOT = Path(__file__).resolve().parent.parent
 MODES = {

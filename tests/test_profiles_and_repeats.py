@@ -13,7 +13,7 @@ import pytest
 from dynqos.common.config import SupervisorConfig, ZenohConfig
 from dynqos.common.errors import ConfigError
 from dynqos.experiment.profile import DEFAULT_PROFILE, load_profile
-from dynqos.experiment.scenario import builtin_scenario, scenario_config
+from dynqos.plan.scenario import builtin_scenario, scenario_config
 from dynqos.reports.aggregate import aggregate, interval, repeated_summary
 from dynqos.reports.figures import figure
 from dynqos.reports.markdown import write_report

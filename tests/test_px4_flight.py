@@ -22,10 +22,10 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from dynqos.common import mavsign
 from dynqos.common.config import ZenohConfig
-from dynqos.experiment.faults import Fault
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import builtin_scenario
 from dynqos.onboard.fclink import PX4_MAIN_AUTO, PX4_MAIN_OFFBOARD
+from dynqos.plan.faults import Fault
+from dynqos.plan.scenario import builtin_scenario
 from dynqos.reports.px4_log import px4_report
 from dynqos.sim.vehicle.px4_sitl import Px4Ports, free_instances
 from tests.conftest import flow_ports

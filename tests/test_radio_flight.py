@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import builtin_scenario
+from dynqos.plan.scenario import builtin_scenario
 from tests.flights import fly_for_behaviour
 
 

@@ -19,9 +19,9 @@ from dynqos.common.keys import Stream
 from dynqos.common.messages import SupervisorStatus
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Received
-from dynqos.experiment.faults import log_times
 from dynqos.onboard.realsense import RealSenseCamera
 from dynqos.onboard.risk import Spaciousness
+from dynqos.reports.outcomes import log_times
 from tests.procs import DynqosProcess
 from tests.realsense_recording import INTRINSICS, record
 from tests.test_onboard_loop import Observer, edge_loop

@@ -22,7 +22,7 @@ from zenoh_ros2_sdk.session import ZenohSession
 
 from dynqos.edge.ros2 import codec, wire
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import builtin_scenario
+from dynqos.plan.scenario import builtin_scenario
 from tests.conftest import free_tcp_port
 from tests.ros2_client import first_sample, ros_client, ros_pose, sdk_publisher
 

@@ -160,7 +160,7 @@ def test_the_planner_flies_a_mission_from_now_once_per_seq_and_refuses_one_outsi
 def test_a_scenario_with_the_bridge_needs_the_ros2_extra_and_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
     from dataclasses import replace
 
-    from dynqos.experiment import scenario as scenarios
+    from dynqos.plan import scenario as scenarios
 
     base = scenarios.builtin_scenario("baseline")
     assert replace(base, ros2_bridge=True).ros2_bridge  # here the extra is installed

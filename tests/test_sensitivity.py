@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from dynqos.experiment.scenario import builtin_scenario
 from dynqos.experiment.sensitivity import _plot, _repeated_point, markdown
+from dynqos.plan.scenario import builtin_scenario
 from tests.procs import DYNQOS
 
 
@@ -53,7 +53,7 @@ def test_the_scenario_carries_its_priority_weight_into_the_cell() -> None:
     from dataclasses import replace
 
     from dynqos.common.config import ZenohConfig
-    from dynqos.experiment.scenario import scenario_config
+    from dynqos.plan.scenario import scenario_config
 
     scenario = replace(builtin_scenario("bg-staticqos"), priority_weight=2.0)
     config = scenario_config(scenario, zenoh=ZenohConfig(), fc_port=1, gcs_port=2)

@@ -18,8 +18,8 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from dynqos.common import mavsign
 from dynqos.common.errors import ConfigError, DynqosError
-from dynqos.experiment.faults import log_times
 from dynqos.onboard.fclink import FcLink, use_mavlink2
+from dynqos.reports.outcomes import log_times
 from tests.procs import DYNQOS, DynqosProcess
 from tests.test_onboard_loop import Observer, edge_loop
 from tests.test_vehicle_mavlink import free_udp_port

@@ -15,11 +15,11 @@ from dynqos.common.config import ZenohConfig
 from dynqos.common.errors import ConfigError
 from dynqos.common.messages import SupervisorStatus
 from dynqos.common.modes import ControlSource, Flow, SupervisorState
-from dynqos.experiment.faults import Fault
 from dynqos.experiment.processes import Processes, flow_ports
-from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import builtin_scenario, scenario_config
 from dynqos.experiment.sites import site_configs, site_processes, with_two_paths
+from dynqos.plan.faults import Fault
+from dynqos.plan.recording import Recording
+from dynqos.plan.scenario import builtin_scenario, scenario_config
 from dynqos.reports.multipath import multipath_lines, path_figures
 from dynqos.reports.summary import _cpu
 from tests.flights import run_file

@@ -14,8 +14,8 @@ import pytest
 
 from dynqos.common.errors import ConfigError
 from dynqos.experiment.demo import run_demo
-from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import builtin_scenario
+from dynqos.plan.recording import Recording
+from dynqos.plan.scenario import builtin_scenario
 from dynqos.reports.summary import cell_rates
 from dynqos.reports.uplink import traced_lines
 from tests.procs import DYNQOS

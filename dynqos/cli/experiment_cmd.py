@@ -138,7 +138,7 @@ def _flight_options(sub: argparse.ArgumentParser) -> None:
 def run_demo(args: argparse.Namespace, config: Config) -> int:
     from dynqos.experiment.demo import default_out_dir, run_demo
     from dynqos.experiment.profile import DEFAULT_PROFILE, load_profile
-    from dynqos.experiment.scenario import DEFAULT_SCENARIOS, load_scenario
+    from dynqos.plan.scenario import DEFAULT_SCENARIOS, load_scenario
 
     if args.duration is not None and not 5 <= args.duration <= 3600:
         raise DynqosError(f"--duration must be in 5..3600 s, got {args.duration}")
@@ -225,7 +225,7 @@ def run_sensitivity(args: argparse.Namespace, config: Config) -> int:
 
 
 def demo_line(s: dict[str, Any]) -> str:
-    from dynqos.experiment.scenario import run_id
+    from dynqos.plan.scenario import run_id
     from dynqos.reports.figures import figure
 
     name = run_id(s["scenario"], s.get("profile", "dynqos"))

@@ -19,6 +19,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from dynqos.plan.recording import GroupCpu
+
 MOUNTINFO = Path("/proc/self/mountinfo")
 PROC_CGROUP = Path("/proc/self/cgroup")
 
@@ -32,16 +34,6 @@ class QuotaGroup:
     cpu_dir: Path
     usage_dir: Path | None
     version: int
-
-
-@dataclass(frozen=True, slots=True)
-class GroupCpu:
-    """One reading of the quota group: CPU time used (None: not readable) and time held by the quota,
-    in nanoseconds."""
-
-    quota_cores: float
-    usage_ns: int | None
-    throttled_ns: int
 
 
 @dataclass(frozen=True, slots=True)

@@ -20,7 +20,7 @@ from dynqos.common.errors import ConfigError
 from dynqos.experiment.machine import SIZED_FOR_CORES, machine_said
 from dynqos.experiment.profile import DEFAULT_PROFILE, Profile, load_profile
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import Scenario, builtin_scenario
+from dynqos.plan.scenario import Scenario, builtin_scenario
 from dynqos.reports.aggregate import repeated_summary
 from dynqos.reports.figures import figure
 from dynqos.reports.markdown import write_report

@@ -1,4 +1,4 @@
-"""Faults a scenario can inject into a loopback flight, and what each did to the drone.
+"""Faults a scenario can inject into a loopback flight (dynqos/reports/outcomes.py says what each did).
 
 A scenario's `[[scenario.faults]]` list (docs/reliability.md) says when each fault starts and how long
 it lasts. The injector acts only on what the run itself started: processes by their pid (SIGKILL and a
@@ -11,98 +11,29 @@ controller, and how long after the fault cleared control was back at the edge.
 
 from __future__ import annotations
 
-import itertools
 import logging
-import math
 import signal
 import threading
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from datetime import datetime
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 from dynqos.common import keys
 from dynqos.common.bus import Bus, Received
-from dynqos.common.clock import NS_PER_S, to_ns
-from dynqos.common.errors import ConfigError
+from dynqos.common.clock import NS_PER_S
 from dynqos.common.keys import Downlink, Stream
-from dynqos.common.messages import QosGrant, Reference, State, SupervisorStatus
-from dynqos.common.modes import ControlSource
+from dynqos.common.messages import QosGrant, Reference, State
 from dynqos.common.queues import BoundedQueue
 from dynqos.experiment.processes import Processes
+from dynqos.plan.faults import PROCESS_KILLS, SITE_FAULTS, Fault, FaultWindow
 
 if TYPE_CHECKING:
     from dynqos.experiment.sites import SiteFaults
 
 log = logging.getLogger(__name__)
-SETTLE_S = 10.0  # how long after a fault cleared its outcome is looked for (zenoh reconnects take seconds)
-
-FaultKind = Literal[
-    "mpc_kill",
-    "router_kill",
-    "coverage_loss",
-    "downlink_loss",
-    "fc_silence",
-    "detector_flood",
-    "background",
-    "capacity",
-    "trace",
-    "mpc_replica_kill",
-    "mpc_replica_hang",
-    "replica_join",
-    "planner_replica_kill",
-    "qos_agent_kill",
-    "qos_agent_hang",
-    "site_kill",
-    "cell_outage",
-    "path_partition",
-    "task_kill",
-]
-# the faults that SIGKILL processes and restart them when they end; task_kill: every offloaded task's
-# edge service (docs/offload.md)
-PROCESS_KILLS = {"mpc_kill": "mpc", "router_kill": "router", "task_kill": ""}
-SITE_FAULTS = ("site_kill", "cell_outage", "path_partition")  # dynqos/experiment/sites.py acts on them
 FLOOD_FPS = 100.0  # several times what the detector can process
 FLOOD_MAX_FRAMES = 20_000
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Fault:
-    """One fault: `kind` from `at_s` (seconds into the recorded flight) for `duration_s`."""
-
-    at_s: float
-    kind: FaultKind
-    duration_s: float = 1.0
-    offered_mbps: float = 80.0  # background: the load while it lasts
-    uplink_mbps: float = 40.0  # capacity: the cell's uplink capacity while it lasts (full scale)
-    file: str = ""  # trace: a Mahimahi uplink trace the capacity follows while it lasts
-    site: Literal["a", "b"] = "a"  # site_kill, cell_outage, background: the site (and its cell) it hits
-
-    def __post_init__(self) -> None:
-        if not 0 <= self.at_s <= 86400:
-            raise ConfigError("at_s", "must be in 0..86400 s")
-        if not 0.05 <= self.duration_s <= 3600:
-            raise ConfigError("duration_s", "must be in 0.05..3600 s")
-        if not 0 <= self.offered_mbps <= 1e5:
-            raise ConfigError("offered_mbps", "must be in 0..100000 Mbit/s")
-        if not 0 <= self.uplink_mbps <= 1e5:
-            raise ConfigError("uplink_mbps", "must be in 0..100000 Mbit/s")
-        if self.kind == "trace" and not self.file:
-            raise ConfigError("file", "a trace fault names its Mahimahi trace file")
-
-
-@dataclass
-class FaultWindow:
-    fault: Fault
-    start_wall: float
-    start_ns: int
-    end_wall: float | None = None
-    end_ns: int | None = None
-    notes: list[str] = field(default_factory=list)
-    target: str = ""  # the process a replica fault acted on
-    grant: dict[str, Any] | None = None  # qos_agent_kill and _hang: the drone's grant before and after
 
 
 class Flood:
@@ -350,142 +281,3 @@ class FaultInjector:
 
 
 # ---- outcomes ----------------------------------------------------------------------------------------
-
-
-def time_in_states(
-    statuses: Sequence[SupervisorStatus],
-    since_ns: int | None = None,
-    field: str = "state",
-    *,
-    within: tuple[int, int] | None = None,
-) -> dict[str, float]:
-    """Seconds with each value of a status field (the supervisor state by default; `risk`, `flow`...):
-    a status's value lasts until the next status. Only the spans that start at or after `since_ns` count
-    (all of them when None); with `within` (lo, hi), only the part of each span inside [lo, hi)."""
-    out: dict[str, float] = {}
-    lo, hi = within or (-math.inf, math.inf)
-    for a, b in itertools.pairwise(statuses):
-        if since_ns is None or a.stamp_ns >= since_ns:
-            value = getattr(a, field)
-            key = str(getattr(value, "value", value))
-            span = max(0, min(b.stamp_ns, hi) - max(a.stamp_ns, lo))
-            out[key] = out.get(key, 0.0) + span / NS_PER_S
-    return out
-
-
-def _while_it_lasted(during: list[SupervisorStatus], start_ns: int) -> dict[str, Any]:
-    """What the drone saw and did while the fault lasted: its RTT, its time in each state, and how soon
-    its camera was slowed (the rate-adaptation states, q4-q6) after the fault began."""
-    rtts = sorted(v for s in during for v in s.rtt_samples_ms)
-    states = time_in_states(during)
-    slowed = next((s for s in during if s.camera_rate_factor < 1.0), None)
-    rtt = None
-    if rtts:
-        rtt = {"mean": sum(rtts) / len(rtts), "p95": rtts[min(len(rtts) - 1, int(0.95 * len(rtts)))]}
-    return {
-        "rtt_ms_during": rtt,
-        "states_s_during": {k: round(v, 2) for k, v in sorted(states.items())},
-        "camera_slowed_after_s": None
-        if slowed is None
-        else round((slowed.stamp_ns - start_ns) / NS_PER_S, 2),
-    }
-
-
-def _signals(status: SupervisorStatus) -> dict[str, Any]:
-    """What the supervisor saw in its last status of the window: why a drone not yet back is not."""
-    return {
-        "state": status.state.value,
-        "latency": status.latency,
-        "t_cam_ms": status.t_cam_ms,
-        "t_cc_ms": status.t_cc_ms,
-        "p_cam": status.p_cam,
-        "p_cc": status.p_cc,
-        "risk": status.risk,
-    }
-
-
-def log_times(text: str) -> list[tuple[float, str]]:
-    """(wall time, message) of each line of a dynqos log (`%(asctime)s LEVEL name: message`)."""
-    out = []
-    for line in text.splitlines():
-        try:
-            stamp = datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
-        except ValueError:
-            continue
-        out.append((stamp, line[24:]))
-    return out
-
-
-def _in_fallback_at(status: Sequence[SupervisorStatus], stamp_ns: int) -> SupervisorStatus | None:
-    """The drone's last status at or before `stamp_ns` when its fallback was flying it then, else None."""
-    before = [s for s in status if s.stamp_ns <= stamp_ns]
-    last = max(before, key=lambda s: s.stamp_ns, default=None)
-    return last if last is not None and last.control_source is ControlSource.FALLBACK else None
-
-
-def outcome(
-    window: FaultWindow,
-    onboard_log: list[tuple[float, str]],
-    status: Sequence[SupervisorStatus],
-    next_start_ns: int | None,
-    tracking_errors: Sequence[tuple[int, float]] = (),
-) -> dict[str, Any]:
-    """What the fault did, measured from the drone's SupervisorStatus stream: whether control fell back,
-    how long after the last valid command, the longest setpoint gap, and when control was back at the
-    edge; and from `tracking_errors` ((state stamp, distance to the published reference)) how far the
-    drone left its mission. Its window runs from its start to SETTLE_S after it cleared, or to the next
-    fault's start. The onboard log only supplies the lines a reader will want to see beside the figures."""
-    fault = window.fault
-    end_ns = window.end_ns if window.end_ns is not None else window.start_ns + to_ns(fault.duration_s)
-    until_ns = end_ns + to_ns(SETTLE_S)
-    if next_start_ns is not None:
-        until_ns = min(until_ns, next_start_ns)
-    seen = sorted((s for s in status if window.start_ns <= s.stamp_ns <= until_ns), key=lambda s: s.stamp_ns)
-    at_start = _in_fallback_at(status, window.start_ns)
-    fallback = at_start or next(
-        (
-            s
-            for s in seen
-            if s.control_source is ControlSource.FALLBACK
-            and window.start_ns <= s.control_changed_ns <= end_ns + NS_PER_S
-        ),
-        None,
-    )
-    entered = None if at_start else fallback  # fell back in this fault's window, and when
-    back = None
-    if fallback is not None:
-        since = fallback.control_changed_ns
-        edge = (s for s in seen if s.control_source is ControlSource.EDGE and s.control_changed_ns > since)
-        back = next(edge, None)
-    gaps = [s.setpoint_gap_ms for s in seen if s.setpoint_gap_ms is not None]
-    errors = [e for t, e in tracking_errors if window.start_ns <= t <= until_ns]
-    during = [s for s in seen if s.stamp_ns <= end_ns]
-    until_wall = window.start_wall + (until_ns - window.start_ns) / NS_PER_S
-    lines = [m for t, m in onboard_log if window.start_wall <= t <= until_wall]
-    notable = [m.split(": ", 1)[-1] for m in lines if m.startswith(("WARNING ", "ERROR "))]
-    notable += [m.split(": ", 1)[-1] for m in lines if "control from the edge" in m][:1]
-    return {
-        "kind": fault.kind,
-        "at_s": fault.at_s,
-        "duration_s": fault.duration_s,
-        # flown by its fallback while the fault lasted: fell back in it, or was there when it began (an
-        # earlier fault's fallback not yet handed back); the two timings are for a fallback it caused
-        "fallback": fallback is not None,
-        "fallback_at_start": at_start is not None,
-        "fallback_after_last_command_ms": None if entered is None else entered.command_age_ms,
-        "fallback_after_fault_s": (
-            None if entered is None else round((entered.control_changed_ns - window.start_ns) / NS_PER_S, 3)
-        ),
-        "max_setpoint_gap_ms": max(gaps) if gaps else None,
-        "max_tracking_error_m": max(errors) if errors else None,
-        # None: never left the edge (no fallback), or not back within `settle` (see "recovered")
-        "back_at_edge_after_clear_s": (
-            None if back is None else round(max(0.0, (back.control_changed_ns - end_ns) / NS_PER_S), 3)
-        ),
-        "recovered": fallback is None or back is not None,
-        "at_window_end": _signals(seen[-1]) if seen else None,
-        **_while_it_lasted(during, window.start_ns),
-        "log": notable[:4],
-        "notes": window.notes,
-        **({"grant": window.grant} if window.grant is not None else {}),
-    }

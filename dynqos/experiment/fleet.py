@@ -23,7 +23,6 @@ from dynqos.common.keys import Downlink
 from dynqos.common.messages import QosDecision
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Received, Role, endpoints, open_bus
-from dynqos.experiment.cells import with_cell
 from dynqos.experiment.faults import FaultInjector
 from dynqos.experiment.flight import (
     QUEUE_ITEMS,
@@ -36,10 +35,7 @@ from dynqos.experiment.flight import (
     wait_for_offload,
 )
 from dynqos.experiment.link_relay import LinkRelay
-from dynqos.experiment.offloaded import offloaded
 from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
-from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import REPLICA_FAULTS, Scenario, fleet_configs, write_config
 from dynqos.experiment.sites import (
     SiteFaults,
     operators_qod,
@@ -59,6 +55,10 @@ from dynqos.experiment.vehicles import (
     with_px4_flight,
     world_of,
 )
+from dynqos.plan.cells import with_cell
+from dynqos.plan.offloaded import offloaded
+from dynqos.plan.recording import Recording
+from dynqos.plan.scenario import REPLICA_FAULTS, Scenario, fleet_configs, write_config
 from dynqos.reports.fleet import summarise_fleet, write_fleet
 from dynqos.reports.mission import mission_figures, vehicle_tracks
 from dynqos.reports.routes import plot_routes

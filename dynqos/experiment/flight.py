@@ -23,11 +23,12 @@ from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import OFFBOARD, Reference, State, SupervisorStatus
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Bus, Received
-from dynqos.experiment.faults import FaultInjector, FaultWindow
-from dynqos.experiment.machine import own_machine, read_cpu_times
+from dynqos.experiment.faults import FaultInjector
+from dynqos.experiment.machine import own_machine, read_cpu_times, usable_core_count
 from dynqos.experiment.processes import Processes, resident_memory
-from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import UAV, Scenario, replica_names, world_path
+from dynqos.plan.faults import FaultWindow
+from dynqos.plan.recording import Recording
+from dynqos.plan.scenario import UAV, Scenario, replica_names, world_path
 
 log = logging.getLogger(__name__)
 
@@ -222,6 +223,7 @@ def fly(
 
 def _sample_machine(rec: Recording, elapsed: float) -> None:
     cpus, quota = own_machine()
+    rec.cores = usable_core_count()  # the reports read it from the recording, not from the host
     times = read_cpu_times(cpus=cpus, quota=quota)
     if times is not None:
         rec.cpu_times.append((elapsed, times))

@@ -16,7 +16,7 @@ from typing import Any
 
 from dynqos.common.config import SupervisorConfig, build
 from dynqos.common.errors import ConfigError
-from dynqos.experiment.scenario import Scenario
+from dynqos.plan.scenario import Scenario
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -3,7 +3,7 @@
 Start the router, the cell emulator, the simulator, the planner, the MPC, the detector and the onboard
 daemon with the scenario's config (free ports on 127.0.0.1); wait until the drone offloads; fly for
 `duration_s`, switching the cell's background load on at `bg_start_s` through the cell's control API
-and injecting the scenario's faults; record what a ground station would see (dynqos/experiment/recording.py);
+and injecting the scenario's faults; record what a ground station would see (dynqos/plan/recording.py);
 stop every process (also on Ctrl-C or when any of them dies, naming it); write the run folder
 (dynqos/reports/summary.py).
 """
@@ -18,8 +18,7 @@ from typing import Any
 
 from dynqos.common.config import Config, ZenohConfig
 from dynqos.common.transport import Role, endpoints, open_bus
-from dynqos.experiment.cells import with_cell
-from dynqos.experiment.faults import SITE_FAULTS, FaultInjector
+from dynqos.experiment.faults import FaultInjector
 from dynqos.experiment.flight import (
     Streams,
     fly,
@@ -31,10 +30,7 @@ from dynqos.experiment.flight import (
     wait_for_offload,
 )
 from dynqos.experiment.link_relay import LinkRelay
-from dynqos.experiment.offloaded import offloaded
 from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
-from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, write_config
 from dynqos.experiment.sites import (
     SiteFaults,
     operators_qod,
@@ -54,6 +50,11 @@ from dynqos.experiment.vehicles import (
     with_px4_flight,
     world_of,
 )
+from dynqos.plan.cells import with_cell
+from dynqos.plan.faults import SITE_FAULTS
+from dynqos.plan.offloaded import offloaded
+from dynqos.plan.recording import Recording
+from dynqos.plan.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, write_config
 from dynqos.reports.multipath import fault_spans, path_figures
 from dynqos.reports.summary import summarise, write_scenario
 

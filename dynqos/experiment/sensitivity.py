@@ -25,7 +25,7 @@ from typing import Any
 
 from dynqos.common.errors import ConfigError
 from dynqos.experiment.runner import run_scenario
-from dynqos.experiment.scenario import Scenario, builtin_scenario
+from dynqos.plan.scenario import Scenario, builtin_scenario
 from dynqos.reports.aggregate import aggregate
 from dynqos.reports.figures import fmt, interval_text
 

@@ -19,12 +19,12 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common.config import Config, OnboardPathConfig, ZenohConfig
-from dynqos.experiment.cells import with_cell
-from dynqos.experiment.faults import Fault, FaultWindow
 from dynqos.experiment.link_relay import LinkRelay
-from dynqos.experiment.offloaded import offloaded
 from dynqos.experiment.processes import Processes
-from dynqos.experiment.scenario import Scenario, replica_names, write_config
+from dynqos.plan.cells import with_cell
+from dynqos.plan.faults import Fault, FaultWindow
+from dynqos.plan.offloaded import offloaded
+from dynqos.plan.scenario import Scenario, replica_names, write_config
 from dynqos.reports.summary import qod_sessions
 
 log = logging.getLogger(__name__)

@@ -12,8 +12,8 @@ from typing import Any
 
 from dynqos.common.config import Config
 from dynqos.experiment.processes import Processes
-from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import Scenario
+from dynqos.plan.recording import Recording
+from dynqos.plan.scenario import Scenario
 from dynqos.sim.vehicle.world import World, collision, default_world, load_world
 
 Vec3 = tuple[float, float, float]

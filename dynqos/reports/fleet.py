@@ -12,14 +12,14 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common.messages import QosDecision, SupervisorStatus
-from dynqos.experiment.faults import time_in_states
-from dynqos.experiment.machine import describe, judge, machine_figures
-from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import Scenario, run_id
 from dynqos.onboard.supervisor import PRIORITY_STATES as SUPERVISOR_PRIORITY_STATES
 from dynqos.onboard.supervisor import RATE_ADAPTATION_STATES as SUPERVISOR_RATE_ADAPTATION_STATES
+from dynqos.plan.recording import Recording
+from dynqos.plan.scenario import Scenario, run_id
 from dynqos.reports.figures import figure
+from dynqos.reports.machine import describe, judge, machine_figures
 from dynqos.reports.multipath import fault_spans, path_figures
+from dynqos.reports.outcomes import time_in_states
 from dynqos.reports.summary import cell_rates, summarise, write_scenario
 
 # What each drone's entry carries of the single-drone summary.
@@ -117,7 +117,7 @@ def summarise_fleet(
     ok: bool,
     failure: str,
 ) -> dict[str, Any]:
-    machine = machine_figures(rec.cpu_times)
+    machine = machine_figures(rec.cpu_times, rec.cores)
     ok, failure = judge(ok, failure, machine)
     drones = {uav: _drone(scenario, rec, uav, recs[uav], onboard_logs.get(uav, ""), ok) for uav in recs}
     end_ns = max((s.stamp_ns for r in recs.values() for _, s in r.states), default=rec.t0_ns)

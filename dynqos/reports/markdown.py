@@ -9,8 +9,8 @@ import math
 from pathlib import Path
 from typing import Any
 
-from dynqos.experiment import machine
-from dynqos.experiment.scenario import run_id
+from dynqos.plan.scenario import run_id
+from dynqos.reports import machine
 from dynqos.reports.aggregate import interval
 from dynqos.reports.figures import figure, fmt, interval_text, lookup, mean_of
 from dynqos.reports.fleet import fleet_comparison, fleet_section

@@ -10,7 +10,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from dynqos.common.messages import Reference, State
-from dynqos.experiment.recording import Recording
+from dynqos.plan.recording import Recording
 
 
 def stats(values: list[float]) -> dict[str, float | None]:

@@ -26,9 +26,9 @@ from typing import Any
 
 from dynqos.common.clock import NS_PER_S
 from dynqos.common.modes import ControlSource
-from dynqos.experiment.faults import time_in_states
-from dynqos.experiment.recording import Recording
+from dynqos.plan.recording import Recording
 from dynqos.reports.figures import figure, mean_of
+from dynqos.reports.outcomes import time_in_states
 
 NEAR_M = 1.0
 DONE_SHARE = 0.8

@@ -16,8 +16,9 @@ from dynqos.common.clock import NS_PER_S, to_ns
 from dynqos.common.messages import SupervisorStatus
 from dynqos.common.modes import Flow
 from dynqos.common.stats import percentile
-from dynqos.experiment.faults import SETTLE_S, SITE_FAULTS, FaultWindow, time_in_states
+from dynqos.plan.faults import SETTLE_S, SITE_FAULTS, FaultWindow
 from dynqos.reports.figures import figure
+from dynqos.reports.outcomes import time_in_states
 
 
 def _spread(samples: Sequence[float]) -> dict[str, float] | None:

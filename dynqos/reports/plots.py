@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common.modes import SupervisorState
-from dynqos.experiment.recording import Recording
-from dynqos.experiment.scenario import Scenario
+from dynqos.plan.recording import Recording
+from dynqos.plan.scenario import Scenario
 from dynqos.reports.measures import tracking_errors
 
 RHO2_MS = 27  # the paper's C&C threshold, drawn on the latency panel

@@ -8,8 +8,28 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dynqos.common.messages import Reference, State, SupervisorStatus
-from dynqos.experiment.faults import FaultWindow
-from dynqos.experiment.machine import CpuTimes
+from dynqos.plan.faults import FaultWindow
+
+
+@dataclass(frozen=True, slots=True)
+class GroupCpu:
+    """One reading of the quota group: CPU time used (None: not readable) and time held by the quota,
+    in nanoseconds."""
+
+    quota_cores: float
+    usage_ns: int | None
+    throttled_ns: int
+
+
+@dataclass(frozen=True, slots=True)
+class CpuTimes:
+    """The cores' time since boot, in clock ticks: in total, busy (not idle, not waiting on I/O), and
+    stolen (the hypervisor ran something else; part of busy); and the quota group's reading, if any."""
+
+    busy: int
+    total: int
+    steal: int = 0
+    group: GroupCpu | None = None
 
 
 @dataclass
@@ -31,3 +51,4 @@ class Recording:
     cpu_s_t0: dict[str, float] = field(default_factory=dict)  # ... read when the recorded flight began
     # (t_s into the flight, all cores' CPU times) about every second: how busy the machine was
     cpu_times: list[tuple[float, CpuTimes]] = field(default_factory=list)
+    cores: int = 1  # the cores the flight's processes could use (its affinity), when it was flown

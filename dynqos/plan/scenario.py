@@ -34,10 +34,10 @@ from dynqos.common.config import (
 )
 from dynqos.common.errors import ConfigError
 from dynqos.common.keys import UAV_ID_PATTERN
-from dynqos.experiment.camera_sizing import camera_size_for, flight_views
-from dynqos.experiment.cells import with_radio
-from dynqos.experiment.faults import Fault
-from dynqos.experiment.offloaded import offloaded
+from dynqos.plan.camera_sizing import camera_size_for, flight_views
+from dynqos.plan.cells import with_radio
+from dynqos.plan.faults import Fault
+from dynqos.plan.offloaded import offloaded
 from dynqos.sim.network.bearer import socket_buffer_bytes
 
 if sys.version_info >= (3, 11):
@@ -349,7 +349,7 @@ def scenario_config(scenario: Scenario, *, zenoh: ZenohConfig, fc_port: int, gcs
     """The dynqos config that flies `scenario` on one machine: every process on 127.0.0.1, the cell's
     bearers and control API on free ports (the cell reports them on its ready line), the simulator
     sending to the onboard daemon's `fc_port`, the camera sized to offer the scenario's rate from the
-    views its mission flies (dynqos/experiment/camera_sizing.py)."""
+    views its mission flies (dynqos/plan/camera_sizing.py)."""
     config = Config(
         drone=DroneConfig(id=UAV),
         # The drone's send buffer on the bulk link is a queue in front of the cell like the UE buffer;
