@@ -53,7 +53,7 @@ class Frames:
 
 def _frames(count: int) -> Frames:
     """RGB-D frames as fleet-arbiter's first drone sees them: its world, mission, camera size and parts."""
-    from dynqos.onboard.camera import encode_depth, encode_rgb
+    from dynqos.onboard.camera import DEPTH_ENCODING, encode_depth, encode_rgb
     from dynqos.onboard.pacing import split
     from dynqos.plan.camera_sizing import flight_views
     from dynqos.plan.scenario import builtin_scenario, fleet_configs
@@ -73,7 +73,7 @@ def _frames(count: int) -> Frames:
         h, w = raw.rgb.shape[:2]
         for kind, encoding, data in (
             ("rgb", "jpeg", encode_rgb(raw.rgb, onboard.jpeg_quality)),
-            ("depth", "zstd16", encode_depth(raw.depth_m)),
+            ("depth", DEPTH_ENCODING, encode_depth(raw.depth_m)),
         ):
             halves.append((kind, encoding, w, h, raw.intrinsics, split(data, onboard.camera_part_bytes)))
     return Frames(halves)

@@ -78,9 +78,16 @@ def encode_rgb(rgb: NDArray[np.uint8], quality: int) -> bytes:
     return data.tobytes()
 
 
-def encode_depth(depth_m: NDArray[np.float32], unit_m: float = 0.001) -> bytes:
-    counts = np.clip(np.round(depth_m / unit_m), 0, 65535).astype(np.uint16)
-    return encode_zstd16(counts)
+DEPTH_ENCODING = "zstd16"  # what encode_depth makes (common/depthcodec.py)
+
+
+def encode_depth(depth_m: NDArray[np.floating], unit_m: float = 0.001) -> bytes:
+    """Metres to counts of `unit_m` (rounded half to even, clipped to 16 bits) in one buffer, then
+    DEPTH_ENCODING."""
+    counts = np.divide(depth_m, unit_m)
+    np.rint(counts, out=counts)
+    np.clip(counts, 0, 65535, out=counts)
+    return encode_zstd16(counts.astype(np.uint16))
 
 
 class RateController:

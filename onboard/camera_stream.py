@@ -26,7 +26,7 @@ from dynqos.common.config import OnboardConfig
 from dynqos.common.messages import CameraAck, CameraFrame
 from dynqos.common.modes import Flow
 from dynqos.common.queues import BoundedQueue
-from dynqos.onboard.camera import RateController, encode_depth, encode_rgb
+from dynqos.onboard.camera import DEPTH_ENCODING, RateController, encode_depth, encode_rgb
 from dynqos.onboard.camera_rate import DelayRateControl, PartSent
 from dynqos.onboard.fc import FcState
 from dynqos.onboard.pacing import FRAME_HEADER_BYTES, Pacer, split
@@ -222,7 +222,13 @@ class CameraStream:
         self._send(self.rgb.pick(flow), frame.seq, frame.stamp_ns, frame.raw, "rgb", "jpeg", frame.rgb)
         if frame.depth is not None:
             self._send(
-                self.depth.pick(flow), frame.seq, frame.stamp_ns, frame.raw, "depth", "zstd16", frame.depth
+                self.depth.pick(flow),
+                frame.seq,
+                frame.stamp_ns,
+                frame.raw,
+                "depth",
+                DEPTH_ENCODING,
+                frame.depth,
             )
 
     def _send(
