@@ -227,6 +227,40 @@ def test_outcome_measures_fallback_gaps_and_recovery_from_the_status_stream() ->
 class _NoProcs:
     """The injector's processes, for faults that touch only the cell."""
 
+    launches = 0
+
+
+class _Procs(_NoProcs):
+    """The injector's processes, counted: a kill and a restart (which launches) by name."""
+
+    def __init__(self) -> None:
+        self.procs: dict[str, object] = {}
+        self.down: set[str] = set()
+        self.done: list[str] = []
+
+    def kill(self, name: str) -> None:
+        self.done.append(f"kill {name}")
+
+    def restart(self, name: str) -> None:
+        self.done.append(f"restart {name}")
+        self.launches += 1
+
+
+def test_a_fault_that_restarts_a_process_notes_when_on_its_window() -> None:
+    """What dynqos/reports/machine.py keeps apart: the span from the fault's act to the ready line."""
+    procs = _Procs()
+    injector = FaultInjector(procs, lambda event: None, bus=None)  # type: ignore[arg-type]
+    killed = injector.begin(Fault(at_s=5, kind="mpc_kill", duration_s=1))
+    assert killed.restarts == []  # a kill starts nothing
+    injector.end(killed)
+    assert procs.done == ["kill mpc", "restart mpc"]
+    assert len(killed.restarts) == 1
+    began, ready = killed.restarts[0]
+    assert killed.start_ns <= began <= ready <= (killed.end_ns or 0)
+    loaded = injector.begin(Fault(at_s=5, kind="background", duration_s=1))
+    injector.end(loaded)
+    assert loaded.restarts == []
+
 
 def test_capacity_and_trace_faults_change_the_cells_capacity_and_restore_it(tmp_path: Path) -> None:
     events: list[dict[str, Any]] = []

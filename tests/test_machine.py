@@ -8,8 +8,9 @@ from pathlib import Path
 import pytest
 
 from dynqos.experiment.machine import parse_cpu_line, read_cpu_times
-from dynqos.plan.recording import CpuTimes
-from dynqos.reports.machine import busy_share, describe, judge, machine_figures
+from dynqos.plan.faults import Fault, FaultWindow
+from dynqos.plan.recording import CpuTimes, Recording
+from dynqos.reports.machine import busy_share, describe, judge, machine_figures, own_load_spans
 
 STAT = """cpu  237491 3186 34901 606039 2155 0 5747 4819 0 0
 cpu0 82231 1602 14105 343587 316 0 2775 2466 0 0
@@ -67,6 +68,35 @@ def test_a_flight_with_headroom_is_not_starved_and_one_without_is() -> None:
     assert judge(True, "", calm) == (True, "")
     assert judge(False, "the MPC crashed", busy) == (False, "the MPC crashed")  # the first cause stays
     assert judge(True, "", None) == (True, "")
+
+
+def test_busy_seconds_while_the_flights_own_faults_load_the_machine_do_not_starve_it() -> None:
+    """A faults flight restarts services (imports, sessions: a core for a second or two) and floods the
+    detector: those busy seconds are kept apart and said, and only the others can starve the flight."""
+    shares = [0.5] * 20 + [0.95] * 4 + [0.5] * 10 + [0.95] * 1
+    own = machine_figures(_flight(shares), cores=2, own_load=[(20.5, 23.5)])
+    assert own is not None
+    assert (own["seconds_above_85"], own["seconds_above_85_own_faults"], own["starved"]) == (5, 4, False)
+    assert own["seconds_above_85_at_s"] == [21.0, 22.0, 23.0, 24.0, 35.0]
+    assert "5 of 35 s above 85%, 4 of them while the flight's own faults loaded it" in describe(own)
+    assert judge(True, "", own) == (True, "")
+    unexplained = machine_figures(_flight(shares), cores=2)  # the same seconds, no restart then
+    assert unexplained is not None
+    assert unexplained["starved"]
+    more = machine_figures(_flight(shares + [0.95] * 3), cores=2, own_load=[(20.5, 23.5)])
+    ok, failure = judge(True, "", more)
+    assert not ok
+    assert "busy for 4 of 38 s besides 4 while its own faults loaded it" in failure
+
+
+def test_own_load_spans_are_the_faults_restarts_in_seconds_into_the_flight() -> None:
+    s = 1_000_000_000
+    window = FaultWindow(Fault(at_s=30, kind="mpc_kill", duration_s=3), 0.0, 130 * s)
+    window.restarts.append((133 * s, 134 * s + s // 2))  # began at the fault's end, ready 1.5 s later
+    rec = Recording(faults=[window])
+    assert own_load_spans(rec) == []  # a recording without its flight's start has no flight seconds
+    rec.flight_start_ns = 100 * s
+    assert own_load_spans(rec) == [(33.0, 35.5)]  # ready at 34.5 s, and a second of warming up
 
 
 def _stolen(shares: list[float], steal: float) -> list[tuple[float, CpuTimes]]:

@@ -208,6 +208,22 @@ class FaultInjector:
 
     def begin(self, fault: Fault) -> FaultWindow:
         window = FaultWindow(fault, time.time(), time.monotonic_ns())
+        self._noting_restarts(window, self._begin)
+        log.info("fault: %s for %.1f s", fault.kind, fault.duration_s)
+        self.windows.append(window)
+        return window
+
+    def _noting_restarts(self, window: FaultWindow, act: Callable[[FaultWindow], None]) -> None:
+        """`act` on the window, noting when it began and when it ended if it (re)started a process: a
+        start costs the machine a second or two of CPU (imports, a session), which is the flight's
+        own doing, not the host's (dynqos/reports/machine.py keeps those seconds apart)."""
+        launched, began = self.procs.launches, time.monotonic_ns()
+        act(window)
+        if self.procs.launches > launched:
+            window.restarts.append((began, time.monotonic_ns()))
+
+    def _begin(self, window: FaultWindow) -> None:
+        fault = window.fault
         kind = fault.kind
         if self._at_site(fault):
             assert self.sites is not None
@@ -230,9 +246,6 @@ class FaultInjector:
             self._begin_replica_fault(window)
         elif kind in ("qos_agent_kill", "qos_agent_hang"):
             self._begin_agent_fault(window)
-        log.info("fault: %s for %.1f s", kind, fault.duration_s)
-        self.windows.append(window)
-        return window
 
     def _kill(self, window: FaultWindow) -> None:
         kind = window.fault.kind
@@ -249,6 +262,11 @@ class FaultInjector:
         return self.sites is not None and (fault.kind in SITE_FAULTS or fault.site != "a")
 
     def end(self, window: FaultWindow) -> None:
+        self._noting_restarts(window, self._end)
+        window.end_wall, window.end_ns = time.time(), time.monotonic_ns()
+        log.info("fault cleared: %s", window.fault.kind)
+
+    def _end(self, window: FaultWindow) -> None:
         kind = window.fault.kind
         if self._at_site(window.fault):
             assert self.sites is not None
@@ -271,13 +289,8 @@ class FaultInjector:
             self.cell_event({"kind": "background", "user": "bg", "offered_mbps": 0.0})
         elif kind in ("capacity", "trace"):  # a capacity event also ends trace-driven capacity
             self.cell_event({"kind": "capacity", "uplink_mbps": self.uplink_mbps})
-        window.end_wall, window.end_ns = time.time(), time.monotonic_ns()
-        log.info("fault cleared: %s", kind)
 
     def close(self) -> None:
         for window in self.windows:
             if window.end_ns is None:
                 self.end(window)
-
-
-# ---- outcomes ----------------------------------------------------------------------------------------

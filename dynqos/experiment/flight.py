@@ -195,6 +195,7 @@ def fly(
     (`more_cells`: site -> the control port of that site's cell, a second cell's, sampled beside)."""
     next_poll = next_memory = next_cpu = time.monotonic()
     end = time.monotonic() + scenario.duration_s
+    rec.flight_start_ns = round((end - scenario.duration_s) * 1e9)  # time.monotonic's clock, in ns
     pending = sorted(scenario.faults, key=lambda fault: fault.at_s)
     active: list[FaultWindow] = []
     while time.monotonic() < end and not stop.is_set():

@@ -168,6 +168,7 @@ class Processes:
         self._next_layer = itertools.count()  # layers in start order
         self._batch_layer = 0
         self.layers: dict[str, int] = {}  # each name's layer, from its first start: the order they stop in
+        self.launches = 0  # processes launched so far, restarts included
 
     @contextlib.contextmanager
     def together(self) -> Iterator[None]:
@@ -217,6 +218,7 @@ class Processes:
         )
         err.close()
         self.procs[name] = proc
+        self.launches += 1
         if self._batch is not None:
             self._batch.append((name, proc, timeout_s))
             return {}

@@ -72,3 +72,5 @@ class FaultWindow:
     notes: list[str] = field(default_factory=list)
     target: str = ""  # the process a replica fault acted on
     grant: dict[str, Any] | None = None  # qos_agent_kill and _hang: the drone's grant before and after
+    # (began, ready) in monotonic ns: each time the fault's start or end (re)started processes
+    restarts: list[tuple[int, int]] = field(default_factory=list)

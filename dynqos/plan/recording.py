@@ -52,3 +52,4 @@ class Recording:
     # (t_s into the flight, all cores' CPU times) about every second: how busy the machine was
     cpu_times: list[tuple[float, CpuTimes]] = field(default_factory=list)
     cores: int = 1  # the cores the flight's processes could use (its affinity), when it was flown
+    flight_start_ns: int | None = None  # monotonic ns at the flight's second 0, which cpu_times count from

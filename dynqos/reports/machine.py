@@ -7,7 +7,9 @@ network had caused it. So each flight samples the aggregate `cpu` line of /proc/
 its summary says how busy the machine was (`machine`): the busy share of all cores over the recorded
 flight, the largest one-second share, and how many seconds were above `STARVED_SHARE`.
 
-A flight is marked `starved` when more than `STARVED_SECONDS` of its seconds were above 85% busy: at
+A flight is marked `starved` when more than `STARVED_SECONDS` of its seconds were above 85% busy,
+besides those in which its own faults loaded the machine (`own_load_spans`: a process restarted, a
+detector flooded from the recorder's session): at
 that load a woken process regularly finds every core taken, and on two cores its wait (a scheduler
 slice, milliseconds) is a sizeable part of a 16 ms round trip. A few such seconds (start of the load,
 a plot) are noise; more say the figures are the CPU's. Steal time (the hypervisor's) counts as busy: the
@@ -34,12 +36,18 @@ again when it failed its bounds.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from typing import Any
 
-from dynqos.plan.recording import CpuTimes
+from dynqos.plan.recording import CpuTimes, Recording
 
 STARVED_SHARE = 0.85
-STARVED_SECONDS = 3
+STARVED_SECONDS = 3  # busy seconds beyond those of the flight's own faults
+RESTART_TAIL_S = 1.0  # a restarted service still warms up this long after its ready line
+# Faults whose load is the harness's by design, for their whole window: the flood's frames are sent
+# from the recorder's own session at 100 fps (dynqos/experiment/faults.py), which no drone pays for.
+LOADING_FAULTS = ("detector_flood",)
+MAX_BUSY_LISTED = 120  # busy seconds listed by when they ended (the count is always whole)
 STOLEN_SHARE = 0.10  # the hypervisor's share of the cores over the flight beyond which it is stolen
 THROTTLED_SHARE = 0.05  # the share of the flight's time the quota held its group beyond which it is throttled
 
@@ -60,13 +68,34 @@ def quota_share(before: tuple[float, CpuTimes], after: tuple[float, CpuTimes]) -
     return max(0.0, min(1.0, (b.usage_ns - a.usage_ns) / (b.quota_cores * seconds * 1e9)))
 
 
-def machine_figures(samples: list[tuple[float, CpuTimes]], cores: int) -> dict[str, Any] | None:
+def own_load_spans(rec: Recording) -> list[tuple[float, float]]:
+    """When the flight's own faults loaded the machine, in seconds into the flight: from each fault's
+    (re)start of a process to its ready line and RESTART_TAIL_S after (a service still warms up once
+    ready), and the whole of each LOADING_FAULTS window (with the same tail)."""
+    if rec.flight_start_ns is None:
+        return []
+    zero = rec.flight_start_ns
+    spans = [
+        ((began - zero) / 1e9, (ready - zero) / 1e9 + RESTART_TAIL_S)
+        for window in rec.faults
+        for began, ready in window.restarts
+    ]
+    for window in rec.faults:
+        if window.fault.kind in LOADING_FAULTS and window.end_ns is not None:
+            spans.append(((window.start_ns - zero) / 1e9, (window.end_ns - zero) / 1e9 + RESTART_TAIL_S))
+    return spans
+
+
+def machine_figures(
+    samples: list[tuple[float, CpuTimes]], cores: int, own_load: Sequence[tuple[float, float]] = ()
+) -> dict[str, Any] | None:
     """What a summary says of the machine, from (seconds into the flight, CpuTimes) taken about every
     second over the recorded flight on `cores` (the flight's `Recording.cores`); None with fewer than
-    two samples."""
+    two samples. A busy second that overlaps `own_load` (`own_load_spans`) is counted apart: the
+    flight's own faults loaded the machine then, so it does not make the flight starved."""
     if len(samples) < 2:
         return None
-    shares, quota_shares, above = [], [], 0
+    shares, quota_shares, busy_at, own = [], [], [], 0
     for a, b in itertools.pairwise(samples):
         share, of_quota = busy_share(a[1], b[1]), quota_share(a, b)
         if share is not None:
@@ -74,7 +103,9 @@ def machine_figures(samples: list[tuple[float, CpuTimes]], cores: int) -> dict[s
         if of_quota is not None:
             quota_shares.append(of_quota)
         if max(share or 0.0, of_quota or 0.0) > STARVED_SHARE:
-            above += 1
+            busy_at.append(round(b[0], 1))
+            own += any(lo < b[0] and a[0] < hi for lo, hi in own_load)
+    above = len(busy_at)
     first, last = samples[0][1], samples[-1][1]
     whole = busy_share(first, last)
     steal = (last.steal - first.steal) / (last.total - first.total) if last.total > first.total else 0.0
@@ -83,10 +114,12 @@ def machine_figures(samples: list[tuple[float, CpuTimes]], cores: int) -> dict[s
         "busy_share": whole,
         "busy_share_max_1s": max(shares) if shares else None,
         "seconds_above_85": above,
+        "seconds_above_85_own_faults": own,  # of those, while the flight's own faults loaded the machine
+        "seconds_above_85_at_s": busy_at[:MAX_BUSY_LISTED],  # when each ended, seconds into the flight
         "seconds_sampled": len(shares),
         "steal_share": steal,
         "stolen": steal > STOLEN_SHARE,
-        "starved": above > STARVED_SECONDS,
+        "starved": above - own > STARVED_SECONDS,
     }
     if last.group is not None and first.group is not None:
         seconds = samples[-1][0] - samples[0][0]
@@ -114,6 +147,7 @@ def describe(figures: dict[str, Any] | None) -> str:
         f"(largest second {100 * (figures['busy_share_max_1s'] or 0):.0f}%; "
         f"{figures['seconds_above_85']} of {figures['seconds_sampled']} s above 85%"
         + (" of the cores or the quota" if "quota_cores" in figures else "")
+        + _own_faults(figures)
     )
     if "steal_share" in figures:  # summaries stored before it was measured have none
         text += f"; {100 * figures['steal_share']:.0f}% taken by the hypervisor"
@@ -136,10 +170,17 @@ def judge(ok: bool, failure: str, figures: dict[str, Any] | None) -> tuple[bool,
     """A flight's `ok` and `failure` once the machine is taken into account: a flight that was otherwise
     fine but starved is not ok, and says why and what to do."""
     if ok and figures is not None and figures["starved"]:
-        above, sampled = figures["seconds_above_85"], figures["seconds_sampled"]
+        own = figures.get("seconds_above_85_own_faults", 0)
+        above, sampled = figures["seconds_above_85"] - own, figures["seconds_sampled"]
+        besides = f" besides {own} while its own faults loaded it" if own else ""
         return False, (
             f"starved: the machine{' (or its CPU quota)' if 'quota_cores' in figures else ''} was above "
-            f"{100 * STARVED_SHARE:.0f}% busy for {above} of {sampled} s, so the latencies are partly the "
-            "CPU's; fly it again with less running on this machine, or on more cores"
+            f"{100 * STARVED_SHARE:.0f}% busy for {above} of {sampled} s{besides}, so the latencies are "
+            "partly the CPU's; fly it again with less running on this machine, or on more cores"
         )
     return ok, failure
+
+
+def _own_faults(figures: dict[str, Any]) -> str:
+    count = figures.get("seconds_above_85_own_faults", 0)  # summaries stored before it was kept: none
+    return f", {count} of them while the flight's own faults loaded it" if count else ""
