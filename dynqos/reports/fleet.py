@@ -17,7 +17,7 @@ from dynqos.onboard.supervisor import RATE_ADAPTATION_STATES as SUPERVISOR_RATE_
 from dynqos.plan.recording import Recording
 from dynqos.plan.scenario import Scenario, run_id
 from dynqos.reports.figures import figure
-from dynqos.reports.machine import describe, judge, machine_figures, own_load_spans
+from dynqos.reports.machine import describe, judge, recorded_machine
 from dynqos.reports.multipath import fault_spans, path_figures
 from dynqos.reports.outcomes import time_in_states
 from dynqos.reports.summary import cell_rates, summarise, write_scenario
@@ -117,7 +117,7 @@ def summarise_fleet(
     ok: bool,
     failure: str,
 ) -> dict[str, Any]:
-    machine = machine_figures(rec.cpu_times, rec.cores, own_load_spans(rec))
+    machine = recorded_machine(rec)
     ok, failure = judge(ok, failure, machine)
     drones = {uav: _drone(scenario, rec, uav, recs[uav], onboard_logs.get(uav, ""), ok) for uav in recs}
     end_ns = max((s.stamp_ns for r in recs.values() for _, s in r.states), default=rec.t0_ns)

@@ -138,6 +138,11 @@ def machine_figures(
     return figures
 
 
+def recorded_machine(rec: Recording) -> dict[str, Any] | None:
+    """`machine_figures` of a flight's recording: its samples, its cores, its own faults' load."""
+    return machine_figures(rec.cpu_times, rec.cores, own_load_spans(rec))
+
+
 def describe(figures: dict[str, Any] | None) -> str:
     """One line for a report."""
     if figures is None:

@@ -15,7 +15,7 @@ from dynqos.common.modes import ControlSource, SupervisorState
 from dynqos.plan.faults import FaultWindow
 from dynqos.plan.recording import Recording
 from dynqos.plan.scenario import Scenario
-from dynqos.reports.machine import judge, machine_figures, own_load_spans
+from dynqos.reports.machine import judge, recorded_machine
 from dynqos.reports.measures import reference_errors, rmse, stats, tracking_errors
 from dynqos.reports.outcomes import log_times, outcome, time_in_states
 from dynqos.reports.tasks import task_figures
@@ -111,9 +111,7 @@ def _samples(statuses: list[SupervisorStatus], every: str, last: str) -> list[tu
 def summarise(
     scenario: Scenario, rec: Recording, onboard_log: str, *, ok: bool, failure: str
 ) -> dict[str, Any]:
-    ok, failure = judge(
-        ok, failure, machine := machine_figures(rec.cpu_times, rec.cores, own_load_spans(rec))
-    )
+    ok, failure = judge(ok, failure, machine := recorded_machine(rec))
     t0 = rec.t0_ns
     end_ns = max([s.stamp_ns for _, s in rec.states], default=t0)
     settle_ns = t0 + round(scenario.settle_s * 1e9)
