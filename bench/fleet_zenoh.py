@@ -1,11 +1,19 @@
-"""Benchmark: how many drones the edge MPC serves at 20 Hz over real zenoh, with one MPC process
-and with two sharded by drone id (`[mpc] shard_count`), on this machine.
+"""Benchmark: how many drones one edge MPC process serves at 20 Hz over real zenoh, and at what CPU per
+drone, beside the floor of any MPC process, on this machine.
 
 A load client (one zenoh session standing in for the fleet) publishes a State for each of D drones
-every 50 ms on the priority flow through a router to the MPC process(es), and times each Command back.
-D is served when at least 99% of the states are answered and the p99 state-to-command time is under
-the 50 ms period. The in-process figure (no zenoh) is in `mpc_step`; this one adds the transport, the
-router and the client, all sharing this machine's cores. Target: >= 100 drones per process.
+every 50 ms on the priority flow through a router to one process, and times each Command back. D is
+served when at least 99% of the states are answered and the p99 state-to-command time is under the
+50 ms period. Three processes take the MPC's place in turn, in the same run:
+- `one_by_one`: `dynqos edge mpc` with `[mpc] batch_solves = false`, one OSQP solve per State;
+- `batched`: `dynqos edge mpc` as shipped, the fresh States solved together (edge/mpc/batch.py);
+- `floor`: a process that receives every State and answers it with a fixed Command, solving nothing
+  (`zenoh_echo --fixed`): what receiving and answering alone cost on this stack.
+Fleets grow in steps of 25 up to the first not served. Each size gives the process's CPU per drone
+over the measured span (/proc/PID/stat). The load drones hover where they are, so no bound of their QP
+binds (edge/mpc/batch.py: every State is solved by the batch; a flight's share is in docs/edge.md).
+Targets (issue 72): the batched process serves at least 90% of the floor's fleet, and at 50 drones its
+CPU per drone is at most 1.5x the floor's.
 
 Run: dynqos bench fleet_zenoh (suite settings), or with its own options:
   python -m dynqos.bench.fleet_zenoh [--seconds 3] [--quick] [--out FILE]
@@ -25,6 +33,7 @@ from dynqos.common.keys import Downlink, Flow, Stream
 from dynqos.common.messages import Command
 from dynqos.common.queues import BoundedQueue
 from dynqos.common.transport import Priority, Received, Role, open_bus
+from dynqos.experiment.processes import cpu_s
 
 PERIOD_S = 0.05
 
@@ -40,7 +49,7 @@ def _collect(
                 latencies.append(time.perf_counter() - t_sent)
 
 
-def _load(zcfg: ZenohConfig, drones: int, seconds: float) -> dict[str, Any]:
+def _load(zcfg: ZenohConfig, drones: int, seconds: float, pid: int) -> dict[str, Any]:
     bus = open_bus(zcfg, Role.DRONE)
     try:
         commands: BoundedQueue[Received] = BoundedQueue(100_000)
@@ -54,7 +63,7 @@ def _load(zcfg: ZenohConfig, drones: int, seconds: float) -> dict[str, Any]:
             for i in range(drones)
         }
         if not all(pub.wait_matched(30) for pub in pubs.values()):
-            raise RuntimeError("the MPC never subscribed")
+            raise RuntimeError("the MPC (or the floor) never subscribed")
         sent: dict[tuple[str, int], float] = {}
         latencies: list[float] = []
         ticks = round(seconds / PERIOD_S)
@@ -63,13 +72,17 @@ def _load(zcfg: ZenohConfig, drones: int, seconds: float) -> dict[str, Any]:
         # and a State whose seq is not above the last one it answered is (rightly) ignored as stale.
         seq_base = time.monotonic_ns() // 1_000_000
         start = time.perf_counter()
+        cpu_from = cpu_to = 0.0
         for tick in range(warmup + ticks):
+            if tick == warmup:
+                cpu_from, measured_from = cpu_s(pid) or 0.0, time.perf_counter()
             for i, (uav, pub) in enumerate(pubs.items()):
                 seq = seq_base + tick + 1
                 if tick >= warmup:
                     sent[(uav, seq)] = time.perf_counter()
                 pub.put(hovering_state(uav, seq, i))
             _collect(commands, sent, latencies, until=start + (tick + 1) * PERIOD_S)
+        cpu_to, measured_to = cpu_s(pid) or 0.0, time.perf_counter()
         _collect(commands, sent, latencies, until=time.perf_counter() + 0.2)  # the last tick's answers
         del tokens  # the drones leave (the MPC stops following them)
     finally:
@@ -84,52 +97,69 @@ def _load(zcfg: ZenohConfig, drones: int, seconds: float) -> dict[str, Any]:
         "p50_ms": ordered[len(ordered) // 2] * 1000,
         "p99_ms": p99,
         "served": answered >= 0.99 and p99 < PERIOD_S * 1000,
+        "core_share_per_drone": (cpu_to - cpu_from) / (measured_to - measured_from) / drones,
     }
 
 
-def fleet(processes: int, counts: list[int], seconds: float) -> dict[str, Any]:
+PROCESSES = {  # what takes the MPC's place: its arguments, and its program (None: `dynqos`)
+    "one_by_one": (["edge", "mpc", "--set", "mpc.batch_solves=false"], None),
+    "batched": (["edge", "mpc", "--set", "mpc.batch_solves=true"], None),
+    "floor": (["--fixed"], [sys.executable, "-m", "dynqos.bench.zenoh_echo"]),
+}
+
+
+def fleet(name: str, counts: list[int], seconds: float) -> dict[str, Any]:
     rows = []
-    with router_rig(f"[mpc]\nshard_count = {processes}\nidle_timeout_s = 2\n") as (zcfg, procs):
-        for index in range(processes):
-            procs.start(f"mpc{index}", ["edge", "mpc", "--set", f"mpc.shard_index={index}"])
+    args, program = PROCESSES[name]
+    with router_rig("[mpc]\nidle_timeout_s = 2\n") as (zcfg, procs):
+        procs.start(name, args, program=program)
+        pid = procs.procs[name].pid
         for count in counts:
-            row = _load(zcfg, count, seconds)
+            row = _load(zcfg, count, seconds, pid)
             rows.append(row)
             if not row["served"]:
                 break
     served = max([r["drones"] for r in rows if r["served"]], default=0)
-    return {"processes": processes, "max_drones_at_20hz": served, "rows": rows}
+    return {"process": name, "max_drones_at_20hz": served, "rows": rows}
 
 
 def run(seconds: float, quick: bool) -> dict[str, Any]:
-    counts = [10] if quick else [25, 50, 100, 150, 200, 300]
-    return {
-        "benchmark": "fleet_zenoh",
-        **provenance(),
-        "seconds_per_step": seconds,
-        "one_process": fleet(1, counts, seconds),
-        "two_processes": fleet(2, counts, seconds),
-    }
+    counts = [10] if quick else list(range(25, 301, 25))
+    result: dict[str, Any] = {"benchmark": "fleet_zenoh", **provenance(), "seconds_per_step": seconds}
+    for name in PROCESSES:
+        result[name] = fleet(name, counts, seconds)
+    floor, batched = result["floor"], result["batched"]
+    result["batched_over_floor_drones"] = batched["max_drones_at_20hz"] / max(1, floor["max_drones_at_20hz"])
+    result["batched_over_floor_cpu_at_50"] = _cpu_at(batched, 50) / _cpu_at(floor, 50) if not quick else None
+    return result
+
+
+def _cpu_at(fleet: dict[str, Any], drones: int) -> float:
+    return next((r["core_share_per_drone"] for r in fleet["rows"] if r["drones"] == drones), float("nan"))
 
 
 def verdict(result: dict[str, Any]) -> str:
-    one, two = result["one_process"]["max_drones_at_20hz"], result["two_processes"]["max_drones_at_20hz"]
+    drones = {name: result[name]["max_drones_at_20hz"] for name in PROCESSES}
+    ratio, cpu = result["batched_over_floor_drones"], result["batched_over_floor_cpu_at_50"]
+    cpu_text = "n/a" if cpu is None else f"{cpu:.2f}x"
     return judged(
-        one >= 100, f"{one} drones at 20 Hz with one MPC process, {two} with two (target >= 100 per process)"
+        ratio >= 0.9 and cpu is not None and cpu <= 1.5,
+        f"drones at 20 Hz: one by one {drones['one_by_one']}, batched {drones['batched']}, floor "
+        f"{drones['floor']} ({ratio:.0%} of the floor's, target >= 90%); batched CPU per drone at 50 "
+        f"drones {cpu_text} the floor's (target <= 1.5x)",
     )
 
 
 def markdown(result: dict[str, Any]) -> str:
     rows = [
-        "| MPC processes | drones | answered | p50 (ms) | p99 (ms) | served |",
-        "|---|---|---|---|---|---|",
+        "| process | drones | answered | p50 (ms) | p99 (ms) | CPU per drone (% of a core) | served |",
+        "|---|---|---|---|---|---|---|",
     ]
-    for key in ("one_process", "two_processes"):
-        f = result[key]
+    for name in PROCESSES:
         rows += [
-            f"| {f['processes']} | {r['drones']} | {r['answered']:.1%} | {r['p50_ms']:.1f} | "
-            f"{r['p99_ms']:.1f} | {'yes' if r['served'] else 'no'} |"
-            for r in f["rows"]
+            f"| {name} | {r['drones']} | {r['answered']:.1%} | {r['p50_ms']:.1f} | {r['p99_ms']:.1f} | "
+            f"{r['core_share_per_drone']:.2%} | {'yes' if r['served'] else 'no'} |"
+            for r in result[name]["rows"]
         ]
     return "\n".join(rows)
 

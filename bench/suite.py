@@ -65,8 +65,10 @@ HEADLINES: dict[str, Headline] = {
         "watched_p50_ms": r["watched"]["p50_ms"],
     },
     "fleet_zenoh": lambda r: {
-        "drones_one_process": r["one_process"]["max_drones_at_20hz"],
-        "drones_two_processes": r["two_processes"]["max_drones_at_20hz"],
+        "drones_one_by_one": r["one_by_one"]["max_drones_at_20hz"],
+        "drones_batched": r["batched"]["max_drones_at_20hz"],
+        "drones_floor": r["floor"]["max_drones_at_20hz"],
+        "batched_over_floor_cpu_at_50": r["batched_over_floor_cpu_at_50"],
     },
     "edge_scale": lambda r: {
         "drones_one": _edge_scale(r, "one", 1, "max_drones_at_20hz"),

@@ -8,6 +8,9 @@
   decoded (one wildcard subscriber, on zenoh's thread), the MPC's QP solved (`MpcProblem.solve`, one per
   drone, holding the drone where it is), a Command built from the solution and put on the drone's
   command key. Without references, delay compensation, replicas, fencing, queues, counters or health.
+- `--fixed`: the same without the solve: each State answered with a Command of fixed inputs (as many as
+  the MPC sends): what receiving and answering alone cost, the floor of any MPC process
+  (`bench/fleet_zenoh.py`).
 """
 
 from __future__ import annotations
@@ -42,18 +45,19 @@ def main(argv: list[str] | None = None) -> int:
         help="only subscribe to KEY and do nothing with it (the observability floor)",
     )
     parser.add_argument("--mpc", action="store_true", help="answer each drone's State as a minimal MPC")
+    parser.add_argument("--fixed", action="store_true", help="answer each drone's State with a fixed Command")
     parser.add_argument("--config", required=True, help="dynqos config (its [zenoh] section: the router)")
     args = parser.parse_args(argv)
     session = open_session(load_config(args.config).zenoh, Role.EDGE)
     if args.listen:  # a second subscriber of the drone's states, as cheap as zenoh makes one
         subscriber = session.declare_subscriber(args.listen, lambda _sample: None)
-    elif args.mpc:
+    elif args.mpc or args.fixed:
         # on zenoh's receiving thread (no hand-over to a Python thread): the least a process can do
-        answer = zenoh.handlers.Callback(_MinimalMpc(session), indirect=False)
+        answer = zenoh.handlers.Callback(_MinimalMpc(session, solve=args.mpc), indirect=False)
         subscriber = session.declare_subscriber(keys.uplink_all_drones(Stream.STATE), answer)
     else:
         if args.reply_bytes <= 0:
-            parser.error("--reply-bytes is required (or --listen KEY, or --mpc)")
+            parser.error("--reply-bytes is required (or --listen KEY, --mpc or --fixed)")
         reply = bytes(args.reply_bytes)
         pong = session.declare_publisher(PONG, priority=zenoh.Priority.REAL_TIME, express=True)
         subscriber = session.declare_subscriber(PING, lambda _sample: pong.put(reply))
@@ -68,11 +72,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 class _MinimalMpc:
-    """`--mpc`: decode, solve, answer; nothing else."""
+    """`--mpc`: decode, solve, answer; nothing else. `solve` False (`--fixed`): decode, answer."""
 
-    def __init__(self, session: zenoh.Session) -> None:
+    def __init__(self, session: zenoh.Session, solve: bool = True) -> None:
         self.session = session
+        self.solve = solve
         self.drones: dict[str, tuple[MpcProblem, Any]] = {}
+        template = MpcProblem()
+        self.dt_s = template.dt_s
+        self.fixed = ((0.0, 0.0, 0.0),) * template.mpc.command_steps
 
     def __call__(self, sample: zenoh.Sample) -> None:
         arrival_ns = time.monotonic_ns()  # where the MPC takes its arrival: after the bytes, before decoding
@@ -85,18 +93,21 @@ class _MinimalMpc:
             publisher = self.session.declare_publisher(key, priority=zenoh.Priority.REAL_TIME, express=True)
             drone = self.drones[state.uav] = (MpcProblem(), publisher)
         problem, publisher = drone
-        x0 = np.array([*state.pos_m, *state.vel_mps])
-        hold = np.tile(np.concatenate([x0[:3], np.zeros(3)]), (problem.horizon + 1, 1))
-        inputs = problem.solve(x0, hold)[: problem.mpc.command_steps]  # as many steps as the MPC sends
+        accel = self.fixed
+        if self.solve:
+            x0 = np.array([*state.pos_m, *state.vel_mps])
+            hold = np.tile(np.concatenate([x0[:3], np.zeros(3)]), (problem.horizon + 1, 1))
+            inputs = problem.solve(x0, hold)[: problem.mpc.command_steps]  # as many steps as the MPC sends
+            accel = tuple(map(tuple, inputs.tolist()))
         command = Command(
             uav=state.uav,
             seq=state.seq,
             state_seq=state.seq,
             state_stamp_ns=state.stamp_ns,
             edge_hold_ns=time.monotonic_ns() - arrival_ns,
-            dt_s=problem.dt_s,
-            accel_mps2=tuple(map(tuple, inputs.tolist())),
-            yaw_rad=(0.0,) * len(inputs),
+            dt_s=self.dt_s,
+            accel_mps2=accel,
+            yaw_rad=(0.0,) * len(accel),
         )
         publisher.put(encode(command))
 

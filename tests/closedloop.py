@@ -20,6 +20,7 @@ from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import Command, Reference
 from dynqos.common.modes import ControlSource, Flow
 from dynqos.common.queues import BoundedQueue
+from dynqos.edge.mpc.batch import BatchSolver
 from dynqos.edge.mpc.service import MpcService
 from dynqos.edge.planner.missions import Mission
 from dynqos.edge.runtime import Ports
@@ -50,6 +51,7 @@ class Flight:
         default_factory=dict
     )  # ticks flown by each, after the first lap
     core: OnboardCore | None = None
+    service: MpcService | None = None
 
 
 def fly_circle(
@@ -58,6 +60,7 @@ def fly_circle(
     seconds: float = 25.0,
     mission: Mission | None = None,
     qos: str = "priority",
+    solver: BatchSolver | None = None,
 ) -> Flight:
     """Fly `mission` (a 2 m circle) through the loop; RMSE (m) against it after the first lap (10 s)."""
     mission = mission or Mission(kind="circle", lead_in_s=0.0, radius_m=2.0, period_s=10.0)
@@ -77,6 +80,8 @@ def fly_circle(
     bus = MemoryBus(clock, delays=[("dynqos/*/up/**", one_way_ns), ("dynqos/*/down/**", one_way_ns)])
     bus.declare_token(keys.drone_presence(UAV))  # as the drone's daemon does
     service = MpcService(config, Ports(bus, clock))
+    if solver is not None:  # one that records what it solved
+        service.solver = solver
     core = OnboardCore(config, start_ns=clock.now_ns())
     downlink: BoundedQueue[Received] = BoundedQueue(256)
     bus.subscribe(keys.downlink(UAV, Downlink.COMMAND), downlink, expect=(Command,))
@@ -125,7 +130,7 @@ def fly_circle(
             errors.append(float(np.linalg.norm(model.state.pos_m - np.array(p))))
     commands = [i.message for i in observed.drain() if isinstance(i.message, Command)]
     rmse = float(np.sqrt(np.mean(np.square(errors))))
-    return Flight(rmse, commands, sources, core)
+    return Flight(rmse, commands, sources, core, service)
 
 
 def _triple(v: np.ndarray) -> tuple[float, float, float]:

@@ -74,10 +74,11 @@ def test_loop_and_fleet_over_real_zenoh(smoke: tuple[dict[str, Any], str]) -> No
     minimal = loop["minimal_mpc"]  # the minimal Python MPC answered in the MPC's place, and timed itself
     assert minimal["ours"]["p50_ms"] > minimal["mpc_in_process"]["p50_ms"] > 0
     fleet = _result(smoke, "fleet_zenoh")
-    for key in ("one_process", "two_processes"):
+    for key in ("one_by_one", "batched", "floor"):  # the MPC both ways, and the floor, each answered
         (row,) = fleet[key]["rows"]
         assert row["drones"] == 10
         assert row["answered"] > 0
+        assert row["core_share_per_drone"] > 0
     scale = _result(smoke, "edge_scale")  # one process, then two replicas, 10 drones from a load process
     assert [(r["mode"], r["processes"]) for r in scale["runs"]] == [("one", 1), ("replicas", 2)]
     for run in scale["runs"]:

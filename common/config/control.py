@@ -141,6 +141,9 @@ class MpcConfig:
     # their default, every process starts one spinning thread per core, and replicas on one host fight
     # over them (docs/benchmarks.md, `edge_scale`).
     math_threads: Annotated[int, In(1, 256, "must be in 1..256")] = 1
+    # The fresh states of all the drones this replica flies, solved together (edge/mpc/batch.py): one
+    # matrix product for those whose bounds do not bind, OSQP for the rest. Off: one OSQP solve each.
+    batch_solves: bool = True
 
     def __post_init__(self) -> None:
         _check_replica(self.replica_id, self.takeover_after_s, self.holdoff_s, max_takeover_s=1.0)

@@ -3,10 +3,9 @@
 A scenario's `[[scenario.faults]]` list (docs/reliability.md) says when each fault starts and how long
 it lasts. The injector acts only on what the run itself started: processes by their pid (SIGKILL and a
 restart, SIGSTOP/SIGCONT), the cell emulator through its control API, and a flood of camera frames
-from the recorder's own session. The outcome of each fault is measured from the drone's status stream
-(SupervisorStatus carries who flies, since when, and the age of the last valid command then): how long
-after its last valid command the fallback took over, the longest pause in setpoints to the flight
-controller, and how long after the fault cleared control was back at the edge.
+from the recorder's own session. Each fault's window (when it began and ended, and each restart to its
+process's ready line) is all this module keeps: dynqos/reports/outcomes.py measures from the drone's
+status stream what it did to the flight.
 """
 
 from __future__ import annotations

@@ -38,6 +38,19 @@ class Plan:
     committed_steps: int
 
 
+@dataclass(frozen=True, slots=True)
+class Pending:
+    """A state made ready to solve: the QP's initial state and reference, and what the plan needs after."""
+
+    state: State
+    x_start: Array
+    reference: Array
+    yaws: Array
+    past: Array
+    committed: int
+    steps: int
+
+
 @dataclass(slots=True)
 class _SentCommand:
     stamp_ns: int
@@ -53,6 +66,7 @@ class DroneController:
         self.last_seq: int | None = None
         self.hold: Array | None = None
         self.hold_yaw = 0.0
+        self._held: tuple[Array, Array] | None = None  # the hold's reference and yaws, built once
         self._sent: deque[_SentCommand] = deque(maxlen=HISTORY)
         self.last_seen_ns = 0
         self.stale = 0
@@ -75,7 +89,15 @@ class DroneController:
         return out
 
     def step(self, state: State, arrival_ns: int) -> Plan | None:
-        """A plan for this state, or None if it is stale (an older or repeated seq)."""
+        """A plan for this state, or None if it is stale (an older or repeated seq). Raises SolveError."""
+        pending = self.prepare(state, arrival_ns)
+        if pending is None:
+            return None
+        return self.finish(pending, self.problem.solve(pending.x_start, pending.reference))
+
+    def prepare(self, state: State, arrival_ns: int) -> Pending | None:
+        """The QP for this state (solved alone by `step`, or with the fleet's by edge/mpc/batch.py), or
+        None if the state is stale."""
         if self.last_seq is not None and state.seq <= self.last_seq:
             self.stale += 1
             return None
@@ -99,21 +121,30 @@ class DroneController:
             if self.hold is None or state.mode == STANDING_BY:
                 self.hold = x0[:3].copy()
                 self.hold_yaw = yaw_of(state.quat)
-            reference = np.tile(np.concatenate([self.hold, np.zeros(3)]), (n + 1, 1))
-            yaws = np.full(n + 1, self.hold_yaw)
+                self._held = None
+            if self._held is None:  # the same arrays while the hold stays (nothing writes into them)
+                reference = np.tile(np.concatenate([self.hold, np.zeros(3)]), (n + 1, 1))
+                self._held = (reference, np.full(n + 1, self.hold_yaw))
+            reference, yaws = self._held
         else:
             reference, yaws = window
             self.hold = reference[-1, :3].copy()
             self.hold_yaw = float(yaws[-1])
-        inputs = self.problem.solve(x_start, reference)  # raises SolveError
-        accel = np.vstack([past, inputs[:steps]]) if committed else inputs[:steps]
-        self._sent.append(_SentCommand(state.stamp_ns, accel))
-        yaw_seq = np.concatenate([np.full(committed, yaws[0]), yaws[:steps]])
+            self._held = None
+        return Pending(state, x_start, reference, yaws, past, committed, steps)
+
+    def finish(self, pending: Pending, inputs: Array) -> Plan:
+        """The plan from the QP's optimal inputs (N, 3): the committed slots, then the first `steps`."""
+        p = pending
+        accel = np.vstack([p.past, inputs[: p.steps]]) if p.committed else inputs[: p.steps]
+        self._sent.append(_SentCommand(p.state.stamp_ns, accel))
+        yaws = p.yaws[: p.steps]
+        yaw_seq = np.concatenate([np.full(p.committed, p.yaws[0]), yaws]) if p.committed else yaws
         return Plan(
-            state_seq=state.seq,
-            state_stamp_ns=state.stamp_ns,
-            dt_s=dt,
+            state_seq=p.state.seq,
+            state_stamp_ns=p.state.stamp_ns,
+            dt_s=self.problem.dt_s,
             accel_mps2=tuple(map(tuple, accel.tolist())),  # tolist: Python floats in one C call
             yaw_rad=tuple(yaw_seq.tolist()),
-            committed_steps=committed,
+            committed_steps=p.committed,
         )

@@ -19,7 +19,6 @@ answers the drone's newest state at once (`[mpc] standby_reads`, docs/reliabilit
 from __future__ import annotations
 
 import logging
-import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -37,7 +36,9 @@ from dynqos.common.tasks import Service
 from dynqos.edge import feeds, metrics
 from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
-from dynqos.edge.mpc.controller import DroneController
+from dynqos.edge.mpc.batch import BatchSolver
+from dynqos.edge.mpc.controller import DroneController, Pending, Plan
+from dynqos.edge.mpc.drones import followed_at, own_after_copy, shard_of
 from dynqos.edge.mpc.problem import SolveError
 from dynqos.edge.replicas import Assignment, Role
 from dynqos.edge.runtime import EdgeCore, Ports
@@ -73,11 +74,6 @@ class MpcCounters:
     watch_copies: int = 0  # states copied to the drones' standby (`WATCH_COPY_NS`)
     alerts: int = 0  # times a peer's beats were late enough to take its drones' states in full
     solve_ms: list[float] = field(default_factory=list)
-
-
-def shard_of(uav: str, shard_count: int) -> int:
-    """The MPC replica that serves `uav`: stable across processes and restarts (unlike hash())."""
-    return zlib.crc32(uav.encode()) % shard_count
 
 
 class MpcService(EdgeCore):
@@ -153,6 +149,7 @@ class MpcService(EdgeCore):
         self.health_interval_s = cfg.health_interval_s
         self._fresh: set[str] = set()  # drones with a new state to answer at the next tick
         self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
+        self.solver = BatchSolver(batched=cfg.batch_solves)
 
     def _quiet(self, uav: str) -> bool:
         """A drone this replica stands by for and is not ranked first for, held by a peer that beats: its
@@ -272,15 +269,16 @@ class MpcService(EdgeCore):
                 took.add(change.uav)  # a takeover answers the newest state at once
             if took and not self._reads_copies:  # whenever its drone's slot was read last
                 self._read_quiet(fresh, took.__contains__)
+        answering: list[Received] = []
         for uav in (fresh | took) & self.newest.keys():
             item = self.newest[uav]
             if self.assignment.role(uav) is Role.SERVE and self._answerable(item, uav in took, now_ns):
-                self._answer(uav, item)
+                answering.append(item)
             elif uav not in self.controllers:
                 self._controller(uav)  # a standby keeps a controller ready (an OSQP setup is ~1 ms)
-            else:
-                continue
-            self._turned(self.clock.now_ns())
+                self._turned(self.clock.now_ns())
+        if answering:
+            self._answer_all(answering)
         if watch:
             self._drop_idle()
         self.feeds.reconcile(
@@ -321,7 +319,7 @@ class MpcService(EdgeCore):
             previous is None
             or message.seq > previous.message.seq
             or restarted
-            or _own_after_copy(previous, item)
+            or own_after_copy(previous, item)
         ):
             if uav in fresh:  # superseded in this batch
                 self.counters.stale += 1
@@ -353,19 +351,36 @@ class MpcService(EdgeCore):
         self.publishers[uav].put(replace(command, state_path=state.path, edge_hold_ns=hold_ns))
         self.counters.copies += 1
 
-    def _answer(self, uav: str, item: Received) -> None:
-        ctrl = self._controller(uav)
-        state = item.message
+    def _answer_all(self, items: list[Received]) -> None:
+        """The fresh states' plans, solved together (`[mpc] batch_solves`, edge/mpc/batch.py) or one by
+        one, each Command sent as soon as its plan is made."""
+        pending: list[tuple[Received, DroneController, Pending]] = []
+        for item in items:
+            assert isinstance(item.message, State)
+            ctrl = self._controller(item.message.uav)
+            ready = ctrl.prepare(item.message, item.arrival_ns)
+            if ready is None:
+                self.counters.stale += 1
+            else:
+                pending.append((item, ctrl, ready))
+        solved = self.solver.solve(
+            [ctrl.problem for _, ctrl, _ in pending],
+            [ready.x_start for *_, ready in pending],
+            [ready.reference for *_, ready in pending],
+        )
+        for (item, ctrl, ready), inputs in zip(pending, solved, strict=True):
+            if isinstance(inputs, SolveError):
+                self.counters.solve_failures += 1
+                log.warning(
+                    "mpc: %s seq %d: solve failed (%s); no command sent", ctrl.uav, ready.state.seq, inputs
+                )
+            else:
+                self._send(item, ctrl, ctrl.finish(ready, inputs))
+            self._turned(self.clock.now_ns())
+
+    def _send(self, item: Received, ctrl: DroneController, plan: Plan) -> None:
+        uav, state = ctrl.uav, item.message
         assert isinstance(state, State)
-        try:
-            plan = ctrl.step(state, item.arrival_ns)
-        except SolveError as exc:
-            self.counters.solve_failures += 1
-            log.warning("mpc: %s seq %d: solve failed (%s); no command sent", uav, state.seq, exc)
-            return
-        if plan is None:
-            self.counters.stale += 1
-            return
         self.counters.solve_ms.append(ctrl.problem.last_solve_s * 1000)
         if self.solve_seconds is not None:
             self.solve_seconds.observe(ctrl.problem.last_solve_s)
@@ -452,6 +467,14 @@ class MpcService(EdgeCore):
             f"rejected={rejected} solve_failures={c.solve_failures} "
             f"references={c.references} queue_drops={self.inbox.dropped} "
             f"solve_ms_p50={np.percentile(solve, 50):.3f} solve_ms_p99={np.percentile(solve, 99):.3f}"
+            f"{self._batch_health()}"
+        )
+
+    def _batch_health(self) -> str:
+        b, on = self.solver.counters, "on" if self.solver.batched else "off"
+        return (
+            f" batch_solves={on} batches={b.batches} exact={b.exact} iterative={b.iterative}"
+            f" largest_batch={b.largest}"
         )
 
 
@@ -463,19 +486,3 @@ def _make(config: Config, ports: Ports, replica: str) -> MpcService:
 
 # `dynqos edge mpc` is `dynqos edge serve dynqos.edge.mpc.service:SERVICE` (edge/tasks.py's `run`).
 SERVICE = Service(MPC, make=_make, name="mpc", metrics=metrics.mpc)
-
-
-def _own_after_copy(previous: Received, item: Received) -> bool:
-    """The drone's own State after the holder's copy of it: newer news (it is answered, the copy not)."""
-    return (
-        item.message.seq == previous.message.seq
-        and keys.is_state_watch(previous.key)
-        and not keys.is_state_watch(item.key)
-    )
-
-
-def followed_at(state: State, site: str) -> tuple[int, str]:
-    """The term and replica the drone follows at `site` ("": the one site, the State's own fields)."""
-    if not site:
-        return state.command_term, state.command_replica
-    return next(((term, replica) for s, term, replica in state.controllers if s == site), (0, ""))
