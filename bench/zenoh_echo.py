@@ -90,7 +90,12 @@ class _MinimalMpc:
         drone = self.drones.get(state.uav)
         if drone is None:
             key = keys.downlink(state.uav, Downlink.COMMAND)
-            publisher = self.session.declare_publisher(key, priority=zenoh.Priority.REAL_TIME, express=True)
+            publisher = self.session.declare_publisher(  # as the MPC declares its Command publisher
+                key,
+                priority=zenoh.Priority.REAL_TIME,
+                express=True,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
             drone = self.drones[state.uav] = (MpcProblem(), publisher)
         problem, publisher = drone
         accel = self.fixed

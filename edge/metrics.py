@@ -28,7 +28,9 @@ if TYPE_CHECKING:  # the services import this module, not the other way round
 
 def mpc(service: MpcService, m: ProcessMetrics) -> None:
     service.solve_seconds = m.histogram(
-        "dynqos_mpc_solve_seconds", "OSQP solve time per command", SOLVE_BUCKETS
+        "dynqos_mpc_solve_seconds",
+        "time of each solve: a batch of drones, or one drone by OSQP",
+        SOLVE_BUCKETS,
     )
 
     def families() -> Iterator[Metric]:

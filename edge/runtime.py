@@ -8,7 +8,8 @@ zenoh here), each publisher declared once with its priority. The runtime owns th
 
 - the zenoh session, opened as an edge client in a `with` and closed on the way out (`serve`);
 - the one inbox: zenoh's threads decode and put into a bounded queue (never blocking: the oldest is
-  dropped and counted), and a put into an empty inbox wakes the loop;
+  dropped and counted), and a put into an empty inbox wakes the loop (unless the core is gathering
+  its arrivals for a moment: `EdgeCore.gathering_s`, the MPC's batch window);
 - one asyncio event loop per process: the core's `handle` with everything waiting, then its `tick`,
   again when the delay `tick` asked for has passed or something woke it (`wake`: a token changed);
 - health (the log, /healthz and the health file), metrics, SIGTERM/SIGINT turned into the one stop
@@ -64,6 +65,9 @@ class EdgeCore:
     name = "edge"
     health_interval_s = 5.0
     batch_s = 0.0  # > 0: arrivals are taken in one batch per tick, not as they come (the ROS 2 bridge)
+    # Set by a tick: arrivals over the next `gathering_s` do not wake the loop, and the next turn takes
+    # them together (the MPC's batch window, `[mpc] batch_window_s`). 0: every arrival wakes it.
+    gathering_s = 0.0
 
     def handle(self, events: list[Received], now_ns: int) -> None:
         """Messages that arrived since the last call, oldest first."""
@@ -100,6 +104,7 @@ class Runtime:
         self._stopped = False  # the same, for threads to read
         self._loop: asyncio.AbstractEventLoop | None = None
         self._waiter: asyncio.Future[None] | None = None
+        self._gathering = False  # waiting with arrivals left in the inbox (`EdgeCore.gathering_s`)
         self._threads: list[threading.Thread] = []
         self._tasks: set[asyncio.Task[None]] = set()
         self._failure: BaseException | None = None
@@ -124,6 +129,11 @@ class Runtime:
     def _poke(self) -> None:
         if self._waiter is not None and not self._waiter.done():
             self._waiter.set_result(None)
+
+    def _arrived(self) -> None:
+        """An arrival into the empty inbox: a turn now, unless the core is gathering its arrivals."""
+        if not self._gathering:
+            self._poke()
 
     def thread(self, target: Callable[[], Any], name: str) -> None:
         """Run `target` on its own thread, over and over until the stop signal (each call should return
@@ -165,7 +175,7 @@ class Runtime:
         loop = self._loop = asyncio.get_running_loop()
         stop_loop_on_signals(self.name, loop, self.stop)
         batched = core.batch_s > 0
-        self.inbox.wake = None if batched else waker(loop, self._poke)
+        self.inbox.wake = None if batched else waker(loop, self._arrived)
         starting = loop.create_task(self._start(core, ready))
         self._tasks.add(starting)
         starting.add_done_callback(self._task_done)
@@ -177,7 +187,10 @@ class Runtime:
                     core.handle(events, now)
                 delay = core.tick(now)
                 self.health.maybe(core.health)
-                await self._wait(min(delay, self.health.due_in()), batched)
+                gathering = core.gathering_s > 0
+                if gathering:
+                    delay = min(delay, core.gathering_s)
+                await self._wait(min(delay, self.health.due_in()), batched or gathering)
         finally:
             self.inbox.wake = None
             self.stop()
@@ -210,11 +223,13 @@ class Runtime:
         assert self._loop is not None
         waiter = self._waiter = self._loop.create_future()
         timer = self._loop.call_later(seconds, self._poke)
+        self._gathering = batched
         try:
             await waiter
         finally:
             timer.cancel()
             self._waiter = None
+            self._gathering = False
 
 
 def serve(

@@ -107,6 +107,38 @@ def test_a_batched_core_takes_its_arrivals_at_its_ticks_only() -> None:
     assert core.batches == 1
 
 
+def test_a_gathering_core_takes_what_arrives_in_its_window_in_one_turn() -> None:
+    """The MPC's batch window: after its first State, the core asks to gather for 0.5 s; the 49 States
+    put meanwhile (from another thread, each a wake when the inbox was empty) wake nothing, and all
+    come in the next turn."""
+    runtime = Runtime("gathering")
+    first = threading.Event()
+
+    class Gathering(Recorder):
+        def handle(self, events: list[Received], now_ns: int) -> None:
+            super().handle(events, now_ns)
+            first.set()
+
+        def tick(self, now_ns: int) -> float:
+            self.gathering_s = 0.5 if len(self.seen) == 1 else 0.0
+            return super().tick(now_ns)
+
+    core = Gathering(until=50)
+
+    def rest() -> None:
+        first.wait(10)
+        for seq in range(1, 50):
+            runtime.inbox.put(_state(seq))
+
+    feeder = threading.Thread(target=rest, daemon=True)
+    feeder.start()
+    runtime.inbox.put(_state(0))
+    asyncio.run(runtime.drive(core))
+    feeder.join(5)
+    assert core.seen == list(range(50))
+    assert core.batches == 2
+
+
 def test_a_thread_of_the_service_runs_until_the_stop_signal_and_is_joined() -> None:
     runtime = Runtime("threaded")
     calls: list[int] = []

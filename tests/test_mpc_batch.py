@@ -3,6 +3,8 @@ binds, OSQP where one does, against OSQP on the states of a closed-loop flight."
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -135,3 +137,72 @@ def test_one_by_one_is_osqp_for_every_drone() -> None:
     solver = BatchSolver(batched=False)
     solver.solve([MpcProblem(), MpcProblem()], [np.zeros(6)] * 2, [hold(np.zeros(6), np.zeros(3))] * 2)
     assert (solver.counters.exact, solver.counters.iterative, solver.counters.largest) == (0, 2, 2)
+
+
+def _service(window_s: float, drones: int) -> tuple[Any, Any, list[Any]]:
+    """An MPC service on a fake clock with `drones` drones present, and a State publisher for each."""
+    from dynqos.common import keys
+    from dynqos.common.bus import MemoryBus, Priority
+    from dynqos.common.clock import FakeClock
+    from dynqos.common.config import Config
+    from dynqos.common.keys import Flow, Stream
+    from dynqos.edge.mpc.service import MpcService
+    from dynqos.edge.runtime import Ports
+
+    clock = FakeClock(1_000_000_000)
+    bus = MemoryBus(clock)
+    for i in range(drones):
+        bus.declare_token(keys.drone_presence(f"uav{i}"))
+    service = MpcService(Config(mpc=MpcConfig(batch_window_s=window_s)), Ports(bus, clock))
+    publishers = [
+        bus.publisher(keys.uplink(f"uav{i}", Flow.PRIORITY, Stream.STATE), Priority.REAL_TIME)
+        for i in range(drones)
+    ]
+    return service, (bus, clock), publishers
+
+
+def _state(uav: str, seq: int, clock: Any) -> Any:
+    from dynqos.common.messages import State
+
+    return State(uav=uav, seq=seq, stamp_ns=clock.now_ns(), pos_m=(0.0, 0.0, -1.5), vel_mps=(0.0, 0.0, 0.0),
+                 quat=(1.0, 0.0, 0.0, 0.0))  # fmt: skip
+
+
+def test_a_fleet_s_states_within_the_window_are_solved_in_one_batch_and_a_drone_alone_at_once() -> None:
+    from tests.edge_cores import turn
+
+    service, (bus, clock), publishers = _service(0.002, 3)
+    for seq in (1, 2):  # every drone known, each answered (the first round's states come together)
+        for i, publisher in enumerate(publishers):
+            publisher.put(_state(f"uav{i}", seq, clock))
+        bus.pump()
+        turn(service, clock.now_ns())
+        clock.advance_ns(2_000_000)
+        turn(service, clock.now_ns())
+    answered, batches = service.counters.commands, service.solver.counters.batches
+    assert answered == 6
+    publishers[0].put(_state("uav0", 3, clock))  # one drone's State: it waits for the others
+    bus.pump()
+    assert turn(service, clock.now_ns()) == pytest.approx(0.002)
+    assert service.counters.commands == answered
+    clock.advance_ns(1_000_000)
+    for i in (1, 2):  # the others come within the window
+        publishers[i].put(_state(f"uav{i}", 3, clock))
+    bus.pump()
+    turn(service, clock.now_ns())
+    assert service.counters.commands == answered + 3  # all fresh: answered at once, in one batch
+    assert service.solver.counters.batches == batches + 1
+    publishers[1].put(_state("uav1", 4, clock))  # the others never come: answered once the window ends
+    bus.pump()
+    assert turn(service, clock.now_ns()) > 0
+    assert service.counters.commands == answered + 3
+    clock.advance_ns(2_000_000)
+    turn(service, clock.now_ns())
+    assert service.counters.commands == answered + 4
+
+    alone, (bus, clock), (publisher,) = _service(0.002, 1)
+    publisher.put(_state("uav0", 1, clock))
+    bus.pump()
+    turn(alone, clock.now_ns())
+    assert alone.counters.commands == 1  # no wait when alone
+    assert alone.gathering_s == 0.0

@@ -144,6 +144,9 @@ class MpcConfig:
     # The fresh states of all the drones this replica flies, solved together (edge/mpc/batch.py): one
     # matrix product for those whose bounds do not bind, OSQP for the rest. Off: one OSQP solve each.
     batch_solves: bool = True
+    # How long the first fresh State of a turn waits for the others, so that they are taken and solved in
+    # one turn (each turn of the loop has a cost of its own). A drone alone is answered at once. 0: off.
+    batch_window_s: Annotated[float, In(0, 0.01, "must be in 0..0.01 s")] = 0.002
 
     def __post_init__(self) -> None:
         _check_replica(self.replica_id, self.takeover_after_s, self.holdoff_s, max_takeover_s=1.0)

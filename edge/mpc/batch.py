@@ -81,6 +81,7 @@ class BatchSolver:
         self.batched = batched  # False: OSQP for every drone, one by one (`[mpc] batch_solves = false`)
         self._optimum: UnboundedOptimum | None = None
         self.counters = BatchCounters()
+        self.product_s: float | None = None  # how long the last batch's product took (None: no product)
 
     def solve(
         self, problems: list[MpcProblem], x0: list[Array], references: list[Array]
@@ -94,7 +95,7 @@ class BatchSolver:
         c.largest = max(c.largest, count)
         inside = np.zeros(count, dtype=bool)
         exact: Array = np.empty(0)
-        share = 0.0
+        share, self.product_s = 0.0, None
         if self.batched:
             if self._optimum is None:
                 self._optimum = UnboundedOptimum(problems[0])
@@ -103,7 +104,8 @@ class BatchSolver:
             finite = np.isfinite(starts).all(axis=1) & np.isfinite(refs).all(axis=(1, 2))
             exact, within = self._optimum.solve(starts, refs)
             inside = within & finite  # a non-finite one goes to OSQP's path, which refuses it
-            share = (time.perf_counter() - started) / count
+            self.product_s = time.perf_counter() - started
+            share = self.product_s / count
         results: list[Array | SolveError] = []
         for i, problem in enumerate(problems):
             if inside[i]:

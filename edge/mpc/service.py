@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from functools import partial
 
 import numpy as np
@@ -38,6 +38,7 @@ from dynqos.edge.feeds import DroneFeeds
 from dynqos.edge.membership import Membership, default_replica_id
 from dynqos.edge.mpc.batch import BatchSolver
 from dynqos.edge.mpc.controller import DroneController, Pending, Plan
+from dynqos.edge.mpc.counters import MpcCounters
 from dynqos.edge.mpc.drones import followed_at, own_after_copy, shard_of
 from dynqos.edge.mpc.problem import SolveError
 from dynqos.edge.replicas import Assignment, Role
@@ -59,21 +60,6 @@ ALERT_HOLD_NS = 300_000_000
 TAKEOVER_ANSWERS_LEASES = 4  # a takeover answers the newest state if it came within four leases
 PULL_BEATS = 5  # the quiet drones' copies are read once per lease
 PULL_STATES_NS = 500_000_000  # reading their own states instead: twice a second (a takeover reads anew)
-
-
-@dataclass
-class MpcCounters:
-    states: int = 0
-    commands: int = 0
-    stale: int = 0
-    solve_failures: int = 0
-    references: int = 0
-    other_shard: int = 0
-    not_mine: int = 0  # states of drones this replica neither flies nor stands by for
-    copies: int = 0  # a State's later copies by another path, each answered with the same Command
-    watch_copies: int = 0  # states copied to the drones' standby (`WATCH_COPY_NS`)
-    alerts: int = 0  # times a peer's beats were late enough to take its drones' states in full
-    solve_ms: list[float] = field(default_factory=list)
 
 
 class MpcService(EdgeCore):
@@ -139,17 +125,16 @@ class MpcService(EdgeCore):
         self._pull_period_ns = self._beat_period_ns * PULL_BEATS if quiet_key else PULL_STATES_NS
         self._watch_publishers: dict[str, Publisher] = {}
         self._copy_due_ns: dict[str, int] = {}
-        self._copied: dict[
-            str, tuple[int, str]
-        ] = {}  # the term and replica the last copy said the drone follows
-        self._alert_until_ns: dict[
-            str, int
-        ] = {}  # late peers, and until when their drones' states come in full
+        # the term and replica the last copy said the drone follows; late peers, and until when their
+        # drones' states come in full
+        self._copied: dict[str, tuple[int, str]] = {}
+        self._alert_until_ns: dict[str, int] = {}
         self.feeds.reconcile(self._wanted, assignment_changed=True)
         self.health_interval_s = cfg.health_interval_s
         self._fresh: set[str] = set()  # drones with a new state to answer at the next tick
         self.solve_seconds: Histogram | None = None  # set when metrics are on (edge/metrics.py)
         self.solver = BatchSolver(batched=cfg.batch_solves)
+        self._window_ns = round(cfg.batch_window_s * 1e9)
 
     def _quiet(self, uav: str) -> bool:
         """A drone this replica stands by for and is not ranked first for, held by a peer that beats: its
@@ -252,6 +237,10 @@ class MpcService(EdgeCore):
         self.membership.apply()
         self._take_beats(now_ns)
         watch = now_ns >= self._next_watch_ns or self.membership.changed
+        if not watch and (wait_ns := self._gather_ns(now_ns)) > 0:
+            self.gathering_s = wait_ns / 1e9  # the runtime takes what arrives meanwhile in one turn
+            return self.gathering_s
+        self.gathering_s = 0.0
         alerted = False
         if watch:
             self._next_watch_ns = now_ns + self._beat_period_ns
@@ -269,16 +258,7 @@ class MpcService(EdgeCore):
                 took.add(change.uav)  # a takeover answers the newest state at once
             if took and not self._reads_copies:  # whenever its drone's slot was read last
                 self._read_quiet(fresh, took.__contains__)
-        answering: list[Received] = []
-        for uav in (fresh | took) & self.newest.keys():
-            item = self.newest[uav]
-            if self.assignment.role(uav) is Role.SERVE and self._answerable(item, uav in took, now_ns):
-                answering.append(item)
-            elif uav not in self.controllers:
-                self._controller(uav)  # a standby keeps a controller ready (an OSQP setup is ~1 ms)
-                self._turned(self.clock.now_ns())
-        if answering:
-            self._answer_all(answering)
+        self._answer_all(fresh, took, now_ns)
         if watch:
             self._drop_idle()
         self.feeds.reconcile(
@@ -287,6 +267,16 @@ class MpcService(EdgeCore):
         # with drones: beating, and often enough to see a holder's lease run out in time
         self._turn_gap_ns = self._beat_period_ns if self.newest else IDLE_TURN_NS
         return self._turn_gap_ns / 1e9
+
+    def _gather_ns(self, now_ns: int) -> int:
+        """How much longer the fresh States wait for others, to be solved together: until the batch
+        window (`[mpc] batch_window_s`) has passed since the first came, at most a beat period; none
+        when every drone with a state is fresh already (a drone alone is answered at once)."""
+        fresh = self._fresh
+        if not self._window_ns or not fresh or len(fresh) >= len(self.newest):
+            return 0
+        first = min((item.arrival_ns for uav in fresh if (item := self.newest.get(uav))), default=now_ns)
+        return max(0, min(first + self._window_ns - now_ns, self._beat_period_ns))
 
     def _answerable(self, item: Received, taken: bool, now_ns: int) -> bool:
         """The drone's own state (a holder's copy is answered by no one: the drone's next state is) and,
@@ -351,23 +341,33 @@ class MpcService(EdgeCore):
         self.publishers[uav].put(replace(command, state_path=state.path, edge_hold_ns=hold_ns))
         self.counters.copies += 1
 
-    def _answer_all(self, items: list[Received]) -> None:
-        """The fresh states' plans, solved together (`[mpc] batch_solves`, edge/mpc/batch.py) or one by
-        one, each Command sent as soon as its plan is made."""
+    def _answer_all(self, fresh: set[str], took: set[str], now_ns: int) -> None:
+        """The plans for the drones we fly, solved together (`[mpc] batch_solves`, edge/mpc/batch.py) or
+        one by one, each Command sent as soon as its plan is made; a standby readies a controller."""
         pending: list[tuple[Received, DroneController, Pending]] = []
-        for item in items:
+        for uav in (fresh | took) & self.newest.keys():
+            item = self.newest[uav]
+            if self.assignment.role(uav) is not Role.SERVE or not self._answerable(item, uav in took, now_ns):
+                if uav not in self.controllers:
+                    self._controller(uav)  # a standby keeps a controller ready (an OSQP setup is ~1 ms)
+                    self._turned(self.clock.now_ns())
+                continue
             assert isinstance(item.message, State)
-            ctrl = self._controller(item.message.uav)
+            ctrl = self._controller(uav)
             ready = ctrl.prepare(item.message, item.arrival_ns)
             if ready is None:
                 self.counters.stale += 1
             else:
                 pending.append((item, ctrl, ready))
+        if not pending:
+            return
         solved = self.solver.solve(
             [ctrl.problem for _, ctrl, _ in pending],
             [ready.x_start for *_, ready in pending],
             [ready.reference for *_, ready in pending],
         )
+        if self.solver.product_s is not None:
+            self._timed(self.solver.product_s)
         for (item, ctrl, ready), inputs in zip(pending, solved, strict=True):
             if isinstance(inputs, SolveError):
                 self.counters.solve_failures += 1
@@ -378,14 +378,17 @@ class MpcService(EdgeCore):
                 self._send(item, ctrl, ctrl.finish(ready, inputs))
             self._turned(self.clock.now_ns())
 
+    def _timed(self, solve_s: float) -> None:
+        """A solve's time: one drone's OSQP solve, or a batch's product for all its drones."""
+        self.counters.solved(solve_s)
+        if self.solve_seconds is not None:
+            self.solve_seconds.observe(solve_s)
+
     def _send(self, item: Received, ctrl: DroneController, plan: Plan) -> None:
         uav, state = ctrl.uav, item.message
         assert isinstance(state, State)
-        self.counters.solve_ms.append(ctrl.problem.last_solve_s * 1000)
-        if self.solve_seconds is not None:
-            self.solve_seconds.observe(ctrl.problem.last_solve_s)
-        if len(self.counters.solve_ms) > 2000:
-            del self.counters.solve_ms[:1000]
+        if ctrl.problem.last_iterations:  # OSQP solved it (a batch's product is timed once)
+            self._timed(ctrl.problem.last_solve_s)
         command = Command(
             uav=uav,
             seq=state.seq,
