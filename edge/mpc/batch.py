@@ -59,8 +59,7 @@ class UnboundedOptimum:
         self.vel_from_u = s_u[rows].T
         self.horizon = n
         self.a_max = problem._a_max
-        self.v_max = problem._v_max
-        self.braking = problem._braking[1:]
+        self.velocity_bounds = problem.velocity_bounds  # the same funnel as the QP's own
 
     def solve(self, x0: Array, reference: Array) -> tuple[Array, NDArray[np.bool_]]:
         """For B drones, x0 (B, 6) and reference (B, N + 1, 6): the inputs (B, N, 3) and, per drone,
@@ -68,7 +67,7 @@ class UnboundedOptimum:
         batch = x0.shape[0]
         inputs = np.hstack([x0, reference.reshape(batch, -1)]) @ self.gain
         vel = (x0 @ self.vel_from_x0 + inputs @ self.vel_from_u).reshape(batch, self.horizon, 3)
-        funnel = np.maximum(np.abs(x0[:, None, 3:]) - self.braking[None], self.v_max)
+        funnel = self.velocity_bounds(x0[:, 3:])[:, 1:]
         inside = np.all(np.abs(inputs).reshape(batch, self.horizon, NU) <= self.a_max, axis=(1, 2))
         inside &= np.all(np.abs(vel) <= funnel, axis=(1, 2))
         return inputs.reshape(batch, self.horizon, NU), inside

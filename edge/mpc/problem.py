@@ -112,10 +112,16 @@ class MpcProblem:
         q[n * NX : (n + 1) * NX] = -(self._qn @ reference[n])
         self._l[:NX] = -x0
         self._u[:NX] = -x0
-        bound = np.maximum(np.abs(x0[3:]) - self._braking, self._v_max).ravel()
+        bound = self.velocity_bounds(x0[3:]).ravel()
         self._u[self._v_rows] = bound
         self._l[self._v_rows] = -bound
         return q, self._l, self._u
+
+    def velocity_bounds(self, v0: Array) -> Array:
+        """The funnel's bound on |v| at steps 0..N for initial velocities v0: (3,) gives (N + 1, 3), and
+        a batch (B, 3) gives (B, N + 1, 3)."""
+        bounds: Array = np.maximum(np.abs(v0)[..., None, :] - self._braking, self._v_max)
+        return bounds
 
     def solve(self, x0: Array, reference: Array) -> Array:
         """The optimal inputs (N, 3); raises SolveError when OSQP does not solve the problem."""
