@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import subprocess
 from pathlib import Path
 
 from dynqos.bench.suite import HEADLINES
@@ -73,15 +74,50 @@ def test_both_diagrams_name_every_role() -> None:
         assert not missing, (path.name, missing)
 
 
+def in_history(commit: str, path: str) -> bool | None:
+    """Whether git has `path` at `commit`; None where this checkout cannot tell (no git, a shallow
+    clone without that commit)."""
+    try:
+        known = subprocess.run(
+            ["git", "-C", str(ROOT), "cat-file", "-e", f"{commit}^{{commit}}"],
+            capture_output=True,
+            timeout=30,
+        )
+        if known.returncode != 0:
+            return None
+        found = subprocess.run(
+            ["git", "-C", str(ROOT), "cat-file", "-e", f"{commit}:{path.rstrip('/')}"],
+            capture_output=True,
+            timeout=30,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return found.returncode == 0
+
+
 def test_every_document_and_stored_run_cited_is_there() -> None:
-    cited = re.compile(r"docs/(?:results/[\w.-]+|bench/[\w.-]+|[\w-]+\.md)|\]\((docs/[^)#]+)")
+    """A stored run is cited as `docs/results/<run>/`, or, once it left the tree, as git names it at a
+    commit: `f3b971e:docs/results/<run>/` (docs/development.md, "Storing a run")."""
+    cited = re.compile(
+        r"(?:\b([0-9a-f]{7,40}):)?(docs/(?:results/[\w.-]+|bench/[\w.-]+|[\w-]+\.md))|\]\((docs/[^)#]+)"
+    )
+    readmes = sorted(DOCS.glob("results/*/README.md")) + sorted(DOCS.glob("bench/*/README.md"))
     missing = []
-    for path in [README, *sorted(DOCS.glob("*.md"))]:
+    for path in [README, *sorted(DOCS.glob("*.md")), *readmes]:
         for match in cited.finditer(path.read_text()):
-            target = match.group(1) or match.group(0)
-            if target not in FOREIGN and not (ROOT / target).exists():
-                missing.append(f"{path.name}: {target}")
+            commit, target = match.group(1), match.group(2) or match.group(3)
+            if target in FOREIGN:
+                continue
+            there = in_history(commit, target) if commit else (ROOT / target).exists()
+            if there is False:
+                missing.append(f"{path.relative_to(ROOT)}: {match.group(0)}")
     assert not missing, missing
+
+
+def test_docs_stay_under_10_mb() -> None:
+    """What a clone carries: stored runs are thinned (`dynqos store`) and superseded ones leave the tree."""
+    size = sum(path.stat().st_size for path in DOCS.rglob("*") if path.is_file())
+    assert size <= 10_000_000, f"docs/ holds {size / 1e6:.2f} MB; see docs/development.md, 'Storing a run'"
 
 
 def test_benchmarks_open_with_every_benchmarks_current_figure() -> None:

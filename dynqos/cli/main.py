@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from dynqos import __version__
-from dynqos.cli import config_cmd, edge_cmd, experiment_cmd, sim_cmd, tools_cmd
+from dynqos.cli import config_cmd, edge_cmd, experiment_cmd, sim_cmd, store_cmd, tools_cmd
 from dynqos.cli.options import Handler, common_options, join_common_options
 from dynqos.common.config import environment_overrides, load_config
 from dynqos.common.errors import DynqosError
@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"dynqos {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for group in (config_cmd, sim_cmd, edge_cmd, experiment_cmd, tools_cmd):
+    for group in (config_cmd, sim_cmd, edge_cmd, experiment_cmd, store_cmd, tools_cmd):
         group.add(commands)
     return parser
 
