@@ -144,7 +144,11 @@ def test_the_client_books_reads_lists_and_releases_everything_it_made() -> None:
             while not await available():
                 assert time.monotonic() < deadline
                 await asyncio.sleep(0.05)  # the operator's own clock starts it
-            assert await op.granted()  # no radio map: the booking grants anywhere
+            # no radio map: the booking grants anywhere, from the cell's next grant update (its bearers'
+            # counters can lag the booking's status by that tick on a loaded machine)
+            while not await op.granted():
+                assert time.monotonic() < deadline
+                await asyncio.sleep(0.05)
             listed = {b.booking_id for b in await client.retrieve(DEVICE)}
             assert listed == {soon.booking_id, later.booking_id}
             assert await client.release_all() == []

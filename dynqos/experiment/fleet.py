@@ -12,7 +12,6 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -22,16 +21,18 @@ from dynqos.common.config import Config, ZenohConfig
 from dynqos.common.keys import Downlink
 from dynqos.common.messages import QosDecision
 from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Received, Role, endpoints, open_bus
+from dynqos.common.transport import Received
 from dynqos.experiment.faults import FaultInjector
 from dynqos.experiment.flight import (
     QUEUE_ITEMS,
     Streams,
+    cell_event,
     fly,
     fly_and_stop,
-    post_json,
-    start_replicas,
-    start_router_and_cell,
+    launch,
+    recorder_bus,
+    start_network,
+    start_together,
     wait_for_offload,
 )
 from dynqos.experiment.link_relay import LinkRelay
@@ -41,7 +42,6 @@ from dynqos.experiment.sites import (
     operators_qod,
     site_b_config,
     site_configs,
-    start_site_b,
     with_cell_b,
     with_site_b_bearers,
     with_two_paths,
@@ -49,14 +49,13 @@ from dynqos.experiment.sites import (
 from dynqos.experiment.vehicles import (
     contacts,
     px4_workdir,
-    start_vehicle,
     track,
     with_px4_fleet,
     with_px4_flight,
     world_of,
 )
 from dynqos.plan.cells import with_cell
-from dynqos.plan.offloaded import offloaded
+from dynqos.plan.flight import SHARED, SITE_B, FlightPlan, plan_flight
 from dynqos.plan.recording import Recording
 from dynqos.plan.scenario import REPLICA_FAULTS, Scenario, fleet_configs, write_config
 from dynqos.reports.fleet import summarise_fleet, write_fleet
@@ -64,8 +63,6 @@ from dynqos.reports.mission import mission_figures, vehicle_tracks
 from dynqos.reports.routes import plot_routes
 
 log = logging.getLogger(__name__)
-
-DETECTOR_NICE = 10
 
 
 def run_fleet(
@@ -92,27 +89,17 @@ def run_fleet(
     rec = Recording()  # what the fleet shares: the cell, the load, memory and CPU
     recs = {uav: Recording() for uav in drones}
     decisions: list[QosDecision] = []
+    flight = plan_flight(scenario, folder, px4)
+    configs = {SHARED: shared_path, SITE_B: folder / "dynqos-b.toml", **paths}
 
     def fly() -> None:
-        site_b = None if shared_b is None else site_b_config(scenario, shared_b, folder)
-        cell, cell_b = start_router_and_cell(procs, folder, site_b)
-        sink_port = free_port() if scenario.qos_agents == 1 else 0  # several agents poll (scenario.py)
-        write_config(shared_path, scenario, with_cell(shared, cell, sink_port=sink_port))
-        cells = {"a": cell}
-        if site_b is not None and shared_b is not None and cell_b is not None:
-            path_b, cells["b"] = site_b[0], cell_b
-            with_cell_b(path_b, scenario, shared_b, cell_b)
-        for uav, config in drones.items():
-            config = with_cell(config, cell)
-            write_config(paths[uav], scenario, with_two_paths(config, cells) if shared_b else config)
-        _start_edge(procs, scenario, shared, drones, paths, folder, px4)
-        if shared_b is not None:
-            start_site_b(procs, scenario, path_b)
+        cells = _start(procs, scenario, flight, configs, (shared, shared_b), drones)
         _record_fleet(
             scenario,
+            flight,
             (shared.zenoh, shared_b.zenoh if shared_b else None),
             procs,
-            paths,
+            configs,
             {site: int(c["control_port"]) for site, c in cells.items()},
             rec,
             recs,
@@ -145,6 +132,38 @@ def run_fleet(
     return summary
 
 
+def _start(
+    procs: Processes,
+    scenario: Scenario,
+    flight: FlightPlan,
+    configs: dict[str, Path],
+    sites: tuple[Config, Config | None],
+    drones: dict[str, Config],
+) -> dict[str, dict[str, Any]]:
+    """Everything but the drones' daemons, in the plan's order, each config written again with what the
+    cells report once they are up; each site's cell's ready line."""
+    shared, shared_b = sites
+    folder = configs[SHARED].parent
+    if shared_b is not None:
+        site_b_config(scenario, shared_b, folder)
+    cell, cell_b = start_network(procs, flight, configs)
+    sink_port = free_port() if scenario.qos_agents == 1 else 0  # several agents poll (scenario.py)
+    write_config(configs[SHARED], scenario, with_cell(shared, cell, sink_port=sink_port))
+    cells = {"a": cell}
+    if shared_b is not None and cell_b is not None:
+        cells["b"] = cell_b
+        with_cell_b(configs[SITE_B], scenario, shared_b, cell_b)
+    for uav, config in drones.items():
+        config = with_cell(config, cell)
+        write_config(configs[uav], scenario, with_two_paths(config, cells) if shared_b else config)
+    for item in flight.vehicles:  # PX4 instances boot one at a time, as they always have
+        launch(procs, item, configs)
+    start_together(procs, flight.edge, configs)  # each needs only the routers, the cells and the configs
+    for item in flight.after_edge:
+        launch(procs, item, configs)
+    return cells
+
+
 def _sites(scenario: Scenario, shared: Config) -> tuple[Config, Config | None, LinkRelay | None]:
     """With two sites (docs/multipath.md): site A's config and site B's, B's router linked to A's
     through a relay the runner can cut when a path_partition fault needs it, and cell B's bearers to
@@ -155,40 +174,6 @@ def _sites(scenario: Scenario, shared: Config) -> tuple[Config, Config | None, L
         return shared, None, relay
     shared, shared_b = site_configs(shared, ZenohConfig(**flow_ports()), relay.port if relay else 0)
     return shared, with_site_b_bearers(shared_b, shared.zenoh), relay
-
-
-def _start_edge(
-    procs: Processes,
-    scenario: Scenario,
-    shared: Config,
-    drones: dict[str, Config],
-    paths: dict[str, Path],
-    folder: Path,
-    px4: list[int] | None,
-) -> None:
-    """Every process but the router, the cell and the drones' daemons: the QoS agents, the vehicles, the
-    planner and MPC replicas, the fleet planner, the detector (and the ROS 2 face)."""
-    if px4:  # PX4 instances boot one at a time, as they always have
-        _start_vehicles(procs, folder, drones, paths, px4)
-    with procs.together():  # each needs only the router, the cell and the configs
-        start_replicas(procs, "qos", scenario.qos_agents)
-        # No MCAP recorder here: four drones already take this 2-core machine to its limit, and a fifth
-        # subscriber of every state perturbed the fleet's figures in CI (docs/observability.md).
-        if not px4:
-            _start_vehicles(procs, folder, drones, paths, px4)
-        start_replicas(procs, "planner", scenario.planner_replicas)
-        start_replicas(procs, "mpc", scenario.mpc_replicas)
-        nice = ["nice", "-n", str(DETECTOR_NICE), procs.exe]
-        if shared.fleet_plan.tasks:  # it waits until every drone offloads, then plans and sends the legs
-            # below the control path, as the detector: its planning is a burst of CPU, not a deadline
-            procs.start("fleet-planner", ["edge", "fleet-planner"], program=nice)
-        # The detector is best effort (it drops the frames it cannot keep up with): on one machine it
-        # runs below the control path, as it would on its own cores at a real edge.
-        procs.start("detector", ["edge", "detector"], program=nice)
-        for task in offloaded(scenario.tasks):  # the user's own tasks, each its own service
-            procs.start(task.process, ["edge", "serve", task.edge])
-        if scenario.ros2_bridge:  # best effort as well
-            procs.start("ros2", ["edge", "ros2"], program=nice)
 
 
 def _configs(scenario: Scenario, folder: Path) -> tuple[Config, dict[str, Config], list[int] | None]:
@@ -204,35 +189,16 @@ def _configs(scenario: Scenario, folder: Path) -> tuple[Config, dict[str, Config
     return shared, drones, px4
 
 
-def _start_vehicles(
-    procs: Processes, folder: Path, drones: dict[str, Config], paths: dict[str, Path], px4: list[int] | None
-) -> None:
-    """Each drone's vehicle, where its config stands it: dynqos's vehicle `--instance i`, or PX4."""
-    for i, (uav, config) in enumerate(drones.items()):
-        start_vehicle(
-            procs,
-            folder,
-            px4[i] if px4 else None,
-            name=f"vehicle-{uav}",
-            instance=i,
-            start_m=config.vehicle.start_m,
-            config=paths[uav],
-        )
-
-
-def cell_event(port: int) -> Callable[[dict[str, Any]], object]:
-    return lambda event: post_json(port, "/events", event)
-
-
 def _read(path: Path) -> str:
     return path.read_text(errors="replace") if path.exists() else ""
 
 
 def _record_fleet(
     scenario: Scenario,
+    flight: FlightPlan,
     zenohs: tuple[ZenohConfig, ZenohConfig | None],
     procs: Processes,
-    paths: dict[str, Path],
+    configs: dict[str, Path],
     cell_ports: dict[str, int],
     rec: Recording,
     recs: dict[str, Recording],
@@ -244,26 +210,22 @@ def _record_fleet(
 ) -> None:
     """Start every drone, wait until all of them offload, then fly the scenario. With two sites the
     recorder hears the drones through either router, so that it hears on when one site is killed."""
-    connect = [endpoints(z, Role.EDGE)[0][0] for z in zenohs if z is not None]
-    bus = open_bus(zenohs[0], Role.EDGE, connect=connect)
+    bus = recorder_bus(*zenohs)
     try:
-        streams = {uav: Streams.subscribe(bus, uav) for uav in paths}
+        streams = {uav: Streams.subscribe(bus, uav) for uav in flight.drones}
         heard: BoundedQueue[Received] = BoundedQueue(QUEUE_ITEMS)
         bus.subscribe(keys.downlink_all_drones(Downlink.QOS_DECISION), heard, expect=(QosDecision,))
         # One drone at a time takes off and starts offloading: four take-offs at once on two cores
         # are a start-up no fleet flies, and their latencies would be the baseline's.
         # They stop at once (a PX4 drone lands before its daemon exits: about 8 s each).
-        first = f"onboard-{next(iter(paths))}"
-        for uav, path in paths.items():
-            name = f"onboard-{uav}"
-            procs.start(
-                name, ["onboard", "--takeoff"], config=path, stop_with=None if name == first else first
-            )
-            recs[uav].offload_ns = wait_for_offload(streams[uav].states, procs, stop, f"onboard-{uav}")
+        first = flight.onboard[0].name
+        for uav, item in zip(flight.drones, flight.onboard, strict=True):
+            launch(procs, item, configs, stop_with=None if item.name == first else first)
+            recs[uav].offload_ns = wait_for_offload(streams[uav].states, procs, stop, item.name)
         # The flight's time zero is when the last drone offloads: from then on every drone is recorded.
         rec.t0_ns = rec.offload_ns = time.monotonic_ns()
         # a replica fault acts on the replica serving the first drone (the others' may be another)
-        watched = next(iter(paths)) if any(f.kind in REPLICA_FAULTS for f in scenario.faults) else None
+        watched = flight.drones[0] if any(f.kind in REPLICA_FAULTS for f in scenario.faults) else None
         injector = FaultInjector(
             procs,
             cell_event(cell_ports["a"]),

@@ -18,41 +18,53 @@ from typing import Any
 
 from dynqos.common import keys
 from dynqos.common.clock import millis
+from dynqos.common.config import ZenohConfig
 from dynqos.common.errors import DynqosError
 from dynqos.common.keys import Downlink, Stream
 from dynqos.common.messages import OFFBOARD, Reference, State, SupervisorStatus
 from dynqos.common.queues import BoundedQueue
-from dynqos.common.transport import Bus, Received
+from dynqos.common.transport import Bus, Received, Role, endpoints, open_bus
 from dynqos.experiment.faults import FaultInjector
 from dynqos.experiment.machine import own_machine, read_cpu_times, usable_core_count
 from dynqos.experiment.processes import Processes, resident_memory
 from dynqos.plan.faults import FaultWindow
+from dynqos.plan.flight import FlightPlan, Launch
 from dynqos.plan.recording import Recording
-from dynqos.plan.scenario import UAV, Scenario, replica_names, world_path
+from dynqos.plan.scenario import UAV, Scenario
 
 log = logging.getLogger(__name__)
 
 
-def start_replicas(procs: Processes, service: str, count: int) -> None:
-    """The run's processes of an edge service (mpc, planner, qos), each named by its replica id."""
-    for name in replica_names(service, count):
-        procs.start(name, ["edge", service, "--set", f'{service}.replica_id="{name}"'])
+def launch(
+    procs: Processes, item: Launch, configs: Mapping[str, Path], stop_with: str | None = None
+) -> dict[str, Any]:
+    """Start one process of the plan: its config file from `configs` (its key: the run's, site B's or a
+    drone's), niced where the plan says. Its ready line (inside `together`: {} now)."""
+    program = ["nice", "-n", str(item.nice), procs.exe] if item.nice else None
+    config = configs[item.config] if item.config else None
+    return procs.start(
+        item.name,
+        list(item.args),
+        timeout_s=item.timeout_s,
+        program=program,
+        config=config,
+        stop_with=stop_with,
+    )
 
 
-def start_router_and_cell(
-    procs: Processes, folder: Path, site_b: tuple[Path, Path] | None = None
-) -> tuple[dict[str, Any], dict[str, Any] | None]:
-    """The edge's router and the emulated cell, at once (the cell connects to the router only when a drone
-    connects to it), and with `site_b` (site B's config, cell B's folder) site B's router and cell with
-    them; each cell's ready line, with its ports (None: no site B)."""
+def start_together(procs: Processes, items: tuple[Launch, ...], configs: Mapping[str, Path]) -> None:
     with procs.together():
-        procs.start("router", ["edge", "router"])
-        procs.start("cell", ["sim", "cell", "--out", str(folder)])
-        if site_b is not None:
-            config_b, folder_b = site_b
-            procs.start("router-b", ["edge", "router"], config=config_b)
-            procs.start("cell-b", ["sim", "cell", "--out", str(folder_b)], config=config_b)
-    return procs.info["cell"], procs.info["cell-b"] if site_b is not None else None
+        for item in items:
+            launch(procs, item, configs)
+
+
+def start_network(
+    procs: Processes, plan: FlightPlan, configs: Mapping[str, Path]
+) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """The routers and cells, at once (a cell connects to its router only when a drone connects to it);
+    each cell's ready line, with its ports (None: no site B)."""
+    start_together(procs, plan.network, configs)
+    return procs.info["cell"], procs.info.get("cell-b")
 
 
 RECORD_PERIOD_S = 0.1  # the recorder's sampling period
@@ -61,18 +73,6 @@ CELL_POLL_S = 0.5  # how often the cell's counters are read
 MACHINE_SAMPLE_S = 1.0  # how often the machine's CPU times are read (one-second busy shares)
 OFFLOAD_TIMEOUT_S = 60.0  # from the daemon's start to its first offboard state
 QUEUE_ITEMS = 200_000  # per recorded stream: 30 min of states at 50 Hz, with room
-
-
-MCAP_NAME = "flight.mcap"
-
-
-def start_mcap_recorder(procs: Processes, scenario: Scenario, folder: Path) -> None:
-    """`dynqos record` into <folder>/flight.mcap for the whole flight (docs/observability.md). Without
-    the camera images: a run's folder stays a few megabytes (`dynqos record` by hand keeps them)."""
-    args = ["record", "--out", str(folder / MCAP_NAME), "--scenario", scenario.name, "--no-camera"]
-    if scenario.world:
-        args += ["--world", world_path(scenario.world)]
-    procs.start("record", args)  # it runs niced by itself
 
 
 def get_json(port: int, path: str) -> dict[str, Any]:
@@ -91,6 +91,18 @@ def post_json(port: int, path: str, body: dict[str, Any]) -> dict[str, Any]:
     with urllib.request.urlopen(request, timeout=5) as response:
         data: dict[str, Any] = json.loads(response.read())
         return data
+
+
+def cell_event(port: int) -> Callable[[dict[str, Any]], object]:
+    """A way to send an event (the load, a fault) to the cell whose control API is on `port`."""
+    return lambda event: post_json(port, "/events", event)
+
+
+def recorder_bus(zenoh: ZenohConfig, zenoh_b: ZenohConfig | None = None) -> Bus:
+    """The recorder's session, an edge client: with two sites it connects to both routers (each message
+    then comes twice: Streams keeps one), so it hears on when one site is killed."""
+    connect = [endpoints(z, Role.EDGE)[0][0] for z in (zenoh, zenoh_b) if z is not None]
+    return open_bus(zenoh, Role.EDGE, connect=connect)
 
 
 def fly_and_stop(

@@ -12,21 +12,20 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from dynqos.common.config import Config, ZenohConfig
-from dynqos.common.transport import Role, endpoints, open_bus
 from dynqos.experiment.faults import FaultInjector
 from dynqos.experiment.flight import (
     Streams,
+    cell_event,
     fly,
     fly_and_stop,
-    post_json,
-    start_mcap_recorder,
-    start_replicas,
-    start_router_and_cell,
+    launch,
+    recorder_bus,
+    start_network,
+    start_together,
     wait_for_offload,
 )
 from dynqos.experiment.link_relay import LinkRelay
@@ -36,7 +35,6 @@ from dynqos.experiment.sites import (
     operators_qod,
     site_b_config,
     site_configs,
-    start_site_b,
     with_cell_b,
     with_two_paths,
 )
@@ -45,14 +43,13 @@ from dynqos.experiment.vehicles import (
     px4_config,
     px4_instances,
     px4_workdir,
-    start_vehicle,
     track,
     with_px4_flight,
     world_of,
 )
 from dynqos.plan.cells import with_cell
 from dynqos.plan.faults import SITE_FAULTS
-from dynqos.plan.offloaded import offloaded
+from dynqos.plan.flight import SHARED, SITE_B, FlightPlan, plan_flight
 from dynqos.plan.recording import Recording
 from dynqos.plan.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, write_config
 from dynqos.reports.multipath import fault_spans, path_figures
@@ -95,10 +92,14 @@ def run_scenario(
     write_config(config_path, scenario, config)
     procs = Processes(config_path, logs, scenario.metrics_port)
     rec = Recording()
+    plan = plan_flight(scenario, folder, instances)
+    configs = {SHARED: config_path, SITE_B: folder / "dynqos-b.toml"}
 
     def fly() -> None:
-        cell_ports = _start_edge_and_cell(procs, scenario, (config, config_b), config_path, folder, px4)
-        _record_flight(scenario, (config, config_b), procs, cell_ports, rec, stop, progress, relay)
+        cell_ports = _start_edge_and_cell(procs, scenario, plan, (config, config_b), configs, folder)
+        _record_flight(
+            scenario, plan, (config, config_b), procs, configs, cell_ports, rec, stop, progress, relay
+        )
 
     try:
         ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
@@ -123,67 +124,53 @@ def run_scenario(
 def _start_edge_and_cell(
     procs: Processes,
     scenario: Scenario,
-    configs: tuple[Config, Config | None],
-    config_path: Path,
+    plan: FlightPlan,
+    config_pair: tuple[Config, Config | None],
+    configs: dict[str, Path],
     folder: Path,
-    px4: int | None,
 ) -> dict[str, int]:
-    """Everything but the drone, in dependency order; returns each site's cell control port. The drone's
+    """Everything but the drone, in the plan's order; returns each site's cell control port. The drone's
     flows connect to the bearer ports the cell reports and the QoS agent to its QoD API, so the config is
     written again once it is up. The agent stops before the cell (reverse order): the sessions it deletes
     on SIGTERM are gone from the cell's final qod.json. With two sites, site B's router, cell and
     services start from their own config (dynqos/experiment/sites.py)."""
-    config, config_b = configs
-    site_b = None if config_b is None else site_b_config(scenario, config_b, folder)
-    cell, cell_b = start_router_and_cell(procs, folder, site_b)
+    config, config_b = config_pair
+    if config_b is not None:
+        site_b_config(scenario, config_b, folder)
+    cell, cell_b = start_network(procs, plan, configs)
     sink_port = free_port() if scenario.qos_agents == 1 else 0
     config = with_cell(config, cell, sink_port=sink_port)
     ports = {"a": int(cell["control_port"])}
-    path_b = folder / "dynqos-b.toml"
     if config_b is not None and cell_b is not None:
-        with_cell_b(path_b, scenario, config_b, cell_b)
+        with_cell_b(configs[SITE_B], scenario, config_b, cell_b)
         config = with_two_paths(config, {"a": cell, "b": cell_b})
         ports["b"] = int(cell_b["control_port"])
-    write_config(config_path, scenario, config)
-    with procs.together():  # each needs only the router, the cell and the config
-        start_replicas(procs, "qos", scenario.qos_agents)
-        start_mcap_recorder(procs, scenario, folder)
-        start_vehicle(procs, folder, px4)
-        start_replicas(procs, "planner", scenario.planner_replicas)
-        start_replicas(procs, "mpc", scenario.mpc_replicas)
-        procs.start("detector", ["edge", "detector"])
-        for task in offloaded(scenario.tasks):
-            procs.start(task.process, ["edge", "serve", task.edge])
-        if scenario.ros2_bridge:
-            procs.start("ros2", ["edge", "ros2"])
-        if config_b is not None:
-            start_site_b(procs, scenario, path_b)
+    write_config(configs[SHARED], scenario, config)
+    start_together(procs, plan.edge, configs)  # each needs only the routers, the cells and the configs
+    for item in plan.after_edge:
+        launch(procs, item, configs)
     return ports
 
 
 def _record_flight(
     scenario: Scenario,
-    configs: tuple[Config, Config | None],
+    plan: FlightPlan,
+    config_pair: tuple[Config, Config | None],
     procs: Processes,
+    configs: dict[str, Path],
     cell_ports: dict[str, int],
     rec: Recording,
     stop: threading.Event,
     progress: bool,
     relay: LinkRelay | None = None,
 ) -> None:
-    config = configs[0]
-    # the recorder hears the drone as a ground station would: with two sites, through either router
-    # (each message then comes twice: Streams keeps one), so that it hears on when one site is killed
-    connect = [endpoints(c.zenoh, Role.EDGE)[0][0] for c in configs if c is not None]
-    bus = open_bus(config.zenoh, Role.EDGE, connect=connect)
+    config, config_b = config_pair
+    bus = recorder_bus(config.zenoh, config_b.zenoh if config_b else None)  # as a ground station hears
     uplink_mbps = config.cell.uplink_mbps
-
-    def cell_event(port: int) -> Callable[[dict[str, Any]], object]:
-        return lambda event: post_json(port, "/events", event)
 
     try:
         streams = Streams.subscribe(bus)
-        procs.start("onboard", ["onboard", "--takeoff"])
+        launch(procs, plan.onboard[0], configs)
         rec.offload_ns = rec.t0_ns = wait_for_offload(streams.states, procs, stop)
         rec.cpu_s_t0 = procs.cpu_seconds()
         replica_faults = any(f.kind in REPLICA_FAULTS for f in scenario.faults)

@@ -23,8 +23,8 @@ from dynqos.experiment.link_relay import LinkRelay
 from dynqos.experiment.processes import Processes
 from dynqos.plan.cells import with_cell
 from dynqos.plan.faults import Fault, FaultWindow
-from dynqos.plan.offloaded import offloaded
-from dynqos.plan.scenario import Scenario, replica_names, write_config
+from dynqos.plan.flight import SITE_B_FOLDER
+from dynqos.plan.scenario import Scenario, write_config
 from dynqos.reports.summary import qod_sessions
 
 log = logging.getLogger(__name__)
@@ -49,23 +49,6 @@ def site_processes(procs: Processes, site: str) -> list[str]:
         and name.endswith("-b") == (site == "b")
         and name not in procs.down
     ]
-
-
-def start_site_b(procs: Processes, scenario: Scenario, config: Path) -> None:
-    """Site B's QoS agents, planners, MPCs, detector and task services, as many as site A's, named (and
-    identified as replicas) with `-b` after site A's names."""
-    for service, count in (
-        ("qos", scenario.qos_agents),
-        ("planner", scenario.planner_replicas),
-        ("mpc", scenario.mpc_replicas),
-    ):
-        for name in replica_names(service, count):
-            b = process_name(name, "b")
-            procs.start(b, ["edge", service, "--set", f'{service}.replica_id="{b}"'], config=config)
-    procs.start("detector-b", ["edge", "detector"], config=config)
-    for task in offloaded(scenario.tasks):  # a replica of each user task's service at site B too
-        b = process_name(task.process, "b")
-        procs.start(b, ["edge", "serve", task.edge, "--replica-id", b], config=config)
 
 
 def site_configs(config: Config, zenoh_b: ZenohConfig, link_port: int = 0) -> tuple[Config, Config]:
@@ -104,7 +87,7 @@ def with_site_b_bearers(config_b: Config, zenoh_a: ZenohConfig) -> Config:
 
 def site_b_config(scenario: Scenario, config_b: Config, folder: Path) -> tuple[Path, Path]:
     """Site B's own config, written at dynqos-b.toml (again, with its QoD API for site B's agents, once
-    cell B is up: `with_cell_b`), and cell B's folder: what `start_router_and_cell` starts site B from."""
+    cell B is up: `with_cell_b`), and cell B's folder (the plan's cell-b writes there)."""
     path_b = folder / "dynqos-b.toml"
     write_config(path_b, scenario, config_b)
     site_b_folder(folder).mkdir(exist_ok=True)
@@ -191,4 +174,4 @@ def operators_qod(folder: Path) -> dict[str, dict[str, int]]:
 
 def site_b_folder(folder: Path) -> Path:
     """Where cell B writes its records (cell.csv, qod.json): beside site A's, in their own folder."""
-    return folder / "site-b"
+    return folder / SITE_B_FOLDER

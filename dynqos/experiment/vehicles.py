@@ -11,14 +11,12 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common.config import Config
-from dynqos.experiment.processes import Processes
+from dynqos.plan.flight import PX4_FOLDER
 from dynqos.plan.recording import Recording
 from dynqos.plan.scenario import Scenario
 from dynqos.sim.vehicle.world import World, collision, default_world, load_world
 
 Vec3 = tuple[float, float, float]
-
-PX4_FOLDER = "px4"  # the run folder's sub-folder of PX4's working directories (its ULogs among them)
 
 
 def px4_config(config: Config, instance: int) -> Config:
@@ -69,36 +67,6 @@ def px4_instances(scenario: Scenario) -> list[int] | None:
     from dynqos.sim.vehicle.px4_sitl import free_instances
 
     return free_instances(len(scenario.uavs))
-
-
-def start_vehicle(
-    procs: Processes,
-    folder: Path,
-    px4: int | None,
-    *,
-    name: str = "vehicle",
-    instance: int = 0,
-    start_m: tuple[float, float] = (0.0, 0.0),
-    config: Path | None = None,
-) -> None:
-    """A drone's vehicle: PX4 instance `px4` with its working directory in the run folder, standing at
-    `start_m` in the fleet's frame, or (None) dynqos's simulated vehicle `instance` (which reads where it
-    stands from its config)."""
-    if px4 is None:
-        args = ["sim", "vehicle", "--instance", str(instance), "--duration", "3600"]
-        procs.start(name, args, config=config)
-        return
-    workdir = px4_workdir(folder, px4)
-    args = [
-        "sim",
-        "px4",
-        "--instance",
-        str(px4),
-        "--workdir",
-        str(workdir),
-        "--start={},{}".format(*start_m),  # one word: a start of -5.5 is no option
-    ]
-    procs.start(name, args, timeout_s=90, config=config)
 
 
 def px4_workdir(folder: Path, px4: int) -> Path:
