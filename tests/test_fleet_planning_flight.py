@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 
-from dynqos.experiment.fleet import run_fleet
+from dynqos.experiment.runner import run_scenario
 from dynqos.plan.scenario import Scenario, builtin_scenario
 
 TASKS = ("hole-site", "pillar-sw")
@@ -35,7 +35,7 @@ def _scenario(mode: str) -> Scenario:
 
 def _fly(tmp_path: Path, mode: str) -> tuple[dict[str, Any], Path]:
     scenario = _scenario(mode)
-    summary = run_fleet(scenario, tmp_path, progress=False)
+    summary = run_scenario(scenario, tmp_path, progress=False)
     return summary, tmp_path / scenario.run_id
 
 

@@ -8,8 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from dynqos.plan.flight import NICE, SHARED, SITE_B, FlightPlan, Launch, plan_flight
+from dynqos.common.messages import State
+from dynqos.experiment.flight_configs import flight_configs, write_configs
+from dynqos.experiment.sites import with_site_b
+from dynqos.plan.flight import NICE, SHARED, SITE_B, FlightPlan, Launch, config_file, plan_flight
 from dynqos.plan.offloaded import offloaded
+from dynqos.plan.recording import FlightRecords
 from dynqos.plan.scenario import Scenario, load_scenario, replica_names
 
 SCENARIOS = sorted(
@@ -156,3 +160,56 @@ def test_one_drone_on_px4_starts_its_instance_with_the_edge() -> None:
         str(FOLDER / "px4" / "i2"),
         "--start=0.0,0.0",
     )
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_every_config_the_plan_names_is_written_and_each_drone_flies_its_own(
+    name: str, tmp_path: Path
+) -> None:
+    """One function writes the configs of one drone and of a fleet: one drone flies the run's config,
+    each drone of a fleet its own (its id, its offboard port); site B's is there with two sites."""
+    scenario = shipped(name)
+    plan = plan_flight(scenario, tmp_path)
+    configs = flight_configs(scenario, plan, tmp_path, None)
+    if scenario.sites == 2:
+        configs = with_site_b(configs, 0)
+    assert {launch.config for launch in plan.launches()} <= set(configs)
+    keys = plan.drone_configs()
+    assert keys == (tuple(scenario.uavs) if scenario.fleet else (SHARED,))
+    flown = [configs[key] for key in keys]
+    assert [c.drone.id for c in flown] == list(plan.drones)
+    ports = [c.onboard.mavlink_url for c in flown]
+    assert len(set(ports)) == len(ports), ports  # each drone's vehicle sends to its own port
+    if scenario.sites == 2:
+        link = configs[SITE_B].zenoh.router_links
+        assert link == (f"tcp/127.0.0.1:{configs[SHARED].zenoh.default_port}",)
+    write_configs(tmp_path, scenario, configs)
+    assert sorted(p.name for p in tmp_path.glob("*.toml")) == sorted(
+        config_file(tmp_path, k).name for k in configs
+    )
+
+
+def test_one_drone_s_recording_is_the_flight_s_and_a_fleet_s_drones_keep_theirs() -> None:
+    one = FlightRecords.of(("uav1",), fleet=False)
+    assert one.drones["uav1"] is one.flight
+    fleet = FlightRecords.of(("uav1", "uav2"), fleet=True)
+    assert fleet.drones["uav1"] is not fleet.flight
+    assert fleet.drones["uav1"] is not fleet.drones["uav2"]
+
+
+def test_a_fleet_s_drone_is_recorded_from_the_flight_s_time_zero(tmp_path: Path) -> None:
+    """The drones that offloaded first were heard before the last one did: those states are not the
+    flight's."""
+    records = FlightRecords.of(("uav1", "uav2"), fleet=True)
+    records.flight.t0_ns, records.flight.bg_on_ns = 5_000, 9_000
+    early, late = hovering(stamp_ns=4_999), hovering(stamp_ns=5_000)
+    records.drones["uav1"].states = [(1.0, early), (2.0, late)]
+    records.on_flight_clock("uav1")
+    drone = records.drones["uav1"]
+    assert drone.states == [(2.0, late)]
+    assert (drone.t0_ns, drone.bg_on_ns, drone.faults) == (5_000, 9_000, records.flight.faults)
+
+
+def hovering(stamp_ns: int) -> State:
+    zero = (0.0, 0.0, 0.0)
+    return State(uav="uav1", seq=1, stamp_ns=stamp_ns, pos_m=zero, vel_mps=zero, quat=(1.0, 0.0, 0.0, 0.0))

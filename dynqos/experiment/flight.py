@@ -1,6 +1,6 @@
 """What every flight shares, one drone or a fleet: the cell's control API, the recorder's streams, the
 wait for offloading, the flight loop (load, faults, memory, the cell's counters) and stopping every
-process whatever happens. dynqos/experiment/runner.py flies one drone, dynqos/experiment/fleet.py a fleet."""
+process whatever happens. dynqos/experiment/runner.py flies every scenario with them."""
 
 from __future__ import annotations
 

@@ -1,23 +1,29 @@
-"""Run one scenario end to end on one machine: the paper's experiment, as real processes.
+"""Fly one scenario end to end on one machine, one drone or a fleet: the paper's experiment, as real
+processes.
 
-Start the router, the cell emulator, the simulator, the planner, the MPC, the detector and the onboard
-daemon with the scenario's config (free ports on 127.0.0.1); wait until the drone offloads; fly for
-`duration_s`, switching the cell's background load on at `bg_start_s` through the cell's control API
-and injecting the scenario's faults; record what a ground station would see (dynqos/plan/recording.py);
-stop every process (also on Ctrl-C or when any of them dies, naming it); write the run folder
-(dynqos/reports/summary.py).
+One function flies every scenario, and one drone is a fleet of one. The scenario becomes a plan
+(dynqos/plan/flight.py) and its config files, then: the network, the vehicles and the edge start in
+the plan's order (free ports on 127.0.0.1); each drone's daemon starts and is waited for until its drone
+offloads; the flight lasts `duration_s`, with the load and the faults on the plan's timeline; the
+recorder hears what a ground station would (dynqos/plan/recording.py); every process stops (also on
+Ctrl-C or when any of them dies, naming it); the run folder is written (dynqos/reports/).
 """
 
 from __future__ import annotations
 
-import logging
 import threading
 from pathlib import Path
 from typing import Any
 
-from dynqos.common.config import Config, ZenohConfig
+from dynqos.common import keys
+from dynqos.common.config import Config
+from dynqos.common.keys import Downlink
+from dynqos.common.messages import QosDecision
+from dynqos.common.queues import BoundedQueue
+from dynqos.common.transport import Received
 from dynqos.experiment.faults import FaultInjector
 from dynqos.experiment.flight import (
+    QUEUE_ITEMS,
     Streams,
     cell_event,
     fly,
@@ -28,34 +34,16 @@ from dynqos.experiment.flight import (
     start_together,
     wait_for_offload,
 )
+from dynqos.experiment.flight_configs import flight_configs, write_configs
+from dynqos.experiment.flight_report import write_report
 from dynqos.experiment.link_relay import LinkRelay
-from dynqos.experiment.processes import Processes, flow_ports, free_port, free_udp_block
-from dynqos.experiment.sites import (
-    SiteFaults,
-    operators_qod,
-    site_b_config,
-    site_configs,
-    with_cell_b,
-    with_two_paths,
-)
-from dynqos.experiment.vehicles import (
-    contacts,
-    px4_config,
-    px4_instances,
-    px4_workdir,
-    track,
-    with_px4_flight,
-    world_of,
-)
+from dynqos.experiment.processes import Processes, free_port
+from dynqos.experiment.sites import SiteFaults, with_site_b, with_two_paths
+from dynqos.experiment.vehicles import px4_instances
 from dynqos.plan.cells import with_cell
-from dynqos.plan.faults import SITE_FAULTS
-from dynqos.plan.flight import SHARED, SITE_B, FlightPlan, plan_flight
-from dynqos.plan.recording import Recording
-from dynqos.plan.scenario import REPLICA_FAULTS, UAV, Scenario, scenario_config, write_config
-from dynqos.reports.multipath import fault_spans, path_figures
-from dynqos.reports.summary import summarise, write_scenario
-
-log = logging.getLogger(__name__)
+from dynqos.plan.flight import SHARED, SITE_B, FlightPlan, config_file, plan_flight, site_b_folder
+from dynqos.plan.recording import FlightRecords
+from dynqos.plan.scenario import REPLICA_FAULTS, Scenario
 
 
 def run_scenario(
@@ -66,120 +54,104 @@ def run_scenario(
     stop: threading.Event | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Run one scenario into `folder` (default out/<run id>/) and return its summary."""
-    if scenario.fleet:
-        from dynqos.experiment.fleet import run_fleet
-
-        return run_fleet(scenario, out, folder=folder, stop=stop, progress=progress)
+    """Fly one scenario into `folder` (default out/<run id>/) and return its summary."""
     stop = stop or threading.Event()
     folder = folder or out / scenario.run_id
-    logs = folder / "logs"
-    logs.mkdir(parents=True, exist_ok=True)
-    udp = free_udp_block(2)  # the vehicle's offboard port, then the ground station's
-    config = scenario_config(scenario, zenoh=ZenohConfig(**flow_ports()), fc_port=udp, gcs_port=udp + 1)
-    instances = px4_instances(scenario)
-    px4 = instances[0] if instances else None
-    if px4 is not None:
-        config = px4_config(config, px4)
+    (folder / "logs").mkdir(parents=True, exist_ok=True)
+    px4 = px4_instances(scenario)  # None: dynqos's vehicles fly
+    plan = plan_flight(scenario, folder, px4)
+    configs = flight_configs(scenario, plan, folder, px4)
     # a path_partition cuts the link between the sites' routers: it runs through a relay the runner owns
     partition = any(f.kind == "path_partition" for f in scenario.faults)
-    relay = LinkRelay(config.zenoh.default_port) if partition else None
-    config_b = None  # site B's, with two sites (docs/multipath.md)
-    if scenario.sites == 2:
-        link_port = relay.port if relay is not None else config.zenoh.default_port
-        config, config_b = site_configs(config, ZenohConfig(**flow_ports()), link_port)
-    config_path = folder / "dynqos.toml"
-    write_config(config_path, scenario, config)
-    procs = Processes(config_path, logs, scenario.metrics_port)
-    rec = Recording()
-    plan = plan_flight(scenario, folder, instances)
-    configs = {SHARED: config_path, SITE_B: folder / "dynqos-b.toml"}
+    relay = LinkRelay(configs[SHARED].zenoh.default_port) if partition else None
+    if scenario.sites == 2:  # site B's config beside the run's (docs/multipath.md)
+        configs = with_site_b(configs, relay.port if relay is not None else 0)
+        site_b_folder(folder).mkdir(exist_ok=True)
+    write_configs(folder, scenario, configs)
+    paths = {key: config_file(folder, key) for key in configs}
+    procs = Processes(paths[SHARED], folder / "logs", scenario.metrics_port)
+    records = FlightRecords.of(plan.drones, fleet=scenario.fleet)
 
-    def fly() -> None:
-        cell_ports = _start_edge_and_cell(procs, scenario, plan, (config, config_b), configs, folder)
-        _record_flight(
-            scenario, plan, (config, config_b), procs, configs, cell_ports, rec, stop, progress, relay
-        )
+    def start_and_record() -> None:
+        cells = _start(procs, scenario, plan, configs, paths)
+        _record(scenario, plan, configs, paths, procs, cells, records, stop, progress, relay)
 
     try:
-        ok, failure = fly_and_stop(scenario, folder, procs, rec, fly, stop, progress)
+        ok, failure = fly_and_stop(scenario, folder, procs, records.flight, start_and_record, stop, progress)
     finally:
         if relay is not None:
             relay.close()
-    onboard_log = logs / "onboard.log"
-    log_text = onboard_log.read_text(errors="replace") if onboard_log.exists() else ""
-    summary = summarise(scenario, rec, log_text, ok=ok, failure=failure)
-    summary["vehicle"] = scenario.vehicle
-    if scenario.sites == 2 or any(f.kind in SITE_FAULTS for f in scenario.faults):
-        summary["multipath"] = path_figures(rec.status, rec.t0_ns, *fault_spans(rec.faults))
-    if scenario.sites == 2 and scenario.qos_backend == "camara":
-        summary["qos_network"]["operators"] = operators_qod(folder)  # sessions at each site's operator
-    if px4 is not None:
-        with_px4_flight(summary, px4_workdir(folder, px4), scenario)
-        summary["px4"]["contacts"] = contacts(world_of(config), track(rec))
-    write_scenario(folder, scenario, rec, summary)
-    return summary
+    return write_report(scenario, plan, folder, configs, records, px4, ok=ok, failure=failure)
 
 
-def _start_edge_and_cell(
+def _start(
     procs: Processes,
     scenario: Scenario,
     plan: FlightPlan,
-    config_pair: tuple[Config, Config | None],
-    configs: dict[str, Path],
-    folder: Path,
+    configs: dict[str, Config],
+    paths: dict[str, Path],
 ) -> dict[str, int]:
-    """Everything but the drone, in the plan's order; returns each site's cell control port. The drone's
-    flows connect to the bearer ports the cell reports and the QoS agent to its QoD API, so the config is
-    written again once it is up. The agent stops before the cell (reverse order): the sessions it deletes
-    on SIGTERM are gone from the cell's final qod.json. With two sites, site B's router, cell and
-    services start from their own config (dynqos/experiment/sites.py)."""
-    config, config_b = config_pair
-    if config_b is not None:
-        site_b_config(scenario, config_b, folder)
-    cell, cell_b = start_network(procs, plan, configs)
-    sink_port = free_port() if scenario.qos_agents == 1 else 0
-    config = with_cell(config, cell, sink_port=sink_port)
-    ports = {"a": int(cell["control_port"])}
-    if config_b is not None and cell_b is not None:
-        with_cell_b(configs[SITE_B], scenario, config_b, cell_b)
-        config = with_two_paths(config, {"a": cell, "b": cell_b})
-        ports["b"] = int(cell_b["control_port"])
-    write_config(configs[SHARED], scenario, config)
-    start_together(procs, plan.edge, configs)  # each needs only the routers, the cells and the configs
+    """Everything but the drones' daemons, in the plan's order; each site's cell's control port. The
+    drones' flows connect to the bearer ports each cell reports and the QoS agents to its QoD API, so
+    the configs are written again once the cells are up. The agent stops before the cell (reverse
+    order): the sessions it deletes on SIGTERM are gone from the cell's final qod.json."""
+    cell, cell_b = start_network(procs, plan, paths)
+    cells = {"a": cell} if cell_b is None else {"a": cell, "b": cell_b}
+    sink_port = free_port() if scenario.qos_agents == 1 else 0  # several agents poll (scenario.py)
+    configs[SHARED] = with_cell(configs[SHARED], cell, sink_port=sink_port)
+    for key in plan.drone_configs():  # one drone's is the run's, with the cell already
+        config = configs[key] if key == SHARED else with_cell(configs[key], cell)
+        configs[key] = with_two_paths(config, cells) if cell_b is not None else config
+    if cell_b is not None:
+        configs[SITE_B] = with_cell(configs[SITE_B], cell_b)
+    write_configs(paths[SHARED].parent, scenario, configs)
+    for item in plan.vehicles:  # PX4 instances of a fleet boot one at a time
+        launch(procs, item, paths)
+    start_together(procs, plan.edge, paths)  # each needs only the routers, the cells and the configs
     for item in plan.after_edge:
-        launch(procs, item, configs)
-    return ports
+        launch(procs, item, paths)
+    return {site: int(c["control_port"]) for site, c in cells.items()}
 
 
-def _record_flight(
+def _record(
     scenario: Scenario,
     plan: FlightPlan,
-    config_pair: tuple[Config, Config | None],
+    configs: dict[str, Config],
+    paths: dict[str, Path],
     procs: Processes,
-    configs: dict[str, Path],
     cell_ports: dict[str, int],
-    rec: Recording,
+    records: FlightRecords,
     stop: threading.Event,
     progress: bool,
-    relay: LinkRelay | None = None,
+    relay: LinkRelay | None,
 ) -> None:
-    config, config_b = config_pair
-    bus = recorder_bus(config.zenoh, config_b.zenoh if config_b else None)  # as a ground station hears
-    uplink_mbps = config.cell.uplink_mbps
-
+    """Start every drone's daemon, one at a time, each waited for until its drone offloads; then fly
+    the scenario. The recorder hears the drones as a ground station would: with two sites through
+    either router, so that it hears on when one site is killed."""
+    site_b = configs.get(SITE_B)
+    bus = recorder_bus(configs[SHARED].zenoh, site_b.zenoh if site_b else None)
+    rec = records.flight
     try:
-        streams = Streams.subscribe(bus)
-        launch(procs, plan.onboard[0], configs)
-        rec.offload_ns = rec.t0_ns = wait_for_offload(streams.states, procs, stop)
+        streams = {uav: Streams.subscribe(bus, uav) for uav in plan.drones}
+        heard: BoundedQueue[Received] = BoundedQueue(QUEUE_ITEMS)
+        bus.subscribe(keys.downlink_all_drones(Downlink.QOS_DECISION), heard, expect=(QosDecision,))
+        # Four take-offs at once on two cores are a start-up no fleet flies, and their latencies would
+        # be the baseline's. The drones stop at once (a PX4 drone lands before its daemon exits).
+        first = plan.onboard[0].name
+        for uav, item in zip(plan.drones, plan.onboard, strict=True):
+            launch(procs, item, paths, stop_with=None if item.name == first else first)
+            records.drones[uav].offload_ns = wait_for_offload(streams[uav].states, procs, stop, item.name)
+        # The flight's time zero is when the last drone offloads: from then on every drone is recorded.
+        rec.t0_ns = rec.offload_ns = max(r.offload_ns or 0 for r in records.drones.values())
         rec.cpu_s_t0 = procs.cpu_seconds()
-        replica_faults = any(f.kind in REPLICA_FAULTS for f in scenario.faults)
+        # a replica fault acts on the replica serving the first drone (the others' may be another)
+        watched = plan.drones[0] if any(f.kind in REPLICA_FAULTS for f in scenario.faults) else None
         injector = FaultInjector(
             procs,
             cell_event(cell_ports["a"]),
             bus,
-            uplink_mbps=uplink_mbps,
-            watch_uav=UAV if replica_faults else None,
+            uplink_mbps=configs[SHARED].cell.uplink_mbps,
+            watch_uav=watched,
             sites=SiteFaults(procs, {site: cell_event(port) for site, port in cell_ports.items()}, relay),
         )
         try:
@@ -188,6 +160,9 @@ def _record_flight(
         finally:
             injector.close()
             rec.faults = injector.windows
-        streams.drain_into(rec)
+        for uav, heard_of_drone in streams.items():
+            heard_of_drone.drain_into(records.drones[uav])
+            records.on_flight_clock(uav)
+        records.decisions += [i.message for i in heard.drain() if isinstance(i.message, QosDecision)]
     finally:
         bus.close()

@@ -20,11 +20,9 @@ from typing import Any
 
 from dynqos.common.config import Config, OnboardPathConfig, ZenohConfig
 from dynqos.experiment.link_relay import LinkRelay
-from dynqos.experiment.processes import Processes
-from dynqos.plan.cells import with_cell
+from dynqos.experiment.processes import Processes, flow_ports
 from dynqos.plan.faults import Fault, FaultWindow
-from dynqos.plan.flight import SITE_B_FOLDER
-from dynqos.plan.scenario import Scenario, write_config
+from dynqos.plan.flight import SHARED, SITE_B, site_b_folder
 from dynqos.reports.summary import qod_sessions
 
 log = logging.getLogger(__name__)
@@ -85,17 +83,11 @@ def with_site_b_bearers(config_b: Config, zenoh_a: ZenohConfig) -> Config:
     return replace(config_b, cell=replace(config_b.cell, bearers=tuple(bearers)))
 
 
-def site_b_config(scenario: Scenario, config_b: Config, folder: Path) -> tuple[Path, Path]:
-    """Site B's own config, written at dynqos-b.toml (again, with its QoD API for site B's agents, once
-    cell B is up: `with_cell_b`), and cell B's folder (the plan's cell-b writes there)."""
-    path_b = folder / "dynqos-b.toml"
-    write_config(path_b, scenario, config_b)
-    site_b_folder(folder).mkdir(exist_ok=True)
-    return path_b, site_b_folder(folder)
-
-
-def with_cell_b(path_b: Path, scenario: Scenario, config_b: Config, cell_b: dict[str, Any]) -> None:
-    write_config(path_b, scenario, with_cell(config_b, cell_b))
+def with_site_b(configs: dict[str, Config], link_port: int) -> dict[str, Config]:
+    """A flight's configs (keyed as its plan names them, dynqos/plan/flight.py) with site B's beside the
+    run's: `site_configs`, with cell B's bearers forwarded to site B's router."""
+    a, b = site_configs(configs[SHARED], ZenohConfig(**flow_ports()), link_port)
+    return {**configs, SHARED: a, SITE_B: with_site_b_bearers(b, a.zenoh)}
 
 
 def with_two_paths(config: Config, cells: dict[str, dict[str, Any]]) -> Config:
@@ -170,8 +162,3 @@ def operators_qod(folder: Path) -> dict[str, dict[str, int]]:
     """Each operator's QoD sessions once every process stopped (each cell's qod.json): site -> counts."""
     files = {"a": folder / "qod.json", "b": site_b_folder(folder) / "qod.json"}
     return {site: qod_sessions(json.loads(path.read_text())) for site, path in files.items() if path.exists()}
-
-
-def site_b_folder(folder: Path) -> Path:
-    """Where cell B writes its records (cell.csv, qod.json): beside site A's, in their own folder."""
-    return folder / SITE_B_FOLDER

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from dynqos.common.config import Config
-from dynqos.plan.flight import PX4_FOLDER
+from dynqos.plan.flight import SHARED
 from dynqos.plan.recording import Recording
 from dynqos.plan.scenario import Scenario
 from dynqos.sim.vehicle.world import World, collision, default_world, load_world
@@ -48,16 +48,16 @@ def px4_radio(config: Config) -> Config:
     return replace(config, cell=replace(config.cell, radio=radio))
 
 
-def with_px4_fleet(
-    scenario: Scenario, shared: Config, drones: dict[str, Config]
-) -> tuple[Config, dict[str, Config], list[int] | None]:
-    """A fleet's configs for PX4 (one free instance per drone, in order) when the scenario flies PX4,
-    and the instances; as they are, and None, when dynqos's vehicles fly."""
-    px4 = px4_instances(scenario)
+def with_px4(configs: dict[str, Config], drones: Sequence[str], px4: list[int] | None) -> dict[str, Config]:
+    """A flight's configs (keyed as its plan names them, dynqos/plan/flight.py) for PX4: the drone whose
+    config is `drones[i]` flown by instance px4[i] (one drone's is the run's own), the radio map hearing
+    PX4's ground-station link. As they are when dynqos's vehicles fly (`px4` None)."""
     if px4 is None:
-        return shared, drones, None
-    drones = {uav: px4_config(config, px4[i]) for i, (uav, config) in enumerate(drones.items())}
-    return px4_radio(shared), drones, px4
+        return configs
+    configs = {**configs, SHARED: px4_radio(configs[SHARED])}
+    for key, instance in zip(drones, px4, strict=True):
+        configs[key] = px4_config(configs[key], instance)
+    return configs
 
 
 def px4_instances(scenario: Scenario) -> list[int] | None:
@@ -67,10 +67,6 @@ def px4_instances(scenario: Scenario) -> list[int] | None:
     from dynqos.sim.vehicle.px4_sitl import free_instances
 
     return free_instances(len(scenario.uavs))
-
-
-def px4_workdir(folder: Path, px4: int) -> Path:
-    return folder / PX4_FOLDER / f"i{px4}"
 
 
 def with_px4_flight(

@@ -1,10 +1,10 @@
 """A flight as data: every process a scenario starts, in which stage, with which config and at which
 priority, and what happens when, decided before anything starts.
 
-One drone is a fleet of one: both runners (experiment/runner.py, experiment/fleet.py) start the stages
-this plan names, in its order, and where one drone and a fleet differ (a recorder of the whole flight
-for one drone; in a fleet the detector, the fleet planner and the ROS 2 face below the control path,
-and PX4 instances booted one at a time) the difference is here, as data, not in two start-up paths.
+One drone is a fleet of one: the runner (experiment/runner.py) starts the stages this plan names, in
+its order, for one drone and for a fleet, and where the two differ (a recorder of the whole flight for
+one drone; in a fleet the detector, the fleet planner and the ROS 2 face below the control path, each
+drone's own config file, and PX4 instances booted one at a time) the difference is here, as data.
 A test reads the plan of every shipped scenario without flying it (tests/test_flight_plan.py).
 """
 
@@ -66,6 +66,11 @@ class FlightPlan:
     def launches(self) -> tuple[Launch, ...]:
         return self.network + self.vehicles + self.edge + self.after_edge + self.onboard
 
+    def drone_configs(self) -> tuple[str, ...]:
+        """Each drone's config, in `drones`' order: SHARED for one drone (it flies the run's config), the
+        drone's id in a fleet (its own file)."""
+        return tuple(item.config for item in self.onboard)
+
     def named(self, name: str) -> Launch:
         for launch in self.launches():
             if launch.name == name:
@@ -104,6 +109,24 @@ def plan_flight(scenario: Scenario, folder: Path, px4: list[int] | None = None) 
     )
 
 
+def config_file(folder: Path, key: str) -> Path:
+    """Where the config a Launch names is written: the run's dynqos.toml, site B's dynqos-b.toml, a fleet
+    drone's <id>.toml."""
+    if key == SHARED:
+        return folder / "dynqos.toml"
+    return folder / ("dynqos-b.toml" if key == SITE_B else f"{key}.toml")
+
+
+def px4_workdir(folder: Path, instance: int) -> Path:
+    """PX4 instance `instance`'s working directory in the run folder (its ULogs among its files)."""
+    return folder / PX4_FOLDER / f"i{instance}"
+
+
+def site_b_folder(folder: Path) -> Path:
+    """Where cell B writes its records (cell.csv, qod.json): beside site A's, in their own folder."""
+    return folder / SITE_B_FOLDER
+
+
 def timeline(scenario: Scenario) -> tuple[Event, ...]:
     """The load and the faults, in the order they happen."""
     events = [Event(f.at_s, f.kind, f.duration_s, f.site) for f in scenario.faults]
@@ -117,7 +140,7 @@ def _network(scenario: Scenario, folder: Path) -> tuple[Launch, ...]:
     if scenario.sites == 2:
         network += [
             Launch("router-b", ("edge", "router"), config=SITE_B),
-            Launch("cell-b", ("sim", "cell", "--out", str(folder / SITE_B_FOLDER)), config=SITE_B),
+            Launch("cell-b", ("sim", "cell", "--out", str(site_b_folder(folder))), config=SITE_B),
         ]
     return tuple(network)
 
@@ -154,7 +177,7 @@ def _vehicles(scenario: Scenario, folder: Path, px4: list[int] | None) -> list[L
             launches.append(Launch(name, sim, config=config))
             continue
         start_m = scenario.drones[i].start_m if fleet else (0.0, 0.0)
-        workdir = folder / PX4_FOLDER / f"i{px4[i]}"
+        workdir = px4_workdir(folder, px4[i])
         start = "--start={},{}".format(*start_m)  # one word: a start of -5.5 is no option
         sitl = ("sim", "px4", "--instance", str(px4[i]), "--workdir", str(workdir), start)
         launches.append(Launch(name, sitl, config=config, timeout_s=90.0))

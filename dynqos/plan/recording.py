@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from dynqos.common.messages import Reference, State, SupervisorStatus
+from dynqos.common.messages import QosDecision, Reference, State, SupervisorStatus
 from dynqos.plan.faults import FaultWindow
 
 
@@ -53,3 +53,26 @@ class Recording:
     cpu_times: list[tuple[float, CpuTimes]] = field(default_factory=list)
     cores: int = 1  # the cores the flight's processes could use (its affinity), when it was flown
     flight_start_ns: int | None = None  # monotonic ns at the flight's second 0, which cpu_times count from
+
+
+@dataclass(slots=True)
+class FlightRecords:
+    """What a flight recorded: `flight`, what the drones share (the cell, the load, the faults, memory
+    and CPU), each drone's own (`drones`; one drone's recording is the flight's itself: a fleet of one),
+    and the QoS agents' decisions."""
+
+    flight: Recording
+    drones: dict[str, Recording]
+    decisions: list[QosDecision] = field(default_factory=list)
+
+    @classmethod
+    def of(cls, drones: tuple[str, ...], fleet: bool) -> FlightRecords:
+        flight = Recording()
+        return cls(flight, {uav: Recording() for uav in drones} if fleet else {drones[0]: flight})
+
+    def on_flight_clock(self, uav: str) -> None:
+        """Drone `uav`'s recording as the flight has it: its states from the flight's time zero on,
+        the faults and the load of the flight (the same object for one drone: nothing changes)."""
+        drone, flight = self.drones[uav], self.flight
+        drone.faults, drone.t0_ns, drone.bg_on_ns = flight.faults, flight.t0_ns, flight.bg_on_ns
+        drone.states = [(lat, state) for lat, state in drone.states if state.stamp_ns >= flight.t0_ns]
