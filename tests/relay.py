@@ -69,15 +69,15 @@ class Relay:
                 break
             if not data:
                 break
-            try:
-                dst.sendall(data)
-            except OSError:
-                break
-            with self._lock:
+            with self._lock:  # counted before it is passed on: a reader that has the bytes sees them counted
                 if upward:
                     self.up_bytes += len(data)
                 else:
                     self.down_bytes += len(data)
+            try:
+                dst.sendall(data)
+            except OSError:
+                break
             if upward and self.up_rate_bps:
                 # Pace the reads: this is the emulated link rate, not synchronisation.
                 # A token bucket with 10 ms of burst: an idle link saves up no more credit than that.
