@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from dynqos.common.messages import State
-from dynqos.experiment.flight_configs import flight_configs, write_configs
+from dynqos.experiment.flight_configs import config_paths, flight_configs, write_configs
 from dynqos.experiment.sites import with_site_b
 from dynqos.plan.flight import NICE, SHARED, SITE_B, FlightPlan, Launch, config_file, plan_flight
 from dynqos.plan.offloaded import offloaded
@@ -183,7 +183,7 @@ def test_every_config_the_plan_names_is_written_and_each_drone_flies_its_own(
     if scenario.sites == 2:
         link = configs[SITE_B].zenoh.router_links
         assert link == (f"tcp/127.0.0.1:{configs[SHARED].zenoh.default_port}",)
-    write_configs(tmp_path, scenario, configs)
+    write_configs(config_paths(tmp_path, configs), scenario, configs)
     assert sorted(p.name for p in tmp_path.glob("*.toml")) == sorted(
         config_file(tmp_path, k).name for k in configs
     )

@@ -37,6 +37,11 @@ def flight_configs(
     return configs
 
 
-def write_configs(folder: Path, scenario: Scenario, configs: dict[str, Config]) -> None:
+def config_paths(folder: Path, configs: dict[str, Config]) -> dict[str, Path]:
+    """Where each of `configs` is written in the run folder (plan/flight.py's config_file)."""
+    return {key: config_file(folder, key) for key in configs}
+
+
+def write_configs(paths: dict[str, Path], scenario: Scenario, configs: dict[str, Config]) -> None:
     for key, config in configs.items():
-        write_config(config_file(folder, key), scenario, config)
+        write_config(paths[key], scenario, config)

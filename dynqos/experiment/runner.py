@@ -34,14 +34,14 @@ from dynqos.experiment.flight import (
     start_together,
     wait_for_offload,
 )
-from dynqos.experiment.flight_configs import flight_configs, write_configs
+from dynqos.experiment.flight_configs import config_paths, flight_configs, write_configs
 from dynqos.experiment.flight_report import write_report
 from dynqos.experiment.link_relay import LinkRelay
 from dynqos.experiment.processes import Processes, free_port
 from dynqos.experiment.sites import SiteFaults, with_site_b, with_two_paths
 from dynqos.experiment.vehicles import px4_instances
 from dynqos.plan.cells import with_cell
-from dynqos.plan.flight import SHARED, SITE_B, FlightPlan, config_file, plan_flight, site_b_folder
+from dynqos.plan.flight import SHARED, SITE_B, FlightPlan, plan_flight, site_b_folder
 from dynqos.plan.recording import FlightRecords
 from dynqos.plan.scenario import REPLICA_FAULTS, Scenario
 
@@ -67,8 +67,8 @@ def run_scenario(
     if scenario.sites == 2:  # site B's config beside the run's (docs/multipath.md)
         configs = with_site_b(configs, relay.port if relay is not None else 0)
         site_b_folder(folder).mkdir(exist_ok=True)
-    write_configs(folder, scenario, configs)
-    paths = {key: config_file(folder, key) for key in configs}
+    paths = config_paths(folder, configs)
+    write_configs(paths, scenario, configs)
     procs = Processes(paths[SHARED], folder / "logs", scenario.metrics_port)
     records = FlightRecords.of(plan.drones, fleet=scenario.fleet)
 
@@ -104,7 +104,7 @@ def _start(
         configs[key] = with_two_paths(config, cells) if cell_b is not None else config
     if cell_b is not None:
         configs[SITE_B] = with_cell(configs[SITE_B], cell_b)
-    write_configs(paths[SHARED].parent, scenario, configs)
+    write_configs(paths, scenario, configs)
     for item in plan.vehicles:  # PX4 instances of a fleet boot one at a time
         launch(procs, item, paths)
     start_together(procs, plan.edge, paths)  # each needs only the routers, the cells and the configs
